@@ -1,0 +1,97 @@
+"""Every Zenoh key expression of the project is built here; nowhere else writes key strings.
+
+Layout (``<p>`` = ``drivebench/run/<run_id>``, so ``<p>/**`` is one run and runs never cross-talk):
+
+    <p>/sim/camera               CameraFrame, ground truth (what the simulator rendered)
+    <p>/noise/camera             CameraFrame, perturbed (what brains see when a noise injector runs)
+    <p>/sim/pose                 Pose, ground truth
+    <p>/sim/events               EpisodeEvent
+    <p>/sim/control              queryable: ControlRequest -> ControlReply
+    <p>/brain/<brain>/cmd        Command of one brain (the simulator applies only the active one)
+    <p>/scorer/live              LiveMetrics
+    <p>/scorer/score             EpisodeScore
+
+Liveliness tokens live under ``drivebench/alive/<run_id>/<role>/<name>``.
+"""
+
+from __future__ import annotations
+
+import re
+
+ROOT = "drivebench"
+_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def check_name(name: str, *, what: str) -> str:
+    """Run ids, brain names and roles become key chunks: no '/', '*', '$', '?', '#' or spaces."""
+    if not _NAME.match(name):
+        raise ValueError(f"{what} {name!r} may only contain letters, digits, '_', '.', '-'")
+    return name
+
+
+def run_prefix(run_id: str) -> str:
+    return f"{ROOT}/run/{check_name(run_id, what='run id')}"
+
+
+def run_all(run_id: str) -> str:
+    """Everything published in one run (what the recorder subscribes to)."""
+    return f"{run_prefix(run_id)}/**"
+
+
+def camera_raw(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/sim/camera"
+
+
+def camera_perturbed(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/noise/camera"
+
+
+def pose(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/sim/pose"
+
+
+def events(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/sim/events"
+
+
+def sim_control(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/sim/control"
+
+
+def command(run_id: str, brain: str) -> str:
+    return f"{run_prefix(run_id)}/brain/{check_name(brain, what='brain name')}/cmd"
+
+
+def commands_all(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/brain/*/cmd"
+
+
+def brain_of_command_key(key: str) -> str:
+    """The brain name inside a key made by :func:`command`."""
+    parts = key.split("/")
+    return parts[-2]
+
+
+def live_metrics(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/scorer/live"
+
+
+def score(run_id: str) -> str:
+    return f"{run_prefix(run_id)}/scorer/score"
+
+
+def alive(run_id: str, role: str, name: str) -> str:
+    """Liveliness token of one process of one run."""
+    return f"{ROOT}/alive/{check_name(run_id, what='run id')}/{check_name(role, what='role')}/{check_name(name, what='name')}"
+
+
+def alive_all(run_id: str) -> str:
+    return f"{ROOT}/alive/{check_name(run_id, what='run id')}/**"
+
+
+def parse_alive(key: str) -> tuple[str, str, str]:
+    """(run_id, role, name) of a key made by :func:`alive`."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != ROOT or parts[1] != "alive":
+        raise ValueError(f"not a liveliness key: {key!r}")
+    return parts[2], parts[3], parts[4]
