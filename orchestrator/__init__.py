@@ -1,0 +1,1 @@
+"""The orchestrator: the local launcher, the ``drivebench`` command, run control and reports."""

@@ -13,6 +13,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
+# Half-width of the arc-length window searched around a moving point's previous projection: wider than any
+# distance a car covers in one step, narrower than the gap between two branches of a track along its length.
+TRACKING_WINDOW_M = 8.0
+
+
 @dataclass(frozen=True)
 class Projection:
     """Where a point lies relative to the centreline.
@@ -69,35 +74,53 @@ class Centreline:
         vx, vy = self._segment_vectors[i]
         return float(x), float(y), math.atan2(vy, vx)
 
-    def project(self, x_m: float, y_m: float, *, near_s_m: float | None = None, k: int = 8) -> Projection:
+    def project(self, x_m: float, y_m: float, *, near_s_m: float | None = None,
+                window_m: float = TRACKING_WINDOW_M) -> Projection:
         """Project a point onto the centreline.
 
-        Looks at the segments around the ``k`` nearest vertices. Where the track passes close to itself (hairpins,
-        parallel straights) the nearest vertex can be on the wrong branch; given ``near_s_m`` (the previous
-        projection), the candidate with the arc length closest to it wins among those at about the same distance.
+        Without ``near_s_m``: the closest point, searched around the 8 nearest vertices. With ``near_s_m`` (the
+        previous projection of a moving point), only segments within ``window_m`` of arc length of it are searched,
+        so a point cannot jump to another branch where the track passes close to itself (hairpins, parallel
+        straights); a best point on the window's edge means the point was lost, and the global search decides.
         """
-        k = min(k, len(self.points_m))
-        _, vertex_ids = self._tree.query((x_m, y_m), k=k)
+        if near_s_m is None:
+            return self._project_global(x_m, y_m)
+        count = len(self.points_m)
+        half = int(math.ceil(window_m / (self.length_m / count))) + 1
+        if 2 * half + 1 >= count:
+            return self._project_global(x_m, y_m)
+        centre = int(np.searchsorted(self.s_m, near_s_m % self.length_m, side="right") - 1)
+        segments = (centre + np.arange(-half, half + 1)) % count
+        best, t, distance, cross = self._closest_of(segments, x_m, y_m)
+        if (best == 0 and t == 0.0) or (best == len(segments) - 1 and t == 1.0):
+            return self._project_global(x_m, y_m)
+        return self._projection(int(segments[best]), t, distance, cross)
+
+    def _project_global(self, x_m: float, y_m: float, k: int = 8) -> Projection:
+        _, vertex_ids = self._tree.query((x_m, y_m), k=min(k, len(self.points_m)))
         vertex_ids = np.atleast_1d(vertex_ids)
         segments = np.unique(np.concatenate([vertex_ids, (vertex_ids - 1) % len(self.points_m)]))
+        best, t, distance, cross = self._closest_of(segments, x_m, y_m)
+        return self._projection(int(segments[best]), t, distance, cross)
+
+    def _closest_of(self, segments: np.ndarray, x_m: float, y_m: float) -> tuple[int, float, float, float]:
+        """(index into ``segments`` of the closest, its parameter t in [0, 1], distance, cross product sign)."""
         starts = self.points_m[segments]
         vectors = self._segment_vectors[segments]
-        lengths = self._segment_lengths[segments]
-        rel = np.array([x_m, y_m]) - starts
-        t = np.clip(np.einsum("ij,ij->i", rel, vectors) / lengths**2, 0.0, 1.0)
-        closest = starts + t[:, None] * vectors
-        distances = np.hypot(*(np.array([x_m, y_m]) - closest).T)
-        s_candidates = (self.s_m[segments] + t * lengths) % self.length_m
-        best = int(np.argmin(distances))
-        if near_s_m is not None:
-            # Among candidates not much farther than the closest, prefer continuity of arc length.
-            plausible = distances <= distances[best] + 1.0
-            gaps = np.abs(self.wrap_ds(s_candidates - near_s_m))
-            gaps[~plausible] = np.inf
-            best = int(np.argmin(gaps))
-        cross = vectors[best, 0] * rel[best, 1] - vectors[best, 1] * rel[best, 0]
-        lateral = math.copysign(float(distances[best]), cross) if cross != 0 else 0.0
-        return Projection(s_m=float(s_candidates[best]), lateral_m=lateral, segment=int(segments[best]))
+        rel_x = x_m - starts[:, 0]
+        rel_y = y_m - starts[:, 1]
+        t = np.clip((rel_x * vectors[:, 0] + rel_y * vectors[:, 1]) / self._segment_lengths[segments] ** 2, 0.0, 1.0)
+        dx = rel_x - t * vectors[:, 0]
+        dy = rel_y - t * vectors[:, 1]
+        d_sq = dx * dx + dy * dy
+        best = int(np.argmin(d_sq))
+        cross = float(vectors[best, 0] * rel_y[best] - vectors[best, 1] * rel_x[best])
+        return best, float(t[best]), math.sqrt(float(d_sq[best])), cross
+
+    def _projection(self, segment: int, t: float, distance: float, cross: float) -> Projection:
+        s = float((self.s_m[segment] + t * self._segment_lengths[segment]) % self.length_m)
+        lateral = math.copysign(distance, cross) if cross != 0 else 0.0
+        return Projection(s_m=s, lateral_m=lateral, segment=segment)
 
     def wrap_ds(self, ds_m):
         """Wrap an arc-length difference into (-L/2, L/2]: the shorter way round."""

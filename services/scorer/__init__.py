@@ -1,0 +1,1 @@
+"""The scorer: Behavior-Metrics-compatible and metric-true episode scores from ground-truth poses."""

@@ -1,0 +1,149 @@
+"""The brain host process (``python -m brains --brain NAME``): camera frames in, commands out.
+
+It keeps only the newest frame (a brain slower than the camera skips frames instead of lagging behind), calls the
+brain, and publishes a Command stamped with the frame it answers and the inference time. A new episode number on
+the frames resets the brain, seeded from the episode's spec. A frame it has already answered (the simulator
+repeats a frame nobody answered) gets the same command again without calling the brain twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from brains.base import Brain, Observation
+from brains.registry import UnknownBrainError, brain_names, make_brain
+from protocol import keys
+from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header
+
+log = logging.getLogger("drivebench.brain")
+
+
+class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Config of one brain host process.
+
+    brain: registered brain name (``explicit``, ``constant``, ...).
+    name: this brain's name on the bus (its command key and liveliness token); defaults to ``brain``.
+    options: keyword options for the brain's constructor (e.g. ``{speed_mps: 2.0}`` for ``constant``).
+    camera: which stream to drive from: ``perturbed`` (after the noise injector) or ``raw`` (straight from the
+        simulator, when no noise injector runs).
+    """
+
+    bus: BusConfig = BusConfig()
+    run_id: str = "default"
+    brain: str = "explicit"
+    name: str = ""
+    options: dict[str, Any] = {}
+    camera: str = "raw"
+
+    def __post_init__(self) -> None:
+        if self.camera not in ("raw", "perturbed"):
+            raise ValueError(f"camera must be raw or perturbed, got {self.camera!r}")
+
+    @property
+    def bus_name(self) -> str:
+        return self.name or self.brain
+
+
+def frame_image(frame: CameraFrame) -> np.ndarray:
+    """The frame's pixels as H x W x 3 uint8 (a view on the payload, no copy)."""
+    if frame.encoding != "rgb8":
+        raise ValueError(f"unsupported camera encoding {frame.encoding!r} (expected rgb8)")
+    expected = frame.width_px * frame.height_px * 3
+    if len(frame.data) != expected:
+        raise ValueError(f"camera frame of {frame.width_px}x{frame.height_px} rgb8 needs {expected} bytes, "
+                         f"got {len(frame.data)}")
+    return np.frombuffer(frame.data, dtype=np.uint8).reshape(frame.height_px, frame.width_px, 3)
+
+
+class BrainHost:
+    def __init__(self, config: BrainHostConfig, bus: Bus, brain: Brain):
+        self.config = config
+        self.brain = brain
+        self.name = keys.check_name(config.bus_name, what="brain name")
+        run = config.run_id
+        camera_key = keys.camera_raw(run) if config.camera == "raw" else keys.camera_perturbed(run)
+        self._frames = bus.subscribe(camera_key, CameraFrame, keep_last=1)
+        self._events = Inbox()
+        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._events)
+        self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
+        self._episode = -1
+        self._seeds: dict[int, int] = {}
+        self._last: Command | None = None
+        self._seq = 0
+        self.bad_frames = 0
+        # Declared last: whoever sees this token can rely on the subscriptions above.
+        bus.declare_alive(keys.alive(run, "brain", self.name))
+
+    def serve_forever(self) -> None:
+        log.info("brain %s (%s) ready on run %s", self.name, self.config.brain, self.config.run_id)
+        while True:
+            received = self._frames.recv(timeout_s=0.5)
+            if received is not None:
+                self.answer(received.message)
+
+    def _seed_for(self, episode: int) -> int:
+        """The episode's seed, from its START event (published before its first frame)."""
+        deadline = time.monotonic() + 0.5
+        while episode not in self._seeds and time.monotonic() < deadline:
+            received = self._events.recv(timeout_s=0.05)
+            if received is not None and received.message.kind == EventKind.START and received.message.spec:
+                self._seeds[received.message.header.episode] = received.message.spec.seed
+        if episode not in self._seeds:
+            log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
+        return self._seeds.get(episode, 0)
+
+    def answer(self, frame: CameraFrame) -> None:
+        h = frame.header
+        if self._last is not None and (self._last.header.episode, self._last.frame_seq) == (h.episode, h.seq):
+            self._commands.publish(self._last)  # a repeated frame: same answer, the brain sees each frame once
+            return
+        try:
+            image = frame_image(frame)
+        except ValueError as error:
+            self.bad_frames += 1
+            if self.bad_frames == 1:
+                log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
+            return
+        if h.episode != self._episode:
+            self._episode = h.episode
+            self.brain.reset(seed=self._seed_for(h.episode))
+        started = time.perf_counter_ns()
+        action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq))
+        inference_ns = time.perf_counter_ns() - started
+        command = Command(
+            header=Header(run_id=self.config.run_id, episode=h.episode, seq=self._seq, stamp_ns=h.stamp_ns),
+            brain=self.name, frame_seq=h.seq, speed_mps=float(action.speed_mps),
+            yaw_rate_radps=float(action.yaw_rate_radps), inference_ns=inference_ns)
+        self._seq += 1
+        self._commands.publish(command)
+        self._last = command
+
+
+def main(argv: list[str] | None = None) -> int:
+    from protocol.runtime import UserError, load_service_config, log_config, run_service, service_parser
+
+    parser = service_parser("drivebench brain host: camera frames in, driving commands out")
+    parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")
+    parser.add_argument("--name", help="name on the bus (default: the brain's name)")
+    args = parser.parse_args(argv)
+
+    def run() -> int:
+        config = load_service_config(BrainHostConfig, args, extra={"brain": args.brain, "name": args.name})
+        log_config(config)
+        try:
+            brain = make_brain(config.brain, **config.options)
+        except UnknownBrainError as error:
+            raise UserError(str(error)) from None
+        except TypeError as error:
+            raise UserError(f"bad options for brain {config.brain!r}: {error}") from None
+        with Bus(config.bus, name=f"brain-{config.bus_name}") as bus:
+            BrainHost(config, bus, brain).serve_forever()
+        return 0
+
+    return run_service("brain", run)

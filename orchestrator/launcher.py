@@ -1,0 +1,208 @@
+"""The local launcher: a whole stack on this machine, each service its own process, one run folder.
+
+``LocalStack`` embeds the Zenoh router in the calling process (on a free loopback port), starts the simulator,
+the brain host(s) and the scorer as child processes with a log file each, waits for their liveliness tokens,
+runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM, then SIGKILL).
+Children also stop by themselves when this process dies (they watch their parent), so nothing is orphaned.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Inbox
+from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
+
+log = logging.getLogger("drivebench.launcher")
+
+STOP_GRACE_S = 5.0
+
+
+class StackError(RuntimeError):
+    """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
+
+
+def free_loopback_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@dataclass(frozen=True)
+class BrainLaunch:
+    """A brain host to start: registered brain, its bus name, constructor options as ``key=value`` YAML overrides."""
+
+    brain: str
+    name: str = ""
+    options: tuple[str, ...] = ()
+
+    @property
+    def bus_name(self) -> str:
+        return self.name or self.brain
+
+
+@dataclass
+class Child:
+    role: str
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+
+    def last_log_line(self) -> str:
+        try:
+            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
+
+
+@dataclass
+class LocalStack:
+    """A stack on this machine. Use as a context manager; ``run_episode`` as often as needed inside."""
+
+    run_id: str
+    run_dir: Path
+    brains: list[BrainLaunch] = field(default_factory=lambda: [BrainLaunch("explicit")])
+    startup_timeout_s: float = 60.0
+    children: list[Child] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.run_id, what="run id")
+        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.bus: Bus | None = None
+
+    def __enter__(self) -> LocalStack:
+        try:
+            self.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    # -- start / stop --
+
+    def start(self) -> None:
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher")
+        watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer")}
+        self._spawn("simulator", "sim", "services.simulator", [])
+        self._spawn("scorer", "scorer", "services.scorer", [])
+        for launch in self.brains:
+            argv = ["--brain", launch.brain, "--name", launch.bus_name]
+            for option in launch.options:
+                argv += ["--set", f"options.{option}"]
+            self._spawn("brain", launch.bus_name, "brains", argv)
+            wanted.add(keys.alive(self.run_id, "brain", launch.bus_name))
+        missing = watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
+        if (dead := self._dead_child_reason()) is not None:
+            raise StackError(dead)
+        if missing:
+            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
+            raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})")
+        log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
+
+    def _spawn(self, role: str, name: str, module: str, argv: list[str]) -> Child:
+        log_path = self.run_dir / "logs" / f"{role}-{name}.log" if role == "brain" else self.run_dir / "logs" / f"{role}.log"
+        env = dict(os.environ, PYTHONUNBUFFERED="1", DRIVEBENCH_PARENT_PID=str(os.getpid()))
+        with open(log_path, "ab") as log_file:
+            process = subprocess.Popen(
+                [sys.executable, "-m", module, "--router", self.endpoint, "--run-id", self.run_id, *argv],
+                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                start_new_session=True,  # Ctrl-C reaches only us; we stop the children in order
+            )
+        child = Child(role=role, name=name, process=process, log_path=log_path)
+        self.children.append(child)
+        return child
+
+    def _dead_child_reason(self) -> str | None:
+        for child in self.children:
+            code = child.process.poll()
+            if code is not None:
+                detail = child.last_log_line()
+                return f"{child.role} {child.name!r} exited with code {code}" + (f": {detail}" if detail else "")
+        return None
+
+    def child(self, role: str, name: str) -> Child:
+        for child in self.children:
+            if (child.role, child.name) == (role, name):
+                return child
+        raise KeyError(f"{role}/{name}")
+
+    def close(self) -> None:
+        for child in self.children:
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for child in self.children:
+            try:
+                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s %s did not stop in %.0f s: killing it", child.role, child.name, STOP_GRACE_S)
+                child.process.kill()
+                child.process.wait()
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+
+    # -- episodes --
+
+    def run_episode(self, spec: EpisodeSpec, *, on_live: Callable[[LiveMetrics], None] | None = None,
+                    wall_timeout_s: float | None = None) -> EpisodeScore:
+        """Start one episode and wait for its score. ``wall_timeout_s`` guards against a stack that stops moving."""
+        assert self.bus is not None, "start the stack first"
+        inbox = Inbox()
+        subscriptions = [self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
+                         self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox)]
+        try:
+            return self._await_score(spec, inbox, on_live=on_live, wall_timeout_s=wall_timeout_s)
+        finally:
+            for subscription in subscriptions:
+                subscription.close()
+
+    def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s) -> EpisodeScore:
+        reply = self._control(ControlRequest(action="start", spec=spec))
+        if not reply.ok:
+            raise StackError(f"the simulator refused the episode: {reply.detail}")
+        episode = reply.episode
+        guard = wall_timeout_s or (spec.max_sim_seconds * 20 + 60)
+        deadline = time.monotonic() + guard
+        while True:
+            if (dead := self._dead_child_reason()) is not None:
+                raise StackError(dead)
+            if time.monotonic() > deadline:
+                self._control(ControlRequest(action="stop"))
+                raise StackError(f"episode {episode} not scored after {guard:.0f} s of wall time")
+            received = inbox.recv(timeout_s=0.2)
+            if received is None:
+                continue
+            message = received.message
+            if message.header.episode != episode:
+                continue
+            if isinstance(message, EpisodeScore):
+                return message
+            if on_live is not None:
+                on_live(message)
+
+    def _control(self, request: ControlRequest, *, attempts: int = 10) -> ControlReply:
+        """A control query to the simulator; retried while its queryable is not yet reachable."""
+        assert self.bus is not None
+        for _ in range(attempts):
+            payload = self.bus.request(keys.sim_control(self.run_id), codec.encode(request), timeout_s=2.0)
+            if payload is not None:
+                return codec.decode(payload, ControlReply)
+            time.sleep(0.2)
+        raise StackError(f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}")

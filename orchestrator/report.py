@@ -1,0 +1,42 @@
+"""Human-readable views of scores."""
+
+from __future__ import annotations
+
+from protocol.messages import EpisodeScore
+
+
+def _fmt(value, unit: str = "", digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}{unit}"
+    return f"{value}{unit}"
+
+
+def metrics_table(score: EpisodeScore) -> str:
+    """The episode's metrics as an aligned two-column table (Behavior-Metrics-compatible rows marked BM)."""
+    m = score.metrics
+    spec = score.spec
+    laps = ", ".join(f"{t:.2f}" for t in m.lap_times_s) or "-"
+    rows = [
+        ("episode", f"{score.brain} on {spec.circuit}, {spec.laps} lap(s), seed {spec.seed}"),
+        ("ended by", str(score.reason)),
+        ("completed laps", _fmt(m.completed_laps)),
+        ("lap times", f"{laps} s"),
+        ("progress", f"{_fmt(m.progress_m, ' m', 1)} ({_fmt(m.progress_laps * 100, ' %', 1)})"),
+        ("cross-track |e| mean / rms / max", f"{m.cross_track_mean_m:.3f} / {m.cross_track_rms_m:.3f} / "
+                                             f"{m.cross_track_max_m:.3f} m"),
+        ("off-track events", _fmt(m.off_track_events)),
+        ("BM percentage completed", _fmt(m.percentage_completed, " %", 1)),
+        ("BM lap seconds", _fmt(m.bm_lap_seconds, " s")),
+        ("BM completed distance", _fmt(m.completed_distance_m, " m", 1)),
+        ("BM average speed", _fmt(m.average_speed_mps, " m/s")),
+        ("BM position deviation (mean 1000^d)", _fmt(m.position_deviation_mae, "", 3)),
+        ("BM suddenness", _fmt(m.suddenness_distance, "", 4)),
+        ("BM mean inference time", _fmt(m.mean_inference_time_s * 1e3, " ms")),
+        ("command rate", _fmt(m.command_rate_hz, " Hz", 1)),
+        ("frame-to-command latency p50 / p95", f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms"),
+        ("sim time / wall time", f"{m.sim_time_s:.2f} s / {m.wall_time_s:.2f} s (RTF {m.real_time_factor:.2f}x)"),
+    ]
+    width = max(len(name) for name, _ in rows)
+    return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)

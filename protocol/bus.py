@@ -1,0 +1,336 @@
+"""The bus: a thin wrapper over one Zenoh session. The only module of the project that imports ``zenoh``.
+
+What it adds to Zenoh, and why:
+  * sessions configured one way everywhere (multicast scouting off, one router endpoint, gossip for direct peer
+    links, short lease so a hung process is noticed in ~2-3 s), see ``reference/transport.md`` §10;
+  * typed publishers per traffic class (frames drop, commands and events never drop);
+  * subscribers that decode into the expected type and hand messages to the caller's loop through a queue with a
+    timeout (Zenoh's own channels have no ``recv(timeout)``); bad input is counted, logged once per key with the
+    field path, and dropped, so a malformed message can never crash a process;
+  * liveliness tokens and watchers;
+  * ``with Bus(...)`` always closes the session: a process with a live callback subscriber never exits otherwise.
+"""
+
+from __future__ import annotations
+
+import collections
+import enum
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+import msgspec
+import zenoh
+
+from protocol import codec
+
+log = logging.getLogger("drivebench.bus")
+
+T = TypeVar("T", bound=msgspec.Struct)
+
+ROUTER_ENV = "DRIVEBENCH_ROUTER"
+
+
+class BusError(RuntimeError):
+    """The bus could not be opened or used; the text says which endpoint and why."""
+
+
+class BusConfig(msgspec.Struct, frozen=True, kw_only=True):
+    """How a process joins the bus.
+
+    mode: "peer" (default: data flows peer to peer, the router serves discovery), "client" (everything through the
+        router) or "router".
+    connect: endpoints to connect to, e.g. ``["tcp/127.0.0.1:7447"]``; empty = the ``DRIVEBENCH_ROUTER``
+        environment variable (comma separated) when set.
+    listen: endpoints to listen on; peers listen on an ephemeral loopback port by default so others can open
+        direct links to them.
+    lease_ms: how long a silent peer is kept before its liveliness tokens vanish.
+    shared_memory: Zenoh's implicit shared memory for large puts between processes on one host.
+    """
+
+    mode: str = "peer"
+    connect: list[str] = []
+    listen: list[str] = []
+    lease_ms: int = 3000
+    shared_memory: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"mode must be peer, client or router, got {self.mode!r}")
+
+
+def zenoh_config(config: BusConfig, *, name: str) -> zenoh.Config:
+    """The Zenoh config for one process (see ``reference/transport.md`` §10 for each setting)."""
+    import os
+
+    connect = list(config.connect)
+    if not connect and config.mode != "router" and os.environ.get(ROUTER_ENV):
+        connect = [e.strip() for e in os.environ[ROUTER_ENV].split(",") if e.strip()]
+    listen = list(config.listen)
+    if not listen and config.mode == "peer":
+        listen = ["tcp/127.0.0.1:0"] if all("127.0.0.1" in e or "localhost" in e for e in connect) else ["tcp/0.0.0.0:0"]
+    settings = {
+        "mode": config.mode,
+        "connect": {"endpoints": connect, "timeout_ms": -1},
+        "listen": {"endpoints": listen},
+        "scouting": {
+            "multicast": {"enabled": False},
+            "gossip": {"enabled": True},
+        },
+        "timestamping": {"enabled": True},
+        "transport": {
+            "link": {"tx": {"lease": config.lease_ms}},
+            "shared_memory": {"enabled": config.shared_memory},
+        },
+        "metadata": {"name": name},
+    }
+    if config.mode == "peer":
+        settings["scouting"]["gossip"]["autoconnect_strategy"] = {
+            "peer": {"to_router": "always", "to_peer": "greater-zid"}
+        }
+    return zenoh.Config.from_json5(json.dumps(settings))
+
+
+class Traffic(enum.Enum):
+    """Traffic classes, each with its own QoS (``reference/transport.md`` §10)."""
+
+    FRAMES = "frames"  # large, newest wins: never block the simulator for a slow viewer
+    COMMANDS = "commands"  # small, must arrive, jump the queue ahead of frames
+    EVENTS = "events"  # small, must arrive, in order (poses, episode events, scores)
+    METRICS = "metrics"  # small, latest wins
+
+
+_QOS = {
+    Traffic.FRAMES: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA),
+    Traffic.COMMANDS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
+                           express=True),
+    Traffic.EVENTS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),
+    Traffic.METRICS: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_LOW),
+}
+
+
+class Publisher(Generic[T]):
+    """Publishes messages of one type on one key."""
+
+    def __init__(self, session: zenoh.Session, key: str, traffic: Traffic):
+        self.key = key
+        self._publisher = session.declare_publisher(key, **_QOS[traffic])
+
+    def publish(self, message: T) -> None:
+        self._publisher.put(codec.encode(message))
+
+    def publish_bytes(self, payload: bytes) -> None:
+        """Put raw bytes (tests use this to send garbage; replay uses it for recorded wire bytes)."""
+        self._publisher.put(payload)
+
+    def has_subscribers(self) -> bool:
+        return bool(self._publisher.matching_status.matching)
+
+    def close(self) -> None:
+        self._publisher.undeclare()
+
+
+@dataclass(frozen=True)
+class Received(Generic[T]):
+    """A decoded message, the key it came on, and when it arrived (``time.monotonic_ns`` of this process)."""
+
+    key: str
+    message: T
+    arrival_ns: int
+
+
+@dataclass
+class RejectCounter:
+    """Bad input per key: counted always, logged once per key (with the field path)."""
+
+    counts: dict[str, int] = field(default_factory=lambda: collections.defaultdict(int))
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def reject(self, key: str, error: Exception) -> None:
+        with self._lock:
+            self.counts[key] += 1
+            first = self.counts[key] == 1
+        if first:
+            log.warning("dropped bad message on %s: %s (further ones on this key are only counted)", key, error)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+
+class Inbox:
+    """A thread-safe queue of :class:`Received` messages that one or more subscriptions fill.
+
+    ``keep_last=None``: a FIFO that keeps everything (commands, poses, events).
+    ``keep_last=n``: keep only the newest n (camera frames: a slow consumer gets the latest frame, not a backlog).
+    Give several subscriptions one inbox to handle their messages in one loop, in arrival order.
+    """
+
+    def __init__(self, *, keep_last: int | None = None):
+        self._queue: collections.deque[Received] = collections.deque(maxlen=keep_last)
+        self._ready = threading.Condition()
+        self.received = 0
+
+    def put(self, item: Received) -> None:
+        with self._ready:
+            self._queue.append(item)
+            self.received += 1
+            self._ready.notify()
+
+    def recv(self, timeout_s: float | None = None) -> Received | None:
+        """The oldest queued message; waits up to ``timeout_s`` (None = forever); None on timeout."""
+        with self._ready:
+            if not self._queue and not self._ready.wait_for(lambda: bool(self._queue), timeout=timeout_s):
+                return None
+            return self._queue.popleft()
+
+    def try_recv(self) -> Received | None:
+        with self._ready:
+            return self._queue.popleft() if self._queue else None
+
+    def drain(self) -> list[Received]:
+        with self._ready:
+            items = list(self._queue)
+            self._queue.clear()
+            return items
+
+
+class Subscription(Generic[T]):
+    """Decodes messages of one type on one key expression into an :class:`Inbox`."""
+
+    def __init__(self, session: zenoh.Session, key: str, message_type: type[T], rejects: RejectCounter,
+                 inbox: Inbox):
+        self.key = key
+        self.inbox = inbox
+        self._type = message_type
+        self._rejects = rejects
+        # A Python callback runs on the session's one Python callback thread: decode there (cheap, and bad input
+        # is rejected before it reaches the loop), then wake the loop.
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            message = codec.decode(sample.payload.to_bytes(), self._type)
+        except codec.DecodeError as error:
+            self._rejects.reject(key, error)
+            return
+        self.inbox.put(Received(key=key, message=message, arrival_ns=time.monotonic_ns()))
+
+    def recv(self, timeout_s: float | None = None) -> Received[T] | None:
+        return self.inbox.recv(timeout_s)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class LivelinessWatch:
+    """Which liveliness tokens under a key expression are alive now; calls ``on_change(key, alive)`` on changes."""
+
+    def __init__(self, session: zenoh.Session, key: str, on_change: Callable[[str, bool], None] | None = None):
+        self._alive: set[str] = set()
+        self._lock = threading.Condition()
+        self._on_change = on_change
+        self._subscriber = session.liveliness().declare_subscriber(key, self._on_sample, history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            (self._alive.add if alive else self._alive.discard)(key)
+            self._lock.notify_all()
+        if self._on_change is not None:
+            self._on_change(key, alive)
+
+    def alive(self) -> set[str]:
+        with self._lock:
+            return set(self._alive)
+
+    def wait_for(self, keys: set[str], *, timeout_s: float, abort: Callable[[], str | None] | None = None) -> set[str]:
+        """Wait until every key in ``keys`` is alive; return the missing ones (empty = all alive).
+
+        ``abort`` is polled a few times a second; a non-None string stops the wait early.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                missing = keys - self._alive
+                remaining = deadline - time.monotonic()
+                if not missing or remaining <= 0 or (abort is not None and abort() is not None):
+                    return missing
+                self._lock.wait(timeout=min(remaining, 0.2))
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class Bus:
+    """One process's connection to the bus. Use as a context manager: ``with Bus(config, name="sim") as bus:``."""
+
+    def __init__(self, config: BusConfig, *, name: str):
+        self.name = name
+        self.config = config
+        self.rejects = RejectCounter()
+        try:
+            self.session = zenoh.open(zenoh_config(config, name=name))
+        except zenoh.ZError as error:
+            raise BusError(f"cannot open the bus ({config.mode}, connect={list(config.connect)}, "
+                           f"listen={list(config.listen)}): {error}") from None
+        self._tokens: list[zenoh.LivelinessToken] = []
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def publisher(self, key: str, message_type: type[T], traffic: Traffic) -> Publisher[T]:
+        del message_type  # documents the type at the call site; the codec encodes any struct
+        return Publisher(self.session, key, traffic)
+
+    def subscribe(self, key: str, message_type: type[T], *, keep_last: int | None = None,
+                  inbox: Inbox | None = None) -> Subscription[T]:
+        """Messages of ``message_type`` on ``key`` into ``inbox`` (a new one with ``keep_last`` if not given)."""
+        return Subscription(self.session, key, message_type, self.rejects, inbox or Inbox(keep_last=keep_last))
+
+    def declare_alive(self, key: str) -> None:
+        """Declare a liveliness token, kept until the bus closes (or the process dies)."""
+        self._tokens.append(self.session.liveliness().declare_token(key))
+
+    def watch_alive(self, key: str, on_change: Callable[[str, bool], None] | None = None) -> LivelinessWatch:
+        return LivelinessWatch(self.session, key, on_change)
+
+    def serve(self, key: str, handler: Callable[[bytes], bytes]) -> None:
+        """A queryable: ``handler(request payload) -> reply payload``; runs on the session's callback thread."""
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                reply = handler(payload)
+            except Exception as error:  # noqa: BLE001 - a bad request must not kill the server
+                log.warning("control request on %s failed: %s", key, error)
+                query.reply_err(str(error).encode())
+                return
+            query.reply(key, reply)
+
+        self._queryable = self.session.declare_queryable(key, on_query)
+
+    def request(self, key: str, payload: bytes, *, timeout_s: float) -> bytes | None:
+        """Send a query and return the first successful reply payload (None when nobody answered in time)."""
+        errors = []
+        for reply in self.session.get(key, payload=payload, timeout=timeout_s):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
+        if errors:
+            raise BusError(f"request to {key} failed: {errors[0]}")
+        return None
+
+    def close(self) -> None:
+        if not self.session.is_closed():
+            self.session.close()

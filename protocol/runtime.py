@@ -1,0 +1,101 @@
+"""What every service ``__main__`` does the same way: arguments, config, logging, signals, clean exit.
+
+A service is ``main(argv) -> int``: parse ``--config FILE --set key=value --router EP --run-id ID``, load and
+log its config, turn SIGTERM into a normal exit (Python as PID 1 ignores SIGTERM otherwise, and a Zenoh session
+must be closed for the process to exit at all), run, and turn user mistakes into one line on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from protocol.bus import BusError
+from protocol.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
+
+T = TypeVar("T")
+
+log = logging.getLogger("drivebench")
+
+
+class UserError(Exception):
+    """A mistake the user can fix (bad name, bad file, unreachable router): one line, no traceback."""
+
+
+def setup_logging(name: str, *, level: str | None = None) -> None:
+    level = level or os.environ.get("DRIVEBENCH_LOG", "INFO")
+    logging.basicConfig(level=level.upper(), stream=sys.stderr,
+                        format=f"%(asctime)s {name} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM raises SystemExit in the main thread, so ``with`` blocks close sessions and files."""
+
+    def handler(signum, frame):  # noqa: ARG001
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+def service_parser(description: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--config", help="YAML config file")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one config field, e.g. --set bus.lease_ms=2000 (repeatable)")
+    parser.add_argument("--router", help="router endpoint to connect to, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--run-id", help="run id (every key of the run carries it)")
+    return parser
+
+
+def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra: dict[str, Any] | None = None) -> T:
+    overrides = list(args.set)
+    if getattr(args, "router", None):
+        overrides.append(f"bus.connect=[{args.router}]")
+    if getattr(args, "run_id", None):
+        overrides.append(f"run_id={args.run_id}")
+    for key, value in (extra or {}).items():
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    return load_config(config_type, path=args.config, overrides=overrides)
+
+
+def exit_with_parent() -> None:
+    """Stop (SIGTERM to ourselves) when the launcher that started us dies, even by SIGKILL: no orphans.
+
+    The launcher passes its pid in ``DRIVEBENCH_PARENT_PID``; a re-parented process sees another ``getppid()``.
+    """
+    parent = os.environ.get("DRIVEBENCH_PARENT_PID")
+    if not parent or not parent.isdigit():
+        return
+
+    def watch() -> None:
+        while os.getppid() == int(parent):
+            time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def run_service(name: str, main: Callable[[], int | None]) -> int:
+    """Run ``main`` with the process conventions; return the exit code."""
+    setup_logging(name)
+    exit_on_sigterm()
+    exit_with_parent()
+    try:
+        return int(main() or 0)
+    except (UserError, ConfigError, BusError) as error:
+        print(f"{name}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+def log_config(config: Any) -> None:
+    log.info("resolved config:\n%s", dump_config(config).rstrip())

@@ -1,0 +1,7 @@
+"""``python -m services.scorer``: the scorer process."""
+
+import sys
+
+from services.scorer.service import main
+
+sys.exit(main())

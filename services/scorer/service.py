@@ -1,0 +1,183 @@
+"""The scorer process: ground-truth poses, commands and episode events in; live metrics and one score out.
+
+It scores only the simulator's ground truth (poses), never a camera stream, so noise cannot leak into the score.
+Exactly one EpisodeScore per episode: after the END event, once every pose up to the END's ``last_pose_seq`` has
+arrived (or after a short grace period if some never do, which the score's log line reports).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import msgspec
+
+from protocol import keys
+from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.messages import (
+    Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
+)
+from services.circuits import CircuitError, load_circuit
+from services.scorer.metrics import EpisodeScorer
+
+log = logging.getLogger("drivebench.scorer")
+
+# After END, how long to wait for poses still in flight before scoring what arrived.
+POSE_GRACE_S = 2.0
+
+
+class ScorerConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Config of the scorer process. live_rate_hz: how often live metrics are published (wall clock)."""
+
+    bus: BusConfig = BusConfig()
+    run_id: str = "default"
+    name: str = "scorer"
+    live_rate_hz: float = 4.0
+
+
+@dataclass
+class _Episode:
+    number: int
+    spec: EpisodeSpec
+    scorer: EpisodeScorer
+    active_brain: str
+    wall_start: float = field(default_factory=time.monotonic)
+    last_pose_seq: int = -1
+    end: EpisodeEvent | None = None
+    end_arrival: float = 0.0
+
+
+class ScorerService:
+    def __init__(self, config: ScorerConfig, bus: Bus):
+        self.config = config
+        run = config.run_id
+        self._inbox = Inbox()
+        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._inbox)
+        bus.subscribe(keys.pose(run), Pose, inbox=self._inbox)
+        bus.subscribe(keys.commands_all(run), Command, inbox=self._inbox)
+        self._live = bus.publisher(keys.live_metrics(run), LiveMetrics, Traffic.METRICS)
+        self._scores = bus.publisher(keys.score(run), EpisodeScore, Traffic.EVENTS)
+        self._episode: _Episode | None = None
+        self._scored: set[int] = set()
+        self._live_seq = 0
+        self._next_live = 0.0
+        self._ignored_episodes: set[int] = set()
+        bus.declare_alive(keys.alive(run, "scorer", config.name))
+
+    def serve_forever(self) -> None:
+        log.info("scorer ready on run %s", self.config.run_id)
+        while True:
+            self.poll(timeout_s=0.1)
+
+    def poll(self, *, timeout_s: float) -> None:
+        received = self._inbox.recv(timeout_s=timeout_s)
+        if received is not None:
+            message = received.message
+            if isinstance(message, Pose):
+                self._on_pose(message)
+            elif isinstance(message, Command):
+                self._on_command(message)
+            elif isinstance(message, EpisodeEvent):
+                self._on_event(message)
+        self._maybe_finish()
+        self._maybe_publish_live()
+
+    def _current(self, episode: int) -> _Episode | None:
+        current = self._episode
+        if current is not None and current.number == episode:
+            return current
+        if episode not in self._scored and episode not in self._ignored_episodes:
+            self._ignored_episodes.add(episode)
+            log.warning("ignoring messages of episode %d: its start event was not seen", episode)
+        return None
+
+    def _on_event(self, event: EpisodeEvent) -> None:
+        number = event.header.episode
+        if event.kind == EventKind.START and event.spec is not None:
+            try:
+                circuit = load_circuit(event.spec.circuit)
+            except CircuitError as error:
+                log.warning("cannot score episode %d: %s", number, error)
+                return
+            scorer = EpisodeScorer(circuit=circuit, laps_target=event.spec.laps, step_s=event.spec.step_s)
+            self._episode = _Episode(number=number, spec=event.spec, scorer=scorer,
+                                     active_brain=event.spec.active_brain)
+            return
+        current = self._current(number)
+        if current is None:
+            return
+        if event.kind == EventKind.BRAIN_SWITCH and event.brain:
+            current.active_brain = event.brain
+        elif event.kind == EventKind.END:
+            current.end = event
+            current.end_arrival = time.monotonic()
+
+    def _on_pose(self, pose: Pose) -> None:
+        current = self._current(pose.header.episode)
+        if current is None or pose.header.seq <= current.last_pose_seq:
+            return
+        current.last_pose_seq = pose.header.seq
+        current.scorer.add_pose(seq=pose.header.seq, stamp_ns=pose.header.stamp_ns, x_m=pose.x_m, y_m=pose.y_m,
+                                yaw_rad=pose.yaw_rad, command_latency_ns=pose.command_latency_ns)
+
+    def _on_command(self, command: Command) -> None:
+        current = self._current(command.header.episode)
+        if current is None or command.brain != current.active_brain:
+            return
+        current.scorer.add_command(stamp_ns=command.header.stamp_ns, speed_mps=command.speed_mps,
+                                   yaw_rate_radps=command.yaw_rate_radps, inference_ns=command.inference_ns)
+
+    def _maybe_finish(self) -> None:
+        current = self._episode
+        if current is None or current.end is None:
+            return
+        complete = current.last_pose_seq >= current.end.last_pose_seq
+        if not complete and time.monotonic() - current.end_arrival < POSE_GRACE_S:
+            return
+        if not complete:
+            log.warning("episode %d: scoring without poses %d..%d (never arrived)", current.number,
+                        current.last_pose_seq + 1, current.end.last_pose_seq)
+        wall_time_s = current.end.wall_elapsed_ns / 1e9 or (time.monotonic() - current.wall_start)
+        metrics = current.scorer.finish(wall_time_s=wall_time_s)
+        score = EpisodeScore(
+            header=Header(run_id=self.config.run_id, episode=current.number, seq=0, stamp_ns=current.end.header.stamp_ns),
+            spec=current.spec, reason=current.end.reason or EndReason.STOPPED, brain=current.active_brain,
+            metrics=metrics)
+        self._scores.publish(score)
+        self._scored.add(current.number)
+        self._episode = None
+        log.info("episode %d scored: %s, %.1f %% of a lap, %d laps", current.number, score.reason,
+                 metrics.percentage_completed, metrics.completed_laps)
+
+    def _maybe_publish_live(self) -> None:
+        current = self._episode
+        now = time.monotonic()
+        if current is None or now < self._next_live:
+            return
+        self._next_live = now + 1.0 / self.config.live_rate_hz
+        live = current.scorer.live()
+        wall_s = now - current.wall_start
+        self._live.publish(LiveMetrics(
+            header=Header(run_id=self.config.run_id, episode=current.number, seq=self._live_seq,
+                          stamp_ns=int(live["sim_time_s"] * 1e9)),
+            progress_laps=live["progress_laps"], laps_target=current.spec.laps,
+            completed_laps=live["completed_laps"], sim_time_s=live["sim_time_s"],
+            real_time_factor=live["sim_time_s"] / wall_s if wall_s > 0 else 0.0,
+            cross_track_m=live["cross_track_m"], speed_mps=live["speed_mps"]))
+        self._live_seq += 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    from protocol.runtime import load_service_config, log_config, run_service, service_parser
+
+    args = service_parser("drivebench scorer: live metrics and one final score per episode").parse_args(argv)
+
+    def run() -> int:
+        config = load_service_config(ScorerConfig, args)
+        log_config(config)
+        with Bus(config.bus, name=f"scorer-{config.name}") as bus:
+            ScorerService(config, bus).serve_forever()
+        return 0
+
+    return run_service("scorer", run)

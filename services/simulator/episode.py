@@ -1,0 +1,103 @@
+"""The simulator's pure core: one episode of one car on one circuit, stepped by (speed, yaw rate) commands.
+
+No bus here: the service (``services/simulator/service.py``) and the in-process benchmark both drive this class.
+The simulator owns the clock: step n covers sim time [n, n+1) * step_s, and frame n is rendered at the pose the
+car has at the start of step n.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.messages import EndReason, EpisodeSpec
+from services.circuits import Circuit, load_circuit
+from services.simulator.car import CarState, integrate_unicycle
+from services.simulator.scene import Scene
+
+# Behavior Metrics' F1 car is ~1 m long and ~0.4 m wide (the 0.2-scaled Renault mesh). It touches a wall when its
+# centre is closer than half its width to the road edge.
+CAR_HALF_WIDTH_M = 0.2
+
+
+class SceneCache:
+    """Scenes by circuit name: building one costs far more than a step, and episodes reuse circuits."""
+
+    def __init__(self) -> None:
+        self._scenes: dict[str, Scene] = {}
+
+    def get(self, circuit: Circuit) -> Scene:
+        scene = self._scenes.get(circuit.name)
+        if scene is None:
+            scene = self._scenes[circuit.name] = Scene(circuit)
+        return scene
+
+    def close(self) -> None:
+        for scene in self._scenes.values():
+            scene.close()
+        self._scenes.clear()
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one step produced. ``end`` is None while the episode goes on; ``lap`` is the lap just completed, or 0."""
+
+    car: CarState
+    stamp_ns: int
+    seq: int
+    lateral_m: float
+    lap: int
+    end: EndReason | None
+
+
+class EpisodeSim:
+    """One episode: the car starts at the circuit's start pose; ``step`` applies a command for one period."""
+
+    def __init__(self, spec: EpisodeSpec, *, scenes: SceneCache, circuit: Circuit | None = None):
+        self.spec = spec
+        self.circuit = circuit or load_circuit(spec.circuit)
+        self._scene = scenes.get(self.circuit)
+        x_m, y_m, yaw_rad = self.circuit.start_pose()
+        self.car = CarState(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad)
+        self.seq = 0
+        self._s_m = 0.0
+        self.progress_m = 0.0
+        self.laps_completed = 0
+        self._max_steps = int(np.ceil(spec.max_sim_seconds / spec.step_s - 1e-9))
+        # Walls are always on until world variations land; without walls the car is off track when its centre
+        # leaves the road, with them it crashes when its side touches the wall on the road edge.
+        self.walls = True
+        self._edge_m = self.circuit.road_half_width_m - (CAR_HALF_WIDTH_M if self.walls else 0.0)
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.seq * self.spec.step_ns
+
+    def render(self) -> np.ndarray:
+        """The camera image at the current pose (H x W x 3 uint8 RGB)."""
+        return self._scene.render(self.car, self.spec.camera)
+
+    def step(self, *, speed_mps: float, yaw_rate_radps: float) -> StepResult:
+        """Move the car for one period with the command, then check how the episode stands."""
+        self.car = integrate_unicycle(self.car, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps,
+                                      dt_s=self.spec.step_s)
+        self.seq += 1
+        projection = self.circuit.centreline.project(self.car.x_m, self.car.y_m, near_s_m=self._s_m)
+        self.progress_m += float(self.circuit.centreline.wrap_ds(projection.s_m - self._s_m))
+        self._s_m = projection.s_m
+        lap = 0
+        laps_now = int(self.progress_m // self.circuit.length_m)
+        if laps_now > self.laps_completed:
+            self.laps_completed = lap = laps_now
+        return StepResult(car=self.car, stamp_ns=self.stamp_ns, seq=self.seq, lateral_m=projection.lateral_m,
+                          lap=lap, end=self._end_reason(projection.lateral_m))
+
+    def _end_reason(self, lateral_m: float) -> EndReason | None:
+        if abs(lateral_m) > self._edge_m:
+            return EndReason.CRASH if self.walls else EndReason.OFF_TRACK
+        if self.laps_completed >= self.spec.laps:
+            return EndReason.LAPS_COMPLETED
+        if self.seq >= self._max_steps:
+            return EndReason.TIME_LIMIT
+        return None

@@ -1,0 +1,29 @@
+"""Shared fixtures: local stacks of real processes over real Zenoh on loopback."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+
+import pytest
+
+from orchestrator.launcher import BrainLaunch, LocalStack
+
+
+@pytest.fixture
+def make_stack(tmp_path) -> Iterator:
+    """``make_stack(BrainLaunch(...), ...)`` starts a stack in tmp_path; every stack is stopped after the test."""
+    stacks: list[LocalStack] = []
+
+    def make(*brains: BrainLaunch) -> LocalStack:
+        run_id = f"t{uuid.uuid4().hex[:8]}"
+        stack = LocalStack(run_id=run_id, run_dir=tmp_path / run_id, brains=list(brains) or [BrainLaunch("explicit")])
+        stacks.append(stack)
+        stack.start()
+        return stack
+
+    yield make
+    for stack in stacks:
+        stack.close()
+        for child in stack.children:
+            assert child.process.poll() is not None, f"{child.role} {child.name} still running after close()"

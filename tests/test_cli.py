@@ -1,0 +1,66 @@
+"""End to end: the ``drivebench`` command as a user runs it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.integration
+
+
+def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_run_json_prints_one_json_object_and_writes_the_run_folder(tmp_path):
+    out = tmp_path / "run"
+    result = drivebench("run", "--circuit", "simple", "--brain", "explicit", "--max-sim-seconds", "5",
+                        "--camera", "160x120", "--seed", "4", "--json", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    score = json.loads(result.stdout)  # stdout is exactly one JSON object
+    assert result.stdout.count("\n") == 1
+    assert score["reason"] == "time_limit"
+    assert score["spec"]["seed"] == 4 and score["spec"]["camera"]["width_px"] == 160
+    assert score["metrics"]["steps"] == 100
+    assert json.loads((out / "score.json").read_text()) == score
+    assert "circuit: simple" in (out / "config.yaml").read_text()
+    logs = {path.name for path in (out / "logs").iterdir()}
+    assert logs == {"simulator.log", "scorer.log", "brain-explicit.log"}
+    assert "resolved config" in (out / "logs" / "simulator.log").read_text()
+
+
+def test_run_prints_a_metrics_table(tmp_path):
+    result = drivebench("run", "--max-sim-seconds", "3", "--camera", "100x50", "--out", str(tmp_path / "r"))
+    assert result.returncode == 0, result.stderr
+    assert "ended by" in result.stdout and "time_limit" in result.stdout
+    assert "BM position deviation" in result.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--circuit", "atlantis"], "unknown circuit 'atlantis' (known: "),
+    (["--brain", "hal"], "unknown brain 'hal' (known: "),
+    (["--laps", "0"], "laps must be >= 1"),
+])
+def test_user_mistakes_give_one_line_and_exit_2(tmp_path, args, message):
+    result = drivebench("run", "--out", str(tmp_path / "r"), *args, timeout=30)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_bad_camera_size_is_a_usage_error(tmp_path):
+    result = drivebench("run", "--camera", "big", timeout=30)
+    assert result.returncode == 2 and "camera size must look like 320x240" in result.stderr
+
+
+def test_bad_brain_option_stops_the_stack_with_a_reason(tmp_path):
+    result = drivebench("run", "--brain", "constant", "--brain-option", "warp=9", "--out", str(tmp_path / "r"),
+                        timeout=90)
+    assert result.returncode == 1
+    assert "bad options for brain 'constant'" in result.stderr
+    assert "Traceback" not in result.stderr

@@ -1,0 +1,135 @@
+"""Contract tests over every bus message type, keys and config loading (pure: no bus)."""
+
+from __future__ import annotations
+
+import msgpack
+import msgspec
+import pytest
+
+from protocol import codec, keys
+from protocol.config import ConfigError, load_config
+from protocol.messages import (
+    BUS_MESSAGES, CameraFrame, CameraSpec, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent,
+    EpisodeMetrics, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
+)
+
+HEADER = Header(run_id="r1", episode=2, seq=7, stamp_ns=350_000_000)
+METRICS = EpisodeMetrics(
+    sim_time_s=1.0, wall_time_s=0.5, real_time_factor=2.0, steps=20, completed_distance_m=7.0, average_speed_mps=7.0,
+    percentage_completed=1.5, bm_lap_seconds=None, position_deviation_mae=1.2, position_deviation_total_err=12.0,
+    suddenness_distance=0.01, mean_inference_time_s=0.002, progress_m=7.0, progress_laps=0.016, completed_laps=0,
+    lap_times_s=[], cross_track_mean_m=0.01, cross_track_rms_m=0.02, cross_track_max_m=0.05, cross_track_p95_m=0.04,
+    off_track_events=0, command_rate_hz=20.0, command_latency_p50_ms=1.0, command_latency_p95_ms=2.0,
+    inference_p50_ms=2.0, inference_p95_ms=3.0)
+SAMPLES = {
+    CameraFrame: CameraFrame(header=HEADER, width_px=2, height_px=1, data=bytes(range(6))),
+    Pose: Pose(header=HEADER, x_m=1.5, y_m=-2.0, yaw_rad=0.1, speed_mps=7.0, yaw_rate_radps=-0.2,
+               command_latency_ns=1200),
+    Command: Command(header=HEADER, brain="explicit", frame_seq=7, speed_mps=8.0, yaw_rate_radps=0.3,
+                     inference_ns=1500),
+    EpisodeEvent: EpisodeEvent(header=HEADER, kind=EventKind.END, reason=EndReason.CRASH, last_pose_seq=7),
+    LiveMetrics: LiveMetrics(header=HEADER, progress_laps=0.5, laps_target=1, completed_laps=0, sim_time_s=3.0,
+                             real_time_factor=2.5, cross_track_m=0.1, speed_mps=7.0),
+    EpisodeScore: EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit",
+                               metrics=METRICS),
+    ControlRequest: ControlRequest(action="start", spec=EpisodeSpec(laps=2, camera=CameraSpec(width_px=64))),
+    ControlReply: ControlReply(ok=True, detail="", episode=3, state="starting"),
+}
+
+
+def test_every_bus_message_has_a_sample():
+    assert set(SAMPLES) == set(BUS_MESSAGES)
+
+
+@pytest.mark.parametrize("message_type", BUS_MESSAGES, ids=lambda t: t.__name__)
+def test_round_trip_is_exact(message_type):
+    message = SAMPLES[message_type]
+    assert codec.decode(codec.encode(message), message_type) == message
+
+
+@pytest.mark.parametrize("message_type", BUS_MESSAGES, ids=lambda t: t.__name__)
+def test_wire_format_is_plain_msgpack(message_type):
+    """Any msgpack client reads our messages: a map with a versioned type tag and the fields by name."""
+    as_seen_by_msgpack = msgpack.unpackb(codec.encode(SAMPLES[message_type]), raw=False)
+    assert as_seen_by_msgpack["type"] == message_type.__struct_config__.tag
+    assert as_seen_by_msgpack["type"].startswith("drivebench.") and as_seen_by_msgpack["type"].endswith(".v1")
+    if "header" in as_seen_by_msgpack:
+        assert as_seen_by_msgpack["header"] == {"run_id": "r1", "episode": 2, "seq": 7, "stamp_ns": 350_000_000}
+
+
+def test_message_written_by_msgpack_decodes():
+    payload = msgpack.packb({"type": "drivebench.Command.v1", "brain": "mine", "frame_seq": 3, "speed_mps": 1.0,
+                             "yaw_rate_radps": 0.0,
+                             "header": {"run_id": "r", "episode": 0, "seq": 0, "stamp_ns": 150_000_000}})
+    command = codec.decode(payload, Command)
+    assert command.brain == "mine" and command.frame_seq == 3 and command.inference_ns == 0
+
+
+@pytest.mark.parametrize("message_type", BUS_MESSAGES, ids=lambda t: t.__name__)
+def test_garbage_is_rejected_with_a_clear_error(message_type):
+    for garbage in (b"", b"\xc1", b"not msgpack at all", msgpack.packb([1, 2, 3]), msgpack.packb({"type": "x"})):
+        with pytest.raises(codec.DecodeError, match=f"not a valid {message_type.__name__}"):
+            codec.decode(garbage, message_type)
+
+
+def test_wrong_message_type_is_rejected_by_its_tag():
+    with pytest.raises(codec.DecodeError, match=r"\$\.type"):
+        codec.decode(codec.encode(SAMPLES[Pose]), Command)
+
+
+def test_bad_field_names_its_path():
+    raw = msgpack.unpackb(codec.encode(SAMPLES[Pose]))
+    raw["header"]["seq"] = "seven"
+    with pytest.raises(codec.DecodeError, match=r"\$\.header\.seq"):
+        codec.decode(msgpack.packb(raw), Pose)
+
+
+def test_invalid_values_are_rejected():
+    raw = msgpack.unpackb(codec.encode(SAMPLES[ControlRequest]))
+    raw["spec"]["laps"] = 0
+    with pytest.raises(codec.DecodeError, match="laps must be >= 1"):
+        codec.decode(msgpack.packb(raw), ControlRequest)
+
+
+def test_keys_are_run_scoped_and_separate_ground_truth_from_perturbed():
+    assert keys.camera_raw("a") != keys.camera_perturbed("a")
+    assert keys.camera_raw("a").startswith(keys.run_prefix("a") + "/")
+    assert keys.command("a", "explicit").startswith(keys.run_prefix("a") + "/")
+    assert keys.brain_of_command_key(keys.command("a", "pilot-2")) == "pilot-2"
+    assert keys.parse_alive(keys.alive("a", "brain", "explicit")) == ("a", "brain", "explicit")
+    assert keys.run_prefix("a") != keys.run_prefix("b")
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "a*", "a b", "$x", "a?b", "x#"])
+def test_key_chunks_reject_wildcards_and_separators(bad):
+    with pytest.raises(ValueError, match="may only contain"):
+        keys.run_prefix(bad)
+
+
+class _Demo(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    run_id: str = "x"
+    spec: EpisodeSpec = EpisodeSpec()
+
+
+def test_config_file_and_overrides(tmp_path):
+    path = tmp_path / "demo.yaml"
+    path.write_text("run_id: fromfile\nspec:\n  laps: 3\n")
+    config = load_config(_Demo, path=path, overrides=["spec.camera.width_px=64", "spec.seed=5"])
+    assert config.run_id == "fromfile" and config.spec.laps == 3
+    assert config.spec.camera.width_px == 64 and config.spec.seed == 5
+
+
+def test_config_errors_name_file_and_field(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("spec:\n  laps: many\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml.*\$\.spec\.laps"):
+        load_config(_Demo, path=path)
+    with pytest.raises(ConfigError, match="unknown field"):
+        load_config(_Demo, overrides=["colour=red"])
+    with pytest.raises(ConfigError, match="key.path=value"):
+        load_config(_Demo, overrides=["no-equals-sign"])
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(_Demo, path=tmp_path / "missing.yaml")
+    path.write_text("- a list\n")
+    with pytest.raises(ConfigError, match="mapping at the top level"):
+        load_config(_Demo, path=path)
