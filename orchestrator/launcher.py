@@ -74,6 +74,7 @@ class LocalStack:
     run_dir: Path
     brains: list[BrainLaunch] = field(default_factory=lambda: [BrainLaunch("explicit")])
     startup_timeout_s: float = 60.0
+    embed_router: bool = True  # False: the router is a child process too (``python -m services.router``)
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -96,7 +97,12 @@ class LocalStack:
 
     def start(self) -> None:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
-        self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher")
+        if self.embed_router:
+            self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher")
+        else:
+            self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
+            self._wait_for_router()
+            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher")
         watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer")}
         self._spawn("simulator", "sim", "services.simulator", [])
@@ -115,12 +121,27 @@ class LocalStack:
             raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})")
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
-    def _spawn(self, role: str, name: str, module: str, argv: list[str]) -> Child:
+    def _wait_for_router(self) -> None:
+        """Until the router child accepts TCP connections (a peer would otherwise wait for it forever)."""
+        host, port = self.endpoint.removeprefix("tcp/").rsplit(":", 1)
+        deadline = time.monotonic() + self.startup_timeout_s
+        while time.monotonic() < deadline:
+            if (dead := self._dead_child_reason()) is not None:
+                raise StackError(dead)
+            try:
+                socket.create_connection((host, int(port)), timeout=0.5).close()
+                return
+            except OSError:
+                time.sleep(0.1)
+        raise StackError(f"the router did not listen on {self.endpoint} within {self.startup_timeout_s:.0f} s")
+
+    def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
         log_path = self.run_dir / "logs" / f"{role}-{name}.log" if role == "brain" else self.run_dir / "logs" / f"{role}.log"
         env = dict(os.environ, PYTHONUNBUFFERED="1", DRIVEBENCH_PARENT_PID=str(os.getpid()))
         with open(log_path, "ab") as log_file:
             process = subprocess.Popen(
-                [sys.executable, "-m", module, "--router", self.endpoint, "--run-id", self.run_id, *argv],
+                [sys.executable, "-m", module, *(["--router", self.endpoint, "--run-id", self.run_id] if connect else []),
+                 *argv],
                 stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                 start_new_session=True,  # Ctrl-C reaches only us; we stop the children in order
             )

@@ -21,10 +21,13 @@ from protocol.messages import (
 pytestmark = pytest.mark.integration
 
 
-def poses_of(inbox: Inbox, episode: int) -> np.ndarray:
-    rows = [(r.message.header.seq, r.message.x_m, r.message.y_m, r.message.yaw_rad)
-            for r in inbox.drain() if isinstance(r.message, Pose) and r.message.header.episode == episode]
-    return np.array(rows)
+def poses_by_episode(inbox: Inbox) -> dict[int, np.ndarray]:
+    """(seq, x, y, yaw) rows of every pose received, per episode."""
+    rows: dict[int, list] = {}
+    for received in inbox.drain():
+        pose = received.message
+        rows.setdefault(pose.header.episode, []).append((pose.header.seq, pose.x_m, pose.y_m, pose.yaw_rad))
+    return {episode: np.array(poses) for episode, poses in rows.items()}
 
 
 @pytest.mark.slow
@@ -47,7 +50,8 @@ def test_same_seed_gives_bitwise_identical_trajectory(make_stack):
     spec = EpisodeSpec(circuit="simple", max_sim_seconds=12.0, seed=3, camera=CameraSpec(width_px=160, height_px=120))
     first = stack.run_episode(spec)
     second = stack.run_episode(spec)
-    a, b = poses_of(inbox, first.header.episode), poses_of(inbox, second.header.episode)
+    poses = poses_by_episode(inbox)
+    a, b = poses[first.header.episode], poses[second.header.episode]
     assert first.reason == second.reason == EndReason.TIME_LIMIT
     assert len(a) == len(b) == 241  # 12 s at 20 Hz, plus the start pose
     assert np.array_equal(a, b)  # bitwise: the brain is reset, rendering and integration are deterministic
@@ -143,3 +147,23 @@ def test_the_simulator_refuses_bad_run_control(make_stack):
     assert not reply.ok and "'ghost' is not alive" in reply.detail
     reply = stack._control(ControlRequest(action="dance"))
     assert not reply.ok and "unknown action" in reply.detail
+
+
+def test_stack_with_the_router_as_its_own_process(tmp_path):
+    from orchestrator.launcher import LocalStack
+
+    with LocalStack(run_id="standalone", run_dir=tmp_path, brains=[BrainLaunch("explicit")],
+                    embed_router=False) as stack:
+        assert stack.child("router", "router").process.poll() is None
+        score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, camera=CameraSpec(width_px=96, height_px=72)))
+    assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 60
+    assert all(child.process.poll() is not None for child in stack.children)
+
+
+def test_realtime_mode_runs_at_wall_clock_rate(make_stack):
+    stack = make_stack(BrainLaunch("explicit"))
+    score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, realtime=True,
+                                          camera=CameraSpec(width_px=96, height_px=72)))
+    assert score.reason == EndReason.TIME_LIMIT
+    assert score.metrics.real_time_factor == pytest.approx(1.0, abs=0.1)
+    assert score.metrics.progress_m > 5  # the explicit brain drove with its latest commands
