@@ -8,6 +8,7 @@ must be closed for the process to exit at all), run, and turn user mistakes into
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import signal
@@ -15,9 +16,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
-from protocol.bus import BusError
+from protocol.bus import Bus, BusError
 from protocol.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
 
 T = TypeVar("T")
@@ -55,14 +56,15 @@ def service_parser(description: str) -> argparse.ArgumentParser:
 
 
 def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra: dict[str, Any] | None = None) -> T:
+    # Command-line values are strings: quote them, or YAML would read a run id like 0123 as a number.
     overrides = list(args.set)
     if getattr(args, "router", None):
-        overrides.append(f"bus.connect=[{args.router}]")
+        overrides.append(f"bus.connect=[{json.dumps(args.router)}]")
     if getattr(args, "run_id", None):
-        overrides.append(f"run_id={args.run_id}")
+        overrides.append(f"run_id={json.dumps(args.run_id)}")
     for key, value in (extra or {}).items():
         if value is not None:
-            overrides.append(f"{key}={value}")
+            overrides.append(f"{key}={json.dumps(value)}")
     return load_config(config_type, path=args.config, overrides=overrides)
 
 
@@ -99,3 +101,30 @@ def run_service(name: str, main: Callable[[], int | None]) -> int:
 
 def log_config(config: Any) -> None:
     log.info("resolved config:\n%s", dump_config(config).rstrip())
+
+
+class Service(Protocol):
+    def serve_forever(self) -> None: ...
+
+
+def service_main(role: str, description: str, config_type: type[T], make_service: Callable[[T, Bus], Service],
+                 argv: list[str] | None = None) -> int:
+    """The whole ``main`` of a service: parse, load and log the config, open the bus, serve until stopped.
+
+    ``config_type`` needs ``bus`` and ``name`` fields. A service with a ``close()`` method has it called on exit.
+    """
+    args = service_parser(description).parse_args(argv)
+
+    def run() -> int:
+        config = load_service_config(config_type, args)
+        log_config(config)
+        with Bus(config.bus, name=f"{role}-{config.name}") as bus:
+            service = make_service(config, bus)
+            try:
+                service.serve_forever()
+            finally:
+                if hasattr(service, "close"):
+                    service.close()
+        return 0
+
+    return run_service(role, run)

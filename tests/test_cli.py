@@ -19,13 +19,15 @@ def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 def test_run_json_prints_one_json_object_and_writes_the_run_folder(tmp_path):
     out = tmp_path / "run"
     result = drivebench("run", "--circuit", "simple", "--brain", "explicit", "--max-sim-seconds", "5",
-                        "--camera", "160x120", "--seed", "4", "--json", "--out", str(out))
+                        "--camera", "160x120", "--seed", "4", "--json", "--out", str(out),
+                        "--run-id", "0042")  # digits only: must stay a string in every process
     assert result.returncode == 0, result.stderr
     score = json.loads(result.stdout)  # stdout is exactly one JSON object
     assert result.stdout.count("\n") == 1
     assert score["reason"] == "time_limit"
     assert score["spec"]["seed"] == 4 and score["spec"]["camera"]["width_px"] == 160
     assert score["metrics"]["steps"] == 100
+    assert score["header"]["run_id"] == "0042"
     assert json.loads((out / "score.json").read_text()) == score
     assert "circuit: simple" in (out / "config.yaml").read_text()
     logs = {path.name for path in (out / "logs").iterdir()}

@@ -152,7 +152,8 @@ def test_the_simulator_refuses_bad_run_control(make_stack):
 def test_stack_with_the_router_as_its_own_process(tmp_path):
     from orchestrator.launcher import LocalStack
 
-    with LocalStack(run_id="standalone", run_dir=tmp_path, brains=[BrainLaunch("explicit")],
+    # A run id of digits only: it must stay a string through every command line and config.
+    with LocalStack(run_id="0123", run_dir=tmp_path, brains=[BrainLaunch("explicit")],
                     embed_router=False) as stack:
         assert stack.child("router", "router").process.poll() is None
         score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, camera=CameraSpec(width_px=96, height_px=72)))

@@ -6,6 +6,7 @@ clients. No plugins (REST, storage) load in a Python router: use ``zenohd`` for 
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import threading
@@ -33,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> int:
         overrides = list(args.set) + ["bus.mode=router"]
         if args.listen:
-            overrides.append(f"bus.listen=[{', '.join(args.listen)}]")
+            overrides.append(f"bus.listen={json.dumps(args.listen)}")
         config = load_config(RouterConfig, path=args.config, overrides=overrides,
                              base={"bus": msgspec.to_builtins(RouterConfig().bus)})
         log_config(config)

@@ -169,15 +169,7 @@ class ScorerService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import load_service_config, log_config, run_service, service_parser
+    from protocol.runtime import service_main
 
-    args = service_parser("drivebench scorer: live metrics and one final score per episode").parse_args(argv)
-
-    def run() -> int:
-        config = load_service_config(ScorerConfig, args)
-        log_config(config)
-        with Bus(config.bus, name=f"scorer-{config.name}") as bus:
-            ScorerService(config, bus).serve_forever()
-        return 0
-
-    return run_service("scorer", run)
+    return service_main("scorer", "drivebench scorer: live metrics and one final score per episode", ScorerConfig,
+                        ScorerService, argv)

@@ -253,22 +253,10 @@ class SimulatorService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import load_service_config, log_config, run_service, service_parser
+    from protocol.runtime import service_main
 
-    args = service_parser("drivebench simulator: PyBullet world, camera frames, poses, episode events").parse_args(argv)
-
-    def run() -> int:
-        config = load_service_config(SimulatorConfig, args)
-        log_config(config)
-        with Bus(config.bus, name=f"simulator-{config.name}") as bus:
-            service = SimulatorService(config, bus)
-            try:
-                service.serve_forever()
-            finally:
-                service.close()
-        return 0
-
-    return run_service("simulator", run)
+    return service_main("simulator", "drivebench simulator: PyBullet world, camera frames, poses, episode events",
+                        SimulatorConfig, SimulatorService, argv)
 
 
 __all__ = ["SimulatorConfig", "SimulatorService", "main"]
