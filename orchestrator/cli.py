@@ -25,6 +25,7 @@ from orchestrator.launcher import BrainLaunch, LocalStack, StackError
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
+from protocol.runtime import exit_on_sigterm
 from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec, LiveMetrics
 from services.circuits import circuit_names
 
@@ -134,6 +135,7 @@ def report(score: EpisodeScore, run_dir: Path, *, as_json: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    exit_on_sigterm()  # SIGTERM stops the stack as cleanly as Ctrl-C does
     try:
         if args.command == "run":
             return command_run(args)
@@ -146,6 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
         return 130
+    except SystemExit as stop:
+        if isinstance(stop.code, int) and stop.code > 128:  # our SIGTERM handler: the stack is already stopped
+            print("drivebench: terminated; every process stopped", file=sys.stderr)
+        raise
     return EXIT_USAGE
 
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -66,3 +69,49 @@ def test_bad_brain_option_stops_the_stack_with_a_reason(tmp_path):
     assert result.returncode == 1
     assert "bad options for brain 'constant'" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_interrupting_a_run_stops_every_process(tmp_path, signal_number):
+    out = tmp_path / "run"
+    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--out", str(out)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while "episode 0 started" not in _read(out / "logs" / "simulator.log"):
+        assert time.monotonic() < deadline and run.poll() is None, "the episode never started"
+        time.sleep(0.2)
+    children = _child_pids(run.pid)
+    assert len(children) == 3
+    run.send_signal(signal_number)
+    _, stderr = run.communicate(timeout=30)
+    assert run.returncode == 128 + signal_number
+    assert "every process stopped" in stderr and "Traceback" not in stderr
+    for pid in children:
+        assert not _alive(pid), f"child {pid} outlived the launcher"
+
+
+def _read(path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
+
+
+def _child_pids(parent: int) -> list[int]:
+    found = []
+    for status in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = status.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == parent:
+            found.append(int(status.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
