@@ -3,7 +3,9 @@
 It keeps only the newest frame (a brain slower than the camera skips frames instead of lagging behind), calls the
 brain, and publishes a Command stamped with the frame it answers and the inference time. A new episode number on
 the frames resets the brain, seeded from the episode's spec. A frame it has already answered (the simulator
-repeats a frame nobody answered) gets the same command again without calling the brain twice.
+repeats a frame nobody answered) gets the same command again without calling the brain twice. A frame the noise
+injector dropped gets the last command again (the car keeps doing what the brain last decided), stamped for the new
+frame, without calling the brain.
 """
 
 from __future__ import annotations
@@ -13,12 +15,11 @@ import time
 from typing import Any
 
 import msgspec
-import numpy as np
-
 from brains.base import Brain, Observation
 from brains.registry import UnknownBrainError, brain_names, make_brain
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.images import frame_image
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header
 
 log = logging.getLogger("drivebench.brain")
@@ -30,8 +31,8 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     brain: registered brain name (``explicit``, ``constant``, ...).
     name: this brain's name on the bus (its command key and liveliness token); defaults to ``brain``.
     options: keyword options for the brain's constructor (e.g. ``{speed_mps: 2.0}`` for ``constant``).
-    camera: which stream to drive from: ``perturbed`` (after the noise injector) or ``raw`` (straight from the
-        simulator, when no noise injector runs).
+    camera: which stream to drive from: ``perturbed`` (after the noise injector, the default) or ``raw`` (straight
+        from the simulator, for a stack without a noise injector).
     """
 
     bus: BusConfig = BusConfig()
@@ -39,7 +40,7 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     brain: str = "explicit"
     name: str = ""
     options: dict[str, Any] = {}
-    camera: str = "raw"
+    camera: str = "perturbed"
 
     def __post_init__(self) -> None:
         if self.camera not in ("raw", "perturbed"):
@@ -48,17 +49,6 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     @property
     def bus_name(self) -> str:
         return self.name or self.brain
-
-
-def frame_image(frame: CameraFrame) -> np.ndarray:
-    """The frame's pixels as H x W x 3 uint8 (a view on the payload, no copy)."""
-    if frame.encoding != "rgb8":
-        raise ValueError(f"unsupported camera encoding {frame.encoding!r} (expected rgb8)")
-    expected = frame.width_px * frame.height_px * 3
-    if len(frame.data) != expected:
-        raise ValueError(f"camera frame of {frame.width_px}x{frame.height_px} rgb8 needs {expected} bytes, "
-                         f"got {len(frame.data)}")
-    return np.frombuffer(frame.data, dtype=np.uint8).reshape(frame.height_px, frame.width_px, 3)
 
 
 class BrainHost:
@@ -103,23 +93,33 @@ class BrainHost:
         if self._last is not None and (self._last.header.episode, self._last.frame_seq) == (h.episode, h.seq):
             self._commands.publish(self._last)  # a repeated frame: same answer, the brain sees each frame once
             return
-        try:
-            image = frame_image(frame)
-        except ValueError as error:
-            self.bad_frames += 1
-            if self.bad_frames == 1:
-                log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
-            return
+        if frame.dropped:
+            image = None
+        else:
+            try:
+                image = frame_image(frame)
+            except ValueError as error:
+                self.bad_frames += 1
+                if self.bad_frames == 1:
+                    log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
+                return
         if h.episode != self._episode:
             self._episode = h.episode
+            self._last = None
             self.brain.reset(seed=self._seed_for(h.episode))
-        started = time.perf_counter_ns()
-        action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq))
-        inference_ns = time.perf_counter_ns() - started
+        if image is None:  # lost on the way: keep doing what the brain last decided
+            speed_mps = self._last.speed_mps if self._last is not None else 0.0
+            yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0
+            inference_ns = 0
+        else:
+            started = time.perf_counter_ns()
+            action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq))
+            inference_ns = time.perf_counter_ns() - started
+            speed_mps, yaw_rate_radps = float(action.speed_mps), float(action.yaw_rate_radps)
         command = Command(
             header=Header(run_id=self.config.run_id, episode=h.episode, seq=self._seq, stamp_ns=h.stamp_ns),
-            brain=self.name, frame_seq=h.seq, speed_mps=float(action.speed_mps),
-            yaw_rate_radps=float(action.yaw_rate_radps), inference_ns=inference_ns)
+            brain=self.name, frame_seq=h.seq, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps,
+            inference_ns=inference_ns)
         self._seq += 1
         self._commands.publish(command)
         self._last = command

@@ -27,7 +27,8 @@ from protocol import codec
 from protocol.bus import BusError
 from protocol.runtime import exit_on_sigterm
 from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec, LiveMetrics
-from services.circuits import circuit_names
+from protocol.variations import apply_variation, noise_stage
+from services.circuits import CircuitError, circuit_names, load_circuit
 
 EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
 
@@ -55,6 +56,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
     run.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
                      help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)")
+    run.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
+                     help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
+                          "camera=left (presets: left, right, rotate_down, rotate_up) or camera_yaw_rad=0.1")
+    run.add_argument("--noise", action="append", default=[], metavar="MODEL[=VALUE]",
+                     help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
+                          "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
+                          "drop=0.1")
     run.add_argument("--seed", type=int, default=0, help="seed of every random generator (default: 0)")
     run.add_argument("--realtime", action="store_true",
                      help="free-running at wall-clock rate with the latest command (default: lock-step)")
@@ -63,20 +71,39 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--run-id", help="run id used in every key (default: random)")
     run.add_argument("--out", type=Path, help="run folder (default: runs/<time>-<run id>)")
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
+
+    circuits = commands.add_parser("circuits", help="list, show and import circuits")
+    circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
+    circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
+    show = circuit_commands.add_parser("show", help="a top-down picture of a circuit (start point and direction)")
+    show.add_argument("name", help="circuit name (also random:SEED)")
+    show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
+    show.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
+    importer = circuit_commands.add_parser(
+        "import", help="import a racetrack-database centreline CSV (x_m,y_m,w_tr_right_m,w_tr_left_m)")
+    importer.add_argument("file", type=Path, help="the CSV file")
+    importer.add_argument("--name", required=True, help="name to use it by (letters, digits, _ . -)")
+    importer.add_argument("--scale", type=float, default=1.0, help="scale factor (default 1: real size)")
     return parser
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
-    if args.circuit not in circuit_names():
-        raise UsageError(f"unknown circuit {args.circuit!r} (known: {', '.join(circuit_names())})")
+    try:
+        load_circuit(args.circuit)
+    except CircuitError as error:
+        raise UsageError(str(error)) from None
     if args.brain not in brain_names():
         raise UsageError(f"unknown brain {args.brain!r} (known: {', '.join(brain_names())})")
     width, height = args.camera
     try:
-        return EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
+        spec = EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
                            realtime=args.realtime, camera=CameraSpec(width_px=width, height_px=height),
-                           active_brain=args.brain, brain_timeout_s=args.brain_timeout)
-    except ValueError as error:
+                           active_brain=args.brain, brain_timeout_s=args.brain_timeout,
+                           noise=[noise_stage(item) for item in args.noise])
+        for variation in args.variation:
+            spec = apply_variation(spec, variation)
+        return spec
+    except ValueError as error:  # VariationError and the specs' own checks
         raise UsageError(str(error)) from None
 
 
@@ -125,6 +152,35 @@ def command_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def command_circuits(args: argparse.Namespace) -> int:
+    try:
+        if args.circuits_command == "list":
+            rows = [("name", "lap (m)", "road (m)", "source")]
+            for name in circuit_names():
+                circuit = load_circuit(name)
+                rows.append((name, f"{circuit.length_m:.1f}", f"{2 * circuit.road_half_width_m:.1f}", circuit.source))
+            rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed"))
+            widths = [max(len(row[i]) for row in rows) for i in range(3)]
+            for row in rows:
+                print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")
+        elif args.circuits_command == "show":
+            from services.circuits.picture import save_circuit_picture
+
+            circuit = load_circuit(args.name)
+            save_circuit_picture(circuit, args.output, width_px=args.width)
+            print(f"{circuit.name}: {circuit.length_m:.1f} m -> {args.output}", file=sys.stderr)
+        elif args.circuits_command == "import":
+            from services.circuits.importer import import_racetrack_csv
+
+            path = import_racetrack_csv(args.file, name=args.name, scale=args.scale)
+            circuit = load_circuit(args.name)
+            print(f"imported {args.name}: {circuit.length_m:.1f} m, road {2 * circuit.road_half_width_m:.1f} m "
+                  f"-> {path}", file=sys.stderr)
+    except CircuitError as error:
+        raise UsageError(str(error)) from None
+    return EXIT_OK
+
+
 def report(score: EpisodeScore, run_dir: Path, *, as_json: bool) -> None:
     if as_json:
         print(codec.to_json(score))
@@ -139,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run":
             return command_run(args)
+        if args.command == "circuits":
+            return command_circuits(args)
     except UsageError as error:
         print(f"drivebench: error: {error}", file=sys.stderr)
         return EXIT_USAGE

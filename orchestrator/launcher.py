@@ -1,8 +1,8 @@
 """The local launcher: a whole stack on this machine, each service its own process, one run folder.
 
 ``LocalStack`` embeds the Zenoh router in the calling process (on a free loopback port), starts the simulator,
-the brain host(s) and the scorer as child processes with a log file each, waits for their liveliness tokens,
-runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM, then SIGKILL).
+the noise injector, the brain host(s) and the scorer as child processes with a log file each, waits for their
+liveliness tokens, runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM, then SIGKILL).
 Children also stop by themselves when this process dies (they watch their parent), so nothing is orphaned.
 """
 
@@ -104,8 +104,10 @@ class LocalStack:
             self._wait_for_router()
             self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher")
         watch = self.bus.watch_alive(keys.alive_all(self.run_id))
-        wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer")}
+        wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer"),
+                  keys.alive(self.run_id, "noise", "noise")}
         self._spawn("simulator", "sim", "services.simulator", [])
+        self._spawn("noise", "noise", "services.noise", [])
         self._spawn("scorer", "scorer", "services.scorer", [])
         for launch in self.brains:
             argv = ["--brain", launch.brain, "--name", launch.bus_name]

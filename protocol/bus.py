@@ -136,11 +136,12 @@ class Publisher(Generic[T]):
 
 @dataclass(frozen=True)
 class Received(Generic[T]):
-    """A decoded message, the key it came on, and when it arrived (``time.monotonic_ns`` of this process)."""
+    """A decoded message, its wire bytes, the key it came on, and when it arrived (``time.monotonic_ns`` here)."""
 
     key: str
     message: T
     arrival_ns: int
+    payload: bytes = b""
 
 
 @dataclass
@@ -215,12 +216,13 @@ class Subscription(Generic[T]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         try:
-            message = codec.decode(sample.payload.to_bytes(), self._type)
+            message = codec.decode(payload, self._type)
         except codec.DecodeError as error:
             self._rejects.reject(key, error)
             return
-        self.inbox.put(Received(key=key, message=message, arrival_ns=time.monotonic_ns()))
+        self.inbox.put(Received(key=key, message=message, arrival_ns=time.monotonic_ns(), payload=payload))
 
     def recv(self, timeout_s: float | None = None) -> Received[T] | None:
         return self.inbox.recv(timeout_s)

@@ -54,6 +54,130 @@ class EventKind(enum.StrEnum):
     END = "end"
 
 
+class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Visual variations of a circuit's world (Behavior Metrics ships them as separate worlds).
+
+    line: centre line colour, "red", "white" or "none". road: "grey" (asphalt) or "white".
+    walls: 0.5 m walls on both road edges; without them grass is seen beyond the road edge.
+    lighting: "sun" (flat, bright) or "no_sun" (darker, as BM's *_no_sun worlds).
+    """
+
+    line: str = "red"
+    road: str = "grey"
+    walls: bool = True
+    lighting: str = "sun"
+
+    def __post_init__(self) -> None:
+        for field_name, allowed in (("line", ("red", "white", "none")), ("road", ("grey", "white")),
+                                    ("lighting", ("sun", "no_sun"))):
+            if getattr(self, field_name) not in allowed:
+                raise ValueError(f"{field_name} must be one of {', '.join(allowed)}, got {getattr(self, field_name)!r}")
+
+
+# -- camera perturbations applied by the noise injector, in order (``EpisodeSpec.noise``) --
+
+
+class _Noise(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag_field="model"):
+    pass
+
+
+MAX_DELAY_FRAMES = 200  # 10 s at 20 Hz; the injector buffers this many frames
+MAX_OCCLUSION_PATCHES = 100
+
+
+def _check_probability(name: str, value: float) -> None:
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must be within 0..1, got {value}")
+
+
+class SaltPepper(_Noise, tag="salt_pepper"):
+    """Each pixel becomes black or white (equally likely) with ``probability`` (the paper: 0.2, 0.4, 0.6)."""
+
+    probability: float
+
+    def __post_init__(self) -> None:
+        _check_probability("salt_pepper probability", self.probability)
+
+
+class Gaussian(_Noise, tag="gaussian"):
+    """Additive gaussian noise, standard deviation ``sigma`` in 0-255 intensity units, clipped."""
+
+    sigma: float
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.sigma < float("inf"):
+            raise ValueError(f"gaussian sigma must be >= 0, got {self.sigma}")
+
+
+class Blur(_Noise, tag="blur"):
+    """Gaussian blur with a ``kernel_px`` x ``kernel_px`` kernel (odd)."""
+
+    kernel_px: int
+
+    def __post_init__(self) -> None:
+        if self.kernel_px < 1 or self.kernel_px % 2 == 0:
+            raise ValueError(f"blur kernel_px must be an odd number >= 1, got {self.kernel_px}")
+
+
+class Brightness(_Noise, tag="brightness"):
+    """``out = contrast * (in - 128) + 128 + 255 * brightness``, clipped: brightness -1..1, contrast >= 0."""
+
+    brightness: float = 0.0
+    contrast: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (-1.0 <= self.brightness <= 1.0 and 0 <= self.contrast < float("inf")):
+            raise ValueError(f"brightness must be within -1..1 and contrast >= 0, got {self.brightness}, {self.contrast}")
+
+
+class Occlusion(_Noise, tag="occlusion"):
+    """``patches`` black rectangles, each ``size_fraction`` of the image's height by ``size_fraction`` of its width,
+    at random places (they may overlap), in a frame with ``probability``."""
+
+    patches: int = 1
+    size_fraction: float = 0.2
+    probability: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_probability("occlusion probability", self.probability)
+        if not 0 <= self.patches <= MAX_OCCLUSION_PATCHES or not 0.0 < self.size_fraction <= 1.0:
+            raise ValueError(f"occlusion needs patches >= 0 and size_fraction within (0, 1], got {self.patches}, "
+                             f"{self.size_fraction}")
+
+
+class Jpeg(_Noise, tag="jpeg"):
+    """JPEG re-encoding at ``quality`` (1-100)."""
+
+    quality: int
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.quality <= 100:
+            raise ValueError(f"jpeg quality must be within 1..100, got {self.quality}")
+
+
+class Delay(_Noise, tag="delay"):
+    """The brain sees the image of ``frames`` frames earlier (the first frames of an episode: the oldest one)."""
+
+    frames: int
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.frames <= MAX_DELAY_FRAMES:
+            raise ValueError(f"delay frames must be within 0..{MAX_DELAY_FRAMES}, got {self.frames}")
+
+
+class Drop(_Noise, tag="drop"):
+    """A frame is lost with ``probability``: the brain gets no new image and its last command stands."""
+
+    probability: float
+
+    def __post_init__(self) -> None:
+        _check_probability("drop probability", self.probability)
+
+
+NoiseStage = SaltPepper | Gaussian | Blur | Brightness | Occlusion | Jpeg | Delay | Drop
+NOISE_MODELS: tuple[type[_Noise], ...] = (SaltPepper, Gaussian, Blur, Brightness, Occlusion, Jpeg, Delay, Drop)
+
+
 class CameraSpec(msgspec.Struct, frozen=True, kw_only=True):
     """The front camera, mounted on the car (car frame: x forward, y left, z up; metres, radians).
 
@@ -68,6 +192,7 @@ class CameraSpec(msgspec.Struct, frozen=True, kw_only=True):
     lateral_offset_m: float = 0.0
     height_m: float = 0.10
     pitch_down_rad: float = 0.0
+    yaw_rad: float = 0.0
     near_m: float = 0.1
     far_m: float = 15.0
 
@@ -92,6 +217,8 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
         rate with the latest command.
     active_brain: name of the brain whose commands drive the car.
     brain_timeout_s: lock-step: wall seconds to wait for the answer to one frame before ending the episode.
+    world: visual variation of the circuit's world.
+    noise: camera perturbations applied in order by the noise injector (empty: brains see ground truth).
     """
 
     circuit: str = "simple"
@@ -103,6 +230,8 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
     camera: CameraSpec = CameraSpec()
     active_brain: str = "explicit"
     brain_timeout_s: float = 10.0
+    world: WorldVariation = WorldVariation()
+    noise: list[NoiseStage] = []
 
     def __post_init__(self) -> None:
         if self.laps < 1:
@@ -120,13 +249,18 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class CameraFrame(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.CameraFrame.v1", tag_field=TAG_FIELD):
-    """One camera image. ``data`` is row-major ``height_px x width_px x 3`` uint8 in ``encoding`` (rgb8)."""
+    """One camera image. ``data`` is row-major ``height_px x width_px x 3`` uint8 in ``encoding`` (rgb8).
+
+    dropped: the noise injector lost this frame (``data`` is empty): a brain host answers it with its last command,
+        as a real brain keeps acting on what it last saw, so lock-step goes on.
+    """
 
     header: Header
     width_px: int
     height_px: int
     encoding: str = "rgb8"
     data: bytes
+    dropped: bool = False
 
 
 class Pose(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Pose.v1", tag_field=TAG_FIELD):

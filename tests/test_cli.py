@@ -34,7 +34,7 @@ def test_run_json_prints_one_json_object_and_writes_the_run_folder(tmp_path):
     assert json.loads((out / "score.json").read_text()) == score
     assert "circuit: simple" in (out / "config.yaml").read_text()
     logs = {path.name for path in (out / "logs").iterdir()}
-    assert logs == {"simulator.log", "scorer.log", "brain-explicit.log"}
+    assert logs == {"simulator.log", "noise.log", "scorer.log", "brain-explicit.log"}
     assert "resolved config" in (out / "logs" / "simulator.log").read_text()
 
 
@@ -81,7 +81,7 @@ def test_interrupting_a_run_stops_every_process(tmp_path, signal_number):
         assert time.monotonic() < deadline and run.poll() is None, "the episode never started"
         time.sleep(0.2)
     children = _child_pids(run.pid)
-    assert len(children) == 3
+    assert len(children) == 4  # simulator, noise injector, scorer, brain
     run.send_signal(signal_number)
     _, stderr = run.communicate(timeout=30)
     assert run.returncode == 128 + signal_number

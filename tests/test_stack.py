@@ -108,8 +108,8 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
                                  "speed_mps": 1, "yaw_rate_radps": 0,
                                  "header": {"run_id": run, "episode": 0, "seq": 0, "stamp_ns": 0}})
     garbage = [b"", b"\xc1\xc1", b"hello", msgpack.packb([1, 2]), wrong_type, wrong_field]
-    targets = [keys.camera_raw(run), keys.pose(run), keys.events(run), keys.command(run, "explicit"),
-               keys.command(run, "intruder")]
+    targets = [keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run), keys.events(run),
+               keys.command(run, "explicit"), keys.command(run, "intruder")]
     publishers = [stack.bus.publisher(key, object, Traffic.EVENTS) for key in targets]
 
     def spray() -> None:
@@ -134,6 +134,7 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
     logs = {child.role: child.log_path.read_text() for child in stack.children}
     assert "dropped bad message" in logs["simulator"]
     assert "dropped bad message" in logs["scorer"]
+    assert "dropped bad message" in logs["noise"]
     assert "dropped bad camera frame" in logs["brain"] or "dropped bad message" in logs["brain"]
     # and the stack still works afterwards
     assert stack.run_episode(spec).metrics.steps == 120

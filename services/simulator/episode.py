@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import EndReason, EpisodeSpec
+from protocol.messages import EndReason, EpisodeSpec, WorldVariation
 from services.circuits import Circuit, load_circuit
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
@@ -22,15 +22,24 @@ CAR_HALF_WIDTH_M = 0.2
 
 
 class SceneCache:
-    """Scenes by circuit name: building one costs far more than a step, and episodes reuse circuits."""
+    """Scenes by circuit and world variation: building one costs far more than a step, and episodes reuse them.
 
-    def __init__(self) -> None:
-        self._scenes: dict[str, Scene] = {}
+    Keeps at most ``capacity`` scenes (each holds a PyBullet client and the circuit's meshes); the least recently
+    used goes first.
+    """
 
-    def get(self, circuit: Circuit) -> Scene:
-        scene = self._scenes.get(circuit.name)
+    def __init__(self, *, capacity: int = 4) -> None:
+        self._scenes: dict[tuple[str, WorldVariation], Scene] = {}
+        self._capacity = capacity
+
+    def get(self, circuit: Circuit, world: WorldVariation = WorldVariation()) -> Scene:
+        key = (circuit.name, world)
+        scene = self._scenes.pop(key, None)
         if scene is None:
-            scene = self._scenes[circuit.name] = Scene(circuit)
+            while len(self._scenes) >= self._capacity:
+                self._scenes.pop(next(iter(self._scenes))).close()
+            scene = Scene.for_world(circuit, world)
+        self._scenes[key] = scene  # most recently used last
         return scene
 
     def close(self) -> None:
@@ -57,7 +66,7 @@ class EpisodeSim:
     def __init__(self, spec: EpisodeSpec, *, scenes: SceneCache, circuit: Circuit | None = None):
         self.spec = spec
         self.circuit = circuit or load_circuit(spec.circuit)
-        self._scene = scenes.get(self.circuit)
+        self._scene = scenes.get(self.circuit, spec.world)
         x_m, y_m, yaw_rad = self.circuit.start_pose()
         self.car = CarState(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad)
         self.seq = 0
@@ -65,9 +74,9 @@ class EpisodeSim:
         self.progress_m = 0.0
         self.laps_completed = 0
         self._max_steps = int(np.ceil(spec.max_sim_seconds / spec.step_s - 1e-9))
-        # Walls are always on until world variations land; without walls the car is off track when its centre
-        # leaves the road, with them it crashes when its side touches the wall on the road edge.
-        self.walls = True
+        # Without walls the car is off track when its centre leaves the road; with them it crashes when its side
+        # touches the wall on the road edge.
+        self.walls = spec.world.walls
         self._edge_m = self.circuit.road_half_width_m - (CAR_HALF_WIDTH_M if self.walls else 0.0)
 
     @property

@@ -29,7 +29,7 @@ from typing import Literal
 import numpy as np
 import pybullet
 
-from protocol.messages import CameraSpec
+from protocol.messages import CameraSpec, WorldVariation
 from services.circuits import Circuit
 from services.simulator.car import CarState
 
@@ -46,9 +46,14 @@ ROAD_COLOURS = {"grey": (0.35, 0.35, 0.35, 1.0), "white": (0.8, 0.8, 0.8, 1.0)}
 LINE_COLOURS = {"red": (1.0, 0.0, 0.0, 1.0), "white": (1.0, 1.0, 1.0, 1.0)}
 WALL_COLOUR = (0.6, 0.6, 0.6, 1.0)  # light grey: unsaturated, R < 170 once rendered
 GRASS_COLOUR = (0.42, 0.55, 0.38, 1.0)  # muted green: HSV S ~ 79 < 110, so the explicit brain ignores it
-SKY_RGB = (180, 192, 210)  # pale blue-grey: HSV S ~ 37, R >= 170
+SKY_RGB = (180, 192, 210)  # pale blue-grey: HSV S ~ 37, R >= 170 (the "sun" sky)
 
-_LIGHTING = {"lightAmbientCoeff": 0.9, "lightDiffuseCoeff": 0.2, "lightSpecularCoeff": 0.0}
+# Lighting presets: "sun" is flat and bright (Gazebo-like); "no_sun" is Behavior Metrics' darker *_no_sun worlds.
+LIGHTING = {
+    "sun": {"lightAmbientCoeff": 0.9, "lightDiffuseCoeff": 0.2, "lightSpecularCoeff": 0.0},
+    "no_sun": {"lightAmbientCoeff": 0.5, "lightDiffuseCoeff": 0.1, "lightSpecularCoeff": 0.0},
+}
+SKY_RGB_BY_LIGHTING = {"sun": (180, 192, 210), "no_sun": (96, 104, 118)}
 
 LineColour = Literal["red", "white", "none"]
 RoadColour = Literal["grey", "white"]
@@ -74,7 +79,11 @@ def vertical_fov_rad(camera: CameraSpec) -> float:
 
 
 def camera_eye_and_axes(car: CarState, camera: CameraSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World position of the camera and its forward and up unit vectors, for a car pose."""
+    """World position of the camera and its forward and up unit vectors, for a car pose.
+
+    The mount (forward_m, lateral_offset_m, height_m) is in the car frame; the camera looks along the car's heading
+    turned by ``camera.yaw_rad`` (anticlockwise) and tilted down by ``camera.pitch_down_rad``.
+    """
     cos_yaw, sin_yaw = math.cos(car.yaw_rad), math.sin(car.yaw_rad)
     eye = np.array(
         [
@@ -84,6 +93,7 @@ def camera_eye_and_axes(car: CarState, camera: CameraSpec) -> tuple[np.ndarray, 
         ]
     )
     cos_pitch, sin_pitch = math.cos(camera.pitch_down_rad), math.sin(camera.pitch_down_rad)
+    cos_yaw, sin_yaw = math.cos(car.yaw_rad + camera.yaw_rad), math.sin(car.yaw_rad + camera.yaw_rad)
     forward = np.array([cos_pitch * cos_yaw, cos_pitch * sin_yaw, -sin_pitch])
     up = np.array([sin_pitch * cos_yaw, sin_pitch * sin_yaw, cos_pitch])
     return eye, forward, up
@@ -96,6 +106,7 @@ class Scene:
     line_colour: ``"red"`` (Behavior Metrics' default), ``"white"`` (the white-line variant) or ``"none"``.
     road_colour: ``"grey"`` or ``"white"`` (Behavior Metrics' white-road variant, 0.8 grey).
     walls: ``wall_height_m`` walls on both road edges (False: the no-wall variants).
+    lighting: ``"sun"`` or ``"no_sun"`` (darker, as Behavior Metrics' *_no_sun worlds).
     cull_margin_m: chunks farther than ``camera.far_m + cull_margin_m`` from the camera are hidden before each frame;
         ``None`` disables culling (same pixels, slower).
 
@@ -109,8 +120,13 @@ class Scene:
         line_colour: LineColour = "red",
         road_colour: RoadColour = "grey",
         walls: bool = True,
+        lighting: str = "sun",
         cull_margin_m: float | None = 5.0,
     ):
+        if lighting not in LIGHTING:
+            raise ValueError(f"lighting must be 'sun' or 'no_sun', got {lighting!r}")
+        self._lighting = LIGHTING[lighting]
+        self._sky_rgb = SKY_RGB_BY_LIGHTING[lighting]
         if line_colour not in ("red", "white", "none"):
             raise ValueError(f"line_colour must be 'red', 'white' or 'none', got {line_colour!r}")
         if road_colour not in ROAD_COLOURS:
@@ -132,6 +148,12 @@ class Scene:
         self._radii = np.array([chunk.radius_m for chunk in self._chunks])
         self._is_grass = np.array([chunk.is_grass for chunk in self._chunks])
         self._walls = walls
+
+    @classmethod
+    def for_world(cls, circuit: Circuit, world: WorldVariation) -> Scene:
+        """The scene of ``circuit`` with a world variation (line, road, walls, lighting)."""
+        return cls(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls,
+                   lighting=world.lighting)
 
     # -- building ---------------------------------------------------------------------------------------------------
 
@@ -282,11 +304,11 @@ class Scene:
             shadow=0,
             flags=pybullet.ER_NO_SEGMENTATION_MASK,
             physicsClientId=self._client,
-            **_LIGHTING,
+            **self._lighting,
         )
         image = np.array(np.reshape(rgba, (height, width, 4))[:, :, :3], dtype=np.uint8)
         sky = np.reshape(depth, (height, width)) >= SKY_DEPTH
-        image[sky] = SKY_RGB
+        image[sky] = self._sky_rgb
         return image
 
     # -- life cycle -------------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
 )
@@ -166,9 +167,7 @@ class SimulatorService:
         """Publish frame (optional) and pose of the current step; return when the frame went out (monotonic ns)."""
         h = header(sim.seq, sim.stamp_ns)
         if frame:
-            image = sim.render()
-            self._frames.publish(CameraFrame(header=h, width_px=image.shape[1], height_px=image.shape[0],
-                                             data=image.tobytes()))
+            self._frames.publish(image_frame(h, sim.render()))
         sent_ns = time.monotonic_ns()
         self._poses.publish(Pose(header=h, x_m=sim.car.x_m, y_m=sim.car.y_m, yaw_rad=sim.car.yaw_rad,
                                  speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps, command_latency_ns=latency_ns))

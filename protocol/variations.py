@@ -1,0 +1,115 @@
+"""Short forms of world variations, camera presets and noise stages, for command lines and matrix files.
+
+    apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun")
+    noise_stage("salt_pepper=0.2")  ->  SaltPepper(probability=0.2)
+    noise_stage({"occlusion": {"patches": 2, "size_fraction": 0.3}})
+
+Every mistake raises :class:`VariationError` naming the key or model and what is allowed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+import yaml
+
+from protocol.messages import NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+
+
+class VariationError(ValueError):
+    pass
+
+
+# Behavior Metrics' camera-offset worlds (simple circuit), relative to the default mount. As in BM, the rotated
+# cameras are also shifted 0.20 m right (a copy-paste quirk of those worlds, kept so results compare).
+CAMERA_PRESETS: dict[str, dict[str, float]] = {
+    "default": {},
+    "left": {"lateral_offset_m": 0.20},
+    "right": {"lateral_offset_m": -0.20},
+    "rotate_down": {"lateral_offset_m": -0.20, "pitch_down_rad": 0.2},
+    "rotate_up": {"lateral_offset_m": -0.20, "pitch_down_rad": -0.2},
+}
+
+# variation key -> CameraSpec field, for explicit camera values
+_CAMERA_KEYS = {"camera_offset_m": "lateral_offset_m", "camera_height_m": "height_m",
+                "camera_pitch_rad": "pitch_down_rad", "camera_yaw_rad": "yaw_rad", "camera_hfov_rad": "hfov_rad"}
+_WORLD_KEYS = ("line", "road", "walls", "lighting")
+_BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True, "no": False}
+
+# The parameter a bare ``model=value`` sets.
+_PRIMARY = {"salt_pepper": "probability", "gaussian": "sigma", "blur": "kernel_px", "brightness": "brightness",
+            "occlusion": "patches", "jpeg": "quality", "delay": "frames", "drop": "probability"}
+_MODELS = {model.__struct_config__.tag: model for model in NOISE_MODELS}
+
+
+def parse_pairs(text: str) -> list[tuple[str, str]]:
+    """``"a=1,b=2"`` -> [("a", "1"), ("b", "2")]."""
+    pairs = []
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise VariationError(f"{item!r} must look like key=value")
+        pairs.append((key.strip(), value.strip()))
+    return pairs
+
+
+def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpec:
+    """The spec with world and camera variations applied (``"line=white,walls=off,camera=left"`` or a mapping)."""
+    pairs = parse_pairs(text) if isinstance(text, str) else [(str(k), v) for k, v in text.items()]
+    world = msgspec.structs.asdict(spec.world)
+    camera = msgspec.structs.asdict(spec.camera)
+    for key, value in pairs:
+        if key == "walls":
+            walls = _BOOLEAN.get(str(value).lower()) if not isinstance(value, bool) else value
+            if walls is None:
+                raise VariationError(f"walls must be on or off, got {value!r}")
+            world["walls"] = walls
+        elif key in _WORLD_KEYS:
+            world[key] = str(value)
+        elif key == "camera":
+            if value not in CAMERA_PRESETS:
+                raise VariationError(f"unknown camera preset {value!r} (known: {', '.join(CAMERA_PRESETS)})")
+            camera.update({field: camera[field] + delta for field, delta in CAMERA_PRESETS[value].items()})
+        elif key in _CAMERA_KEYS:
+            camera[_CAMERA_KEYS[key]] = _number(key, value)
+        else:
+            raise VariationError(f"unknown variation {key!r} (known: {', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS])})")
+    try:
+        return msgspec.structs.replace(spec, world=msgspec.convert(world, WorldVariation),
+                                       camera=msgspec.convert(camera, type(spec.camera)))
+    except msgspec.ValidationError as error:
+        raise VariationError(str(error)) from None
+
+
+def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
+    """One noise stage from ``"model"``, ``"model=value"``, ``"model:key=value,key=value"``, ``{model: value}`` or
+    ``{model: {key: value}}``; the bare value sets the model's main parameter (see ``_PRIMARY``)."""
+    if isinstance(item, str):
+        model, sep, rest = item.partition(":")
+        if sep:
+            params: Any = {key: yaml.safe_load(value) for key, value in parse_pairs(rest)}
+        else:
+            model, sep, value = item.partition("=")
+            params = yaml.safe_load(value) if sep else {}
+        item = {model.strip(): params}
+    if not isinstance(item, dict) or len(item) != 1:
+        raise VariationError(f"a noise stage is one model with its parameters, got {item!r}")
+    (model, params), = item.items()
+    if model not in _MODELS:
+        raise VariationError(f"unknown noise model {model!r} (known: {', '.join(_MODELS)})")
+    if not isinstance(params, dict):
+        params = {_PRIMARY[model]: params}
+    try:
+        return msgspec.convert(params, _MODELS[model])
+    except msgspec.ValidationError as error:
+        raise VariationError(f"noise model {model}: {error}") from None
+
+
+def _number(key: str, value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise VariationError(f"{key} must be a number, got {value!r}") from None

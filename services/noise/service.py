@@ -1,0 +1,118 @@
+"""The noise injector process: ground-truth camera frames in, perturbed frames out (what brains see).
+
+Per episode it builds the spec's noise pipeline, seeded from the spec, so the same spec twice perturbs the same
+frames the same way. The scorer and the recorder keep reading ground truth on the simulator's key.
+With no noise configured the received bytes are forwarded as they are: identity costs one hop, no decode/encode.
+A frame the simulator sends again (lock-step resend, byte for byte the same) gets the same output again; the
+pipeline sees it once.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import msgspec
+
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
+from protocol.images import frame_image, image_frame
+from protocol.messages import CameraFrame, EpisodeEvent, EpisodeSpec, EventKind
+from services.noise.models import NoisePipeline
+
+log = logging.getLogger("drivebench.noise")
+
+# Frames waiting to be perturbed; lock-step has one in flight, real-time mode a few at most.
+FRAME_BACKLOG = 8
+
+
+class NoiseConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Config of the noise injector process (the perturbations themselves come with each episode's spec)."""
+
+    bus: BusConfig = BusConfig()
+    run_id: str = "default"
+    name: str = "noise"
+
+
+class NoiseService:
+    def __init__(self, config: NoiseConfig, bus: Bus):
+        self.config = config
+        run = config.run_id
+        self._frames = bus.subscribe(keys.camera_raw(run), CameraFrame, keep_last=FRAME_BACKLOG)
+        self._events = Inbox()
+        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._events)
+        self._out = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES)
+        self._specs: dict[int, EpisodeSpec] = {}
+        self._episode = -1
+        self._pipeline: NoisePipeline | None = None  # None: pass frames through as they are
+        self._unknown_episodes: set[int] = set()
+        self._last_input = b""  # the last frame's wire bytes, to recognise a resend
+        self._last_payload = b""
+        self.bad_frames = 0
+        bus.declare_alive(keys.alive(run, "noise", config.name))
+
+    def serve_forever(self) -> None:
+        log.info("noise injector ready on run %s", self.config.run_id)
+        while True:
+            received = self._frames.recv(timeout_s=0.5)
+            if received is not None:
+                self.perturb(received)
+
+    def _spec_for(self, episode: int) -> EpisodeSpec | None:
+        """The episode's spec, from its START event (published before its first frame)."""
+        deadline = time.monotonic() + 0.5
+        while episode not in self._specs and time.monotonic() < deadline:
+            received = self._events.recv(timeout_s=0.05)
+            if received is not None and received.message.kind == EventKind.START and received.message.spec:
+                self._specs[received.message.header.episode] = received.message.spec
+        return self._specs.pop(episode, None)
+
+    def _start_episode(self, episode: int) -> bool:
+        """Build the episode's pipeline; False (and pass the frame through) when its START was never seen."""
+        spec = self._spec_for(episode)
+        if spec is None:
+            if episode not in self._unknown_episodes:
+                self._unknown_episodes.add(episode)
+                log.warning("no start event for episode %d: passing its frames through unperturbed", episode)
+            return False
+        self._episode = episode
+        self._pipeline = NoisePipeline(list(spec.noise)) if spec.noise else None
+        if self._pipeline is not None:
+            self._pipeline.reset(seed=spec.seed)
+        log.info("episode %d: noise %s", episode, codec.to_json(list(spec.noise)) if spec.noise else "none")
+        return True
+
+    def perturb(self, received: Received[CameraFrame]) -> None:
+        frame = received.message
+        if received.payload == self._last_input:  # a lock-step resend: same output, the pipeline sees it once
+            self._out.publish_bytes(self._last_payload)
+            return
+        if frame.header.episode != self._episode and not self._start_episode(frame.header.episode):
+            self._out.publish_bytes(received.payload)
+            return
+        if self._pipeline is None:
+            payload = received.payload
+        else:
+            try:
+                image = frame_image(frame)
+            except ValueError as error:
+                self.bad_frames += 1
+                if self.bad_frames == 1:
+                    log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
+                return
+            perturbed = self._pipeline.apply(image)
+            if perturbed is None:
+                out = CameraFrame(header=frame.header, width_px=frame.width_px, height_px=frame.height_px,
+                                  data=b"", dropped=True)
+            else:
+                out = image_frame(frame.header, perturbed)
+            payload = codec.encode(out)
+        self._out.publish_bytes(payload)
+        self._last_input, self._last_payload = received.payload, payload
+
+
+def main(argv: list[str] | None = None) -> int:
+    from protocol.runtime import service_main
+
+    return service_main("noise", "drivebench noise injector: ground-truth camera in, perturbed camera out",
+                        NoiseConfig, NoiseService, argv)
