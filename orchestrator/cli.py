@@ -84,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     importer.add_argument("file", type=Path, help="the CSV file")
     importer.add_argument("--name", required=True, help="name to use it by (letters, digits, _ . -)")
     importer.add_argument("--scale", type=float, default=1.0, help="scale factor (default 1: real size)")
+    importer.add_argument("--overwrite", action="store_true", help="replace an imported circuit of that name")
     return parser
 
 
@@ -157,7 +158,11 @@ def command_circuits(args: argparse.Namespace) -> int:
         if args.circuits_command == "list":
             rows = [("name", "lap (m)", "road (m)", "source")]
             for name in circuit_names():
-                circuit = load_circuit(name)
+                try:
+                    circuit = load_circuit(name)
+                except CircuitError as error:  # one broken user file must not hide the others
+                    rows.append((name, "-", "-", f"cannot load: {error}"))
+                    continue
                 rows.append((name, f"{circuit.length_m:.1f}", f"{2 * circuit.road_half_width_m:.1f}", circuit.source))
             rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed"))
             widths = [max(len(row[i]) for row in rows) for i in range(3)]
@@ -172,7 +177,7 @@ def command_circuits(args: argparse.Namespace) -> int:
         elif args.circuits_command == "import":
             from services.circuits.importer import import_racetrack_csv
 
-            path = import_racetrack_csv(args.file, name=args.name, scale=args.scale)
+            path = import_racetrack_csv(args.file, name=args.name, scale=args.scale, overwrite=args.overwrite)
             circuit = load_circuit(args.name)
             print(f"imported {args.name}: {circuit.length_m:.1f} m, road {2 * circuit.road_half_width_m:.1f} m "
                   f"-> {path}", file=sys.stderr)

@@ -1,13 +1,36 @@
-"""Circuit geometry: built-in circuits are closed and sane; projection is exact and keeps to its branch."""
+"""Circuit geometry: built-in and random circuits are closed and sane; check_track finds crossings and close
+passes; user circuits are found by name; pictures; projection is exact and keeps to its branch."""
 
 from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
-from services.circuits import Centreline, CircuitError, circuit_names, load_circuit
+from services.circuits import Centreline, Circuit, CircuitError, circuit_names, load_circuit
+from services.circuits.generator import random_circuit
+from services.circuits.library import (
+    builtin_circuit_names,
+    check_track,
+    min_turn_radius_m,
+    signed_area_m2,
+    turn_radii_m,
+    user_circuits_dir,
+)
+from services.circuits.picture import ROAD_RGB, circuit_picture, save_circuit_picture
+
+# name: (lap length range m, bounding box (x, y) m or None); sizes after Behavior Metrics' circuits.
+BUILTIN_SIZES = {
+    "simple": ((430, 460), (107, 104)),
+    "many_curves": ((770, 820), None),
+    "montmelo": ((720, 760), (216, 63)),
+    "montreal": ((1400, 1470), (617, 227)),
+    "nurburgring": ((540, 570), (188, 91)),
+    "monaco": ((800, 1000), None),
+    "extended_simple": ((600, 700), None),
+}
 
 
 def brute_force(centreline: Centreline, x: float, y: float) -> tuple[float, float]:
@@ -26,7 +49,17 @@ def segments_cross(a, b, c, d) -> bool:
     return orient(a, b, c) != orient(a, b, d) and orient(c, d, a) != orient(c, d, b)
 
 
-@pytest.mark.parametrize("name", circuit_names())
+@pytest.fixture(autouse=True)
+def _no_user_circuits(tmp_path, monkeypatch):
+    """Never read or write the real user circuits folder."""
+    monkeypatch.setenv("DRIVEBENCH_CIRCUITS_DIR", str(tmp_path / "user-circuits"))
+
+
+def test_the_builtin_circuits_are_the_behavior_metrics_set():
+    assert set(builtin_circuit_names()) == set(BUILTIN_SIZES)
+
+
+@pytest.mark.parametrize("name", builtin_circuit_names())
 def test_builtin_circuit_is_closed_simple_and_at_behavior_metrics_scale(name):
     circuit = load_circuit(name)
     points = circuit.centreline.points_m
@@ -44,6 +77,28 @@ def test_builtin_circuit_is_closed_simple_and_at_behavior_metrics_scale(name):
             assert not segments_cross(coarse[i], coarse[(i + 1) % n], coarse[j], coarse[(j + 1) % n]), (i, j)
     x, y, yaw = circuit.start_pose()
     assert (x, y) == tuple(points[0]) and -math.pi <= yaw <= math.pi
+
+
+@pytest.mark.parametrize("name", builtin_circuit_names())
+def test_builtin_circuit_size_shape_and_clearance(name):
+    circuit = load_circuit(name)
+    points = circuit.centreline.points_m
+    (low, high), box = BUILTIN_SIZES[name]
+    assert low < circuit.length_m < high
+    if box is not None:
+        extent = np.ptp(points, axis=0)
+        assert extent == pytest.approx(box, rel=0.12)
+    # Walls never overlap: no two parts of the track within 8 m, centre to centre; no bend under 6 m radius.
+    check_track(points, circuit.road_half_width_m, min_gap_m=8.0)
+    assert min_turn_radius_m(points) >= 6.0
+    assert signed_area_m2(points) < 0  # clockwise
+    assert circuit.line_width_m == pytest.approx(0.10) and circuit.wall_height_m == pytest.approx(0.5)
+    # The start is on the centreline, on a straight: nothing within 10 m of it bends tighter than 25 m.
+    x, y, yaw = circuit.start_pose()
+    assert abs(circuit.centreline.project(x, y).lateral_m) < 1e-9
+    s = circuit.centreline.s_m
+    near_start = (s < 10.0) | (s > circuit.length_m - 10.0)
+    assert turn_radii_m(points)[near_start].min() > 25.0
 
 
 def test_simple_circuit_size_matches_behavior_metrics():
@@ -96,3 +151,155 @@ def test_bad_centrelines_are_rejected():
         Centreline(np.array([[0, 0], [1, np.nan], [2, 0]]))
     with pytest.raises(ValueError, match="repeated"):
         Centreline(np.array([[0, 0], [0, 0], [1, 1]]))
+
+
+# -- check_track ------------------------------------------------------------------------------------------------------
+
+
+def circle(radius: float, count: int = 400, centre=(0.0, 0.0)) -> np.ndarray:
+    t = -np.linspace(0, 2 * np.pi, count, endpoint=False)  # clockwise
+    return np.column_stack([centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t)])
+
+
+def stadium(length: float, gap: float, step: float = 0.5) -> np.ndarray:
+    """Two straights ``gap`` apart joined by half circles, clockwise."""
+    r = gap / 2
+    straight = np.arange(0, length, step)
+    arc = np.linspace(np.pi / 2, -np.pi / 2, max(8, int(np.pi * r / step)), endpoint=False)
+    return np.vstack([
+        np.column_stack([straight, np.full_like(straight, gap)]),
+        np.column_stack([length + r * np.cos(arc), r + r * np.sin(arc)]),
+        np.column_stack([length - straight, np.zeros_like(straight)]),
+        np.column_stack([-r * np.cos(arc), r - r * np.sin(arc)]),
+    ])
+
+
+def test_check_track_accepts_a_circle_and_a_wide_stadium():
+    check_track(circle(30.0), 1.5, min_gap_m=8.0)
+    check_track(stadium(100.0, 20.0), 1.5, min_gap_m=8.0)
+
+
+def test_check_track_finds_a_crossing():
+    t = np.linspace(0, 2 * np.pi, 300, endpoint=False)
+    eight = np.column_stack([100 * np.sin(t), 50 * np.sin(2 * t)]) + [10.0, 20.0]
+    with pytest.raises(CircuitError, match=r"the track crosses itself near \(10\.0, 20\.0\)"):
+        check_track(eight, 1.5)
+
+
+def test_check_track_finds_two_parts_passing_close():
+    # A 7 m wide hairpin (R 3.5 m > the 1.5 m half-width): its legs run 7 m apart, under an 8 m clearance...
+    with pytest.raises(CircuitError, match=r"two parts of the track pass within 7\.0 m near \(\d+\.\d, 3\.5\)"):
+        check_track(stadium(100.0, 7.0), 1.5, min_gap_m=8.0)
+    # ... but their walls (3 m road) are 4 m apart, enough for the default clearance (2 * 1.5 + 0.5 m).
+    check_track(stadium(100.0, 7.0), 1.5)
+    with pytest.raises(CircuitError, match="two parts of the track pass within"):
+        check_track(stadium(100.0, 3.2), 1.5)
+
+
+def test_a_tight_bend_is_not_two_parts_of_the_track_but_may_fold_the_road():
+    check_track(circle(4.5, 200), 1.5, min_gap_m=8.0)  # one part: a bend, however tight, is no close pass
+    with pytest.raises(CircuitError, match=r"bends with a radius of 4\.5 m near .* half-width 5\.00 m"):
+        check_track(circle(4.5, 200), 5.0, min_gap_m=0.0)
+
+
+def test_check_track_rejects_malformed_points():
+    with pytest.raises(CircuitError, match="at least 3 finite"):
+        check_track(np.array([[0.0, 0.0], [1.0, np.nan], [2.0, 0.0]]), 1.5)
+
+
+# -- random circuits --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_random_circuits_are_valid_and_deterministic(seed):
+    circuit = random_circuit(seed)
+    again = load_circuit(f"random:{seed}")
+    assert circuit.name == again.name == f"random:{seed}"
+    np.testing.assert_array_equal(circuit.centreline.points_m, again.centreline.points_m)
+    points = circuit.centreline.points_m
+    steps = np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)
+    assert steps.max() < 0.3 and steps.min() > 0.2  # closed, ~0.25 m spacing
+    assert 400 <= circuit.length_m <= 1500
+    assert circuit.road_half_width_m == pytest.approx(1.5)
+    assert signed_area_m2(points) < 0
+    assert min_turn_radius_m(points) >= 8.0 - 1e-9
+    check_track(points, 1.5, min_gap_m=8.0)
+
+
+def test_random_circuits_differ_by_seed():
+    assert random_circuit(1).length_m != random_circuit(2).length_m
+
+
+@pytest.mark.parametrize("name", ["random:", "random:-1", "random:x", "random:1.5"])
+def test_bad_random_names_are_refused(name):
+    with pytest.raises(CircuitError, match="random:SEED"):
+        load_circuit(name)
+
+
+def test_random_circuit_wants_a_non_negative_integer():
+    with pytest.raises(CircuitError, match="non-negative integer"):
+        random_circuit(-1)
+
+
+# -- user circuits --------------------------------------------------------------------------------------------------
+
+
+def write_user_circuit(folder, name, points, road_width_m=3.0):
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = "\n".join(f"  - [{x:.3f}, {y:.3f}]" for x, y in points)
+    (folder / f"{name}.yaml").write_text(f"name: {name}\nroad_width_m: {road_width_m}\ncontrol_points_m:\n{rows}\n")
+
+
+def test_user_circuits_are_found_by_name_and_builtins_win(tmp_path, monkeypatch):
+    folder = tmp_path / "mine"
+    monkeypatch.setenv("DRIVEBENCH_CIRCUITS_DIR", str(folder))
+    assert user_circuits_dir() == folder
+    write_user_circuit(folder, "ring", circle(50.0, 24))
+    write_user_circuit(folder, "simple", circle(70.0, 24))  # shadowed by the built-in
+    assert "ring" in circuit_names() and circuit_names().count("simple") == 1
+    assert load_circuit("ring").length_m == pytest.approx(2 * np.pi * 50.0, rel=1e-3)
+    assert 430 < load_circuit("simple").length_m < 460
+
+
+def test_a_bad_user_circuit_is_refused_with_its_problem(tmp_path, monkeypatch):
+    monkeypatch.setenv("DRIVEBENCH_CIRCUITS_DIR", str(tmp_path))
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    write_user_circuit(tmp_path, "eight", np.column_stack([100 * np.sin(t), 50 * np.sin(2 * t)]))
+    with pytest.raises(CircuitError, match=r"eight\.yaml: the track crosses itself near"):
+        load_circuit("eight")
+
+
+def test_the_default_user_circuits_folder_is_under_home(tmp_path, monkeypatch):
+    monkeypatch.delenv("DRIVEBENCH_CIRCUITS_DIR")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert user_circuits_dir() == tmp_path / ".local" / "share" / "drivebench" / "circuits"
+    assert "simple" in circuit_names()  # an absent folder is no error
+
+
+# -- pictures ---------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["simple", "montreal", "random:0"])
+def test_circuit_picture_shows_the_road(name, tmp_path):
+    circuit = load_circuit(name)
+    image = circuit_picture(circuit, width_px=800)
+    assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[1] == 800 and image.shape[2] == 3
+    extent = np.ptp(circuit.centreline.points_m, axis=0) + 2 * circuit.road_half_width_m
+    scale = 760 / extent[0]  # px per metre: 800 px less two 20 px margins
+    assert image.shape[0] == pytest.approx(extent[1] * scale + 2 * 20 + 34, abs=1.01)  # + margins and a text band
+    road = np.all(image == ROAD_RGB, axis=2).sum()
+    # At least the road's true width (or 2 px) along most of the lap.
+    assert road > 0.5 * circuit.length_m * scale * max(2.0, 2 * circuit.road_half_width_m * scale - 2)
+    red = (image[:, :, 0] > 180) & (image[:, :, 1] < 80)
+    assert red.sum() > 100
+    path = save_circuit_picture(circuit, tmp_path / "pictures" / "circuit.png")
+    np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB), image)
+
+
+def test_a_tall_circuit_picture_is_capped_and_centred():
+    t = -np.linspace(0, 2 * np.pi, 4000, endpoint=False)
+    tall = Circuit("tall", "", "", Centreline(np.column_stack([50 * np.cos(t), 1000 * np.sin(t)])), 1.5, 0.1, 0.5)
+    image = circuit_picture(tall, width_px=400)
+    assert image.shape == (600 + 34, 400, 3)  # 1.5 x the width, plus the text band
+    road_columns = np.flatnonzero(np.all(image == ROAD_RGB, axis=2).any(axis=0))
+    assert abs((road_columns.min() + road_columns.max()) / 2 - 200) < 3

@@ -1,6 +1,7 @@
 """Closed loop in one process, no bus: Scene.render -> ExplicitBrain.act -> integrate_unicycle, 20 Hz.
 
-The explicit brain must drive a full lap of the ``simple`` circuit at 320 x 240 without touching the walls.
+The explicit brain must drive a full lap of Behavior Metrics' three test circuits (``simple``, ``montmelo``,
+``nurburgring``) at 320 x 240 without touching the walls.
 """
 
 from __future__ import annotations
@@ -47,8 +48,8 @@ def drive(circuit: Circuit, camera: CameraSpec, *, max_sim_s: float, wall_margin
             image = scene.render(car, camera)
             action = brain.act(Observation(image_rgb=image, stamp_ns=round(step * STEP_S * 1e9), seq=step))
             car = integrate_unicycle(car, speed_mps=action.speed_mps, yaw_rate_radps=action.yaw_rate_radps, dt_s=STEP_S)
-            # The global nearest point is unambiguous on `simple` (no two parts of it within 8 m of each other);
-            # the branch check below would catch a jump.
+            # The global nearest point is unambiguous on the built-in circuits (no two parts of any of them within
+            # 8 m of each other, see tests/test_circuits.py); the branch check below would catch a jump.
             projection = centreline.project(car.x_m, car.y_m, near_s_m=None)
             advance = float(centreline.wrap_ds(projection.s_m - s_prev))
             assert abs(advance) < MAX_STEP_ADVANCE_M, f"projection jumped {advance:.2f} m at step {step}"
@@ -63,12 +64,14 @@ def drive(circuit: Circuit, camera: CameraSpec, *, max_sim_s: float, wall_margin
 
 
 @pytest.mark.slow
-def test_the_explicit_brain_drives_a_full_lap_of_simple_at_320x240():
-    circuit = load_circuit("simple")
+@pytest.mark.parametrize("name", ["simple", "montmelo", "nurburgring"])
+def test_the_explicit_brain_drives_a_full_lap_at_320x240(name):
+    circuit = load_circuit(name)
     margin_m = 0.2
-    result = drive(circuit, CameraSpec(width_px=320, height_px=240), max_sim_s=150.0, wall_margin_m=margin_m)
+    max_sim_s = circuit.length_m / 4.0  # the brain averages 7.5-8.5 m/s; 4 m/s leaves room
+    result = drive(circuit, CameraSpec(width_px=320, height_px=240), max_sim_s=max_sim_s, wall_margin_m=margin_m)
     summary = (
-        f"progress {result.progress_m:.1f} / {circuit.length_m:.1f} m in {result.lap_time_s:.2f} s, "
+        f"{name}: progress {result.progress_m:.1f} / {circuit.length_m:.1f} m in {result.lap_time_s:.2f} s, "
         f"|lateral| mean {result.abs_lateral_m.mean():.3f} m max {result.abs_lateral_m.max():.3f} m, "
         f"speed mean {result.speeds_mps.mean():.2f} max {result.speeds_mps.max():.1f} m/s"
     )

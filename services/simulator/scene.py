@@ -38,6 +38,7 @@ LINE_HEIGHT_M = 0.005  # the centre line floats above the road so that it wins t
 GRASS_HEIGHT_M = -0.02  # the grass lies below the road for the same reason
 GRASS_MARGIN_M = 60.0  # the grass extends this far beyond the track's bounding box
 GRASS_TILE_M = 25.0  # grass tile side: one culling chunk (2 triangles) each
+MAX_GRASS_TILES_PER_SIDE = 24
 _OCCLUSION_MARGIN_M = 0.02  # the eye must be this far inside the walls for them to hide the grass
 SKY_DEPTH = 0.9999  # depth-buffer values at or above this are background (nothing rendered): paint sky there
 
@@ -147,6 +148,7 @@ class Scene:
         self._centres = np.stack([chunk.centre_m for chunk in self._chunks])
         self._radii = np.array([chunk.radius_m for chunk in self._chunks])
         self._is_grass = np.array([chunk.is_grass for chunk in self._chunks])
+        self._hidden = np.zeros(len(self._chunks), dtype=bool)
         self._walls = walls
 
     @classmethod
@@ -176,11 +178,14 @@ class Scene:
     def _add_grass(self, points: np.ndarray) -> None:
         low = points.min(axis=0) - GRASS_MARGIN_M
         high = points.max(axis=0) + GRASS_MARGIN_M
-        xs = np.arange(low[0], high[0], GRASS_TILE_M)
-        ys = np.arange(low[1], high[1], GRASS_TILE_M)
+        # Fixed-size tiles on a small circuit; bigger ones on a real-scale track, so that the number of bodies (a
+        # per-frame cost even when hidden) stays bounded.
+        tile = max(GRASS_TILE_M, float(np.max(high - low)) / MAX_GRASS_TILES_PER_SIDE)
+        xs = np.arange(low[0], high[0], tile)
+        ys = np.arange(low[1], high[1], tile)
         for x0 in xs:
             for y0 in ys:
-                x1, y1 = x0 + GRASS_TILE_M, y0 + GRASS_TILE_M
+                x1, y1 = x0 + tile, y0 + tile
                 vertices = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
                 vertices[:, 2] = GRASS_HEIGHT_M
                 self._add_chunk(vertices, [0, 1, 2, 0, 2, 3], GRASS_COLOUR, is_grass=True)
@@ -279,12 +284,15 @@ class Scene:
         if self._grass_occluded(eye):
             # The grass is most of the fill cost of a frame (big triangles under the road); skip it when unseen.
             hide |= self._is_grass
-        for chunk, hidden in zip(self._chunks, hide.tolist(), strict=True):
-            if hidden != chunk.hidden:
-                # changeVisualShape replaces the colour: restore the stored one when showing the chunk again.
-                rgba = (*chunk.rgba[:3], 0.0) if hidden else chunk.rgba
-                pybullet.changeVisualShape(chunk.body_id, -1, rgbaColor=list(rgba), physicsClientId=self._client)
-                chunk.hidden = hidden
+        # Touch only the chunks whose visibility changed: a long track has thousands, and most stay as they were.
+        for index in np.flatnonzero(hide != self._hidden).tolist():
+            chunk = self._chunks[index]
+            hidden = bool(hide[index])
+            # changeVisualShape replaces the colour: restore the stored one when showing the chunk again.
+            rgba = (*chunk.rgba[:3], 0.0) if hidden else chunk.rgba
+            pybullet.changeVisualShape(chunk.body_id, -1, rgbaColor=list(rgba), physicsClientId=self._client)
+            chunk.hidden = hidden
+        self._hidden = hide
 
     def render(self, car: CarState, camera: CameraSpec) -> np.ndarray:
         """The camera image for the car at ``car``: height_px x width_px x 3 uint8 RGB, row 0 at the top."""
