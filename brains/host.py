@@ -19,7 +19,7 @@ from brains.base import Brain, Observation
 from brains.registry import UnknownBrainError, brain_names, make_brain
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
-from protocol.images import frame_image
+from protocol.images import FrameReader
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header
 
 log = logging.getLogger("drivebench.brain")
@@ -66,7 +66,7 @@ class BrainHost:
         self._seeds: dict[int, int] = {}
         self._last: Command | None = None
         self._seq = 0
-        self.bad_frames = 0
+        self._reader = FrameReader(log)
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
@@ -93,16 +93,9 @@ class BrainHost:
         if self._last is not None and (self._last.header.episode, self._last.frame_seq) == (h.episode, h.seq):
             self._commands.publish(self._last)  # a repeated frame: same answer, the brain sees each frame once
             return
-        if frame.dropped:
-            image = None
-        else:
-            try:
-                image = frame_image(frame)
-            except ValueError as error:
-                self.bad_frames += 1
-                if self.bad_frames == 1:
-                    log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
-                return
+        image = None if frame.dropped else self._reader.image(frame)
+        if image is None and not frame.dropped:
+            return
         if h.episode != self._episode:
             self._episode = h.episode
             self._last = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from protocol.messages import CameraFrame, Header
@@ -25,3 +27,20 @@ def image_frame(header: Header, image_rgb: np.ndarray) -> CameraFrame:
     """A CameraFrame holding ``image_rgb`` (H x W x 3 uint8)."""
     height, width = image_rgb.shape[:2]
     return CameraFrame(header=header, width_px=width, height_px=height, data=image_rgb.tobytes())
+
+
+class FrameReader:
+    """:func:`frame_image` for a service loop: a bad frame from the bus is counted, logged once, and read as None."""
+
+    def __init__(self, log: logging.Logger):
+        self._log = log
+        self.bad_frames = 0
+
+    def image(self, frame: CameraFrame) -> np.ndarray | None:
+        try:
+            return frame_image(frame)
+        except ValueError as error:
+            self.bad_frames += 1
+            if self.bad_frames == 1:
+                self._log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
+            return None

@@ -16,7 +16,7 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
-from protocol.images import frame_image, image_frame
+from protocol.images import FrameReader, image_frame
 from protocol.messages import CameraFrame, EpisodeEvent, EpisodeSpec, EventKind
 from services.noise.models import NoisePipeline
 
@@ -48,7 +48,7 @@ class NoiseService:
         self._unknown_episodes: set[int] = set()
         self._last_input = b""  # the last frame's wire bytes, to recognise a resend
         self._last_payload = b""
-        self.bad_frames = 0
+        self._reader = FrameReader(log)
         bus.declare_alive(keys.alive(run, "noise", config.name))
 
     def serve_forever(self) -> None:
@@ -93,12 +93,8 @@ class NoiseService:
         if self._pipeline is None:
             payload = received.payload
         else:
-            try:
-                image = frame_image(frame)
-            except ValueError as error:
-                self.bad_frames += 1
-                if self.bad_frames == 1:
-                    log.warning("dropped bad camera frame: %s (further ones are only counted)", error)
+            image = self._reader.image(frame)
+            if image is None:
                 return
             perturbed = self._pipeline.apply(image)
             if perturbed is None:
