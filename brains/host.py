@@ -18,9 +18,10 @@ import msgspec
 from brains.base import Brain, Observation
 from brains.registry import UnknownBrainError, brain_names, make_brain
 from protocol import keys
-from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.bus import Bus, BusConfig, Traffic
+from protocol.episodes import EpisodeStarts
 from protocol.images import FrameReader
-from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header
+from protocol.messages import CameraFrame, Command, Header
 
 log = logging.getLogger("drivebench.brain")
 
@@ -59,11 +60,9 @@ class BrainHost:
         run = config.run_id
         camera_key = keys.camera_raw(run) if config.camera == "raw" else keys.camera_perturbed(run)
         self._frames = bus.subscribe(camera_key, CameraFrame, keep_last=1)
-        self._events = Inbox()
-        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._events)
+        self._starts = EpisodeStarts(bus, run)
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
-        self._seeds: dict[int, int] = {}
         self._last: Command | None = None
         self._seq = 0
         self._reader = FrameReader(log)
@@ -78,15 +77,11 @@ class BrainHost:
                 self.answer(received.message)
 
     def _seed_for(self, episode: int) -> int:
-        """The episode's seed, from its START event (published before its first frame)."""
-        deadline = time.monotonic() + 0.5
-        while episode not in self._seeds and time.monotonic() < deadline:
-            received = self._events.recv(timeout_s=0.05)
-            if received is not None and received.message.kind == EventKind.START and received.message.spec:
-                self._seeds[received.message.header.episode] = received.message.spec.seed
-        if episode not in self._seeds:
+        spec = self._starts.spec(episode)
+        if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
-        return self._seeds.get(episode, 0)
+            return 0
+        return spec.seed
 
     def answer(self, frame: CameraFrame) -> None:
         h = frame.header

@@ -175,8 +175,8 @@ def stadium(length: float, gap: float, step: float = 0.5) -> np.ndarray:
 
 
 def test_check_track_accepts_a_circle_and_a_wide_stadium():
-    check_track(circle(30.0), 1.5, min_gap_m=8.0)
-    check_track(stadium(100.0, 20.0), 1.5, min_gap_m=8.0)
+    assert check_track(circle(30.0), 1.5, min_gap_m=8.0) is None
+    assert check_track(stadium(100.0, 20.0), 1.5, min_gap_m=8.0) is None
 
 
 def test_check_track_finds_a_crossing():

@@ -15,7 +15,7 @@ from orchestrator.launcher import BrainLaunch
 from protocol import codec, keys
 from protocol.bus import BusError, Inbox, Traffic
 from protocol.messages import (
-    CameraFrame, CameraSpec, Command, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
+    CameraFrame, CameraSpec, ControlRequest, EndReason, EpisodeSpec, Header, Pose,
 )
 
 pytestmark = pytest.mark.integration

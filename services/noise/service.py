@@ -10,14 +10,14 @@ pipeline sees it once.
 from __future__ import annotations
 
 import logging
-import time
 
 import msgspec
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
+from protocol.bus import Bus, BusConfig, Received, Traffic
+from protocol.episodes import EpisodeStarts
 from protocol.images import FrameReader, image_frame
-from protocol.messages import CameraFrame, EpisodeEvent, EpisodeSpec, EventKind
+from protocol.messages import CameraFrame
 from services.noise.models import NoisePipeline
 
 log = logging.getLogger("drivebench.noise")
@@ -39,10 +39,8 @@ class NoiseService:
         self.config = config
         run = config.run_id
         self._frames = bus.subscribe(keys.camera_raw(run), CameraFrame, keep_last=FRAME_BACKLOG)
-        self._events = Inbox()
-        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._events)
+        self._starts = EpisodeStarts(bus, run)
         self._out = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES)
-        self._specs: dict[int, EpisodeSpec] = {}
         self._episode = -1
         self._pipeline: NoisePipeline | None = None  # None: pass frames through as they are
         self._unknown_episodes: set[int] = set()
@@ -58,18 +56,9 @@ class NoiseService:
             if received is not None:
                 self.perturb(received)
 
-    def _spec_for(self, episode: int) -> EpisodeSpec | None:
-        """The episode's spec, from its START event (published before its first frame)."""
-        deadline = time.monotonic() + 0.5
-        while episode not in self._specs and time.monotonic() < deadline:
-            received = self._events.recv(timeout_s=0.05)
-            if received is not None and received.message.kind == EventKind.START and received.message.spec:
-                self._specs[received.message.header.episode] = received.message.spec
-        return self._specs.pop(episode, None)
-
     def _start_episode(self, episode: int) -> bool:
         """Build the episode's pipeline; False (and pass the frame through) when its START was never seen."""
-        spec = self._spec_for(episode)
+        spec = self._starts.spec(episode)
         if spec is None:
             if episode not in self._unknown_episodes:
                 self._unknown_episodes.add(episode)

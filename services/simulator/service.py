@@ -21,7 +21,7 @@ from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
 )
-from services.circuits import CircuitError, load_circuit
+from services.circuits import Circuit, CircuitError, load_circuit
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 
 log = logging.getLogger("drivebench.simulator")
@@ -59,7 +59,7 @@ class SimulatorService:
         self._alive_brains: set[str] = set()
         self._alive_lock = threading.Lock()
         bus.watch_alive(keys.alive_all(run), self._on_liveliness)
-        self._requests: queue.Queue[ControlRequest] = queue.Queue()
+        self._requests: queue.Queue[tuple[EpisodeSpec, Circuit]] = queue.Queue()
         self._state = "idle"
         self._episode = -1
         self._stop_requested = threading.Event()
@@ -97,13 +97,13 @@ class SimulatorService:
         if self._state != "idle" or not self._requests.empty():
             return codec.encode(ControlReply(ok=False, detail=f"busy ({self._state})", state=self._state))
         try:
-            load_circuit(request.spec.circuit)
+            circuit = load_circuit(request.spec.circuit)  # checked here so a bad name is refused, not run
         except CircuitError as error:
             return codec.encode(ControlReply(ok=False, detail=str(error)))
         if not self._brain_alive(request.spec.active_brain):
             return codec.encode(ControlReply(ok=False, detail=f"brain {request.spec.active_brain!r} is not alive"))
         self._state = "starting"
-        self._requests.put(request)
+        self._requests.put((request.spec, circuit))
         return codec.encode(ControlReply(ok=True, state="starting", episode=self._episode + 1))
 
     # -- main loop --
@@ -112,20 +112,20 @@ class SimulatorService:
         log.info("simulator ready on run %s", self.config.run_id)
         while True:
             try:
-                request = self._requests.get(timeout=0.5)
+                spec, circuit = self._requests.get(timeout=0.5)
             except queue.Empty:
                 continue
             self._episode += 1
             self._stop_requested.clear()
             self._state = "running"
             try:
-                self.run_episode(request.spec)
+                self.run_episode(spec, circuit)
             finally:
                 self._state = "idle"
 
-    def run_episode(self, spec: EpisodeSpec) -> EndReason:
+    def run_episode(self, spec: EpisodeSpec, circuit: Circuit | None = None) -> EndReason:
         episode = self._episode
-        sim = EpisodeSim(spec, scenes=self._scenes)
+        sim = EpisodeSim(spec, scenes=self._scenes, circuit=circuit)
         self._wait_for_subscribers()
         self._commands.drain()  # answers to an earlier episode are stale
         event_seq = 0
