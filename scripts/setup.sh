@@ -13,3 +13,12 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[test]"
+# The independent MCAP validator (official TypeScript reader) used by the recording tests; they skip without it.
+if command -v npm >/dev/null 2>&1; then
+  if [ ! -d tools/mcap-validate/node_modules ] ||
+    [ tools/mcap-validate/package-lock.json -nt tools/mcap-validate/node_modules/.package-lock.json ]; then
+    (cd tools/mcap-validate && npm ci --silent --no-audit --no-fund)
+  fi
+else
+  echo "npm not found: the MCAP validator tests will be skipped (install Node >= 18 and run scripts/setup.sh again)"
+fi
