@@ -21,6 +21,7 @@ import msgspec
 import yaml
 
 from brains.registry import brain_names
+from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError
 from orchestrator.report import metrics_table
 from protocol import codec
@@ -71,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--run-id", help="run id used in every key (default: random)")
     run.add_argument("--out", type=Path, help="run folder (default: runs/<time>-<run id>)")
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
+    run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
+    run.add_argument("--record-images", choices=("raw", "jpeg"), default="raw",
+                     help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)")
+
+    recording_cli.add_commands(commands)
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
@@ -142,14 +148,19 @@ def command_run(args: argparse.Namespace) -> int:
     print(f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
           f"camera {spec.camera.width_px}x{spec.camera.height_px}, "
           f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}", file=sys.stderr)
+    if args.record is not None and args.record.suffix != ".mcap":
+        raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = Progress(spec.laps, enabled=sys.stderr.isatty())
     try:
-        with LocalStack(run_id=run_id, run_dir=run_dir, brains=[brain]) as stack:
+        with LocalStack(run_id=run_id, run_dir=run_dir, brains=[brain], record=args.record,
+                        record_options=(f"image_format={args.record_images}",)) as stack:
             score = stack.run_episode(spec, on_live=progress.update)
     finally:
         progress.close()
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
     report(score, run_dir, as_json=args.json)
+    if args.record is not None:
+        print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -202,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
             return command_run(args)
         if args.command == "circuits":
             return command_circuits(args)
-    except UsageError as error:
+        return recording_cli.run_command(args)
+    except (UsageError, recording_cli.RecordingUsageError) as error:
         print(f"drivebench: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except (StackError, BusError) as error:

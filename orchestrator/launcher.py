@@ -8,6 +8,7 @@ Children also stop by themselves when this process dies (they watch their parent
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -26,6 +27,7 @@ from protocol.messages import ControlReply, ControlRequest, EpisodeScore, Episod
 log = logging.getLogger("drivebench.launcher")
 
 STOP_GRACE_S = 5.0
+RECORDER_STOP_GRACE_S = 30.0  # finishing a recording (drain, summary, fsync) must not be cut short
 
 
 class StackError(RuntimeError):
@@ -75,6 +77,8 @@ class LocalStack:
     brains: list[BrainLaunch] = field(default_factory=lambda: [BrainLaunch("explicit")])
     startup_timeout_s: float = 60.0
     embed_router: bool = True  # False: the router is a child process too (``python -m services.router``)
+    record: Path | None = None  # an MCAP file: a recorder process records the whole run to it
+    record_options: tuple[str, ...] = ()  # recorder config overrides, e.g. ("image_format=jpeg",)
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -106,6 +110,10 @@ class LocalStack:
         watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer"),
                   keys.alive(self.run_id, "noise", "noise")}
+        if self.record is not None:
+            # First, so that its subscription is in place before anything is published.
+            self._spawn("recorder", "recorder", "recorder", self._recorder_argv())
+            wanted.add(keys.alive(self.run_id, "recorder", "recorder"))
         self._spawn("simulator", "sim", "services.simulator", [])
         self._spawn("noise", "noise", "services.noise", [])
         self._spawn("scorer", "scorer", "services.scorer", [])
@@ -122,6 +130,15 @@ class LocalStack:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
             raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})")
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
+
+    def _recorder_argv(self) -> list[str]:
+        argv = ["--set", f"output={json.dumps(str(Path(self.record).resolve()))}"]
+        config = self.run_dir / "config.yaml"
+        if config.is_file():
+            argv += ["--set", f"attach=[{json.dumps(str(config.resolve()))}]"]
+        for option in self.record_options:
+            argv += ["--set", option]
+        return argv
 
     def _wait_for_router(self) -> None:
         """Until the router child accepts TCP connections (a peer would otherwise wait for it forever)."""
@@ -166,20 +183,26 @@ class LocalStack:
         raise KeyError(f"{role}/{name}")
 
     def close(self) -> None:
-        for child in self.children:
-            if child.process.poll() is None:
-                child.process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
-        for child in self.children:
-            try:
-                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s %s did not stop in %.0f s: killing it", child.role, child.name, STOP_GRACE_S)
-                child.process.kill()
-                child.process.wait()
+        # The recorder stops last, so it still records whatever the others publish while stopping.
+        self._stop([c for c in self.children if c.role != "recorder"], grace_s=STOP_GRACE_S)
+        self._stop([c for c in self.children if c.role == "recorder"], grace_s=RECORDER_STOP_GRACE_S)
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+
+    @staticmethod
+    def _stop(children: list[Child], *, grace_s: float) -> None:
+        for child in children:
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for child in children:
+            try:
+                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s %s did not stop in %.0f s: killing it", child.role, child.name, grace_s)
+                child.process.kill()
+                child.process.wait()
 
     # -- episodes --
 

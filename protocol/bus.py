@@ -98,7 +98,9 @@ def zenoh_config(config: BusConfig, *, name: str) -> zenoh.Config:
 class Traffic(enum.Enum):
     """Traffic classes, each with its own QoS (``reference/transport.md`` §10)."""
 
-    FRAMES = "frames"  # large, newest wins: never block the simulator for a slow viewer
+    FRAMES = "frames"  # large, newest wins: never block a real-time simulator for a slow viewer
+    FRAMES_LOSSLESS = "frames_lossless"  # large, every one must arrive: lock-step runs, where a lost frame is a
+    # lost step for the recorder and the dataset (the simulator waits for the brain anyway)
     COMMANDS = "commands"  # small, must arrive, jump the queue ahead of frames
     EVENTS = "events"  # small, must arrive, in order (poses, episode events, scores)
     METRICS = "metrics"  # small, latest wins
@@ -106,6 +108,7 @@ class Traffic(enum.Enum):
 
 _QOS = {
     Traffic.FRAMES: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA),
+    Traffic.FRAMES_LOSSLESS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),
     Traffic.COMMANDS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
                            express=True),
     Traffic.EVENTS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),

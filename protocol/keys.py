@@ -38,6 +38,25 @@ def run_all(run_id: str) -> str:
     return f"{run_prefix(run_id)}/**"
 
 
+def run_of_key(key: str) -> str:
+    """The run id inside a run-scoped key."""
+    parts = key.split("/")
+    if len(parts) < 4 or parts[0] != ROOT or parts[1] != "run":
+        raise ValueError(f"not a run key: {key!r}")
+    return parts[2]
+
+
+def with_run_id(key: str, run_id: str) -> str:
+    """The same key in another run (replay under a new run id)."""
+    run_of_key(key)  # checks that it is one
+    return f"{run_prefix(run_id)}/{key.split('/', 3)[3]}"
+
+
+def view(run_id: str, name: str) -> str:
+    """Recording-only topics derived for viewers (car pose, transforms, the track); never published."""
+    return f"{run_prefix(run_id)}/view/{check_name(name, what='view')}"
+
+
 def camera_raw(run_id: str) -> str:
     return f"{run_prefix(run_id)}/sim/camera"
 

@@ -12,12 +12,14 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 
 @pytest.fixture
 def make_stack(tmp_path) -> Iterator:
-    """``make_stack(BrainLaunch(...), ...)`` starts a stack in tmp_path; every stack is stopped after the test."""
+    """``make_stack(BrainLaunch(...), ..., record=PATH)`` starts a stack in tmp_path; every stack is stopped after
+    the test. Keyword arguments go to :class:`LocalStack`."""
     stacks: list[LocalStack] = []
 
-    def make(*brains: BrainLaunch) -> LocalStack:
-        run_id = f"t{uuid.uuid4().hex[:8]}"
-        stack = LocalStack(run_id=run_id, run_dir=tmp_path / run_id, brains=list(brains) or [BrainLaunch("explicit")])
+    def make(*brains: BrainLaunch, **options) -> LocalStack:
+        run_id = options.pop("run_id", None) or f"t{uuid.uuid4().hex[:8]}"
+        stack = LocalStack(run_id=run_id, run_dir=tmp_path / run_id, brains=list(brains) or [BrainLaunch("explicit")],
+                           **options)
         stacks.append(stack)
         stack.start()
         return stack

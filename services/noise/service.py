@@ -40,7 +40,9 @@ class NoiseService:
         run = config.run_id
         self._frames = bus.subscribe(keys.camera_raw(run), CameraFrame, keep_last=FRAME_BACKLOG)
         self._starts = EpisodeStarts(bus, run)
-        self._out = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES)
+        self._out_latest = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES)
+        self._out_lossless = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES_LOSSLESS)
+        self._out = self._out_lossless  # as the simulator: lossless in lock-step, latest-wins in real time
         self._episode = -1
         self._pipeline: NoisePipeline | None = None  # None: pass frames through as they are
         self._unknown_episodes: set[int] = set()
@@ -65,6 +67,7 @@ class NoiseService:
                 log.warning("no start event for episode %d: passing its frames through unperturbed", episode)
             return False
         self._episode = episode
+        self._out = self._out_latest if spec.realtime else self._out_lossless
         self._pipeline = NoisePipeline(list(spec.noise)) if spec.noise else None
         if self._pipeline is not None:
             self._pipeline.reset(seed=spec.seed)

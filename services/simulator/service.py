@@ -51,7 +51,9 @@ class SimulatorService:
         self.config = config
         self.bus = bus
         run = config.run_id
-        self._frames = bus.publisher(keys.camera_raw(run), CameraFrame, Traffic.FRAMES)
+        self._frames_latest = bus.publisher(keys.camera_raw(run), CameraFrame, Traffic.FRAMES)
+        self._frames_lossless = bus.publisher(keys.camera_raw(run), CameraFrame, Traffic.FRAMES_LOSSLESS)
+        self._frames = self._frames_lossless
         self._poses = bus.publisher(keys.pose(run), Pose, Traffic.EVENTS)
         self._events = bus.publisher(keys.events(run), EpisodeEvent, Traffic.EVENTS)
         self._commands = Inbox()
@@ -126,6 +128,7 @@ class SimulatorService:
     def run_episode(self, spec: EpisodeSpec, circuit: Circuit | None = None) -> EndReason:
         episode = self._episode
         sim = EpisodeSim(spec, scenes=self._scenes, circuit=circuit)
+        self._frames = self._frames_latest if spec.realtime else self._frames_lossless
         self._wait_for_subscribers()
         self._commands.drain()  # answers to an earlier episode are stale
         event_seq = 0

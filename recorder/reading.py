@@ -1,0 +1,152 @@
+"""Reading recordings back as bus messages."""
+
+from __future__ import annotations
+
+import fnmatch
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgspec
+import zstandard
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.stream_reader import CRCValidationError
+
+from protocol.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
+from recorder.writer import PART_SUFFIX
+
+# What the mcap package raises on damaged input (it has no single base class for all of them).
+MCAP_ERRORS = (McapError, CRCValidationError, struct.error, EOFError, ValueError, KeyError, IndexError, zlib.error,
+               UnicodeDecodeError, MemoryError, zstandard.ZstdError)
+
+
+class RecordingError(RuntimeError):
+    """A recording that cannot be read: one line naming the file and what is wrong with it."""
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """One bus message read back from a recording.
+
+    key: the bus key it was published on (``protocol.keys``), e.g. ``drivebench/run/r1/noise/camera``.
+    message: the decoded bus message (``CameraFrame``, ``Pose``, ``Command``, ``EpisodeEvent``, ``LiveMetrics``,
+        ``EpisodeScore``), equal to what was published.
+    log_time_ns: the recording's clock: simulated time, continuing across the episodes of one recording.
+    """
+
+    key: str
+    message: msgspec.Struct
+    log_time_ns: int
+
+
+def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recorded]:
+    """The bus messages of a recording in log-time order (``keys_glob``: only keys matching this fnmatch pattern).
+
+    Raises :class:`RecordingError` (one line, naming the file) for a missing, truncated or corrupted recording;
+    viewer-only channels are skipped.
+    """
+    path = Path(path)
+    with _open(path) as stream:
+        reader = _indexed_reader(stream, path)
+        summary = reader.get_summary()
+        topics = [c.topic for c in summary.channels.values()
+                  if is_bus_channel(dict(c.metadata)) and (keys_glob is None or fnmatch.fnmatchcase(c.topic, keys_glob))]
+        if not topics:
+            return
+        try:
+            for schema, channel, record in reader.iter_messages(topics=topics, log_time_order=True):
+                yield Recorded(key=channel.metadata[KEY_METADATA],
+                               message=_decode(record.data, schema, channel, path, record.sequence),
+                               log_time_ns=record.log_time)
+        except MCAP_ERRORS as error:
+            raise RecordingError(f"{path}: corrupted ({_describe(error)}); try `drivebench recorder repair {path}`") from None
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    topic: str
+    schema: str
+    message_encoding: str
+    messages: int
+    bus_key: bool
+
+
+@dataclass(frozen=True)
+class RecordingInfo:
+    path: Path
+    messages: int
+    start_ns: int
+    end_ns: int
+    channels: list[ChannelInfo]
+    metadata: dict[str, dict[str, str]]
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / 1e9 if self.messages else 0.0
+
+
+def recording_info(path: Path) -> RecordingInfo:
+    """What a recording holds, from its summary (fast: no message is read)."""
+    path = Path(path)
+    with _open(path) as stream:
+        reader = _indexed_reader(stream, path)
+        summary = reader.get_summary()
+        statistics = summary.statistics
+        counts = statistics.channel_message_counts if statistics else {}
+        channels = [ChannelInfo(topic=c.topic, schema=summary.schemas[c.schema_id].name if c.schema_id else "",
+                                message_encoding=c.message_encoding, messages=counts.get(c.id, 0),
+                                bus_key=is_bus_channel(dict(c.metadata)))
+                    for c in summary.channels.values()]
+        try:
+            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        except MCAP_ERRORS as error:
+            raise RecordingError(f"{path}: corrupted metadata ({_describe(error)})") from None
+        return RecordingInfo(path=path, messages=statistics.message_count if statistics else 0,
+                             start_ns=statistics.message_start_time if statistics else 0,
+                             end_ns=statistics.message_end_time if statistics else 0,
+                             channels=channels, metadata=metadata)
+
+
+def _open(path: Path):
+    if path.name.endswith(PART_SUFFIX):
+        raise RecordingError(f"{path}: an unfinished recording (.part); run `drivebench recorder repair {path}`")
+    try:
+        return open(path, "rb")
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such recording") from None
+    except OSError as error:
+        raise RecordingError(f"{path}: cannot open ({error.strerror})") from None
+
+
+def _indexed_reader(stream, path: Path) -> SeekingReader:
+    try:
+        reader = SeekingReader(stream, validate_crcs=True)
+    except MCAP_ERRORS as error:
+        raise RecordingError(f"{path}: not an MCAP file ({_describe(error)})") from None
+    try:
+        summary = reader.get_summary()
+    except MCAP_ERRORS as error:
+        summary = None
+        detail = _describe(error)
+    else:
+        detail = "no summary"
+    if summary is None:
+        # A recorder killed before it finished: the data is there, the index is not.
+        raise RecordingError(f"{path}: incomplete or truncated ({detail}); "
+                             f"recover it with `drivebench recorder repair {path}`")
+    return reader
+
+
+def _decode(data: bytes, schema, channel, path: Path, sequence: int):
+    try:
+        return from_record(data, schema_name=schema.name if schema else "", metadata=dict(channel.metadata))
+    except RecordFormatError as error:
+        raise RecordingError(f"{path}: message {sequence} on {channel.topic}: {error}") from None
+
+
+def _describe(error: Exception) -> str:
+    text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__

@@ -1,0 +1,144 @@
+"""The recorder process: every message of one run to an MCAP file (``python -m recorder``).
+
+It subscribes to ``drivebench/run/<id>/**`` into an unbounded queue (the Zenoh callback only decodes and queues,
+so a burst never makes Zenoh drop frames for us), and one thread writes. SIGTERM / SIGINT finish a complete,
+indexed file; SIGKILL leaves ``<file>.part`` with everything up to the last flush (~1 s), which the next recorder
+started on the same folder repairs, as does ``drivebench recorder repair``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import time
+from pathlib import Path
+from typing import Union
+
+import msgspec
+
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Inbox
+from protocol.messages import EpisodeEvent, EventKind
+from protocol.recording import FORMAT_VERSION, RECORDED_MESSAGES, check_image_format
+from protocol.runtime import UserError
+from recorder.repair import repair_leftovers
+from recorder.writer import RecordingWriter
+
+log = logging.getLogger("drivebench.recorder")
+
+RecordedMessage = Union[RECORDED_MESSAGES]  # noqa: UP007 - a runtime union of the tagged structs for msgspec
+
+
+class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Config of the recorder process.
+
+    output: the MCAP file to write; ``{run_id}`` is replaced by the run id. Written as ``<output>.part`` until done.
+    image_format: "raw" (lossless ``foxglove.RawImage``: training data, exact replay) or "jpeg"
+        (``foxglove.CompressedImage``, ~10x smaller, lossy).
+    jpeg_quality: 1-100, for image_format "jpeg".
+    views: also write the Foxglove car pose, transform and track channels (for the 3D panel).
+    flush_interval_s: the most a SIGKILL can lose.
+    attach: text files (e.g. the run's resolved config) stored in the file's metadata, one entry each.
+    """
+
+    bus: BusConfig = BusConfig()
+    run_id: str = "default"
+    name: str = "recorder"
+    output: str = "recordings/{run_id}.mcap"
+    image_format: str = "raw"
+    jpeg_quality: int = 90
+    views: bool = True
+    flush_interval_s: float = 1.0
+    attach: list[str] = []
+
+    def __post_init__(self) -> None:
+        check_image_format(self.image_format)
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be 1-100, got {self.jpeg_quality}")
+        if not self.flush_interval_s > 0:
+            raise ValueError(f"flush_interval_s must be > 0, got {self.flush_interval_s}")
+
+    @property
+    def output_path(self) -> Path:
+        return Path(self.output.replace("{run_id}", self.run_id))
+
+
+class RecorderService:
+    def __init__(self, config: RecorderConfig, bus: Bus):
+        self.config = config
+        path = config.output_path
+        if path.suffix != ".mcap":
+            raise UserError(f"recorder output must end in .mcap, got {path}")
+        for report in repair_leftovers(path.parent):
+            log.warning("repaired a recording left by a killed recorder: %s (%d messages)", report.output,
+                        report.messages)
+        self.writer = RecordingWriter(path, image_format=config.image_format, jpeg_quality=config.jpeg_quality,
+                                      views=config.views, flush_interval_s=config.flush_interval_s)
+        self.writer.add_metadata("drivebench.run", _run_metadata(config))
+        for name in config.attach:
+            self._attach(Path(name))
+        self._inbox = Inbox()
+        self._bus = bus
+        self._subscription = bus.subscribe(keys.run_all(config.run_id), RecordedMessage, inbox=self._inbox)
+        bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
+
+    def _attach(self, path: Path) -> None:
+        try:
+            text = path.read_text()
+        except OSError as error:
+            raise UserError(f"recorder attach: cannot read {path}: {error.strerror}") from None
+        self.writer.add_metadata(f"file:{path.name}", {"path": str(path), "text": text})
+
+    def serve_forever(self) -> None:
+        log.info("recording run %s to %s", self.config.run_id, self.writer.path)
+        while True:
+            self.record_pending(timeout_s=0.2)
+
+    def record_pending(self, *, timeout_s: float) -> int:
+        """Write what has arrived (waiting up to ``timeout_s`` for the first); flush when due."""
+        written = 0
+        received = self._inbox.recv(timeout_s)
+        while received is not None:
+            self._write(received.key, received.message)
+            written += 1
+            if self.writer.flush_if_due():
+                break  # keep the flush period even under a steady stream
+            received = self._inbox.try_recv()
+        self.writer.flush_if_due()
+        return written
+
+    def _write(self, key: str, message: msgspec.Struct) -> None:
+        self.writer.write(key, message)
+        if isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None:
+            self.writer.add_metadata(f"episode:{message.header.episode}", {
+                "run_id": message.header.run_id, "spec": codec.to_json(message.spec)})
+
+    def close(self) -> None:
+        self._subscription.close()
+        for received in self._inbox.drain():  # what arrived while we were stopping is still recorded
+            self._write(received.key, received.message)
+        self.writer.close()
+        if self._bus.rejects.total:
+            log.warning("dropped %d malformed messages: %s", self._bus.rejects.total, dict(self._bus.rejects.counts))
+
+
+def _run_metadata(config: RecorderConfig) -> dict[str, str]:
+    return {"run_id": config.run_id, "format": FORMAT_VERSION, "git_sha": _git_sha(),
+            "started_unix_s": f"{time.time():.3f}", "recorder_config": json.dumps(msgspec.to_builtins(config))}
+
+
+def _git_sha() -> str:
+    try:
+        result = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                                cwd=Path(__file__).resolve().parent)
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return result.stdout.strip() if result.returncode == 0 else ""
+
+
+def main(argv: list[str] | None = None) -> int:
+    from protocol.runtime import service_main
+
+    return service_main("recorder", "drivebench recorder: every message of one run to an MCAP file",
+                        RecorderConfig, RecorderService, argv)

@@ -1,0 +1,173 @@
+"""Crash-safe MCAP writing of bus messages (``reference/recording.md`` §1-3).
+
+* The file is written as ``<name>.mcap.part`` and renamed to ``<name>.mcap`` only once complete (summary, indexes,
+  footer, fsync), so a ``.mcap`` file is always whole and a ``.part`` file always means "needs repair".
+* Zstd chunks of 1 MiB, chunk and data-section CRCs on.
+* ``flush_if_due`` closes the open chunk every ~1 s, so a recorder killed with SIGKILL loses at most the last
+  second; ``recorder.repair`` rebuilds a complete file from what was flushed.
+* Log time is the simulated time of each message on one clock for the whole file: episode n's stamps are offset
+  to start one second after the last message of episode n-1, so episodes follow each other on the timeline.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import time
+from collections import Counter
+from pathlib import Path
+
+import msgspec
+from mcap.writer import CompressionType, Writer
+
+from protocol.recording import (FORMAT_VERSION, ChannelLayout, Schema, channel_layout, check_image_format,
+                                record_stamps, to_record)
+from recorder.views import ViewMaker, ViewMessage
+
+log = logging.getLogger("drivebench.recorder")
+
+CHUNK_SIZE_BYTES = 1 << 20
+EPISODE_GAP_NS = 1_000_000_000
+PART_SUFFIX = ".part"
+LIBRARY = "drivebench-recorder"
+
+
+def part_path(path: Path) -> Path:
+    """Where a recording is written until it is complete."""
+    return path.with_name(path.name + PART_SUFFIX)
+
+
+def is_being_written(part: Path) -> bool:
+    """True while a live recorder holds ``part`` (its writer keeps an exclusive lock on it)."""
+    with open(part, "rb") as probe:
+        try:
+            fcntl.flock(probe.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(probe.fileno(), fcntl.LOCK_UN)
+        return False
+
+
+class EpisodeClock:
+    """Log time for messages whose stamps restart at 0 every episode (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self._base_ns: dict[tuple[str, int], int] = {}
+        self._latest_ns = -EPISODE_GAP_NS
+
+    def log_time_ns(self, run_id: str, episode: int, stamp_ns: int) -> int:
+        base = self._base_ns.get((run_id, episode))
+        if base is None:
+            base = self._base_ns[(run_id, episode)] = self._latest_ns + EPISODE_GAP_NS if self._base_ns else 0
+        log_time = base + max(0, stamp_ns)
+        self._latest_ns = max(self._latest_ns, log_time)
+        return log_time
+
+
+class RecordingWriter:
+    """Writes bus messages (plus their viewer channels) to one MCAP file. Only one thread may use it.
+
+    path: the final ``.mcap`` path; image_format: "raw" (lossless ``foxglove.RawImage``) or "jpeg"
+    (``foxglove.CompressedImage``); views: add the Foxglove pose / transform / track channels.
+    """
+
+    def __init__(self, path: Path, *, image_format: str = "raw", jpeg_quality: int = 90, views: bool = True,
+                 flush_interval_s: float = 1.0):
+        self.path = Path(path)
+        self.image_format = check_image_format(image_format)
+        self.jpeg_quality = jpeg_quality
+        self.flush_interval_s = flush_interval_s
+        self.counts: Counter[str] = Counter()  # messages written per bus key
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(part_path(self.path), "wb")
+        # Held while writing: a recorder starting on the same folder repairs only .part files nobody holds.
+        fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD,
+                              enable_crcs=True, enable_data_crcs=True)
+        # Profile "" on purpose: "ros1"/"ros2" are the only well-known profiles and tools key on them.
+        self._writer.start(profile="", library=LIBRARY)
+        self._schemas: dict[tuple[str, str], int] = {}
+        self._channels: dict[str, int] = {}
+        self._clock = EpisodeClock()
+        self._views: dict[str, ViewMaker] = {}
+        self._with_views = views
+        self._last_flush = time.monotonic()
+        self._closed = False
+
+    # -- writing --
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
+
+    def write(self, key: str, message: msgspec.Struct) -> int:
+        """Write one bus message published on ``key``; returns its log time (ns)."""
+        header = message.header
+        log_time = self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
+        channel = self._channel(channel_layout(key, type(message), image_format=self.image_format)
+                                if key not in self._channels else None, key)
+        publish_time, sequence = record_stamps(message)
+        data = to_record(message, image_format=self.image_format, jpeg_quality=self.jpeg_quality)
+        self._writer.add_message(channel, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
+        self.counts[key] += 1
+        if self._with_views:
+            maker = self._views.setdefault(header.run_id, ViewMaker(header.run_id))
+            for view in maker.on_message(message, log_time_ns=log_time):
+                self._write_view(view)
+        return log_time
+
+    def _write_view(self, view: ViewMessage) -> None:
+        if view.topic not in self._channels:
+            layout = ChannelLayout(topic=view.topic, message_encoding="protobuf", schema=view.schema,
+                                   metadata={"drivebench.view": "1"})
+            self._channel(layout, view.topic)
+        self._writer.add_message(self._channels[view.topic], log_time=view.log_time_ns,
+                                 data=view.message.SerializeToString(), publish_time=view.log_time_ns)
+
+    def _channel(self, layout: ChannelLayout | None, topic: str) -> int:
+        if layout is not None:
+            schema_id = self._schema(layout.schema)
+            self._channels[topic] = self._writer.register_channel(
+                topic=layout.topic, message_encoding=layout.message_encoding, schema_id=schema_id,
+                metadata=layout.metadata)
+        return self._channels[topic]
+
+    def _schema(self, schema: Schema) -> int:
+        key = (schema.name, schema.encoding)
+        if key not in self._schemas:
+            self._schemas[key] = self._writer.register_schema(name=schema.name, encoding=schema.encoding,
+                                                              data=schema.data)
+        return self._schemas[key]
+
+    # -- durability --
+
+    def flush_if_due(self) -> bool:
+        """Close the open chunk and hand it to the kernel when ``flush_interval_s`` has passed since the last."""
+        now = time.monotonic()
+        if now - self._last_flush < self.flush_interval_s:
+            return False
+        self._writer.flush()
+        self._last_flush = now
+        return True
+
+    def close(self) -> Path:
+        """Finish the file (summary, indexes, footer), fsync it and rename it into place; returns the path."""
+        if self._closed:
+            return self.path
+        self._closed = True
+        self.add_metadata("drivebench.recording", {"format": FORMAT_VERSION,
+                                                    "counts": json.dumps(dict(self.counts), sort_keys=True)})
+        self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(part_path(self.path), self.path)
+        log.info("recorded %d messages on %d keys to %s", sum(self.counts.values()), len(self.counts), self.path)
+        return self.path
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()

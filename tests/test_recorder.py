@@ -1,0 +1,269 @@
+"""The recorder: MCAP files read back by real readers, crash safety with real signals, record -> replay -> record."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcap_validation import assert_valid_mcap
+from orchestrator.launcher import free_loopback_port
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Traffic
+from protocol.messages import CameraFrame, CameraSpec, Command, EndReason, EpisodeSpec, Header, Pose
+from recorder.reading import RecordingError, read_messages, recording_info
+from recorder.repair import repair
+from recorder.replay import rebased
+from recorder.writer import RecordingWriter, part_path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def header(seq: int, *, episode: int = 0, run_id: str = "r1") -> Header:
+    return Header(run_id=run_id, episode=episode, seq=seq, stamp_ns=seq * 50_000_000)
+
+
+def frame(seq: int, *, episode: int = 0, run_id: str = "r1", size=(64, 48)) -> CameraFrame:
+    pixels = np.random.default_rng(seq).integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+    return CameraFrame(header=header(seq, episode=episode, run_id=run_id), width_px=size[0], height_px=size[1],
+                       data=pixels.tobytes())
+
+
+def two_episodes(run_id: str = "r1", *, size=(64, 48)) -> list[tuple[str, object]]:
+    messages = []
+    for episode, steps in ((0, 30), (1, 12)):
+        for seq in range(steps):
+            messages.append((keys.camera_raw(run_id), frame(seq, episode=episode, run_id=run_id, size=size)))
+            messages.append((keys.pose(run_id), Pose(header=header(seq, episode=episode, run_id=run_id),
+                                                     x_m=seq * 0.1, y_m=1.0, yaw_rad=0.2)))
+            messages.append((keys.command(run_id, "explicit"),
+                             Command(header=header(seq, episode=episode, run_id=run_id), brain="explicit",
+                                     frame_seq=seq, speed_mps=2.0, yaw_rate_radps=-0.1 * seq)))
+    return messages
+
+
+def write_recording(path: Path, messages) -> Path:
+    with RecordingWriter(path) as writer:
+        for key, message in messages:
+            writer.write(key, message)
+    return path
+
+
+# -- files -----------------------------------------------------------------------------------------------------------
+
+
+def test_a_recording_reads_back_message_for_message(tmp_path):
+    messages = two_episodes()
+    path = tmp_path / "a.mcap"
+    writer = RecordingWriter(path)
+    for key, message in messages:
+        writer.write(key, message)
+    assert part_path(path).exists() and not path.exists()  # complete files only ever appear whole
+    writer.close()
+    assert path.exists() and not part_path(path).exists()
+
+    read = list(read_messages(path))
+    assert sorted((r.key, codec.encode(r.message)) for r in read) == sorted((k, codec.encode(m)) for k, m in messages)
+    times = defaultdict(list)
+    for r in read:
+        times[r.message.header.episode].append(r.log_time_ns)
+    assert min(times[1]) >= max(times[0]) + 1_000_000_000  # episodes follow each other on one timeline
+    assert [r.log_time_ns for r in read] == sorted(r.log_time_ns for r in read)
+    assert_valid_mcap(path)
+
+
+def test_info_lists_bus_and_view_channels(tmp_path):
+    info = recording_info(write_recording(tmp_path / "a.mcap", two_episodes()))
+    bus = {c.topic: c.messages for c in info.channels if c.bus_key}
+    assert bus == {keys.camera_raw("r1"): 42, keys.pose("r1"): 42, keys.command("r1", "explicit"): 42}
+    views = {c.topic: c.schema for c in info.channels if not c.bus_key}
+    assert views[keys.view("r1", "car_pose")] == "foxglove.PoseInFrame"
+    assert views[keys.view("r1", "world_from_car")] == "foxglove.FrameTransform"
+
+
+def test_keys_glob_selects_channels(tmp_path):
+    path = write_recording(tmp_path / "a.mcap", two_episodes())
+    assert {r.key for r in read_messages(path, keys_glob="*/sim/*")} == {keys.camera_raw("r1"), keys.pose("r1")}
+
+
+def cut(path: Path, fraction: float) -> Path:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * fraction)])
+    return path
+
+
+def test_truncated_and_corrupted_files_give_one_clear_error(tmp_path):
+    truncated = cut(write_recording(tmp_path / "t.mcap", two_episodes()), 0.6)
+    with pytest.raises(RecordingError, match=r"t\.mcap: incomplete or truncated.*drivebench recorder repair"):
+        list(read_messages(truncated))
+
+    corrupted = write_recording(tmp_path / "c.mcap", two_episodes())
+    data = bytearray(corrupted.read_bytes())
+    data[len(data) // 3] ^= 0xFF  # inside the compressed data of a chunk
+    corrupted.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match=r"c\.mcap: corrupted"):
+        list(read_messages(corrupted))
+
+    (tmp_path / "n.mcap").write_text("not a recording")
+    with pytest.raises(RecordingError, match=r"n\.mcap: not an MCAP file"):
+        list(read_messages(tmp_path / "n.mcap"))
+    with pytest.raises(RecordingError, match="no such recording"):
+        list(read_messages(tmp_path / "missing.mcap"))
+
+
+def test_repair_recovers_the_complete_chunks_of_a_truncated_file(tmp_path):
+    # 320x240 noise does not compress: ~9 chunks of 1 MiB.
+    full = write_recording(tmp_path / "full.mcap", two_episodes(size=(320, 240)))
+    sent = len(list(read_messages(full)))
+    cut_file = cut(full, 0.7)
+    report = repair(cut_file)
+    assert report.output == tmp_path / "full.repaired.mcap" and report.stopped_at
+    recovered = list(read_messages(report.output))
+    assert 0 < len(recovered) < sent
+    assert_valid_mcap(report.output)
+
+
+def run_cli(*argv: str, env: dict | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True,
+                          timeout=timeout, cwd=ROOT, env=env)
+
+
+def test_cli_errors_are_one_line(tmp_path):
+    truncated = cut(write_recording(tmp_path / "t.mcap", two_episodes()), 0.5)
+    for argv in (["recorder", "info", str(truncated)], ["recorder", "info", str(tmp_path / "none.mcap")],
+                 ["replay", str(truncated), "--router", "tcp/127.0.0.1:9"]):
+        result = run_cli(*argv)
+        assert result.returncode == 2, result.stderr
+        assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+        assert "drivebench: error:" in result.stderr
+
+
+def test_cli_repair_and_info(tmp_path):
+    path = write_recording(tmp_path / "a.mcap", two_episodes(size=(320, 240)))
+    part = part_path(path)
+    os.rename(cut(path, 0.8), part)
+    result = run_cli("recorder", "repair", str(part))
+    assert result.returncode == 0, result.stderr
+    assert path.exists() and not part.exists()
+    info = run_cli("recorder", "info", str(path))
+    assert info.returncode == 0 and keys.pose("r1") in info.stdout
+
+
+# -- the recorder process --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def router():
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    with Bus(BusConfig(mode="router", listen=[endpoint]), name="test-router") as bus:
+        yield endpoint, bus
+
+
+def start_recorder(endpoint: str, bus: Bus, run_id: str, output: Path, *extra: str) -> subprocess.Popen:
+    watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
+    process = subprocess.Popen(
+        [sys.executable, "-m", "recorder", "--router", endpoint, "--run-id", run_id,
+         "--set", f"output={json.dumps(str(output))}", *extra],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    missing = watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30)
+    watch.close()
+    assert not missing, f"recorder did not come up: {process.poll()}"
+    return process
+
+
+def publish_steps(bus: Bus, run_id: str, *, seconds: float, rate_hz: float = 50.0) -> list[tuple[int, float]]:
+    """Publish frame + pose pairs at ``rate_hz``; returns (seq, wall time) of each."""
+    frames = bus.publisher(keys.camera_raw(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS)
+    poses = bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS)
+    sent = []
+    start = time.monotonic()
+    seq = 0
+    while time.monotonic() - start < seconds:
+        frames.publish(frame(seq, run_id=run_id, size=(160, 120)))
+        poses.publish(Pose(header=header(seq, run_id=run_id), x_m=float(seq), y_m=0.0, yaw_rad=0.0))
+        sent.append((seq, time.monotonic()))
+        seq += 1
+        time.sleep(max(0.0, start + seq / rate_hz - time.monotonic()))
+    return sent
+
+
+@pytest.mark.integration
+def test_sigterm_finishes_a_complete_file_with_every_message(tmp_path, router):
+    endpoint, bus = router
+    output = tmp_path / "rec" / "a.mcap"
+    recorder = start_recorder(endpoint, bus, "sigterm", output)
+    sent = publish_steps(bus, "sigterm", seconds=1.5)
+    time.sleep(0.5)
+    recorder.send_signal(signal.SIGTERM)
+    assert recorder.wait(timeout=30) == 128 + signal.SIGTERM, recorder.stdout.read()  # the stop convention
+    assert output.exists() and not part_path(output).exists()
+    counts = defaultdict(set)
+    for r in read_messages(output):
+        counts[r.key].add(r.message.header.seq)
+    assert counts[keys.camera_raw("sigterm")] == counts[keys.pose("sigterm")] == {seq for seq, _ in sent}
+    assert "recorder_config" in recording_info(output).metadata["drivebench.run"]
+    assert_valid_mcap(output)
+
+
+@pytest.mark.integration
+def test_sigkill_loses_at_most_about_a_second_and_the_next_recorder_repairs_it(tmp_path, router):
+    endpoint, bus = router
+    folder = tmp_path / "rec"
+    recorder = start_recorder(endpoint, bus, "killed", folder / "a.mcap")
+    sent = publish_steps(bus, "killed", seconds=3.5)
+    recorder.kill()
+    killed_at = time.monotonic()
+    recorder.wait(timeout=10)
+    assert part_path(folder / "a.mcap").exists() and not (folder / "a.mcap").exists()
+
+    # The next recorder started on the same folder repairs what the killed one left.
+    second = start_recorder(endpoint, bus, "next", folder / "b.mcap")
+    second.send_signal(signal.SIGTERM)
+    assert second.wait(timeout=30) == 128 + signal.SIGTERM
+    assert (folder / "a.mcap").exists() and not part_path(folder / "a.mcap").exists()
+    recovered = {r.message.header.seq for r in read_messages(folder / "a.mcap", keys_glob="*/sim/camera")}
+    assert recovered, "nothing recovered"
+    must_have = {seq for seq, at in sent if at < killed_at - 1.5}  # flushed every second, plus slack for load
+    assert must_have <= recovered, f"lost {len(must_have - recovered)} frames older than 1.5 s"
+    assert recovered == set(range(len(recovered)))  # a prefix: nothing missing in the middle
+    assert_valid_mcap(folder / "a.mcap", folder / "b.mcap")
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
+    first = tmp_path / "first.mcap"
+    stack = make_stack(record=first)
+    score = stack.run_episode(EpisodeSpec(max_sim_seconds=2.0, camera=CameraSpec(width_px=96, height_px=72)))
+    assert score.reason == EndReason.TIME_LIMIT
+    run_id = stack.run_id
+    stack.close()
+    original = list(read_messages(first))
+    by_key = {k.split("/", 3)[3] for k in (r.key for r in original)}
+    assert {"sim/camera", "noise/camera", "sim/pose", "sim/events", "brain/explicit/cmd", "scorer/score"} <= by_key
+    frames = sorted(r.message.header.seq for r in original if r.key == keys.camera_raw(run_id))
+    assert frames == list(range(40))  # lock-step: every frame of the 2 s episode recorded
+
+    endpoint = stack.endpoint  # the stack's router is gone; open our own on the same kind of endpoint
+    with Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="router2") as bus:
+        endpoint = bus.config.listen[0]
+        second = tmp_path / "second.mcap"
+        recorder = start_recorder(endpoint, bus, "again", second)
+        result = run_cli("replay", str(first), "--router", endpoint, "--run-id", "again", "--max-speed")
+        assert result.returncode == 0, result.stderr
+        time.sleep(1.0)
+        recorder.send_signal(signal.SIGTERM)
+        assert recorder.wait(timeout=30) == 128 + signal.SIGTERM
+
+    replayed = list(read_messages(second))
+    expected = sorted((keys.with_run_id(r.key, "again"), codec.encode(rebased(r.message, "again"))) for r in original)
+    assert sorted((r.key, codec.encode(r.message)) for r in replayed) == expected
+    assert_valid_mcap(first, second)
