@@ -12,7 +12,12 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[test]"
+# Neural brains need torch. Pin the version that is installed when none is there yet: a normal torch anywhere, and
+# the CPU build that machines without a GPU keep on disk (a loose requirement would fetch a multi-GB CUDA build).
+if ! .venv/bin/python -c "import torch" 2>/dev/null; then
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check "torch==${DRIVEBENCH_TORCH_VERSION:-2.13.0}"
+fi
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[test,ml]"
 # The independent MCAP validator (official TypeScript reader) used by the recording tests; they skip without it.
 if command -v npm >/dev/null 2>&1; then
   if [ ! -d tools/mcap-validate/node_modules ] ||
