@@ -77,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)")
 
     recording_cli.add_commands(commands)
+    recording_cli.add_dataset_commands(commands, parse_camera)
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)

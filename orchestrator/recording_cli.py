@@ -3,6 +3,8 @@
     drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
     drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
     drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
+    drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
+    drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import sys
 from pathlib import Path
 
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
+from recorder.dataset import DatasetError
 from recorder.reading import RecordingError, recording_info
 
 
@@ -42,6 +45,85 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--router", help=f"router endpoint (default: ${ROUTER_ENV})")
 
 
+def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> None:
+    dataset = commands.add_parser("dataset", help="training datasets from recordings")
+    dataset_commands = dataset.add_subparsers(dest="dataset_command", required=True)
+    build = dataset_commands.add_parser("build", help="pair recorded frames with the commands that answered them")
+    build.add_argument("recordings", nargs="+", type=Path, help="MCAP recordings (drivebench run --record)")
+    _add_build_options(build)
+    collect = dataset_commands.add_parser(
+        "collect", help="drive the explicit brain on each circuit with recording on, then build the dataset")
+    collect.add_argument("--circuits", required=True, help="comma-separated circuit names")
+    collect.add_argument("--laps", type=int, default=1, help="laps per circuit (default 1)")
+    collect.add_argument("--brain", default="explicit", help="the brain whose driving is recorded (default explicit)")
+    collect.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
+                         help="simulator camera (default 320x240); --size sets the dataset's image size")
+    collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
+                         help="world variation for every circuit, as in drivebench run")
+    collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
+    _add_build_options(collect)
+
+
+def _add_build_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-o", "--output", type=Path, required=True, help="dataset folder to create")
+    parser.add_argument("--size", default="100x50", metavar="WxH",
+                        help="image size of the samples (default 100x50; PilotNet uses 200x66)")
+    parser.add_argument("--crop", default="0:1", metavar="TOP:BOTTOM",
+                        help="rows kept before resizing, as fractions of the height (default 0:1; "
+                             "DeepestLSTMTinyPilotNet uses 0.5:1)")
+    history = parser.add_mutually_exclusive_group()
+    history.add_argument("--history", type=int, default=1, help="frames per sample: the current one and N-1 "
+                                                                "earlier ones (default 1)")
+    history.add_argument("--offsets", help="explicit frame offsets, e.g. -9,-5,0 (the paper's memory models)")
+    parser.add_argument("--stride", type=int, default=1, help="frames between history frames (default 1)")
+    parser.add_argument("--camera-key", choices=("perturbed", "truth"), default="perturbed",
+                        help="pair the frames the brain saw (default) or the simulator's ground truth")
+    parser.add_argument("--label-brain", help="label with this brain's commands (default: the active brain)")
+    parser.add_argument("--split", default="episode:0.2",
+                        help="episode:FRACTION, circuit:NAME,NAME or none (default episode:0.2); never by frame")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the episode split (default 0)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+
+
+def dataset_options(args: argparse.Namespace):
+    from recorder.dataset import DatasetOptions
+
+    width, sep, height = args.size.lower().partition("x")
+    top, colon, bottom = args.crop.partition(":")
+    try:
+        size = (int(width), int(height)) if sep else None
+        crop = (float(top), float(bottom)) if colon else None
+        offsets = (tuple(int(v) for v in args.offsets.split(",")) if args.offsets
+                   else tuple(-k * args.stride for k in range(args.history - 1, -1, -1)))
+    except ValueError:
+        size = crop = offsets = None
+    if size is None:
+        raise RecordingUsageError(f"--size must look like 100x50, got {args.size!r}")
+    if crop is None:
+        raise RecordingUsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
+    if offsets is None or args.history < 1 or args.stride < 1:
+        raise RecordingUsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
+    return DatasetOptions(width_px=size[0], height_px=size[1], crop_top_fraction=crop[0],
+                          crop_bottom_fraction=crop[1], camera=args.camera_key, brain=args.label_brain,
+                          offsets_frames=offsets, split=args.split, seed=args.seed)
+
+
+def build_from_recordings(recordings: list[Path], args: argparse.Namespace, options) -> int:
+    from recorder.dataset import build_dataset
+    from recorder.reading import read_messages
+
+    for path in recordings:
+        recording_info(path)  # a missing or broken file fails before any work
+    sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
+    manifest = build_dataset(sources, out_dir=args.output, options=options, progress=sys.stderr.isatty(),
+                             overwrite=args.overwrite)
+    split = manifest.split
+    print(f"dataset {args.output}: {manifest.totals.samples} samples from {len(recordings)} recording(s), "
+          f"{manifest.totals.episodes} episode(s); train {split.train_samples} samples, val {split.val_samples} "
+          f"({split.rule})", file=sys.stderr)
+    return 0
+
+
 def run_command(args: argparse.Namespace) -> int:
     try:
         if args.command == "recorder" and args.recorder_command == "info":
@@ -50,7 +132,13 @@ def run_command(args: argparse.Namespace) -> int:
             return _repair(args)
         if args.command == "replay":
             return _replay(args)
-    except RecordingError as error:
+        if args.command == "dataset" and args.dataset_command == "build":
+            return build_from_recordings(args.recordings, args, dataset_options(args))
+        if args.command == "dataset" and args.dataset_command == "collect":
+            from orchestrator.collect import collect
+
+            return collect(args, dataset_options(args))
+    except (RecordingError, DatasetError, ValueError) as error:  # ValueError: CollectError
         raise RecordingUsageError(str(error)) from None
     raise RecordingUsageError(f"unknown command {args.command!r}")
 
@@ -62,6 +150,9 @@ def _info(args: argparse.Namespace) -> int:
     for channel in sorted(info.channels, key=lambda c: c.topic):
         kind = "bus " if channel.bus_key else "view"
         print(f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  {channel.schema} ({channel.message_encoding})")
+    missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
+    if any(missing.values()):
+        print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")
     for name, data in info.metadata.items():
         if name.startswith("episode:"):
             spec = json.loads(data.get("spec", "{}"))

@@ -80,6 +80,9 @@ class RecordingWriter:
         self.jpeg_quality = jpeg_quality
         self.flush_interval_s = flush_interval_s
         self.counts: Counter[str] = Counter()  # messages written per bus key
+        # Sequence numbers run 0, 1, 2... per key and episode: a jump means messages that never reached us.
+        self.missing: Counter[str] = Counter()
+        self._last_seq: dict[tuple[str, str, int], int] = {}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(part_path(self.path), "wb")
         # Held while writing: a recorder starting on the same folder repairs only .part files nobody holds.
@@ -111,11 +114,21 @@ class RecordingWriter:
         data = to_record(message, image_format=self.image_format, jpeg_quality=self.jpeg_quality)
         self._writer.add_message(channel, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
         self.counts[key] += 1
+        self._check_sequence(key, header)
         if self._with_views:
             maker = self._views.setdefault(header.run_id, ViewMaker(header.run_id))
             for view in maker.on_message(message, log_time_ns=log_time):
                 self._write_view(view)
         return log_time
+
+    def _check_sequence(self, key: str, header) -> None:
+        stream = (key, header.run_id, header.episode)
+        last = self._last_seq.get(stream, -1)
+        if header.seq > last + 1:
+            self.missing[key] += header.seq - last - 1
+            log.warning("%s episode %d: %d message(s) missing before seq %d (never received)", key, header.episode,
+                        header.seq - last - 1, header.seq)
+        self._last_seq[stream] = max(last, header.seq)
 
     def _write_view(self, view: ViewMessage) -> None:
         if view.topic not in self._channels:
@@ -157,7 +170,8 @@ class RecordingWriter:
             return self.path
         self._closed = True
         self.add_metadata("drivebench.recording", {"format": FORMAT_VERSION,
-                                                    "counts": json.dumps(dict(self.counts), sort_keys=True)})
+                                                    "counts": json.dumps(dict(self.counts), sort_keys=True),
+                                                    "missing": json.dumps(dict(self.missing), sort_keys=True)})
         self._writer.finish()
         self._file.flush()
         os.fsync(self._file.fileno())

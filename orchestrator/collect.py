@@ -1,0 +1,68 @@
+"""``drivebench dataset collect``: the paper's data generation in one step.
+
+Drive a brain (the explicit one by default) round each circuit on a local stack with a recorder, one recording per
+circuit, then build a dataset from the recordings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import uuid
+from pathlib import Path
+
+from orchestrator.launcher import BrainLaunch, LocalStack
+from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.variations import apply_variation
+from services.circuits import CircuitError, load_circuit
+
+
+class CollectError(ValueError):
+    """A bad collect request (unknown circuit, bad variation): one line."""
+
+
+def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
+    circuits = [name.strip() for name in args.circuits.split(",") if name.strip()]
+    if not circuits:
+        raise CollectError("--circuits needs at least one circuit name")
+    specs = []
+    for index, circuit in enumerate(circuits):
+        try:
+            load_circuit(circuit)
+            spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=index,
+                               camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
+                               active_brain=args.brain)
+            for variation in args.variation:
+                spec = apply_variation(spec, variation)
+        except (CircuitError, ValueError) as error:
+            raise CollectError(str(error)) from None
+        specs.append(spec)
+    return specs
+
+
+def collect(args: argparse.Namespace, options) -> int:
+    from orchestrator.cli import Progress
+    from orchestrator.recording_cli import build_from_recordings
+
+    specs = collection_specs(args)
+    output: Path = args.output
+    if output.exists() and any(output.iterdir()) and not args.overwrite:
+        raise CollectError(f"output folder {output} is not empty (pass --overwrite to replace it)")
+    work = output.parent / f"{output.name}.recordings"
+    recordings = []
+    for spec in specs:
+        run_id = f"collect-{spec.circuit.replace(':', '-')}-{uuid.uuid4().hex[:6]}"
+        recording = work / f"{spec.circuit.replace(':', '-')}.mcap"
+        recording.unlink(missing_ok=True)
+        print(f"collect: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s) -> {recording}", file=sys.stderr)
+        progress = Progress(spec.laps, enabled=sys.stderr.isatty())
+        try:
+            with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=[BrainLaunch(spec.active_brain)],
+                            record=recording) as stack:
+                score = stack.run_episode(spec, on_live=progress.update)
+        finally:
+            progress.close()
+        print(f"collect: {spec.circuit}: {score.reason}, {score.metrics.progress_laps:.2f} laps in "
+              f"{score.metrics.sim_time_s:.1f} s", file=sys.stderr)
+        recordings.append(recording)
+    return build_from_recordings(recordings, args, options)
