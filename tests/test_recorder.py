@@ -196,14 +196,16 @@ def publish_steps(bus: Bus, run_id: str, *, seconds: float, rate_hz: float = 50.
 
 
 @pytest.mark.integration
-def test_sigterm_finishes_a_complete_file_with_every_message(tmp_path, router):
+@pytest.mark.parametrize("stop, exit_code", [(signal.SIGTERM, 128 + signal.SIGTERM), (signal.SIGINT, 130)],
+                         ids=["sigterm", "sigint"])
+def test_stopping_finishes_a_complete_file_with_every_message(tmp_path, router, stop, exit_code):
     endpoint, bus = router
     output = tmp_path / "rec" / "a.mcap"
     recorder = start_recorder(endpoint, bus, "sigterm", output)
     sent = publish_steps(bus, "sigterm", seconds=1.5)
     time.sleep(0.5)
-    recorder.send_signal(signal.SIGTERM)
-    assert recorder.wait(timeout=30) == 128 + signal.SIGTERM, recorder.stdout.read()  # the stop convention
+    recorder.send_signal(stop)
+    assert recorder.wait(timeout=30) == exit_code, recorder.stdout.read()
     assert output.exists() and not part_path(output).exists()
     counts = defaultdict(set)
     for r in read_messages(output):
