@@ -74,7 +74,8 @@ def _add_build_options(parser: argparse.ArgumentParser) -> None:
     history = parser.add_mutually_exclusive_group()
     history.add_argument("--history", type=int, default=1, help="frames per sample: the current one and N-1 "
                                                                 "earlier ones (default 1)")
-    history.add_argument("--offsets", help="explicit frame offsets, e.g. -9,-5,0 (the paper's memory models)")
+    history.add_argument("--offsets", help="explicit frame offsets, e.g. --offsets=-9,-5,0 (the paper's memory "
+                                              "models; write the = because the value starts with -)")
     parser.add_argument("--stride", type=int, default=1, help="frames between history frames (default 1)")
     parser.add_argument("--camera-key", choices=("perturbed", "truth"), default="perturbed",
                         help="pair the frames the brain saw (default) or the simulator's ground truth")
