@@ -16,7 +16,7 @@ from typing import Any
 
 import msgspec
 from brains.base import Brain, Observation
-from brains.registry import UnknownBrainError, brain_names, make_brain
+from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, make_brain
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.episodes import EpisodeStarts
@@ -119,14 +119,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = service_parser("drivebench brain host: camera frames in, driving commands out")
     parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")
     parser.add_argument("--name", help="name on the bus (default: the brain's name)")
+    parser.add_argument("--weights", metavar="CKPT",
+                        help="neural brains: checkpoint or exported ONNX file (= --set options.weights=CKPT)")
     args = parser.parse_args(argv)
 
     def run() -> int:
-        config = load_service_config(BrainHostConfig, args, extra={"brain": args.brain, "name": args.name})
+        config = load_service_config(BrainHostConfig, args, extra={"brain": args.brain, "name": args.name,
+                                                                   "options.weights": args.weights})
         log_config(config)
         try:
             brain = make_brain(config.brain, **config.options)
-        except UnknownBrainError as error:
+        except (UnknownBrainError, BrainOptionsError) as error:
             raise UserError(str(error)) from None
         except TypeError as error:
             raise UserError(f"bad options for brain {config.brain!r}: {error}") from None

@@ -11,11 +11,22 @@ from brains.base import Brain
 _REGISTRY: dict[str, str] = {
     "explicit": "brains.explicit.brain:ExplicitBrain",
     "constant": "brains.constant.brain:ConstantBrain",
+    "noisy": "brains.noisy.brain:NoisyBrain",
+    # The paper's networks, served from a checkpoint (``--weights CKPT``); each checks the checkpoint's model.
+    "pilotnet": "brains.neural.brain:pilotnet",
+    "deepest_lstm_tiny_pilotnet": "brains.neural.brain:deepest_lstm_tiny_pilotnet",
+    "pilotnet_x3": "brains.neural.brain:pilotnet_x3",
+    "memdccp": "brains.neural.brain:memdccp",
+    "neural": "brains.neural.brain:neural",  # any network: whatever the checkpoint holds
 }
 
 
 class UnknownBrainError(ValueError):
     pass
+
+
+class BrainOptionsError(ValueError):
+    """A brain's options are missing or unusable (no weights, a bad checkpoint): one line, no traceback."""
 
 
 def register(name: str, target: str) -> None:

@@ -1,0 +1,856 @@
+"""Supervised training of the paper's networks on a drivebench dataset folder (pure core: no Zenoh, no CLI parsing).
+
+``train(TrainOptions(...))`` fits one network of :data:`brains.nets.MODELS` to a dataset built by
+``drivebench dataset build|collect`` (:class:`recorder.dataset.DrivingDataset`) and writes a run folder:
+
+    model.ckpt    the best weights (lowest validation loss), in the checkpoint format below
+    last.ckpt     the latest state, for ``resume``: the same format plus optimizer_state, epoch, rng, resume
+    metrics.json  the checkpoint's metrics, training and dataset sections as JSON
+    curve.png     training/validation loss and validation MAE per epoch
+
+Checkpoint format ``drivebench.checkpoint.v1`` (``torch.save`` of plain types and tensors; loads with
+``torch.load(path, weights_only=True)``)::
+
+    format         "drivebench.checkpoint.v1"
+    model          a brains.nets.MODELS key;  hyper: kwargs for make_model;  state_dict: model.state_dict()
+    input          width_px, height_px, crop_top_fraction, crop_bottom_fraction, offsets_frames, offsets_s, step_s
+    normalisation  image_mean, image_std (ImageNet, on pixels / 255), labels ("zscore" | "paper"),
+                   label_mean, label_std: physical [v m/s, w rad/s] = network output * label_std + label_mean
+    dataset        path, manifest_sha256, samples_train, samples_val
+    metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised (val is None without a val
+                   split); best_epoch, epochs_run, curve (one dict per epoch), monitor, stopped_early, notes
+    training       seed, lr, batch_size, epochs, device, wall_s, samples_per_s, torch (+ the other options)
+
+Pipeline: one gather per batch from the memory-mapped uint8 frames, then everything on torch tensors on the
+training device: /255, augmentation (training batches only; one parameter set per sample, shared by its frames),
+ImageNet normalisation. Class balance comes from a weighted sampler over |w| histogram bins, never from copies.
+Deterministic on CPU for a given seed and thread count; a resumed run ends bit-identical to an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from tqdm import tqdm
+
+from brains.nets import MODELS, ModelInfo, make_model
+from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
+from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS, MANIFEST_FILE, DatasetError, DrivingDataset
+
+CHECKPOINT_FORMAT = "drivebench.checkpoint.v1"
+BEST_FILE, LAST_FILE, METRICS_FILE, CURVE_FILE = "model.ckpt", "last.ckpt", "metrics.json", "curve.png"
+LABEL_KINDS = ("zscore", "paper")
+DEVICES = ("auto", "cpu", "cuda")
+REQUIRED_KEYS = {
+    "": ("format", "model", "hyper", "state_dict", "input", "normalisation", "dataset", "metrics", "training"),
+    "input": ("width_px", "height_px", "crop_top_fraction", "crop_bottom_fraction", "offsets_frames", "offsets_s",
+              "step_s"),
+    "normalisation": ("image_mean", "image_std", "labels", "label_mean", "label_std"),
+}
+# A bin's sampling weight is at most this many times that of the most common bin: a lone sample in an otherwise
+# empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
+BALANCE_CAP = 50.0
+EVAL_BATCH = 256
+# Options a resumed run must share with the run that wrote last.ckpt; epochs, patience, device, threads may change.
+RESUME_FIXED = ("model", "data", "hyper", "seed", "lr", "batch_size", "labels", "max_samples_per_epoch", "augment",
+                "balance", "eval_train_samples", "limit_train_samples")
+
+
+class TrainError(RuntimeError):
+    """A training request that cannot run (bad options, dataset, model/dataset mismatch): one line."""
+
+
+class CheckpointError(RuntimeError):
+    """A file that is not a usable drivebench checkpoint: one line naming the file and what is wrong."""
+
+
+class TrainInterrupted(KeyboardInterrupt):
+    """Ctrl-C during training: last.ckpt was saved at ``epoch``/``batch``; resume continues from there."""
+
+    def __init__(self, last_checkpoint: Path, epoch: int, batch: int):
+        super().__init__(f"interrupted in epoch {epoch} after batch {batch}; state saved to {last_checkpoint}")
+        self.last_checkpoint, self.epoch, self.batch = last_checkpoint, epoch, batch
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainOptions:
+    """What ``train`` does.
+
+    model: a brains.nets.MODELS key. data: dataset folder. output: run folder.
+    epochs: maximum epochs (an epoch = len(train split) samples, or max_samples_per_epoch if smaller).
+    lr: Adam learning rate. device: "auto" (cuda if available), "cpu" or "cuda".
+    patience: epochs without a lower monitored loss before stopping early.
+    labels: "zscore" (train-split mean/std) or "paper" (DLS's fixed ranges).
+    hyper: make_model keyword arguments (int, float, bool or str values). threads: torch intra-op threads.
+    augment: mirror/colour-jitter/blur training batches. balance: sample ∝ 1/frequency of the |w| bin.
+    resume: continue from output/last.ckpt. overwrite: replace an existing run in output.
+    eval_train_samples: size of the fixed training subset evaluated each epoch (no augmentation).
+    limit_train_samples: draw from a fixed random subset of this many training samples only (overfitting sanity
+        checks, quick experiments); an epoch keeps the train split's size.
+    """
+
+    model: str
+    data: Path
+    output: Path
+    epochs: int = 50
+    batch_size: int = 64
+    lr: float = 1e-3
+    device: str = "auto"
+    seed: int = 0
+    patience: int = 10
+    labels: str = "zscore"
+    hyper: dict[str, Any] = field(default_factory=dict)
+    threads: int | None = None
+    max_samples_per_epoch: int | None = None
+    augment: bool = True
+    balance: bool = True
+    resume: bool = False
+    overwrite: bool = False
+    eval_train_samples: int = 2000
+    limit_train_samples: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "patience", "eval_train_samples"):
+            if getattr(self, name) < 1:
+                raise TrainError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("threads", "max_samples_per_epoch", "limit_train_samples"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise TrainError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise TrainError(f"lr must be a positive number, got {self.lr}")
+        if self.labels not in LABEL_KINDS:
+            raise TrainError(f"labels must be one of {', '.join(LABEL_KINDS)}, got {self.labels!r}")
+        if self.device not in DEVICES:
+            raise TrainError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
+        if self.model not in MODELS:
+            raise TrainError(f"unknown model {self.model!r} (known: {', '.join(sorted(MODELS))})")
+        if bad := {k: v for k, v in self.hyper.items() if not isinstance(v, (bool, int, float, str))}:
+            raise TrainError(f"hyper-parameters must be int, float, bool or str, got {bad!r}")
+
+    def fixed(self) -> dict[str, Any]:
+        """The options that identify a run for resuming, as plain types."""
+        plain = {**asdict(self), "data": str(Path(self.data).resolve())}
+        return {name: plain[name] for name in RESUME_FIXED}
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """A finished run: paths, the best checkpoint's metrics, throughput (training samples per second) and the
+    model with the best weights (eval mode, on the training device)."""
+
+    output: Path
+    checkpoint: Path
+    metrics: dict[str, Any]
+    epochs_run: int
+    best_epoch: int
+    samples_per_s: float
+    model: nn.Module
+
+
+# -- labels ----------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LabelNorm:
+    """y_n = (y - mean) / std per label, y = [v m/s, w rad/s]; the network predicts y_n."""
+
+    kind: str
+    mean: tuple[float, float]
+    std: tuple[float, float]
+
+    def normalise(self, y: torch.Tensor) -> torch.Tensor:
+        return (y - y.new_tensor(self.mean)) / y.new_tensor(self.std)
+
+    def denormalise(self, y_n: torch.Tensor) -> torch.Tensor:
+        return y_n * y_n.new_tensor(self.std) + y_n.new_tensor(self.mean)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"image_mean": [float(v) for v in IMAGENET_MEAN], "image_std": [float(v) for v in IMAGENET_STD],
+                "labels": self.kind, "label_mean": list(self.mean), "label_std": list(self.std)}
+
+
+def label_norm(kind: str, train_labels: np.ndarray, *, mirrored: bool = False) -> LabelNorm:
+    """"zscore": mean/std of the training labels (N, 2); "paper": DLS's v_n = (v-6.5)/17.5, w_n = (w+7.1)/14.2.
+
+    mirrored: training mirrors half the samples (w -> -w), so the yaw rates the network learns are the symmetric
+    mixture of w and -w: its mean is 0 and its std sqrt(mean(w²)). The paper's labels are not clipped to [0, 1]
+    here, so de-normalisation stays the exact inverse.
+    """
+    if kind == "paper":
+        return LabelNorm("paper", (V_OFFSET, W_OFFSET), (V_SCALE, W_SCALE))
+    values = train_labels.astype(np.float64)
+    if mirrored:
+        values = np.concatenate([values, values * np.array([1.0, -1.0])])
+    std = values.std(axis=0)
+    std = np.where(std > 1e-6, std, 1.0)  # a constant label (e.g. a fixed speed) would divide by zero
+    return LabelNorm("zscore", tuple(float(v) for v in values.mean(axis=0)), tuple(float(v) for v in std))
+
+
+def balance_weights(yaw_rate_radps: np.ndarray, edges_radps=ABS_YAW_RATE_EDGES_RADPS,
+                    cap: float = BALANCE_CAP) -> np.ndarray:
+    """Sampling weights (N,) float64 summing to 1: ∝ 1 / (training samples in the sample's |w| bin).
+
+    Bins as in the manifest histogram: edges[i] <= |w| < edges[i + 1], the last open-ended. Every occupied bin is
+    then drawn about equally often, except that no weight exceeds ``cap`` times the most common bin's.
+    """
+    edges = np.asarray(edges_radps, dtype=np.float64)
+    bins = np.searchsorted(edges, np.abs(np.asarray(yaw_rate_radps, dtype=np.float64)), side="right") - 1
+    counts = np.bincount(bins, minlength=len(edges)).astype(np.float64)
+    weights = np.minimum(1.0 / counts[bins], cap / counts.max())
+    return weights / weights.sum()
+
+
+# -- augmentation ----------------------------------------------------------------------------------------------------
+
+_LUMA = (0.299, 0.587, 0.114)  # sums to 1
+
+
+def to_unit_float(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 frames (B, T, H, W, 3) as gathered -> float32 (B, T, 3, H, W) in [0, 1], contiguous.
+
+    Channels go first while still uint8: float ops on the permuted (channels-last strided) tensor are several
+    times slower."""
+    return frames.permute(0, 1, 4, 2, 3).contiguous().float().div_(MAX_PIXEL)
+
+
+def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, *, mirror_p: float = 0.5,
+                  jitter: float = 0.2, blur_p: float = 0.2) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random training augmentation, one parameter set per sample shared by all its frames.
+
+    frames: uint8 (B, T, H, W, 3) RGB; labels: (B, 2) physical [v m/s, w rad/s]. Returns float32 (B, T, 3, H, W)
+    in [0, 1] and the labels. Mirror left-right with w -> -w (probability mirror_p); brightness, contrast and
+    saturation factors uniform in [1 - jitter, 1 + jitter]; Gaussian blur (probability blur_p, sigma 0.5..1.5 px,
+    one sigma per batch). The same random numbers are drawn whatever the data, so the generator advances
+    identically every batch (resume stays exact).
+    """
+    draws = torch.rand(5, frames.shape[0], generator=generator).to(frames.device)
+    sigma = 0.5 + float(torch.rand(1, generator=generator))
+    frames, labels = mirror(frames, labels, draws[0] < mirror_p)  # on uint8: 4x less memory to move
+    x = colour_jitter(to_unit_float(frames), *(1 - jitter + 2 * jitter * draws[1:4]))
+    blurred = (draws[4] < blur_p).nonzero().squeeze(1)
+    if len(blurred):  # x is a fresh tensor here (colour_jitter), so writing into it is safe
+        x[blurred] = gaussian_blur(x[blurred], sigma)
+    return x, labels
+
+
+def mirror(frames: torch.Tensor, labels: torch.Tensor, flip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Left-right mirror of the samples where ``flip`` (B,) bool is set, with their yaw rate negated (mirroring
+    the road turns w into -w). frames: (B, T, H, W, C), width second to last; labels: (B, 2) physical [v, w]."""
+    chosen = flip.nonzero().squeeze(1)
+    frames = frames.clone()
+    frames[chosen] = frames[chosen].flip(-2)  # only the chosen half: ~2x faster than a torch.where over all
+    w = torch.where(flip, -labels[:, 1], labels[:, 1])
+    return frames, torch.stack([labels[:, 0], w], dim=1)
+
+
+def colour_jitter(x: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor,
+                  saturation: torch.Tensor) -> torch.Tensor:
+    """x (B, T, 3, H, W) RGB in [0, 1]; factors (B,), 1 = unchanged. Brightness scales x; contrast scales about the
+    image's mean grey; saturation scales about each pixel's grey; clamped to [0, 1].
+
+    Composed in closed form, one pass over the pixels instead of a dozen (grey is linear, luma sums to 1):
+    x' = s·c·b·x + (1-s)·c·b·grey(x) + (1-c)·b·mean_grey(x).
+    """
+    per_sample = (-1, 1, 1, 1)
+    grey = (x[:, :, 0] * _LUMA[0]).add_(x[:, :, 1], alpha=_LUMA[1]).add_(x[:, :, 2], alpha=_LUMA[2])  # (B, T, H, W)
+    scale = brightness * contrast
+    offset = (((1 - saturation) * scale).view(per_sample) * grey
+              + ((1 - contrast) * brightness).view(per_sample) * grey.mean((-2, -1), keepdim=True))
+    return torch.addcmul(offset.unsqueeze(2), x, (saturation * scale).view(-1, 1, 1, 1, 1)).clamp_(0.0, 1.0)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float, radius: int = 2) -> torch.Tensor:
+    """Separable Gaussian blur over the last two dims (H, W) of x, edges replicated; sigma in pixels.
+
+    Shifted-slice sums: for a 5-tap kernel this is several times faster on CPU than a depthwise convolution."""
+    height, width = x.shape[-2:]
+    taps = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    kernel = torch.exp(-taps ** 2 / (2 * sigma ** 2))
+    kernel = (kernel / kernel.sum()).tolist()
+    padded = F.pad(x.reshape(-1, 1, height, width), (radius,) * 4, mode="replicate")
+    rows = sum(k * padded[..., i:i + width] for i, k in enumerate(kernel))
+    return sum(k * rows[..., i:i + height, :] for i, k in enumerate(kernel)).view(x.shape)
+
+
+# -- data ------------------------------------------------------------------------------------------------------------
+
+
+class _Split:
+    """One split of the dataset as model-ready tensors on the training device."""
+
+    def __init__(self, dataset: DrivingDataset, frames: int, device: torch.device):
+        self.dataset, self.frames, self.device = dataset, frames, device
+        self._mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 1, 3, 1, 1)
+        self._std = torch.tensor(IMAGENET_STD, device=device).view(1, 1, 3, 1, 1)
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def labels(self) -> np.ndarray:
+        """Raw labels (N, 2) [v m/s, w rad/s] of this split's samples."""
+        return np.asarray(self.dataset.labels[self.dataset.index])
+
+    def batch(self, positions: np.ndarray, norm: LabelNorm,
+              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inputs (B, 3, H, W) or (B, T, 3, H, W) float32 and normalised labels (B, 2); augmented iff generator."""
+        frames, labels = self.dataset.batch(positions)
+        frames = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
+        y = torch.from_numpy(labels).to(self.device)
+        if generator is not None:
+            x, y = augment_batch(frames, y, generator)
+        else:
+            x = to_unit_float(frames)
+        x = (x - self._mean) / self._std
+        return (x[:, -1] if self.frames == 1 else x).contiguous(), norm.normalise(y)
+
+
+def _open_dataset(options: TrainOptions, info: ModelInfo) -> tuple[DrivingDataset, DrivingDataset | None]:
+    """Train and val splits (val None when empty) with the windows the model needs; TrainError on a mismatch."""
+    try:
+        train = DrivingDataset(options.data, split="train")
+        manifest = train.manifest
+        if info.frames == 1 and tuple(manifest["offsets_frames"]) != (0,):
+            # A one-frame model uses the newest frame of any window: every frame of the split is a sample.
+            train = DrivingDataset(options.data, split="train", offsets_frames=(0,))
+        val = DrivingDataset(options.data, split="val", offsets_frames=train.offsets_frames)
+    except DatasetError as error:
+        raise TrainError(str(error)) from None
+    _check_compatible(options, info, manifest)
+    if len(train) == 0:
+        raise TrainError(f"dataset {options.data}: the train split has no sample")
+    return train, (val if len(val) else None)
+
+
+def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str, Any]) -> None:
+    width = options.hyper.get("input_width_px", info.input_width_px)
+    height = options.hyper.get("input_height_px", info.input_height_px)
+    got = (manifest["image_width_px"], manifest["image_height_px"])
+    if got != (width, height):
+        crop = f" --crop {info.crop_top_fraction:g}:1" if info.crop_top_fraction else ""
+        raise TrainError(f"model {info.name} takes {width}x{height} images (WxH) but dataset {options.data} holds "
+                         f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop}")
+    offsets = manifest["offsets_frames"]
+    if info.frames > 1 and len(offsets) != info.frames:
+        raise TrainError(f"model {info.name} needs {info.frames} frames per sample but dataset {options.data} has "
+                         f"offsets {offsets}; build it with --history {info.frames} or --offsets -9,-5,0")
+
+
+def _crop_notes(info: ModelInfo, manifest: dict[str, Any]) -> list[str]:
+    """A crop other than the reference model's is allowed (the checkpoint records the dataset's crop, and serving
+    applies that one), but worth saying."""
+    crop = (float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"]))
+    if crop == (info.crop_top_fraction, 1.0):
+        return []
+    return [f"dataset rows {crop[0]:g}..{crop[1]:g} of the camera frame differ from the reference {info.name}'s "
+            f"{info.crop_top_fraction:g}..1; the checkpoint records the dataset's crop"]
+
+
+def _input_section(manifest: dict[str, Any], offsets_frames: tuple[int, ...]) -> dict[str, Any]:
+    step_s = manifest["step_s"]
+    crop = manifest["options"]
+    return {"width_px": manifest["image_width_px"], "height_px": manifest["image_height_px"],
+            "crop_top_fraction": float(crop["crop_top_fraction"]),
+            "crop_bottom_fraction": float(crop["crop_bottom_fraction"]),
+            "offsets_frames": list(offsets_frames),
+            "offsets_s": None if step_s is None else [round(o * step_s, 9) for o in offsets_frames],
+            "step_s": step_s}
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+# -- evaluation ------------------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: LabelNorm) -> dict[str, float]:
+    """The paper's internal metrics on ``positions`` of ``split``, without augmentation, in eval mode.
+
+    mae_speed_mps, mae_yaw_rate_radps: mean |error| in physical units; mse_normalised: MSE of normalised outputs.
+    """
+    was_training = model.training
+    model.eval()
+    abs_sum = torch.zeros(2, dtype=torch.float64)
+    sq_sum = 0.0
+    for start in range(0, len(positions), EVAL_BATCH):
+        x, y_n = split.batch(positions[start:start + EVAL_BATCH], norm)
+        out = model(x)
+        sq_sum += float(((out - y_n) ** 2).sum(dtype=torch.float64))
+        abs_sum += (norm.denormalise(out) - norm.denormalise(y_n)).abs().sum(0, dtype=torch.float64).cpu()
+    model.train(was_training)
+    n = max(len(positions), 1)
+    return {"mae_speed_mps": float(abs_sum[0]) / n, "mae_yaw_rate_radps": float(abs_sum[1]) / n,
+            "mse_normalised": sq_sum / (2 * n)}
+
+
+# -- checkpoints -----------------------------------------------------------------------------------------------------
+
+
+def save_checkpoint(checkpoint: dict[str, Any], path: Path) -> None:
+    """``torch.save`` to a temporary file in the same folder, then rename: a crash never leaves half a file."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(temporary, "wb") as file:
+            torch.save(checkpoint, file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint dict loaded on the CPU with ``weights_only=True``; CheckpointError (one line) if the file is
+    missing, not a torch file, or lacks the format tag or a required key."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: no such file")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # pickle, zip and torch errors differ by version; all mean "not a checkpoint"
+        raise CheckpointError(f"checkpoint {path}: not a loadable torch checkpoint ({_reason(error)})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        found = checkpoint.get("format") if isinstance(checkpoint, dict) else type(checkpoint).__name__
+        raise CheckpointError(f"checkpoint {path}: format is {found!r}, expected {CHECKPOINT_FORMAT!r}")
+    _check_keys(path, checkpoint)
+    return checkpoint
+
+
+def _reason(error: BaseException) -> str:
+    """One short line out of a possibly long, multi-line torch error message."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()] or [type(error).__name__]
+    # weights_only failures put the actual cause ("Unsupported global: ...") on a later line.
+    line = next((line for line in lines if line.startswith("WeightsUnpickler error")), lines[0])
+    return line if len(line) <= 200 else line[:197] + "..."
+
+
+def _check_keys(path: Path, checkpoint: dict[str, Any]) -> None:
+    missing = [key for key in REQUIRED_KEYS[""] if key not in checkpoint]
+    for section in ("input", "normalisation"):
+        if isinstance(checkpoint.get(section), dict):
+            missing += [f"{section}.{key}" for key in REQUIRED_KEYS[section] if key not in checkpoint[section]]
+        elif section in checkpoint:
+            missing.append(f"{section} (not a dict)")
+    if missing:
+        raise CheckpointError(f"checkpoint {path}: missing {', '.join(missing)}")
+    if checkpoint["model"] not in MODELS:
+        raise CheckpointError(f"checkpoint {path}: unknown model {checkpoint['model']!r}")
+
+
+def model_from_checkpoint(checkpoint: dict[str, Any]) -> nn.Module:
+    """The checkpoint's network with its weights, in eval mode, on the CPU; CheckpointError if they do not fit."""
+    try:
+        model = make_model(checkpoint["model"], **checkpoint["hyper"])
+        model.load_state_dict(checkpoint["state_dict"])
+    except (TypeError, ValueError, RuntimeError, KeyError) as error:
+        raise CheckpointError(f"checkpoint of {checkpoint.get('model')!r}: weights do not fit the model "
+                              f"({_reason(error)})") from None
+    return model.eval()
+
+
+# -- training curve --------------------------------------------------------------------------------------------------
+
+_COLOURS = {"train_loss": (200, 120, 0), "train_eval_loss": (0, 160, 0), "val_loss": (0, 0, 220),
+            "val_mae_speed_mps": (160, 0, 160), "val_mae_yaw_rate_radps": (0, 140, 220)}
+
+
+def plot_curve(curve: list[dict[str, Any]], path: Path) -> None:
+    """PNG of the curve drawn with OpenCV (matplotlib is not a dependency): losses on a log scale (left) and
+    validation MAE (right), one point per epoch."""
+    image = np.full((420, 960, 3), 255, np.uint8)
+    _panel(image, (0, 0, 480, 420), curve, ("train_loss", "train_eval_loss", "val_loss"), "loss (log10)", log=True)
+    _panel(image, (480, 0, 480, 420), curve, ("val_mae_speed_mps", "val_mae_yaw_rate_radps"),
+           "val MAE (log10; v m/s, w rad/s)", log=True, empty="no validation split")
+    if not cv2.imwrite(str(path), image):
+        raise TrainError(f"cannot write {path}")
+
+
+def _panel(image: np.ndarray, box: tuple[int, int, int, int], curve: list[dict[str, Any]], keys: tuple[str, ...],
+           title: str, *, log: bool, empty: str = "no data") -> None:
+    x0, y0, width, height = box
+    left, top, right, bottom = x0 + 60, y0 + 30, x0 + width - 15, y0 + height - 45
+    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
+    cv2.putText(image, title, (left, top - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    series = {k: [(e["epoch"], e[k]) for e in curve if e.get(k) is not None and e[k] > (0 if log else -math.inf)]
+              for k in keys}
+    values = [math.log10(v) if log else v for points in series.values() for _, v in points]
+    if not values:
+        cv2.putText(image, empty, (left + 20, (top + bottom) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (90, 90, 90), 1,
+                    cv2.LINE_AA)
+        return
+    low, high = min(values), max(values)
+    high = high if high > low else low + 1.0
+    epochs = [e["epoch"] for e in curve]
+    first, last = min(epochs), max(max(epochs), min(epochs) + 1)
+    to_px = lambda epoch, v: (int(left + (epoch - first) / (last - first) * (right - left)),  # noqa: E731
+                              int(bottom - ((math.log10(v) if log else v) - low) / (high - low) * (bottom - top)))
+    for row, key in enumerate(k for k in keys if series[k]):
+        points = np.array([to_px(e, v) for e, v in series[key]], np.int32)
+        cv2.polylines(image, [points], False, _COLOURS[key], 2, cv2.LINE_AA)
+        for point in points if len(points) < 12 else ():  # a lone epoch is a point, not a line
+            cv2.circle(image, tuple(int(v) for v in point), 3, _COLOURS[key], -1, cv2.LINE_AA)
+        cv2.putText(image, key, (left + 8, top + 18 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42, _COLOURS[key], 1,
+                    cv2.LINE_AA)
+    label = (lambda v: f"{10 ** v:.3g}") if log else (lambda v: f"{v:.3g}")
+    for text, y in ((label(high), top + 5), (label(low), bottom)):
+        cv2.putText(image, text, (x0 + 4, y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for text, x in ((str(first), left), (str(last), right - 20)):
+        cv2.putText(image, text, (x, bottom + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(image, "epoch", ((left + right) // 2 - 20, bottom + 36), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1,
+                cv2.LINE_AA)
+
+
+# -- training --------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Progress:
+    """Everything besides weights and optimizer that a resumed run restores."""
+
+    epoch: int = 0  # completed epochs
+    best_epoch: int = 0
+    best_loss: float = math.inf
+    bad_epochs: int = 0
+    curve: list[dict[str, Any]] = field(default_factory=list)
+    best_metrics: dict[str, Any] = field(default_factory=dict)  # {"train": ..., "val": ...} at best_epoch
+    train_seconds: float = 0.0  # time in training batches only (for samples/s)
+    train_samples: int = 0
+    wall_s: float = 0.0  # wall time of earlier sessions
+    partial: dict[str, Any] | None = None  # position inside an interrupted epoch
+
+
+def _subset(rng: np.random.Generator, size: int, limit: int | None) -> np.ndarray:
+    """Sorted positions 0..size-1, or a random choice of ``limit`` of them."""
+    if limit is None or limit >= size:
+        return np.arange(size)
+    return np.sort(rng.choice(size, limit, replace=False))
+
+
+def _epoch_generator(seed: int, epoch: int, stream: int) -> torch.Generator:
+    """A generator per (seed, epoch, stream): epochs can be replayed without storing the sampler's state."""
+    return torch.Generator().manual_seed((seed * 1_000_003 + epoch) * 4 + stream)
+
+
+@contextmanager
+def _sigint_flag() -> Iterator[threading.Event]:
+    """The first Ctrl-C sets the event (checked between batches, so no step is cut in half); a second one
+    raises KeyboardInterrupt at once. Outside the main thread no handler can be installed: the event stays unset."""
+    event = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield event
+        return
+
+    def handler(signum, frame):
+        if event.is_set():
+            raise KeyboardInterrupt
+        event.set()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield event
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@contextmanager
+def _torch_settings(threads: int | None, device: torch.device) -> Iterator[None]:
+    """Deterministic algorithms (warn-only on CUDA, where some kernels have none) and the thread count, restored
+    afterwards: the process may train again with other settings."""
+    old_threads = torch.get_num_threads()
+    old_deterministic = torch.are_deterministic_algorithms_enabled()
+    old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old_threads)
+        torch.use_deterministic_algorithms(old_deterministic, warn_only=old_warn)
+
+
+def _resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise TrainError("device cuda requested but torch sees no CUDA device (use --device cpu or auto)")
+    return torch.device(name)
+
+
+class _Trainer:
+    """One training session; ``run`` returns the result or raises TrainInterrupted after saving last.ckpt."""
+
+    def __init__(self, options: TrainOptions, *, progress: bool, log: Callable[[str], None] | None,
+                 on_batch: Callable[[int, int], None] | None):
+        self.options, self.show_progress, self.log, self.on_batch = options, progress, log, on_batch
+        self.info = MODELS[options.model]
+        self.device = _resolve_device(options.device)
+        self.output = Path(options.output)
+        train, val = _open_dataset(options, self.info)
+        self.train_split = _Split(train, self.info.frames, self.device)
+        self.val_split = _Split(val, self.info.frames, self.device) if val is not None else None
+        labels = self.train_split.labels()
+        self.norm = label_norm(options.labels, labels, mirrored=options.augment)
+        rng = np.random.default_rng(options.seed)
+        self.pool = _subset(rng, len(train), options.limit_train_samples)  # positions in the train split we draw
+        self.weights = torch.from_numpy(balance_weights(labels[self.pool, 1]) if options.balance
+                                        else np.full(len(self.pool), 1 / len(self.pool)))
+        # A fixed subset: the per-epoch training metric then compares like with like across epochs.
+        self.train_eval = self.pool[_subset(rng, len(self.pool), options.eval_train_samples)]
+        self.epoch_size = min(len(train), options.max_samples_per_epoch or len(train))
+        self.notes = _crop_notes(self.info, train.manifest)
+        self.state = _Progress()
+        self.session_start = time.perf_counter()
+
+    # -- set-up
+
+    def build(self) -> None:
+        """Model and optimizer, fresh or restored from last.ckpt."""
+        self._prepare_output()
+        torch.manual_seed(self.options.seed)  # initial weights, then dropout draws from the global generator
+        try:
+            self.model = make_model(self.options.model, **self.options.hyper).to(self.device)
+        except (TypeError, ValueError) as error:
+            raise TrainError(f"bad hyper-parameters {self.options.hyper} for {self.options.model}: {error}") from None
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.options.lr)
+        self.best_state = copy.deepcopy(self.model.state_dict())
+        if self.options.resume:
+            self._restore(self.output / LAST_FILE)
+
+    def _prepare_output(self) -> None:
+        existing = [name for name in (BEST_FILE, LAST_FILE) if (self.output / name).exists()]
+        if self.options.resume and not (self.output / LAST_FILE).is_file():
+            raise TrainError(f"cannot resume: {self.output / LAST_FILE} does not exist")
+        if existing and not self.options.resume and not self.options.overwrite:
+            raise TrainError(f"run folder {self.output} already holds {', '.join(existing)}; resume it (--resume) or "
+                             f"start again (--overwrite)")
+        try:
+            self.output.mkdir(parents=True, exist_ok=True)
+            for name in existing if self.options.overwrite and not self.options.resume else ():
+                (self.output / name).unlink()
+        except OSError as error:
+            raise TrainError(f"cannot use run folder {self.output}: {error.strerror or error}") from None
+
+    def _restore(self, path: Path) -> None:
+        try:
+            last = load_checkpoint(path)
+            resume = last["resume"]
+            if resume["options"] != self.options.fixed():
+                diff = {k: (resume["options"].get(k), v) for k, v in self.options.fixed().items()
+                        if resume["options"].get(k) != v}
+                raise TrainError(f"cannot resume {path}: options differ (saved, now): {diff}")
+            if last["dataset"]["manifest_sha256"] != _sha256(Path(self.options.data) / MANIFEST_FILE):
+                raise TrainError(f"cannot resume {path}: the dataset {self.options.data} changed since")
+            self.model.load_state_dict(last["state_dict"])
+            self.optimizer.load_state_dict(last["optimizer_state"])
+            self.best_state = last["resume"]["best_state_dict"]
+        except (CheckpointError, KeyError) as error:
+            raise TrainError(f"cannot resume from {path}: {error}") from None
+        self.state = _Progress(**{k: v for k, v in resume["progress"].items()})
+        torch.set_rng_state(last["rng"]["torch"])
+        if self.device.type == "cuda" and last["rng"].get("cuda") is not None:
+            torch.cuda.set_rng_state(last["rng"]["cuda"], self.device)
+
+    # -- loop
+
+    def run(self) -> TrainResult:
+        for note in self._metrics()["notes"] if self.log is not None else ():
+            self.log(f"note: {note}")
+        with _sigint_flag() as stop:
+            self.stop = stop
+            for epoch in range(self.state.epoch + 1, self.options.epochs + 1):
+                if self.state.bad_epochs >= self.options.patience:
+                    break
+                self._epoch(epoch)
+                self._end_epoch(epoch)
+        return self._finish()
+
+    def _epoch(self, epoch: int) -> None:
+        """Train one epoch (or its rest, after an interrupted one) on weighted draws of the train split."""
+        positions = self.pool[torch.multinomial(self.weights, self.epoch_size, replacement=True,
+                                                generator=_epoch_generator(self.options.seed, epoch, 0)).numpy()]
+        augment = _epoch_generator(self.options.seed, epoch, 1) if self.options.augment else None
+        partial = self.state.partial or {"epoch": epoch, "batches": 0, "loss_sum": 0.0, "samples": 0}
+        if partial["batches"] and augment is not None:
+            augment.set_state(partial["augment_rng"])
+        self.state.partial = None
+        self.model.train()
+        size = self.options.batch_size
+        bar = tqdm(total=self.epoch_size, initial=partial["samples"], desc=f"epoch {epoch}/{self.options.epochs}",
+                   unit="sample", file=sys.stderr, disable=not self.show_progress, leave=False, dynamic_ncols=True)
+        with bar:
+            for batch in range(partial["batches"], math.ceil(self.epoch_size / size)):
+                loss = self._step(positions[batch * size:(batch + 1) * size], augment)
+                samples = min((batch + 1) * size, self.epoch_size)
+                partial = {**partial, "batches": batch + 1, "samples": samples,
+                           "loss_sum": partial["loss_sum"] + loss * (samples - partial["samples"])}
+                bar.update(partial["samples"] - bar.n)
+                bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
+                if self.on_batch is not None:
+                    self.on_batch(epoch, batch + 1)
+                if self.stop.is_set():
+                    self._interrupt(epoch, partial, augment)
+        self.epoch_train_loss = partial["loss_sum"] / partial["samples"]
+
+    def _step(self, positions: np.ndarray, augment: torch.Generator | None) -> float:
+        start = time.perf_counter()
+        x, y_n = self.train_split.batch(positions, self.norm, augment)
+        loss = F.mse_loss(self.model(x), y_n)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        value = float(loss.detach())  # synchronises a GPU, so the time below is real
+        self.state.train_seconds += time.perf_counter() - start
+        self.state.train_samples += len(positions)
+        return value
+
+    def _interrupt(self, epoch: int, partial: dict[str, Any], augment: torch.Generator | None) -> None:
+        self.state.partial = {**partial, "augment_rng": augment.get_state() if augment is not None else None}
+        self._save_last()
+        raise TrainInterrupted(self.output / LAST_FILE, epoch, partial["batches"])
+
+    def _end_epoch(self, epoch: int) -> None:
+        """Evaluate, keep the best weights, extend the curve, save model.ckpt (if better) and last.ckpt."""
+        train_metrics = evaluate(self.model, self.train_split, self.train_eval, self.norm)
+        val_metrics = (evaluate(self.model, self.val_split, np.arange(len(self.val_split)), self.norm)
+                       if self.val_split is not None else None)
+        monitored = (val_metrics or train_metrics)["mse_normalised"]
+        state = self.state
+        state.epoch = epoch
+        state.curve.append({
+            "epoch": epoch, "train_loss": self.epoch_train_loss, "train_eval_loss": train_metrics["mse_normalised"],
+            "val_loss": val_metrics and val_metrics["mse_normalised"],
+            "val_mae_speed_mps": val_metrics and val_metrics["mae_speed_mps"],
+            "val_mae_yaw_rate_radps": val_metrics and val_metrics["mae_yaw_rate_radps"], "wall_s": self._wall_s()})
+        improved = monitored < state.best_loss
+        if improved:
+            state.best_loss, state.best_epoch, state.bad_epochs = monitored, epoch, 0
+            state.best_metrics = {"train": train_metrics, "val": val_metrics}
+            self.best_state = copy.deepcopy(self.model.state_dict())
+            save_checkpoint(self._checkpoint(self.best_state), self.output / BEST_FILE)
+        else:
+            state.bad_epochs += 1
+        self._save_last()
+        self._write_reports()
+        if self.log is not None:
+            self.log(self._epoch_line(epoch, improved))
+
+    def _epoch_line(self, epoch: int, improved: bool) -> str:
+        point = self.state.curve[-1]
+        val = (f"val loss {point['val_loss']:.4f} MAE v {point['val_mae_speed_mps']:.3f} m/s w "
+               f"{point['val_mae_yaw_rate_radps']:.3f} rad/s" if point["val_loss"] is not None else "no val split")
+        return (f"epoch {epoch}/{self.options.epochs}: train loss {point['train_loss']:.4f} (eval "
+                f"{point['train_eval_loss']:.4f}), {val}, {self._samples_per_s():.0f} samples/s"
+                f"{' *best' if improved else ''}")
+
+    def _finish(self) -> TrainResult:
+        self.model.load_state_dict(self.best_state)
+        checkpoint = self._checkpoint(self.best_state)
+        if self.state.epoch:
+            save_checkpoint(checkpoint, self.output / BEST_FILE)
+            self._write_reports()
+        return TrainResult(output=self.output, checkpoint=self.output / BEST_FILE, metrics=checkpoint["metrics"],
+                           epochs_run=self.state.epoch, best_epoch=self.state.best_epoch,
+                           samples_per_s=self._samples_per_s(), model=self.model.eval())
+
+    # -- outputs
+
+    def _wall_s(self) -> float:
+        return self.state.wall_s + time.perf_counter() - self.session_start
+
+    def _samples_per_s(self) -> float:
+        return self.state.train_samples / self.state.train_seconds if self.state.train_seconds else 0.0
+
+    def _metrics(self) -> dict[str, Any]:
+        state = self.state
+        notes = self.notes + ([] if self.val_split is not None else [
+            "dataset has no validation split: early stopping and the best checkpoint use the training-subset loss"])
+        return {"train": state.best_metrics.get("train"), "val": state.best_metrics.get("val"),
+                "best_epoch": state.best_epoch, "epochs_run": state.epoch, "curve": copy.deepcopy(state.curve),
+                "monitor": "val_loss" if self.val_split is not None else "train_eval_loss",
+                "stopped_early": state.bad_epochs >= self.options.patience and state.epoch < self.options.epochs,
+                "notes": notes}
+
+    def _checkpoint(self, state_dict: dict[str, torch.Tensor]) -> dict[str, Any]:
+        options = self.options
+        manifest_path = Path(options.data) / MANIFEST_FILE
+        return {
+            "format": CHECKPOINT_FORMAT, "model": options.model, "hyper": dict(options.hyper),
+            "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
+            "input": _input_section(self.train_split.dataset.manifest, self.train_split.dataset.offsets_frames),
+            "normalisation": self.norm.to_dict(),
+            "dataset": {"path": str(Path(options.data).resolve()), "manifest_sha256": _sha256(manifest_path),
+                        "samples_train": len(self.pool),
+                        "samples_val": len(self.val_split) if self.val_split is not None else 0},
+            "metrics": self._metrics(),
+            "training": {"seed": options.seed, "lr": options.lr, "batch_size": options.batch_size,
+                         "epochs": options.epochs, "device": str(self.device), "wall_s": self._wall_s(),
+                         "samples_per_s": self._samples_per_s(), "torch": str(torch.__version__),
+                         "patience": options.patience, "labels": options.labels, "augment": options.augment,
+                         "balance": options.balance, "max_samples_per_epoch": options.max_samples_per_epoch,
+                         "limit_train_samples": options.limit_train_samples,
+                         "threads": torch.get_num_threads()},
+        }
+
+    def _save_last(self) -> None:
+        last = self._checkpoint(self.model.state_dict())
+        progress = {**asdict(self.state), "wall_s": self._wall_s()}
+        last.update({
+            "optimizer_state": self.optimizer.state_dict(), "epoch": self.state.epoch,
+            "rng": {"torch": torch.get_rng_state(),
+                    "cuda": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None},
+            "resume": {"options": self.options.fixed(), "progress": progress,
+                       "best_state_dict": {k: v.detach().cpu() for k, v in self.best_state.items()}},
+        })
+        save_checkpoint(last, self.output / LAST_FILE)
+
+    def _write_reports(self) -> None:
+        checkpoint = self._checkpoint(self.best_state)
+        report = {key: checkpoint[key] for key in ("model", "hyper", "metrics", "training", "dataset", "input",
+                                                    "normalisation")}
+        temporary = self.output / f".{METRICS_FILE}.tmp"
+        temporary.write_text(json.dumps(report, indent=2) + "\n")
+        os.replace(temporary, self.output / METRICS_FILE)
+        plot_curve(self.state.curve, self.output / CURVE_FILE)
+
+
+def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], None] | None = None,
+          on_batch: Callable[[int, int], None] | None = None) -> TrainResult:
+    """Train ``options.model`` on ``options.data``, writing the run folder ``options.output``.
+
+    progress: a tqdm bar per epoch on stderr (loss, samples/s). log: called with one summary line per epoch.
+    on_batch(epoch, batch): called after every training batch (1-based), e.g. for a GUI or a test.
+    Raises TrainError (one line) for a request that cannot run, TrainInterrupted after Ctrl-C (last.ckpt saved).
+    """
+    trainer = _Trainer(options, progress=progress, log=log, on_batch=on_batch)
+    with _torch_settings(options.threads, trainer.device):
+        trainer.build()
+        return trainer.run()
+
+
+__all__ = [
+    "CHECKPOINT_FORMAT", "CheckpointError", "LabelNorm", "TrainError", "TrainInterrupted", "TrainOptions",
+    "TrainResult", "augment_batch", "balance_weights", "colour_jitter", "evaluate", "gaussian_blur", "label_norm",
+    "load_checkpoint", "mirror", "model_from_checkpoint", "plot_curve", "save_checkpoint", "to_unit_float", "train",
+]

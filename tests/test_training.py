@@ -1,0 +1,334 @@
+"""Training the paper's networks on datasets collected from the simulator: overfitting, checkpoints, resume,
+determinism, class balance, augmentation, and one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import cv2  # noqa: E402
+
+from brains import train_cli, training  # noqa: E402
+from brains.nets.preprocess import prepare_batch  # noqa: E402
+from brains.training import (CHECKPOINT_FORMAT, CheckpointError, TrainError, TrainInterrupted,  # noqa: E402
+                             TrainOptions, augment_batch, balance_weights, label_norm, load_checkpoint, mirror,
+                             model_from_checkpoint, to_unit_float, train)
+from recorder.dataset import DrivingDataset  # noqa: E402
+
+TINY = "deepest_lstm_tiny_pilotnet"
+
+
+def drivebench(*args: str) -> None:
+    result = subprocess.run([sys.executable, "-m", "orchestrator.cli", *map(str, args)], capture_output=True,
+                            text=True, timeout=150)
+    assert result.returncode == 0, result.stderr
+
+
+@pytest.fixture(scope="session")
+def datasets(tmp_path_factory) -> dict[str, Path]:
+    """Two 12 s episodes of the explicit brain (simple, many_curves), ~240 frames each, stored twice:
+    "seq3": 100x50 full frame, offsets (-4, -2, 0), one episode each side of the split;
+    "crop": 100x50 lower half (DeepestLSTMTinyPilotNet), one frame, everything in train."""
+    root = tmp_path_factory.mktemp("training-data")
+    drivebench("dataset", "collect", "--circuits", "simple,many_curves", "--max-sim-seconds", "12",
+               "-o", root / "seq3", "--history", "3", "--stride", "2", "--split", "episode:0.5")
+    recordings = sorted((root / "seq3.recordings").glob("*.mcap"))
+    drivebench("dataset", "build", *recordings, "-o", root / "crop", "--crop", "0.5:1", "--split", "none")
+    return {"seq3": root / "seq3", "crop": root / "crop"}
+
+
+def options(data: Path, output: Path, **overrides) -> TrainOptions:
+    """Small, fast, single-threaded (the results then do not depend on the machine's core count)."""
+    settings = dict(model=TINY, data=data, output=output, epochs=4, batch_size=16, lr=1e-3, threads=1,
+                    max_samples_per_epoch=64, eval_train_samples=32, seed=0)
+    return TrainOptions(**{**settings, **overrides})
+
+
+def state_dict(path: Path) -> dict[str, torch.Tensor]:
+    return torch.load(path, map_location="cpu", weights_only=True)["state_dict"]
+
+
+def assert_same_tensors(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def without_wall(curve: list[dict]) -> list[dict]:
+    return [{k: v for k, v in point.items() if k != "wall_s"} for point in curve]
+
+
+# -- end to end ------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_tiny_model_overfits_a_small_real_dataset(datasets, tmp_path):
+    out = tmp_path / "run"
+    result = train(options(datasets["crop"], out, epochs=20, batch_size=16, max_samples_per_epoch=None,
+                           limit_train_samples=16, augment=False), progress=False)
+    metrics = result.metrics
+    first = metrics["curve"][0]
+    # After epoch 1 (already 30 steps in) versus the best epoch: the 16 samples are memorised.
+    assert metrics["train"]["mse_normalised"] * 10 <= first["train_eval_loss"], metrics["curve"]
+    assert metrics["curve"][-1]["train_loss"] * 10 <= first["train_loss"]
+    assert metrics["val"] is None and metrics["monitor"] == "train_eval_loss"
+    assert any("no validation split" in note for note in metrics["notes"])
+    assert {p.name for p in out.iterdir()} == {"model.ckpt", "last.ckpt", "metrics.json", "curve.png"}
+    curve_png = cv2.imread(str(out / "curve.png"))
+    assert curve_png is not None and curve_png.std() > 0
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["metrics"]["best_epoch"] == result.best_epoch and report["metrics"]["epochs_run"] == 20
+
+
+@pytest.fixture(scope="module")
+def memdccp_run(datasets, tmp_path_factory):
+    out = tmp_path_factory.mktemp("memdccp") / "run"
+    return train(options(datasets["seq3"], out, model="memdccp", epochs=1, max_samples_per_epoch=32),
+                 progress=False)
+
+
+@pytest.mark.slow
+def test_memdccp_checkpoint_reproduces_the_trained_model_and_its_metrics(memdccp_run, datasets):
+    checkpoint = load_checkpoint(memdccp_run.checkpoint)
+    model = model_from_checkpoint(checkpoint)
+    assert not model.training
+    val = DrivingDataset(datasets["seq3"], split="val")
+    frames, labels = val.batch(np.arange(len(val)))
+    x = torch.from_numpy(prepare_batch(frames))  # the serving side's preprocessing, not the trainer's
+    with torch.no_grad():
+        out = model(x)
+        assert torch.equal(out, memdccp_run.model(x))
+    norm = checkpoint["normalisation"]
+    physical = out.numpy() * np.array(norm["label_std"]) + np.array(norm["label_mean"])
+    mae = np.abs(physical - labels).mean(axis=0)
+    val_metrics = checkpoint["metrics"]["val"]
+    assert mae == pytest.approx([val_metrics["mae_speed_mps"], val_metrics["mae_yaw_rate_radps"]], rel=1e-4)
+
+
+@pytest.mark.slow
+def test_checkpoint_format(memdccp_run, datasets):
+    raw = torch.load(memdccp_run.checkpoint, map_location="cpu", weights_only=True)
+    assert raw["format"] == CHECKPOINT_FORMAT and raw["model"] == "memdccp" and raw["hyper"] == {}
+    manifest = json.loads((datasets["seq3"] / "manifest.json").read_text())
+    assert raw["input"] == {"width_px": 100, "height_px": 50, "crop_top_fraction": 0.0, "crop_bottom_fraction": 1.0,
+                            "offsets_frames": [-4, -2, 0], "offsets_s": [-0.2, -0.1, 0.0], "step_s": 0.05}
+    speed, yaw = manifest["train_label_stats"]["speed_mps"], manifest["train_label_stats"]["yaw_rate_radps"]
+    norm = raw["normalisation"]
+    assert norm["labels"] == "zscore" and norm["image_mean"] == pytest.approx([0.485, 0.456, 0.406])
+    # Train-split statistics; yaw rate symmetrised because training mirrors half the samples (w -> -w).
+    assert norm["label_mean"] == pytest.approx([speed["mean"], 0.0])
+    assert norm["label_std"] == pytest.approx([speed["std"], np.hypot(yaw["std"], yaw["mean"])])
+    assert raw["dataset"]["samples_train"] == manifest["split"]["train_samples"]
+    assert raw["dataset"]["samples_val"] == manifest["split"]["val_samples"]
+    assert len(raw["dataset"]["manifest_sha256"]) == 64
+    metrics = raw["metrics"]
+    assert set(metrics["train"]) == set(metrics["val"]) == {"mae_speed_mps", "mae_yaw_rate_radps", "mse_normalised"}
+    assert metrics["best_epoch"] == metrics["epochs_run"] == 1
+    assert set(metrics["curve"][0]) >= {"epoch", "train_loss", "val_loss", "val_mae_speed_mps",
+                                        "val_mae_yaw_rate_radps", "wall_s"}
+    assert raw["training"]["torch"] == torch.__version__ and raw["training"]["samples_per_s"] > 0
+    assert {"seed", "lr", "batch_size", "epochs", "device", "wall_s"} <= set(raw["training"])
+    last = torch.load(memdccp_run.output / "last.ckpt", map_location="cpu", weights_only=True)
+    assert {"optimizer_state", "epoch", "rng"} <= set(last) and last["epoch"] == 1
+
+
+# -- resume and determinism ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def straight(datasets, tmp_path_factory) -> Path:
+    """4 epochs in one go, with augmentation, balance and dropout (every random stream in use)."""
+    out = tmp_path_factory.mktemp("straight") / "run"
+    train(options(datasets["crop"], out), progress=False)
+    return out
+
+
+@pytest.mark.slow
+def test_resume_ends_exactly_where_an_uninterrupted_run_does(straight, datasets, tmp_path):
+    out = tmp_path / "run"
+    train(options(datasets["crop"], out, epochs=2), progress=False)
+    assert torch.load(out / "last.ckpt", weights_only=True)["epoch"] == 2
+    result = train(options(datasets["crop"], out, epochs=4, resume=True), progress=False)
+    assert result.epochs_run == 4
+    assert_same_tensors(state_dict(out / "last.ckpt"), state_dict(straight / "last.ckpt"))
+    assert_same_tensors(state_dict(out / "model.ckpt"), state_dict(straight / "model.ckpt"))
+    assert without_wall(result.metrics["curve"]) == without_wall(load_checkpoint(straight / "model.ckpt")["metrics"]
+                                                                 ["curve"])
+
+
+@pytest.mark.slow
+def test_ctrl_c_between_batches_saves_and_resume_continues_exactly(straight, datasets, tmp_path):
+    out = tmp_path / "run"
+
+    def press_ctrl_c(epoch: int, batch: int) -> None:
+        if (epoch, batch) == (2, 2):
+            signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(TrainInterrupted) as stop:
+        train(options(datasets["crop"], out), progress=False, on_batch=press_ctrl_c)
+    assert (stop.value.epoch, stop.value.batch) == (2, 2) and stop.value.last_checkpoint == out / "last.ckpt"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # our handler is gone again
+    train(options(datasets["crop"], out, resume=True), progress=False)
+    assert_same_tensors(state_dict(out / "last.ckpt"), state_dict(straight / "last.ckpt"))
+
+
+@pytest.mark.slow
+def test_same_seed_same_weights_other_seed_other_weights(straight, datasets, tmp_path):
+    train(options(datasets["crop"], tmp_path / "again"), progress=False)
+    assert_same_tensors(state_dict(tmp_path / "again" / "last.ckpt"), state_dict(straight / "last.ckpt"))
+    train(options(datasets["crop"], tmp_path / "seed1", epochs=1, seed=1), progress=False)
+    train(options(datasets["crop"], tmp_path / "seed0", epochs=1, seed=0), progress=False)
+    a, b = state_dict(tmp_path / "seed0" / "last.ckpt"), state_dict(tmp_path / "seed1" / "last.ckpt")
+    assert any(not torch.equal(a[key], b[key]) for key in a)
+
+
+@pytest.mark.slow
+def test_an_existing_run_is_neither_overwritten_nor_resumed_with_other_options(straight, datasets):
+    with pytest.raises(TrainError, match="already holds"):
+        train(options(datasets["crop"], straight), progress=False)
+    with pytest.raises(TrainError, match="options differ.*lr"):
+        train(options(datasets["crop"], straight, lr=0.01, resume=True), progress=False)
+
+
+# -- pieces ----------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_training_inputs_equal_the_serving_preprocessing(datasets):
+    """What the network sees in training (without augmentation) is what brains.nets.preprocess gives at run time."""
+    for name, frames_per_sample in (("seq3", 3), ("crop", 1)):
+        dataset = DrivingDataset(datasets[name], split="train")
+        split = training._Split(dataset, frames_per_sample, torch.device("cpu"))
+        norm = label_norm("zscore", split.labels())
+        positions = np.arange(0, len(dataset), 25)
+        x, y_n = split.batch(positions, norm)
+        frames, labels = dataset.batch(positions)
+        expected = prepare_batch(frames if frames_per_sample == 3 else frames[:, -1])
+        assert x.shape == expected.shape and torch.allclose(x, torch.from_numpy(expected), atol=1e-6)
+        assert torch.allclose(norm.denormalise(y_n), torch.from_numpy(labels), atol=1e-5)
+
+
+def test_rare_yaw_rate_bins_get_larger_sampling_weights():
+    w = np.array([0.05] * 90 + [-1.2] * 10)  # bins [0, 0.1) and [1.0, 1.5)
+    weights = balance_weights(w)
+    assert weights.sum() == pytest.approx(1.0)
+    assert weights[-1] == pytest.approx(9 * weights[0])  # 1 / frequency: each bin drawn equally often
+    lone = balance_weights(np.array([0.05] * 1000 + [5.0]))
+    assert lone[-1] == pytest.approx(training.BALANCE_CAP * lone[0])  # capped, not 1000x
+
+
+def test_mirror_flips_images_and_negates_yaw_rate_only_where_asked():
+    frames = (torch.arange(2 * 3 * 4 * 5 * 3) % 251).to(torch.uint8).view(2, 3, 4, 5, 3)  # (B, T, H, W, RGB)
+    labels = torch.tensor([[7.0, 0.4], [8.0, -0.3]])
+    out, new = mirror(frames, labels, torch.tensor([True, False]))
+    assert torch.equal(out[0, :, :, 0], frames[0, :, :, 4]) and torch.equal(out[0, :, :, 4], frames[0, :, :, 0])
+    assert torch.equal(out[0], frames[0].flip(-2)) and not torch.equal(out[0], frames[0])
+    assert torch.equal(out[1], frames[1])
+    assert torch.equal(new, torch.tensor([[7.0, -0.4], [8.0, -0.3]]))
+    only_mirror = dict(jitter=0.0, blur_p=0.0)
+    out, new = augment_batch(frames, labels, torch.Generator().manual_seed(0), mirror_p=1.0, **only_mirror)
+    assert torch.allclose(out, to_unit_float(frames.flip(-2))) and torch.equal(new[:, 1], -labels[:, 1])
+
+
+def test_augmentation_shares_its_parameters_across_the_frames_of_a_sample():
+    frame = torch.randint(0, 256, (16, 1, 8, 10, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
+    frames = frame.expand(16, 3, 8, 10, 3).contiguous()  # three identical frames per sample
+    out, _ = augment_batch(frames, torch.zeros(16, 2), torch.Generator().manual_seed(2), blur_p=0.5)
+    assert torch.equal(out[:, 0], out[:, 1]) and torch.equal(out[:, 0], out[:, 2])
+    assert not torch.allclose(out, to_unit_float(frames), atol=0.01)  # it did change the images
+
+
+def test_label_normalisations():
+    labels = np.array([[6.0, -0.5], [8.0, 0.5]], dtype=np.float32)
+    z = label_norm("zscore", labels + np.float32([0.0, 0.1]))
+    assert z.mean == pytest.approx((7.0, 0.1)) and z.std == pytest.approx((1.0, 0.5))
+    mirrored = label_norm("zscore", labels + np.float32([0.0, 0.1]), mirrored=True)  # w and -w: mean 0
+    assert mirrored.mean == pytest.approx((7.0, 0.0)) and mirrored.std == pytest.approx((1.0, np.sqrt(0.26)))
+    y = torch.tensor(labels)
+    assert torch.allclose(z.denormalise(z.normalise(y)), y)
+    paper = label_norm("paper", labels)
+    assert paper.to_dict()["label_mean"] == [6.5, -7.1] and paper.to_dict()["label_std"] == [17.5, 14.2]
+    assert torch.allclose(paper.normalise(torch.tensor([[24.0, 7.1]])), torch.tensor([[1.0, 1.0]]))
+
+
+# -- errors ----------------------------------------------------------------------------------------------------------
+
+
+def one_line_error(kind, call) -> str:
+    with pytest.raises(kind) as caught:
+        call()
+    message = str(caught.value)
+    assert "\n" not in message and message
+    return message
+
+
+@pytest.mark.slow
+def test_model_and_dataset_mismatches_are_one_line_errors(datasets, tmp_path):
+    message = one_line_error(TrainError, lambda: train(options(datasets["crop"], tmp_path / "a", model="pilotnet")))
+    assert "200x66" in message and "100x50" in message
+    message = one_line_error(TrainError, lambda: train(options(datasets["crop"], tmp_path / "b", model="memdccp")))
+    assert "3 frames" in message and "[0]" in message
+    message = one_line_error(TrainError, lambda: options(datasets["crop"], tmp_path / "c", model="alexnet"))
+    assert "alexnet" in message and TINY in message
+    message = one_line_error(TrainError, lambda: train(options(datasets["seq3"], tmp_path / "d", model="memdccp",
+                                                               hyper={"warp": 9})))
+    assert "warp" in message
+    message = one_line_error(TrainError, lambda: train(options(tmp_path / "nothing", tmp_path / "e")))
+    assert "nothing" in message
+
+
+def test_load_checkpoint_refuses_missing_garbage_and_incomplete_files(tmp_path):
+    message = one_line_error(CheckpointError, lambda: load_checkpoint(tmp_path / "absent.ckpt"))
+    assert "absent.ckpt" in message
+    garbage = tmp_path / "garbage.ckpt"
+    garbage.write_bytes(b"\x00not a checkpoint" * 100)
+    assert "garbage.ckpt" in one_line_error(CheckpointError, lambda: load_checkpoint(garbage))
+    other = tmp_path / "other.ckpt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    assert "format" in one_line_error(CheckpointError, lambda: load_checkpoint(other))
+    partial = tmp_path / "partial.ckpt"
+    torch.save({"format": CHECKPOINT_FORMAT, "model": "memdccp", "input": {"width_px": 100}}, partial)
+    message = one_line_error(CheckpointError, lambda: load_checkpoint(partial))
+    assert "state_dict" in message and "input.offsets_frames" in message and "partial.ckpt" in message
+
+
+def cli(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="drivebench")
+    train_cli.add_train_command(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["train", *argv])
+
+
+def test_cli_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
+    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path / "missing"), "-o",
+                                   str(tmp_path / "run"))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("drivebench: error: ") and err.count("\n") == 1 and "missing" in err
+    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path / "run"),
+                                   "--hyper", "dropout")) == 2
+    assert "KEY=VALUE" in capsys.readouterr().err
+
+
+def test_cli_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise TrainInterrupted(tmp_path / "last.ckpt", 3, 7)
+
+    monkeypatch.setattr(training, "train", interrupted)
+    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path))) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--resume" in err and "last.ckpt" in err
+
+
+def test_hyper_values_are_typed():
+    assert train_cli.parse_hyper(["clean=true", "lstm_units=16", "dropout=0.1", "name=x"]) == {
+        "clean": True, "lstm_units": 16, "dropout": 0.1, "name": "x"}
+    with pytest.raises(train_cli.HyperError):
+        train_cli.parse_hyper(["=3"])
