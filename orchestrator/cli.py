@@ -11,6 +11,7 @@ the stack could not run, with a one-line reason on stderr.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -51,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
     run.add_argument("--brain", default="explicit", help="brain to drive (default: explicit)")
+    run.add_argument("--weights", type=Path, metavar="CKPT",
+                     help="checkpoint (or exported .onnx) of a neural brain (drivebench train makes them)")
     run.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
                      help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
@@ -78,6 +81,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     recording_cli.add_commands(commands)
     recording_cli.add_dataset_commands(commands, parse_camera)
+    from brains.neural.export import add_export_command
+    from brains.train_cli import add_train_command
+
+    add_train_command(commands)
+    add_export_command(commands)
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
@@ -141,7 +149,12 @@ def command_run(args: argparse.Namespace) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(filename=run_dir / "launcher.log", level=logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    brain = BrainLaunch(args.brain, options=tuple(args.brain_option))
+    options = tuple(args.brain_option)
+    if args.weights is not None:
+        if not args.weights.is_file():
+            raise UsageError(f"--weights: no such file {args.weights}")
+        options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
+    brain = BrainLaunch(args.brain, options=options)
     (run_dir / "config.yaml").write_text(yaml.safe_dump({
         "run_id": run_id, "episode": msgspec.to_builtins(spec),
         "brains": [{"brain": brain.brain, "name": brain.bus_name, "options": list(brain.options)}],
@@ -214,6 +227,14 @@ def main(argv: list[str] | None = None) -> int:
             return command_run(args)
         if args.command == "circuits":
             return command_circuits(args)
+        if args.command == "train":
+            from brains.train_cli import run_train
+
+            return run_train(args)
+        if args.command == "export":
+            from brains.neural.export import run_export
+
+            return run_export(args)
         return recording_cli.run_command(args)
     except (UsageError, recording_cli.RecordingUsageError) as error:
         print(f"drivebench: error: {error}", file=sys.stderr)

@@ -1,12 +1,16 @@
 """``drivebench dataset collect``: the paper's data generation in one step.
 
 Drive a brain (the explicit one by default) round each circuit on a local stack with a recorder, one recording per
-circuit, then build a dataset from the recordings.
+circuit, then build a dataset from the recordings. With ``--recovery-noise`` a noisy copy of the brain drives and the
+brain itself only labels (it answers the same frames as a second brain host), so the dataset shows how to come back
+to the line.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import sys
 import uuid
 from pathlib import Path
@@ -15,6 +19,17 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation
 from services.circuits import CircuitError, load_circuit
+
+
+DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
+
+
+def collection_brains(args: argparse.Namespace) -> list[BrainLaunch]:
+    brains = [BrainLaunch(args.brain)]
+    if args.recovery_noise > 0:
+        brains.append(BrainLaunch("noisy", name=DRIVER, options=(f"base={json.dumps(args.brain)}",
+                                                                 f"steering_noise_radps={args.recovery_noise}")))
+    return brains
 
 
 class CollectError(ValueError):
@@ -31,7 +46,7 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
             load_circuit(circuit)
             spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=index,
                                camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
-                               active_brain=args.brain)
+                               active_brain=DRIVER if args.recovery_noise > 0 else args.brain)
             for variation in args.variation:
                 spec = apply_variation(spec, variation)
         except (CircuitError, ValueError) as error:
@@ -45,6 +60,8 @@ def collect(args: argparse.Namespace, options) -> int:
     from orchestrator.recording_cli import build_from_recordings
 
     specs = collection_specs(args)
+    if args.recovery_noise > 0 and options.brain is None:
+        options = dataclasses.replace(options, brain=args.brain)  # the undisturbed brain's commands are the labels
     output: Path = args.output
     if output.exists() and any(output.iterdir()) and not args.overwrite:
         raise CollectError(f"output folder {output} is not empty (pass --overwrite to replace it)")
@@ -57,7 +74,7 @@ def collect(args: argparse.Namespace, options) -> int:
         print(f"collect: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s) -> {recording}", file=sys.stderr)
         progress = Progress(spec.laps, enabled=sys.stderr.isatty())
         try:
-            with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=[BrainLaunch(spec.active_brain)],
+            with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args),
                             record=recording) as stack:
                 score = stack.run_episode(spec, on_live=progress.update)
         finally:

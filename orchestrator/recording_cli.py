@@ -61,6 +61,9 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
     collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                          help="world variation for every circuit, as in drivebench run")
     collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
+    collect.add_argument("--recovery-noise", type=float, default=0.0, metavar="RADPS",
+                         help="drive with bursts of extra yaw rate up to RADPS (the noisy brain) while --brain, "
+                              "undisturbed, labels every frame: recovery data (DART); default 0 = off")
     _add_build_options(collect)
 
 
