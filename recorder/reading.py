@@ -62,7 +62,7 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
                                message=_decode(record.data, schema, channel, path, record.sequence),
                                log_time_ns=record.log_time)
         except MCAP_ERRORS as error:
-            raise RecordingError(f"{path}: corrupted ({_describe(error)}); try `drivebench recorder repair {path}`") from None
+            raise RecordingError(f"{path}: corrupted ({describe_error(error)}); try `drivebench recorder repair {path}`") from None
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,7 @@ def recording_info(path: Path) -> RecordingInfo:
         try:
             metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         except MCAP_ERRORS as error:
-            raise RecordingError(f"{path}: corrupted metadata ({_describe(error)})") from None
+            raise RecordingError(f"{path}: corrupted metadata ({describe_error(error)})") from None
         return RecordingInfo(path=path, messages=statistics.message_count if statistics else 0,
                              start_ns=statistics.message_start_time if statistics else 0,
                              end_ns=statistics.message_end_time if statistics else 0,
@@ -125,12 +125,12 @@ def _indexed_reader(stream, path: Path) -> SeekingReader:
     try:
         reader = SeekingReader(stream, validate_crcs=True)
     except MCAP_ERRORS as error:
-        raise RecordingError(f"{path}: not an MCAP file ({_describe(error)})") from None
+        raise RecordingError(f"{path}: not an MCAP file ({describe_error(error)})") from None
     try:
         summary = reader.get_summary()
     except MCAP_ERRORS as error:
         summary = None
-        detail = _describe(error)
+        detail = describe_error(error)
     else:
         detail = "no summary"
     if summary is None:
@@ -147,6 +147,6 @@ def _decode(data: bytes, schema, channel, path: Path, sequence: int):
         raise RecordingError(f"{path}: message {sequence} on {channel.topic}: {error}") from None
 
 
-def _describe(error: Exception) -> str:
+def describe_error(error: Exception) -> str:
     text = str(error).strip().splitlines()[0] if str(error).strip() else ""
     return f"{type(error).__name__}: {text}" if text else type(error).__name__

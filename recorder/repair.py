@@ -16,7 +16,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from recorder.reading import MCAP_ERRORS, RecordingError, _describe
+from recorder.reading import MCAP_ERRORS, RecordingError, describe_error
 from recorder.writer import CHUNK_SIZE_BYTES, LIBRARY, PART_SUFFIX, is_being_written
 
 log = logging.getLogger("drivebench.recorder")
@@ -84,7 +84,7 @@ def _copy(reader: StreamReader, writer: Writer) -> tuple[int, str]:
             elif isinstance(record, Attachment):
                 writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
     except MCAP_ERRORS as error:
-        return messages, _describe(error)
+        return messages, describe_error(error)
     return messages, ""
 
 

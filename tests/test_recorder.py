@@ -254,7 +254,7 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     frames = sorted(r.message.header.seq for r in original if r.key == keys.camera_raw(run_id))
     assert frames == list(range(40))  # lock-step: every frame of the 2 s episode recorded
 
-    endpoint = stack.endpoint  # the stack's router is gone; open our own on the same kind of endpoint
+    # The stack's router went with it: replay through a router of our own.
     with Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="router2") as bus:
         endpoint = bus.config.listen[0]
         second = tmp_path / "second.mcap"
