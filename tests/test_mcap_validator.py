@@ -20,32 +20,13 @@ from mcap_validation import SKIP_REASON, VALIDATOR_DIR, assert_valid_mcap, valid
 mcap_writer = pytest.importorskip("mcap.writer")
 mcap_reader = pytest.importorskip("mcap.reader")
 raw_image_pb2 = pytest.importorskip("foxglove_schemas_protobuf.RawImage_pb2")
-from google.protobuf import descriptor_pb2  # noqa: E402  (protobuf comes with foxglove-schemas-protobuf)
+from recorder.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
 
 pytestmark = pytest.mark.skipif(not validator_available(), reason=SKIP_REASON)
 
 IMAGES = 300  # 300 random 64x48 RGB frames (~2.8 MB) fill three 1 MiB chunks, so chunk merging is exercised
 TELEMETRY = IMAGES  # one telemetry message per image
 MSGPACK_BYTES = b"\x81\xa5speed\xcb\x40\x24\x00\x00\x00\x00\x00\x00"  # msgpack for {"speed": 10.0}
-
-
-def _file_descriptor_set(descriptor) -> bytes:
-    """The message's file and every file it imports, dependencies first, as a FileDescriptorSet."""
-    files: list[descriptor_pb2.FileDescriptorProto] = []
-    seen: set[str] = set()
-
-    def add(file_descriptor) -> None:
-        if file_descriptor.name in seen:
-            return
-        seen.add(file_descriptor.name)
-        for dependency in file_descriptor.dependencies:
-            add(dependency)
-        proto = descriptor_pb2.FileDescriptorProto()
-        file_descriptor.CopyToProto(proto)
-        files.append(proto)
-
-    add(descriptor.file)
-    return descriptor_pb2.FileDescriptorSet(file=files).SerializeToString()
 
 
 def write_recording(path: Path, extra: tuple[str, str, bytes] | None = None,
@@ -57,7 +38,7 @@ def write_recording(path: Path, extra: tuple[str, str, bytes] | None = None,
                                     compression=mcap_writer.CompressionType[compression])
         writer.start(profile="", library="drivebench-test")
         image_schema = writer.register_schema(
-            "foxglove.RawImage", "protobuf", _file_descriptor_set(raw_image_pb2.RawImage.DESCRIPTOR))
+            "foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data)
         image_channel = writer.register_channel("/camera/image", "protobuf", image_schema)
         telemetry_schema = writer.register_schema("Telemetry", "jsonschema", json.dumps(
             {"type": "object", "properties": {"speed": {"type": "number"}, "seq": {"type": "integer"}}}).encode())
@@ -217,7 +198,7 @@ def test_protobuf_bytes_that_do_not_match_the_schema_are_an_error(tmp_path):
         writer = mcap_writer.Writer(stream, enable_data_crcs=True)
         writer.start()
         schema = writer.register_schema(
-            "foxglove.RawImage", "protobuf", _file_descriptor_set(raw_image_pb2.RawImage.DESCRIPTOR))
+            "foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data)
         channel = writer.register_channel("/camera/image", "protobuf", schema)
         writer.add_message(channel, 1, b"\xff\xff\xff", 1, sequence=7)
         writer.finish()

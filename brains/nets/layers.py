@@ -154,6 +154,26 @@ class KerasLSTM(nn.Module):
         return torch.stack(outputs, dim=1) if self.return_sequences else hidden
 
 
+def pilotnet_convs(conv: type[nn.Module]) -> nn.Sequential:
+    """PilotNet's five convolutions (24/36/48 5x5 stride 2, then 64/64 3x3), each with ReLU, all Keras "same".
+
+    ``conv`` is :class:`KerasSameConv2d` (PilotNet, PilotNet x3 per frame) or :class:`KerasSameConv3d` (memDCCP,
+    whose 5x5x5 and 3x3x3 kernels and strides apply along time too).
+    """
+    layers: list[nn.Module] = []
+    for channels_in, channels_out, kernel, stride in ((3, 24, 5, 2), (24, 36, 5, 2), (36, 48, 5, 2), (48, 64, 3, 1),
+                                                      (64, 64, 3, 1)):
+        layers += [conv(channels_in, channels_out, kernel, stride=stride), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+def pilotnet_feature_map(height_px: int, width_px: int) -> tuple[int, int]:
+    """(height, width) after :func:`pilotnet_convs`: three stride-2 "same" convs, ceil(n / 2) each."""
+    for _ in range(3):
+        height_px, width_px = -(-height_px // 2), -(-width_px // 2)
+    return height_px, width_px
+
+
 def dense_head(in_features: int, widths: Sequence[int]) -> nn.Sequential:
     """Dense layers of ``widths`` with ReLU between them and a linear last layer (the (v_n, w_n) output)."""
     layers: list[nn.Module] = []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from brains.nets.layers import (BN_EPS, BN_MOMENTUM, ConvLSTM2d, KerasSameConv3d, dense_head, keras_init_)
+from brains.nets.layers import BN_EPS, BN_MOMENTUM, ConvLSTM2d, KerasSameConv3d, dense_head, keras_init_, pilotnet_convs
 
 
 class MemDCCP(nn.Module):
@@ -27,13 +27,7 @@ class MemDCCP(nn.Module):
         super().__init__()
         self.clean = clean
         self.input_norm = nn.BatchNorm3d(3, eps=BN_EPS, momentum=BN_MOMENTUM)
-        self.features = nn.Sequential(
-            KerasSameConv3d(3, 24, 5, stride=2), nn.ReLU(),
-            KerasSameConv3d(24, 36, 5, stride=2), nn.ReLU(),
-            KerasSameConv3d(36, 48, 5, stride=2), nn.ReLU(),
-            KerasSameConv3d(48, 64, 3), nn.ReLU(),
-            KerasSameConv3d(64, 64, 3), nn.ReLU(),
-        )
+        self.features = pilotnet_convs(KerasSameConv3d)
         channels, map_hw = (64, (7, 13)) if clean else (7, (13, 64))
         self.memory = nn.Sequential(
             ConvLSTM2d(channels, 8, 5, return_sequences=True),

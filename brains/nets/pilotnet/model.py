@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from brains.nets.layers import BN_EPS, BN_MOMENTUM, KerasSameConv2d, dense_head, keras_init_
+from brains.nets.layers import (BN_EPS, BN_MOMENTUM, KerasSameConv2d, dense_head, keras_init_, pilotnet_convs,
+                                pilotnet_feature_map)
 
 
 class PilotNet(nn.Module):
@@ -19,16 +20,8 @@ class PilotNet(nn.Module):
     def __init__(self, input_height_px: int = 66, input_width_px: int = 200):
         super().__init__()
         self.input_norm = nn.BatchNorm2d(3, eps=BN_EPS, momentum=BN_MOMENTUM)
-        self.features = nn.Sequential(
-            KerasSameConv2d(3, 24, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(24, 36, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(36, 48, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(48, 64, 3), nn.ReLU(),
-            KerasSameConv2d(64, 64, 3), nn.ReLU(),
-        )
-        h, w = input_height_px, input_width_px
-        for _ in range(3):  # three stride-2 "same" convs: ceil(n / 2) each
-            h, w = -(-h // 2), -(-w // 2)
+        self.features = pilotnet_convs(KerasSameConv2d)
+        h, w = pilotnet_feature_map(input_height_px, input_width_px)
         self.head = dense_head(64 * h * w, [1164, 100, 50, 10, 2])
         keras_init_(self)
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from brains.nets.layers import BN_EPS, BN_MOMENTUM, KerasLSTM, KerasSameConv2d, dense_head, keras_init_
+from brains.nets.layers import (BN_EPS, BN_MOMENTUM, KerasLSTM, KerasSameConv2d, dense_head, keras_init_,
+                                pilotnet_convs, pilotnet_feature_map)
 
 
 class PilotNetX3(nn.Module):
@@ -28,16 +29,8 @@ class PilotNetX3(nn.Module):
                  input_width_px: int = 100):
         super().__init__()
         self.input_norm = nn.BatchNorm2d(3, eps=BN_EPS, momentum=BN_MOMENTUM)
-        self.features = nn.Sequential(
-            KerasSameConv2d(3, 24, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(24, 36, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(36, 48, 5, stride=2), nn.ReLU(),
-            KerasSameConv2d(48, 64, 3), nn.ReLU(),
-            KerasSameConv2d(64, 64, 3), nn.ReLU(),
-        )
-        h, w = input_height_px, input_width_px
-        for _ in range(3):
-            h, w = -(-h // 2), -(-w // 2)
+        self.features = pilotnet_convs(KerasSameConv2d)  # applied to each frame (Keras TimeDistributed)
+        h, w = pilotnet_feature_map(input_height_px, input_width_px)
         sizes = [64 * h * w] + [lstm_units] * lstm_layers
         self.memory = nn.Sequential(*(
             KerasLSTM(sizes[i], sizes[i + 1], return_sequences=i < lstm_layers - 1) for i in range(lstm_layers)
