@@ -53,19 +53,14 @@ from torch import nn
 from tqdm import tqdm
 
 from brains.nets import MODELS, ModelInfo, make_model
+from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
+from brains.neural.checkpoint import CheckpointError, read_checkpoint
 from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
 from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS, MANIFEST_FILE, DatasetError, DrivingDataset
 
-CHECKPOINT_FORMAT = "drivebench.checkpoint.v1"
 BEST_FILE, LAST_FILE, METRICS_FILE, CURVE_FILE = "model.ckpt", "last.ckpt", "metrics.json", "curve.png"
 LABEL_KINDS = ("zscore", "paper")
 DEVICES = ("auto", "cpu", "cuda")
-REQUIRED_KEYS = {
-    "": ("format", "model", "hyper", "state_dict", "input", "normalisation", "dataset", "metrics", "training"),
-    "input": ("width_px", "height_px", "crop_top_fraction", "crop_bottom_fraction", "offsets_frames", "offsets_s",
-              "step_s"),
-    "normalisation": ("image_mean", "image_std", "labels", "label_mean", "label_std"),
-}
 # A bin's sampling weight is at most this many times that of the most common bin: a lone sample in an otherwise
 # empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
 BALANCE_CAP = 50.0
@@ -77,10 +72,6 @@ RESUME_FIXED = ("model", "data", "hyper", "seed", "lr", "batch_size", "labels", 
 
 class TrainError(RuntimeError):
     """A training request that cannot run (bad options, dataset, model/dataset mismatch): one line."""
-
-
-class CheckpointError(RuntimeError):
-    """A file that is not a usable drivebench checkpoint: one line naming the file and what is wrong."""
 
 
 class TrainInterrupted(KeyboardInterrupt):
@@ -422,40 +413,15 @@ def save_checkpoint(checkpoint: dict[str, Any], path: Path) -> None:
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """A checkpoint dict loaded on the CPU with ``weights_only=True``; CheckpointError (one line) if the file is
-    missing, not a torch file, or lacks the format tag or a required key."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path}: no such file")
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # pickle, zip and torch errors differ by version; all mean "not a checkpoint"
-        raise CheckpointError(f"checkpoint {path}: not a loadable torch checkpoint ({_reason(error)})") from None
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        found = checkpoint.get("format") if isinstance(checkpoint, dict) else type(checkpoint).__name__
-        raise CheckpointError(f"checkpoint {path}: format is {found!r}, expected {CHECKPOINT_FORMAT!r}")
-    _check_keys(path, checkpoint)
-    return checkpoint
+    missing, not a torch file, or lacks the format tag or a required key (one reader for training and serving)."""
+    return read_checkpoint(path)
 
 
 def _reason(error: BaseException) -> str:
     """One short line out of a possibly long, multi-line torch error message."""
     lines = [line.strip() for line in str(error).splitlines() if line.strip()] or [type(error).__name__]
-    # weights_only failures put the actual cause ("Unsupported global: ...") on a later line.
     line = next((line for line in lines if line.startswith("WeightsUnpickler error")), lines[0])
     return line if len(line) <= 200 else line[:197] + "..."
-
-
-def _check_keys(path: Path, checkpoint: dict[str, Any]) -> None:
-    missing = [key for key in REQUIRED_KEYS[""] if key not in checkpoint]
-    for section in ("input", "normalisation"):
-        if isinstance(checkpoint.get(section), dict):
-            missing += [f"{section}.{key}" for key in REQUIRED_KEYS[section] if key not in checkpoint[section]]
-        elif section in checkpoint:
-            missing.append(f"{section} (not a dict)")
-    if missing:
-        raise CheckpointError(f"checkpoint {path}: missing {', '.join(missing)}")
-    if checkpoint["model"] not in MODELS:
-        raise CheckpointError(f"checkpoint {path}: unknown model {checkpoint['model']!r}")
 
 
 def model_from_checkpoint(checkpoint: dict[str, Any]) -> nn.Module:

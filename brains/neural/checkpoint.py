@@ -30,7 +30,13 @@ from brains.registry import BrainOptionsError
 FORMAT = "drivebench.checkpoint.v1"
 ONNX_FORMAT = "drivebench.onnx.v1"
 LABEL_MODES = ("zscore", "paper")
-_REQUIRED = ("format", "model", "state_dict", "input", "normalisation")
+# What every checkpoint must hold (extra keys, e.g. a resumable run's optimizer state, are allowed).
+REQUIRED_KEYS = {
+    "": ("format", "model", "hyper", "state_dict", "input", "normalisation", "dataset", "metrics", "training"),
+    "input": ("width_px", "height_px", "crop_top_fraction", "crop_bottom_fraction", "offsets_frames", "offsets_s",
+              "step_s"),
+    "normalisation": ("image_mean", "image_std", "labels", "label_mean", "label_std"),
+}
 
 
 class CheckpointError(BrainOptionsError):
@@ -97,7 +103,15 @@ class Checkpoint:
 
 def load_checkpoint(path: str | Path) -> Checkpoint:
     """Load and check a checkpoint file; CheckpointError (one line) for a missing file, a file that is not a
-    drivebench checkpoint, another format version, an unknown model or malformed input/normalisation fields."""
+    drivebench checkpoint, another format version, missing keys, an unknown model or malformed input/normalisation
+    fields."""
+    path = Path(path)
+    return _parse(read_checkpoint(path), path)
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint as the plain dict ``torch.save`` wrote (training resumes from it), after the same checks as
+    :func:`load_checkpoint` except the typed parsing of input and normalisation."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -107,20 +121,29 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
         raise CheckpointError(f"{path}: not a torch checkpoint ({_first_line(error)})") from None
-    return _parse(raw, path)
+    _check_keys(raw, path)
+    return raw
 
 
-def _parse(raw: Any, path: Path) -> Checkpoint:
+def _check_keys(raw: Any, path: Path) -> None:
     if not isinstance(raw, dict) or "format" not in raw:
         raise CheckpointError(f"{path}: not a drivebench checkpoint (no 'format' entry)")
     if raw["format"] != FORMAT:
         raise CheckpointError(f"{path}: format {raw['format']!r}, expected {FORMAT!r}")
-    missing = [key for key in _REQUIRED if key not in raw]
+    missing = [key for key in REQUIRED_KEYS[""] if key not in raw]
+    for section in ("input", "normalisation"):
+        if isinstance(raw.get(section), dict):
+            missing += [f"{section}.{key}" for key in REQUIRED_KEYS[section] if key not in raw[section]]
+        elif section in raw:
+            missing.append(f"{section} (not a dict)")
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}")
+    if raw["model"] not in MODELS:
+        raise CheckpointError(f"{path}: unknown model {raw['model']!r} (known: {', '.join(sorted(MODELS))})")
+
+
+def _parse(raw: dict[str, Any], path: Path) -> Checkpoint:
     model = raw["model"]
-    if model not in MODELS:
-        raise CheckpointError(f"{path}: unknown model {model!r} (known: {', '.join(sorted(MODELS))})")
     try:
         spec = _input_spec(raw["input"])
         norm = _normalisation(raw["normalisation"])
@@ -231,9 +254,11 @@ def from_metadata(meta: dict[str, str], path: str | Path) -> Checkpoint:
     try:
         raw = {"format": FORMAT, "model": meta["drivebench.model"], "hyper": json.loads(meta["drivebench.hyper"]),
                "state_dict": None, "input": json.loads(meta["drivebench.input"]),
-               "normalisation": json.loads(meta["drivebench.normalisation"])}
+               "normalisation": json.loads(meta["drivebench.normalisation"]), "dataset": {}, "metrics": {},
+               "training": {}}
     except (KeyError, json.JSONDecodeError) as error:
         raise CheckpointError(f"{path}: bad drivebench metadata ({_first_line(error)})") from None
+    _check_keys(raw, path)
     return _parse(raw, path)
 
 
