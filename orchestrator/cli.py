@@ -1,6 +1,7 @@
 """The ``drivebench`` command.
 
-    drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--json] ...
+    drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--record F.mcap] [--json] ...
+    drivebench recorder info|repair, replay, dataset build|collect, train, export, circuits list|show|import
 
 ``run`` starts a local stack (embedded router, simulator, brain, scorer: one process each), drives one episode,
 prints its metrics (or one JSON object with ``--json``) and leaves a run folder with the resolved config, the score
@@ -47,7 +48,9 @@ def parse_camera(text: str) -> tuple[int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="drivebench", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="drivebench", description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
+                                       "them, build datasets, train and serve networks.")
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
