@@ -8,6 +8,7 @@ MCAP reader, the code Foxglove/Lichtblick open files with), so tests do not only
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from dataclasses import dataclass, field
@@ -78,8 +79,14 @@ def validate_mcap(*paths: str | Path, decode: bool = True, require_viewable: boo
 
 
 def assert_valid_mcap(*paths: str | Path, **kwargs: bool) -> ValidationResult:
-    """Assert every file passes the validator (decode and viewability on by default); skip when not installed."""
+    """Assert every file passes the validator (decode and viewability on by default).
+
+    Without Node the check is skipped; but where Node is there (``scripts/test.sh`` then sets
+    ``DRIVEBENCH_REQUIRE_MCAP_VALIDATOR=1``) a missing validator is a broken set-up and fails, never a silent skip.
+    """
     if not validator_available():
+        if os.environ.get("DRIVEBENCH_REQUIRE_MCAP_VALIDATOR") == "1":
+            pytest.fail(f"the MCAP validator is not installed although Node is: {SKIP_REASON}")
         pytest.skip(SKIP_REASON)
     result = validate_mcap(*paths, **kwargs)
     assert result.ok, f"MCAP validator (exit {result.returncode}):\n{result.describe()}"
