@@ -35,6 +35,8 @@ CAMERA_PRESETS: dict[str, dict[str, float]] = {
 _CAMERA_KEYS = {"camera_offset_m": "lateral_offset_m", "camera_height_m": "height_m",
                 "camera_pitch_rad": "pitch_down_rad", "camera_yaw_rad": "yaw_rad", "camera_hfov_rad": "hfov_rad"}
 _WORLD_KEYS = ("line", "road", "walls", "lighting")
+WORLD_KEYS: tuple[str, ...] = _WORLD_KEYS  # variation keys that change the world
+CAMERA_KEYS: tuple[str, ...] = ("camera", *_CAMERA_KEYS)  # variation keys that move the camera
 _BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True, "no": False}
 
 # The parameter a bare ``model=value`` sets.

@@ -1,0 +1,331 @@
+"""Matrix files: expansion, labels, keys, seeds, exclude / include, and one-line errors at the right line."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+import yaml
+
+from orchestrator.matrix import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix
+from protocol.messages import Gaussian, Occlusion, SaltPepper
+
+EXAMPLE = """\
+name: generalization
+brains: [explicit, {name: constant, label: slow, options: {speed_mps: 1.5}}]
+circuits: [simple, montmelo, montreal]
+variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}
+perturbations: [none, {salt_pepper: 0.2}, {camera: left}, "gaussian=10", {salt_pepper: 0.2, camera: left}]
+repetitions: 3
+limits: {laps: 2, max_sim_seconds: 120, brain_timeout_s: 5}
+camera: 160x120
+seed: 7
+realtime: false
+shadows: [{name: constant, options: {speed_mps: 2}}]
+"""
+
+MINIMAL = "brains: [explicit]\ncircuits: [simple]\n"
+
+
+def parse(text: str, **options) -> Matrix:
+    return parse_matrix(textwrap.dedent(text), **options)
+
+
+# -- expansion ---------------------------------------------------------------------------------------------------
+
+
+def test_example_expands_to_the_full_product_in_order():
+    matrix = parse(EXAMPLE)
+    assert matrix.name == "generalization"
+    assert matrix.variation_keys == ("line", "road", "walls")
+    assert len(matrix.episodes) == 2 * 3 * (3 * 2 * 2) * 5 * 3
+    assert [episode.index for episode in matrix.episodes] == list(range(len(matrix.episodes)))
+    first = [episode.key for episode in matrix.episodes[:7]]
+    assert first == [
+        "explicit/simple/line=red,road=grey,walls=on/none/r0",
+        "explicit/simple/line=red,road=grey,walls=on/none/r1",
+        "explicit/simple/line=red,road=grey,walls=on/none/r2",
+        "explicit/simple/line=red,road=grey,walls=on/salt_pepper=0.2/r0",
+        "explicit/simple/line=red,road=grey,walls=on/salt_pepper=0.2/r1",
+        "explicit/simple/line=red,road=grey,walls=on/salt_pepper=0.2/r2",
+        "explicit/simple/line=red,road=grey,walls=on/camera=left/r0",
+    ]
+    assert matrix.episodes[-1].key == "slow/montreal/line=none,road=white,walls=off/salt_pepper=0.2+camera=left/r2"
+    assert len({episode.key for episode in matrix.episodes}) == len(matrix.episodes)
+
+
+def test_axes_vary_brain_slowest_then_circuit_variation_perturbation_repetition():
+    episodes = parse(EXAMPLE).episodes
+    per_brain = len(episodes) // 2
+    assert {episode.brain.label for episode in episodes[:per_brain]} == {"explicit"}
+    assert [episode.circuit for episode in episodes[:per_brain:per_brain // 3]] == ["simple", "montmelo", "montreal"]
+    assert [episode.variation for episode in episodes[:5 * 3 * 2:5 * 3]] == [
+        "line=red,road=grey,walls=on", "line=red,road=grey,walls=off"]
+    assert [episode.perturbation for episode in episodes[:15:3]] == [
+        "none", "salt_pepper=0.2", "camera=left", "gaussian=10", "salt_pepper=0.2+camera=left"]
+
+
+def test_episode_specs_carry_limits_camera_seed_world_noise_and_label():
+    episodes = {episode.key: episode for episode in parse(EXAMPLE).episodes}
+    episode = episodes["slow/montmelo/line=white,road=white,walls=off/salt_pepper=0.2+camera=left/r1"]
+    spec = episode.spec
+    assert (spec.circuit, spec.laps, spec.max_sim_seconds, spec.brain_timeout_s) == ("montmelo", 2, 120.0, 5.0)
+    assert (spec.camera.width_px, spec.camera.height_px) == (160, 120)
+    assert spec.camera.lateral_offset_m == pytest.approx(0.20)
+    assert (spec.world.line, spec.world.road, spec.world.walls) == ("white", "white", False)
+    assert spec.noise == [SaltPepper(probability=0.2)]
+    assert spec.active_brain == "slow" and spec.realtime is False
+    assert (episode.brain.brain, episode.repetition, spec.seed) == ("constant", 1, 8)
+
+
+def test_every_brain_sees_the_same_seed_in_a_repetition():
+    episodes = parse(EXAMPLE).episodes
+    for repetition in range(3):
+        seeds = {episode.spec.seed for episode in episodes if episode.repetition == repetition}
+        assert seeds == {7 + repetition}
+
+
+def test_defaults_of_a_minimal_matrix():
+    matrix = parse(MINIMAL, source="runs/smoke.yaml")
+    assert matrix.name == "smoke" and matrix.source == "runs/smoke.yaml" and matrix.text == MINIMAL
+    assert matrix.variation_keys == () and matrix.shadows == ()
+    (episode,) = matrix.episodes
+    assert episode.key == "explicit/simple/default/none/r0"
+    assert (episode.variation, episode.perturbation, episode.repetition) == ("default", "none", 0)
+    assert episode.spec.seed == 0 and episode.spec.noise == [] and episode.spec.realtime is False
+    assert episode.spec.world.walls is True and episode.spec.camera.lateral_offset_m == 0.0
+
+
+def test_single_items_stand_for_lists_and_random_circuits_are_accepted():
+    matrix = parse("brains: explicit\ncircuits: random:42\nvariations: {walls: off}\nperturbations: gaussian=5\n")
+    assert [episode.key for episode in matrix.episodes] == ["explicit/random:42/walls=off/gaussian=5/r0"]
+
+
+def test_same_text_gives_same_keys_and_specs():
+    first, second = parse(EXAMPLE), parse(EXAMPLE)
+    assert [episode.key for episode in first.episodes] == [episode.key for episode in second.episodes]
+    assert [episode.spec for episode in first.episodes] == [episode.spec for episode in second.episodes]
+
+
+# -- labels --------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("written", "label"), [
+    ("none", "none"),
+    ("null", "none"),
+    ("{salt_pepper: 0.2}", "salt_pepper=0.2"),
+    ('"salt_pepper=0.2"', "salt_pepper=0.2"),
+    ("gaussian=10", "gaussian=10"),
+    ("{gaussian: 10}", "gaussian=10"),
+    ("{salt_pepper: 0.2, camera: left}", "salt_pepper=0.2+camera=left"),
+    ('"salt_pepper=0.2+camera=left"', "salt_pepper=0.2+camera=left"),
+    ("{occlusion: {patches: 2, size_fraction: 0.3}}", "occlusion:patches=2,size_fraction=0.3"),
+    ('"occlusion:patches=2,size_fraction=0.3"', "occlusion:patches=2,size_fraction=0.3"),
+    ("{camera_offset_m: 0.1, delay: 2}", "camera_offset_m=0.1+delay=2"),
+    ("brightness=+0.2", "brightness=0.2"),
+])
+def test_perturbation_labels(written, label):
+    (episode,) = parse(f"{MINIMAL}perturbations: [{written}]\n").episodes
+    assert episode.perturbation == label
+    assert episode.key == f"explicit/simple/default/{label}/r0"
+
+
+def test_noise_stages_apply_in_written_order():
+    text = f"{MINIMAL}perturbations: [{{gaussian: 10, occlusion: {{patches: 3}}, salt_pepper: 0.4}}]\n"
+    (episode,) = parse(text).episodes
+    assert episode.spec.noise == [Gaussian(sigma=10), Occlusion(patches=3), SaltPepper(probability=0.4)]
+
+
+def test_variation_labels_keep_written_key_order_and_print_booleans_as_on_off():
+    text = f"{MINIMAL}variations: {{walls: [off, true], camera_yaw_rad: [0.1], lighting: [no_sun]}}\n"
+    labels = [episode.variation for episode in parse(text).episodes]
+    assert labels == ["walls=off,camera_yaw_rad=0.1,lighting=no_sun", "walls=on,camera_yaw_rad=0.1,lighting=no_sun"]
+    assert parse(text).episodes[0].spec.camera.yaw_rad == pytest.approx(0.1)
+
+
+def test_brain_label_defaults():
+    (explicit, constant) = parse(EXAMPLE).brains
+    assert explicit == BrainEntry(label="explicit", brain="explicit")
+    assert constant == BrainEntry(label="slow", brain="constant", options=(("speed_mps", 1.5),))
+    (shadow,) = parse(EXAMPLE).shadows
+    assert shadow.label == "constant" and shadow.options == (("speed_mps", 2),)
+
+
+# -- weights and launch options --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def weights_matrix(tmp_path) -> Path:
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "memdccp_v1.ckpt").write_bytes(b"not really a checkpoint")
+    path = tmp_path / "experiments" / "m.yaml"
+    path.parent.mkdir()
+    path.write_text("brains: [{name: memdccp, weights: ../runs/memdccp_v1.ckpt, options: {threads: 1, scale: 1.0e-7,"
+                    " mode: 'on'}}]\ncircuits: [simple]\n")
+    return path
+
+
+def test_weights_resolve_from_the_matrix_folder_whatever_the_working_folder(weights_matrix, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path / "runs")
+    matrix = load_matrix(weights_matrix)
+    (brain,) = matrix.brains
+    assert brain.weights == (tmp_path / "runs" / "memdccp_v1.ckpt").resolve()
+    assert brain.label == "memdccp-memdccp_v1" == matrix.episodes[0].spec.active_brain
+    assert matrix.name == "m" and matrix.source == str(weights_matrix)
+
+
+def test_launch_options_and_to_dict_round_trip(weights_matrix):
+    (brain,) = load_matrix(weights_matrix).brains
+    options = brain.launch_options()
+    assert options[-1] == f"weights={json.dumps(str(brain.weights))}"
+    read_back = {text.partition("=")[0]: yaml.safe_load(text.partition("=")[2]) for text in options}
+    assert read_back == {"threads": 1, "scale": 1e-7, "mode": "on", "weights": str(brain.weights)}
+    assert json.loads(json.dumps(brain.to_dict())) == {
+        "label": "memdccp-memdccp_v1", "brain": "memdccp", "weights": str(brain.weights),
+        "options": {"threads": 1, "scale": 1e-7, "mode": "on"}}
+
+
+# -- exclude and include -------------------------------------------------------------------------------------------
+
+
+def test_exclude_drops_combinations_matching_all_keys():
+    text = EXAMPLE + textwrap.dedent("""\
+        exclude:
+          - {brain: explicit, line: none}
+          - {circuit: montreal, perturbation: {camera: left}}
+          - {walls: off, perturbation: "salt_pepper=0.2+camera=left", repetition: 2}
+        """)
+    episodes = parse(text).episodes
+    keys = {episode.key for episode in episodes}
+    assert not any(key.startswith("explicit/") and "line=none" in key for key in keys)
+    assert not any("/montreal/" in key and "/camera=left/" in key for key in keys)
+    assert not any("walls=off" in key and key.endswith("/salt_pepper=0.2+camera=left/r2") for key in keys)
+    assert "slow/simple/line=none,road=grey,walls=on/none/r0" in keys
+    assert "explicit/montreal/line=red,road=grey,walls=on/salt_pepper=0.2+camera=left/r0" in keys
+    full = 2 * 3 * 12 * 5 * 3
+    first = 1 * 3 * 4 * 5 * 3
+    second = 2 * 1 * 12 * 1 * 3 - 1 * 1 * 4 * 1 * 3
+    third = 2 * 3 * 6 * 1 * 1 - 1 * 3 * 2 * 1 * 1  # less those the first exclude took already
+    assert len(episodes) == full - first - second - third
+
+
+def test_include_adds_combinations_over_repetitions_at_the_end_without_duplicates():
+    text = EXAMPLE + textwrap.dedent("""\
+        exclude: [{brain: explicit, line: none}]
+        include:
+          - {brain: explicit, circuit: monaco}
+          - {brain: slow, circuit: simple, walls: on, line: red, road: grey}
+          - {brain: explicit, circuit: simple, road: grey, line: none, walls: off, perturbation: {gaussian: 10}}
+          - {brain: explicit, circuit: simple, lighting: no_sun, line: white, perturbation: "delay=2"}
+        """)
+    matrix = parse(text)
+    excluded = 2 * 3 * 12 * 5 * 3 - 1 * 3 * 4 * 5 * 3
+    added = [episode.key for episode in matrix.episodes[excluded:]]
+    assert added == [
+        "explicit/monaco/default/none/r0", "explicit/monaco/default/none/r1", "explicit/monaco/default/none/r2",
+        # the second include is already in the product: not repeated
+        "explicit/simple/line=none,road=grey,walls=off/gaussian=10/r0",
+        "explicit/simple/line=none,road=grey,walls=off/gaussian=10/r1",
+        "explicit/simple/line=none,road=grey,walls=off/gaussian=10/r2",
+        "explicit/simple/line=white,lighting=no_sun/delay=2/r0",
+        "explicit/simple/line=white,lighting=no_sun/delay=2/r1",
+        "explicit/simple/line=white,lighting=no_sun/delay=2/r2",
+    ]
+    monaco = matrix.episodes[excluded]
+    assert monaco.spec.world.line == "red" and monaco.spec.noise == [] and monaco.spec.seed == 7
+    last = matrix.episodes[-1].spec
+    assert (last.world.line, last.world.lighting, last.world.walls, last.seed) == ("white", "no_sun", True, 9)
+
+
+# -- errors --------------------------------------------------------------------------------------------------------
+
+
+ERRORS = [
+    # (matrix text, line, words the message must contain)
+    ("brains: [explicit\ncircuits: [simple]\n", 2, ["invalid YAML"]),
+    ("- explicit\n- simple\n", 1, ["top level must be a mapping", "brains"]),
+    (MINIMAL + "repetitons: 2\n", 3, ["'repetitons'", "allowed", "repetitions"]),
+    (MINIMAL + "brains: [constant]\n", 3, ["duplicate key 'brains'", "line 1"]),
+    (MINIMAL + "limits: {laps: 1, laps: 2}\n", 3, ["duplicate key 'laps'"]),
+    ("circuits: [simple]\n", 1, ["missing 'brains'"]),
+    ("brains: [explicit]\n", 1, ["missing 'circuits'"]),
+    ("brains: []\ncircuits: [simple]\n", 1, ["brains", "empty"]),
+    ("brains: [explicit]\ncircuits:\n", 2, ["circuits", "empty"]),
+    ("brains:\n  - explicit\n  - warpdrive\ncircuits: [simple]\n", 3, ["'warpdrive'", "known:", "explicit"]),
+    ("brains: [{label: x}]\ncircuits: [simple]\n", 1, ["needs a name"]),
+    ("brains: [{name: explicit, weight: a.ckpt}]\ncircuits: [simple]\n", 1, ["'weight'", "weights"]),
+    ("brains: [explicit]\ncircuits:\n  - simple\n  - nowhere\n", 4,
+     ["'nowhere'", "montmelo", "drivebench circuits list"]),
+    ("brains: [explicit]\ncircuits: [simple, simple]\n", 2, ["'simple'", "twice"]),
+    (MINIMAL + "variations:\n  colour: [red]\n", 4, ["'colour'", "allowed", "line"]),
+    (MINIMAL + "variations:\n  line: [red, blue]\n", 4, ["'blue'", "red, white, none"]),
+    (MINIMAL + "variations:\n  walls: [on, maybe]\n", 4, ["'maybe'", "on or off"]),
+    (MINIMAL + "variations:\n  camera: [left, upside]\n", 4, ["'upside'", "rotate_down"]),
+    (MINIMAL + "variations:\n  line: []\n", 4, ["line", "empty"]),
+    (MINIMAL + "perturbations:\n  - none\n  - {snow: 0.1}\n", 5, ["'snow'", "salt_pepper", "camera"]),
+    (MINIMAL + "perturbations:\n  - salt_pepper=2\n", 4, ["salt_pepper", "0..1"]),
+    (MINIMAL + "perturbations:\n  - {occlusion: {patches: 2, colour: red}}\n", 4, ["occlusion", "colour"]),
+    (MINIMAL + "perturbations:\n  - {camera: upside}\n", 4, ["'upside'", "known"]),
+    (MINIMAL + "perturbations:\n  - line=white\n", 4, ["'line'", "noise models"]),
+    (MINIMAL + "perturbations:\n  - 3\n", 4, ["perturbation", "3"]),
+    (MINIMAL + "perturbations:\n  - gaussian=10\n  - {gaussian: 10}\n", 5, ["'gaussian=10'", "twice", "line 4"]),
+    (MINIMAL + "limits:\n  laps: 0\n", 4, ["laps", ">= 1", "0"]),
+    (MINIMAL + "limits:\n  laps: 1.5\n", 4, ["laps", "int", "float"]),
+    (MINIMAL + "limits:\n  max_sim_seconds: -3\n", 4, ["max_sim_seconds", "-3"]),
+    (MINIMAL + "limits:\n  lap: 1\n", 4, ["'lap'", "laps"]),
+    (MINIMAL + "limits: 3\n", 3, ["limits", "mapping"]),
+    (MINIMAL + "camera: 320by240\n", 3, ["camera", "320by240", "320x240"]),
+    (MINIMAL + "camera: 4x240\n", 3, ["8..4096", "4x240"]),
+    (MINIMAL + "camera:\n  width_px: 320\n  height_px: tall\n", 5, ["height_px", "str"]),
+    (MINIMAL + "camera:\n  depth_px: 3\n", 4, ["'depth_px'", "width_px"]),
+    (MINIMAL + "seed: -1\n", 3, ["seed", ">= 0", "-1"]),
+    (MINIMAL + "seed: seven\n", 3, ["seed", "'seven'"]),
+    (MINIMAL + "repetitions: 0\n", 3, ["repetitions", ">= 1", "0"]),
+    (MINIMAL + "repetitions: 1000000\n", 3, ["1000000", "at most"]),
+    (MINIMAL + "realtime: maybe\n", 3, ["realtime", "bool"]),
+    (MINIMAL + "name: [a]\n", 3, ["name", "single value"]),
+    ("brains:\n  - {name: memdccp, weights: missing.ckpt}\ncircuits: [simple]\n", 2, ["'missing.ckpt'", "not found"]),
+    ("brains:\n  - explicit\n  - explicit\ncircuits: [simple]\n", 3, ["duplicate brain label 'explicit'", "line 2"]),
+    (MINIMAL + "shadows:\n  - explicit\n", 4, ["duplicate brain label 'explicit'", "line 1"]),
+    ("brains: [{name: explicit, label: my brain}]\ncircuits: [simple]\n", 1, ["'my brain'", "letters, digits"]),
+    ("brains: [{name: explicit, options: {weights: a}}]\ncircuits: [simple]\n", 1, ["weights"]),
+    ("brains: [{name: explicit, options: [1]}]\ncircuits: [simple]\n", 1, ["options", "mapping"]),
+    (MINIMAL + "exclude:\n  - {colour: red}\n", 4, ["'colour'", "brain, circuit, repetition, perturbation"]),
+    (MINIMAL + "exclude:\n  - {line: red}\n", 4, ["'line'", "not a variation axis"]),
+    (MINIMAL + "variations: {camera_yaw_rad: [.nan]}\n", 3, ["camera_yaw_rad", "finite", "nan"]),
+    (MINIMAL + "seed: 1\x07\n", 3, ["invalid YAML", "#x0007"]),
+    (MINIMAL + "exclude:\n  - {circuit: montmelo}\n", 4, ["'montmelo'", "known: simple"]),
+    (MINIMAL + "exclude:\n  - {brain: explicit, repetition: 3}\n", 4, ["repetition", "'3'", "known: 0"]),
+    (MINIMAL + "exclude:\n  - {perturbation: gaussian=3}\n", 4, ["'gaussian=3'", "known: none"]),
+    (MINIMAL + "exclude:\n  - {}\n", 4, ["empty exclude"]),
+    (MINIMAL + "exclude:\n  - {brain: explicit}\n", 3, ["no episodes", "excluded"]),
+    (MINIMAL + "include:\n  - {brain: explicit}\n", 4, ["include", "brain and circuit"]),
+    (MINIMAL + "include:\n  - {brain: constant, circuit: simple}\n", 4, ["'constant'", "labels: explicit"]),
+    (MINIMAL + "include:\n  - {brain: explicit, circuit: nowhere}\n", 4, ["'nowhere'", "drivebench circuits list"]),
+    (MINIMAL + "include:\n  - {brain: explicit, circuit: simple, repetition: 1}\n", 4, ["'repetition'"]),
+    (MINIMAL + "include:\n  - {brain: explicit, circuit: simple, line: blue}\n", 4, ["'blue'"]),
+    (MINIMAL + "seed: !!python/object:os.system ls\n", 3, ["cannot read"]),
+]
+
+
+@pytest.mark.parametrize(("text", "line", "words"), ERRORS, ids=[f"{i}" for i in range(len(ERRORS))])
+def test_mistakes_name_the_line_and_the_value(text, line, words):
+    with pytest.raises(MatrixError) as caught:
+        parse_matrix(text, source="m.yaml")
+    message = str(caught.value)
+    assert "\n" not in message
+    assert message.startswith(f"m.yaml:{line}: "), message
+    assert caught.value.line == line
+    for word in words:
+        assert word in message, message
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(MatrixError, match="nothing.yaml: cannot read the matrix file"):
+        load_matrix(tmp_path / "nothing.yaml")
+
+
+def test_matrix_error_is_a_value_error():
+    assert issubclass(MatrixError, ValueError)
