@@ -63,6 +63,14 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True):
             raise ValueError(f"mode must be peer, client or router, got {self.mode!r}")
 
 
+# The bus of processes that only observe a run (scorer, recorder): a client, whose one link, to the router, exists
+# before any episode starts. As peers they would also open direct links to the other peers as gossip finds them,
+# and a route that changes mid-episode has lost messages to them: once ~10 consecutive steps on every key of a
+# recording, once the last pose of an episode at the scorer. The driving loop stays peer to peer (low latency),
+# and lock-step re-sends a frame nobody answered, so a loss there costs a second, never a step.
+OBSERVER_BUS = BusConfig(mode="client")
+
+
 def zenoh_config(config: BusConfig, *, name: str) -> zenoh.Config:
     """The Zenoh config for one process (see ``reference/transport.md`` §10 for each setting)."""
     import os
@@ -309,6 +317,14 @@ class Bus:
 
     def watch_alive(self, key: str, on_change: Callable[[str, bool], None] | None = None) -> LivelinessWatch:
         return LivelinessWatch(self.session, key, on_change)
+
+    def alive_now(self, key: str, *, timeout_s: float = 1.0) -> set[str]:
+        """The liveliness tokens alive under ``key`` now (a liveliness query: no watch to keep)."""
+        found = set()
+        for reply in self.session.liveliness().get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                found.add(str(reply.ok.key_expr))
+        return found
 
     def serve(self, key: str, handler: Callable[[bytes], bytes]) -> None:
         """A queryable: ``handler(request payload) -> reply payload``; runs on the session's callback thread."""

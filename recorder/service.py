@@ -18,7 +18,7 @@ from typing import Union
 import msgspec
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Inbox
+from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
 from protocol.messages import EpisodeEvent, EventKind
 from protocol.recording import FORMAT_VERSION, RECORDED_MESSAGES, check_image_format
 from protocol.runtime import UserError
@@ -42,7 +42,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     attach: text files (e.g. the run's resolved config) stored in the file's metadata, one entry each.
     """
 
-    bus: BusConfig = BusConfig()
+    bus: BusConfig = OBSERVER_BUS  # a Zenoh client by default: see protocol.bus.OBSERVER_BUS
     run_id: str = "default"
     name: str = "recorder"
     output: str = "recordings/{run_id}.mcap"

@@ -3,6 +3,10 @@
 It scores only the simulator's ground truth (poses), never a camera stream, so noise cannot leak into the score.
 Exactly one EpisodeScore per episode: after the END event, once every pose up to the END's ``last_pose_seq`` has
 arrived (or after a short grace period if some never do, which the score's log line reports).
+
+Every brain's commands are matched by frame (``services.scorer.shadows``): the driving brain's feed the metrics, and
+the others are shadows whose distance to the driver the score reports. BRAIN_SWITCH events say who drove which
+frame; the score names the brain driving at the end and lists the switches.
 """
 
 from __future__ import annotations
@@ -14,12 +18,13 @@ from dataclasses import dataclass, field
 import msgspec
 
 from protocol import keys
-from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Traffic
 from protocol.messages import (
-    Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
+    BrainSwitch, Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
 )
 from services.circuits import CircuitError, load_circuit
 from services.scorer.metrics import EpisodeScorer
+from services.scorer.shadows import CommandMatcher
 
 log = logging.getLogger("drivebench.scorer")
 
@@ -28,9 +33,12 @@ POSE_GRACE_S = 2.0
 
 
 class ScorerConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Config of the scorer process. live_rate_hz: how often live metrics are published (wall clock)."""
+    """Config of the scorer process. live_rate_hz: how often live metrics are published (wall clock).
 
-    bus: BusConfig = BusConfig()
+    bus: a Zenoh client by default (see ``protocol.bus.OBSERVER_BUS``): everything it reads comes through the router.
+    """
+
+    bus: BusConfig = OBSERVER_BUS
     run_id: str = "default"
     name: str = "scorer"
     live_rate_hz: float = 4.0
@@ -41,6 +49,7 @@ class _Episode:
     number: int
     spec: EpisodeSpec
     scorer: EpisodeScorer
+    commands: CommandMatcher
     active_brain: str
     wall_start: float = field(default_factory=time.monotonic)
     last_pose_seq: int = -1
@@ -101,17 +110,27 @@ class ScorerService:
                 log.warning("cannot score episode %d: %s", number, error)
                 return
             scorer = EpisodeScorer(circuit=circuit, laps_target=event.spec.laps, step_s=event.spec.step_s)
-            self._episode = _Episode(number=number, spec=event.spec, scorer=scorer,
+            commands = CommandMatcher(first_driver=event.spec.active_brain, on_driver=_driver_feed(scorer))
+            self._episode = _Episode(number=number, spec=event.spec, scorer=scorer, commands=commands,
                                      active_brain=event.spec.active_brain)
             return
         current = self._current(number)
         if current is None:
             return
         if event.kind == EventKind.BRAIN_SWITCH and event.brain:
-            current.active_brain = event.brain
+            self._on_switch(current, event)
         elif event.kind == EventKind.END:
             current.end = event
             current.end_arrival = time.monotonic()
+
+    @staticmethod
+    def _on_switch(current: _Episode, event: EpisodeEvent) -> None:
+        # The event's stamp is that of the first frame the new brain drove.
+        seq = round(event.header.stamp_ns / current.spec.step_ns)
+        current.commands.add_switch(BrainSwitch(stamp_ns=event.header.stamp_ns, seq=seq, from_brain=event.detail,
+                                                to_brain=event.brain))
+        current.active_brain = event.brain
+        log.info("episode %d: %s drives from frame %d on (was %s)", current.number, event.brain, seq, event.detail)
 
     def _on_pose(self, pose: Pose) -> None:
         current = self._current(pose.header.episode)
@@ -123,10 +142,8 @@ class ScorerService:
 
     def _on_command(self, command: Command) -> None:
         current = self._current(command.header.episode)
-        if current is None or command.brain != current.active_brain:
-            return
-        current.scorer.add_command(stamp_ns=command.header.stamp_ns, speed_mps=command.speed_mps,
-                                   yaw_rate_radps=command.yaw_rate_radps, inference_ns=command.inference_ns)
+        if current is not None:
+            current.commands.add_command(command)
 
     def _maybe_finish(self) -> None:
         current = self._episode
@@ -139,11 +156,12 @@ class ScorerService:
             log.warning("episode %d: scoring without poses %d..%d (never arrived)", current.number,
                         current.last_pose_seq + 1, current.end.last_pose_seq)
         wall_time_s = current.end.wall_elapsed_ns / 1e9 or (time.monotonic() - current.wall_start)
+        shadows = current.commands.finish()  # first: it hands the last driver commands to the metrics
         metrics = current.scorer.finish(wall_time_s=wall_time_s)
         score = EpisodeScore(
             header=Header(run_id=self.config.run_id, episode=current.number, seq=0, stamp_ns=current.end.header.stamp_ns),
             spec=current.spec, reason=current.end.reason or EndReason.STOPPED, brain=current.active_brain,
-            metrics=metrics)
+            metrics=metrics, switches=list(current.commands.switches), shadows=shadows)
         self._scores.publish(score)
         self._scored.add(current.number)
         self._episode = None
@@ -166,6 +184,16 @@ class ScorerService:
             real_time_factor=live["sim_time_s"] / wall_s if wall_s > 0 else 0.0,
             cross_track_m=live["cross_track_m"], speed_mps=live["speed_mps"]))
         self._live_seq += 1
+
+
+def _driver_feed(scorer: EpisodeScorer):
+    """The driving brain's commands, as the metrics take them."""
+
+    def feed(command: Command) -> None:
+        scorer.add_command(stamp_ns=command.header.stamp_ns, speed_mps=command.speed_mps,
+                           yaw_rate_radps=command.yaw_rate_radps, inference_ns=command.inference_ns)
+
+    return feed
 
 
 def main(argv: list[str] | None = None) -> int:
