@@ -1,29 +1,41 @@
 """The brain host process (``python -m brains --brain NAME``): camera frames in, commands out.
 
-It keeps only the newest frame (a brain slower than the camera skips frames instead of lagging behind), calls the
-brain, and publishes a Command stamped with the frame it answers and the inference time. A new episode number on
+In a real-time episode it takes only the newest frame (a brain slower than the camera skips frames instead of lagging
+behind). In lock-step it answers every frame in order, up to ``FRAME_BACKLOG`` behind: the driving brain is never
+behind (the simulator waits for it), and a shadow brain, which the simulator does not wait for, still sees the same
+frames in the same order as the driver, which a brain with memory needs for its commands to be comparable. It calls
+the brain, and publishes a Command stamped with the frame it answers and the inference time. A new episode number on
 the frames resets the brain, seeded from the episode's spec. A frame it has already answered (the simulator
 repeats a frame nobody answered) gets the same command again without calling the brain twice. A frame the noise
 injector dropped gets the last command again (the car keeps doing what the brain last decided), stamped for the new
 frame, without calling the brain.
+
+Each host serves its own control key (``keys.brain_control``): "status", and "stop", which makes it exit cleanly
+(code 0), so a live brain swap can retire the old brain. A host that joins in the middle of an episode (it never saw
+the START event) asks the simulator's "status" for the running episode's spec, so it is seeded as the others were.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any
 
 import msgspec
 from brains.base import Brain, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, make_brain
-from protocol import keys
-from protocol.bus import Bus, BusConfig, Traffic
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, BusError, Traffic
 from protocol.episodes import EpisodeStarts
 from protocol.images import FrameReader
-from protocol.messages import CameraFrame, Command, Header
+from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header
 
 log = logging.getLogger("drivebench.brain")
+
+FRAME_BACKLOG = 64  # lock-step: frames kept for a brain that lags (a shadow); older ones are skipped
+STOP_LINGER_S = 0.2  # after a stop request: time for the reply to leave before the session closes
+STATUS_TIMEOUT_S = 2.0  # a late joiner's query for the running episode's spec
 
 
 class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -56,32 +68,70 @@ class BrainHost:
     def __init__(self, config: BrainHostConfig, bus: Bus, brain: Brain):
         self.config = config
         self.brain = brain
+        self.bus = bus
         self.name = keys.check_name(config.bus_name, what="brain name")
         run = config.run_id
         camera_key = keys.camera_raw(run) if config.camera == "raw" else keys.camera_perturbed(run)
-        self._frames = bus.subscribe(camera_key, CameraFrame, keep_last=1)
+        self._frames = bus.subscribe(camera_key, CameraFrame, keep_last=FRAME_BACKLOG)
+        self._realtime = False  # the current episode's mode: real-time takes the newest frame only
         self._starts = EpisodeStarts(bus, run)
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
         self._last: Command | None = None
         self._seq = 0
         self._reader = FrameReader(log)
+        self._stop = threading.Event()
+        bus.serve(keys.brain_control(run, self.name), self._on_control)
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
     def serve_forever(self) -> None:
+        """Answer frames until a "stop" request; then return (the process exits with code 0)."""
         log.info("brain %s (%s) ready on run %s", self.name, self.config.brain, self.config.run_id)
-        while True:
-            received = self._frames.recv(timeout_s=0.5)
-            if received is not None:
+        while not self._stop.is_set():
+            received = self._frames.recv(timeout_s=0.1)
+            if received is not None and self._realtime and (newer := self._frames.inbox.drain()):
+                received = newer[-1]
+            if received is not None and not self._stop.is_set():
                 self.answer(received.message)
+        time.sleep(STOP_LINGER_S)
+        log.info("brain %s stopped on request", self.name)
+
+    def _on_control(self, payload: bytes) -> bytes:
+        """The control queryable (Zenoh's callback thread: never block)."""
+        request = codec.decode(payload, ControlRequest)
+        if request.action == "status":
+            return codec.encode(ControlReply(ok=True, state="serving", episode=self._episode,
+                                             active_brain=self.name))
+        if request.action == "stop":
+            log.info("stop requested over the bus")
+            self._stop.set()
+            return codec.encode(ControlReply(ok=True, state="stopping", episode=self._episode))
+        return codec.encode(ControlReply(ok=False, detail=f"unknown action {request.action!r} (brain hosts know "
+                                                           f"status and stop)"))
 
     def _seed_for(self, episode: int) -> int:
-        spec = self._starts.spec(episode)
+        """The episode's seed (and mode) from its START event, or from the simulator for a late joiner."""
+        spec = self._starts.spec(episode) or self._running_spec(episode)
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
+        self._realtime = spec.realtime
         return spec.seed
+
+    def _running_spec(self, episode: int) -> EpisodeSpec | None:
+        """The spec of ``episode`` from the simulator's status (we joined after its START), or None."""
+        request = codec.encode(ControlRequest(action="status"))
+        try:
+            payload = self.bus.request(keys.sim_control(self.config.run_id), request, timeout_s=STATUS_TIMEOUT_S)
+            reply = codec.decode(payload, ControlReply) if payload is not None else None
+        except (BusError, codec.DecodeError) as error:
+            log.warning("cannot ask the simulator for episode %d's spec: %s", episode, error)
+            return None
+        if reply is None or reply.episode != episode or reply.spec is None:
+            return None
+        log.info("joined episode %d after its start: seed %d from the simulator's status", episode, reply.spec.seed)
+        return reply.spec
 
     def answer(self, frame: CameraFrame) -> None:
         h = frame.header

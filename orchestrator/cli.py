@@ -1,6 +1,8 @@
 """The ``drivebench`` command.
 
     drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--record F.mcap] [--json] ...
+    drivebench swap BRAIN [--weights CKPT] [--name NAME] [--run RUN_ID] [--router EP] [--keep-old]
+    drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR
     drivebench recorder info|repair, replay, dataset build|collect, train, export, circuits list|show|import
 
 ``run`` starts a local stack (embedded router, simulator, brain, scorer: one process each), drives one episode,
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 import uuid
@@ -25,6 +28,7 @@ import yaml
 from brains.registry import brain_names
 from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError
+from orchestrator.matrix_cli import MatrixUsageError
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
@@ -59,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="checkpoint (or exported .onnx) of a neural brain (drivebench train makes them)")
     run.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
                      help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
+    run.add_argument("--shadow", action="append", default=[], metavar="BRAIN[=CKPT]",
+                     help="a shadow brain: sees the same frames, drives nothing; the score says how far its commands "
+                          "were from the driver's (repeatable; bus name BRAIN, or BRAIN-shadowN when taken)")
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
     run.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
@@ -81,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
     run.add_argument("--record-images", choices=("raw", "jpeg"), default="raw",
                      help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)")
+    from orchestrator.swap import add_swap_command
+
+    add_swap_command(commands)  # drivebench swap: on a running `drivebench run`
 
     recording_cli.add_commands(commands)
     recording_cli.add_dataset_commands(commands, parse_camera)
@@ -89,6 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_train_command(commands)
     add_export_command(commands)
+    from orchestrator.matrix_cli import add_matrix_command
+    from orchestrator.matrix_report import add_report_command
+
+    add_matrix_command(commands)
+    add_report_command(commands)
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
@@ -157,10 +172,11 @@ def command_run(args: argparse.Namespace) -> int:
         if not args.weights.is_file():
             raise UsageError(f"--weights: no such file {args.weights}")
         options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
-    brain = BrainLaunch(args.brain, options=options)
+    brains = [BrainLaunch(args.brain, options=options)]
+    brains += shadow_launches(args.shadow, taken={args.brain})
     (run_dir / "config.yaml").write_text(yaml.safe_dump({
         "run_id": run_id, "episode": msgspec.to_builtins(spec),
-        "brains": [{"brain": brain.brain, "name": brain.bus_name, "options": list(brain.options)}],
+        "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
     }, sort_keys=False))
     print(f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
           f"camera {spec.camera.width_px}x{spec.camera.height_px}, "
@@ -169,8 +185,9 @@ def command_run(args: argparse.Namespace) -> int:
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = Progress(spec.laps, enabled=sys.stderr.isatty())
     try:
-        with LocalStack(run_id=run_id, run_dir=run_dir, brains=[brain], record=args.record,
+        with LocalStack(run_id=run_id, run_dir=run_dir, brains=brains, record=args.record,
                         record_options=(f"image_format={args.record_images}",)) as stack:
+            stack.write_stack_file()  # drivebench swap finds the running stack through it
             score = stack.run_episode(spec, on_live=progress.update)
     finally:
         progress.close()
@@ -179,6 +196,26 @@ def command_run(args: argparse.Namespace) -> int:
     if args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
+
+
+def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]:
+    """``--shadow BRAIN[=CKPT]`` as brain launches; a name already taken becomes ``BRAIN-shadowN``."""
+    launches = []
+    taken = set(taken)
+    for item in shadows:
+        brain, _, weights = item.partition("=")
+        if brain not in brain_names():
+            raise UsageError(f"--shadow: unknown brain {brain!r} (known: {', '.join(brain_names())})")
+        options: tuple[str, ...] = ()
+        if weights:
+            if not Path(weights).is_file():
+                raise UsageError(f"--shadow {brain}: no such weights file {weights}")
+            options = (f"weights={json.dumps(str(Path(weights).resolve()))}",)
+        name = brain if brain not in taken else next(f"{brain}-shadow{n}" for n in range(1, len(taken) + 2)
+                                                     if f"{brain}-shadow{n}" not in taken)
+        taken.add(name)
+        launches.append(BrainLaunch(brain, name=name, options=options))
+    return launches
 
 
 def command_circuits(args: argparse.Namespace) -> int:
@@ -230,6 +267,10 @@ def main(argv: list[str] | None = None) -> int:
             return command_run(args)
         if args.command == "circuits":
             return command_circuits(args)
+        if args.command == "swap":
+            from orchestrator.swap import run_swap_command
+
+            return run_swap_command(args)
         if args.command == "train":
             from brains.train_cli import run_train
 
@@ -238,8 +279,16 @@ def main(argv: list[str] | None = None) -> int:
             from brains.neural.export import run_export
 
             return run_export(args)
+        if args.command == "matrix":
+            from orchestrator.matrix_cli import run_matrix_command
+
+            return run_matrix_command(args)
+        if args.command == "report":
+            from orchestrator.matrix_report import run_report
+
+            return run_report(args)
         return recording_cli.run_command(args)
-    except (UsageError, recording_cli.RecordingUsageError) as error:
+    except (UsageError, recording_cli.RecordingUsageError, MatrixUsageError) as error:
         print(f"drivebench: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except (StackError, BusError) as error:
@@ -248,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `drivebench ... | head`: the reader has all it wanted
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - so the interpreter's final flush does not fail
+        return EXIT_OK
     except SystemExit as stop:
         if isinstance(stop.code, int) and stop.code > 128:  # our SIGTERM handler: the stack is already stopped
             print("drivebench: terminated; every process stopped", file=sys.stderr)

@@ -21,17 +21,43 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Inbox
+from protocol.bus import Bus, BusConfig, BusError, Inbox
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
 
 log = logging.getLogger("drivebench.launcher")
 
 STOP_GRACE_S = 5.0
+STACK_FILE = "stack.json"  # in the run folder while ``drivebench run`` runs: how ``drivebench swap`` finds the stack
+FOREIGN_BRAIN_STOP_S = 3.0
 RECORDER_STOP_GRACE_S = 30.0  # finishing a recording (drain, summary, fsync) must not be cut short
 
 
 class StackError(RuntimeError):
     """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
+
+
+class StackFailure(StackError):
+    """An episode the stack failed, typed for results: ``kind`` is one of ``orchestrator.results.FAILURE_KINDS``.
+
+    ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
+    ``brain_lost`` and is scored), else None.
+    """
+
+    def __init__(self, kind: str, detail: str, *, score: EpisodeScore | None = None):
+        super().__init__(detail)
+        self.kind = kind
+        self.score = score
+
+
+class EpisodeAborted(StackError):
+    """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
+
+
+# Which failure a dead or vanished process of each role means for its episode.
+FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
+                   "noise": "scorer_died", "recorder": "scorer_died", "router": "simulator_died"}
+# After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
+SCORE_AFTER_DEATH_S = 1.5
 
 
 def free_loopback_port() -> int:
@@ -77,14 +103,18 @@ class LocalStack:
     brains: list[BrainLaunch] = field(default_factory=lambda: [BrainLaunch("explicit")])
     startup_timeout_s: float = 60.0
     embed_router: bool = True  # False: the router is a child process too (``python -m services.router``)
+    router_endpoint: str | None = None  # join this running router instead (a matrix's workers share one)
     record: Path | None = None  # an MCAP file: a recorder process records the whole run to it
     record_options: tuple[str, ...] = ()  # recorder config overrides, e.g. ("image_format=jpeg",)
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
-        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.bus: Bus | None = None
+        self._watch = None
+        self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
+        # the simulator itself ends the episode with brain_lost when the active brain's token goes)
 
     def __enter__(self) -> LocalStack:
         try:
@@ -101,13 +131,15 @@ class LocalStack:
 
     def start(self) -> None:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
-        if self.embed_router:
+        if self.router_endpoint is not None:
+            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}")
+        elif self.embed_router:
             self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher")
         else:
             self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
             self._wait_for_router()
             self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher")
-        watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer"),
                   keys.alive(self.run_id, "noise", "noise")}
         if self.record is not None:
@@ -129,6 +161,7 @@ class LocalStack:
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
             raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})")
+        self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
     def _recorder_argv(self) -> list[str]:
@@ -171,9 +204,25 @@ class LocalStack:
     def _dead_child_reason(self) -> str | None:
         for child in self.children:
             code = child.process.poll()
+            if code == 0 and child.role == "brain":
+                continue  # stopped on request (a live swap retired it): not a failure
             if code is not None:
                 detail = child.last_log_line()
                 return f"{child.role} {child.name!r} exited with code {code}" + (f": {detail}" if detail else "")
+        return None
+
+    def dead_child_reason(self) -> str | None:
+        """Which process of this stack has exited, with its exit code and last log line (None: all running)."""
+        return self._dead_child_reason()
+
+    def _failure(self) -> StackFailure | None:
+        """A process of this stack that died, or a required liveliness token that vanished, as a typed failure."""
+        if (dead := self._dead_child_reason()) is not None:
+            role = dead.split(" ", 1)[0]
+            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), dead)
+        if self._watch is not None and (gone := self._required - self._watch.alive()):
+            _, role, name = keys.parse_alive(sorted(gone)[0])
+            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
         return None
 
     def child(self, role: str, name: str) -> Child:
@@ -183,12 +232,50 @@ class LocalStack:
         raise KeyError(f"{role}/{name}")
 
     def close(self) -> None:
+        self._stop_foreign_brains()
         # The recorder stops last, so it still records whatever the others publish while stopping.
         self._stop([c for c in self.children if c.role != "recorder"], grace_s=STOP_GRACE_S)
         self._stop([c for c in self.children if c.role == "recorder"], grace_s=RECORDER_STOP_GRACE_S)
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+        self._remove_stack_file()
+
+    def write_stack_file(self) -> Path:
+        """Write ``<run_dir>/stack.json`` ({"router", "run_id", "pid"}) so that ``drivebench swap`` finds this running
+        stack; :meth:`close` removes it."""
+        path = self.run_dir / STACK_FILE
+        path.write_text(json.dumps({"router": self.endpoint, "run_id": self.run_id, "pid": os.getpid()}) + "\n")
+        return path
+
+    def _remove_stack_file(self) -> None:
+        path = self.run_dir / STACK_FILE
+        try:
+            if json.loads(path.read_text()).get("pid") == os.getpid():
+                path.unlink()
+        except (OSError, ValueError, AttributeError):
+            pass  # none, or not ours
+
+    def _stop_foreign_brains(self, *, timeout_s: float = FOREIGN_BRAIN_STOP_S) -> None:
+        """Ask every brain alive on this run that is not our child (swapped in by ``drivebench swap``) to stop, and
+        wait until its token is gone: a swapped-in brain must not outlive the stack."""
+        if self.bus is None:
+            return
+        ours = {child.name for child in self.children if child.role == "brain"}
+        try:
+            foreign = {name for _, role, name in map(keys.parse_alive, self.bus.alive_now(keys.alive_all(self.run_id)))
+                       if role == "brain" and name not in ours}
+            for name in sorted(foreign):
+                log.info("stopping brain %s (not started by this stack)", name)
+                self.bus.request(keys.brain_control(self.run_id, name), codec.encode(ControlRequest(action="stop")),
+                                 timeout_s=2.0)
+        except (BusError, ValueError) as error:
+            log.warning("could not stop the brains this stack did not start: %s", error)
+            return
+        deadline = time.monotonic() + timeout_s
+        gone = {keys.alive(self.run_id, "brain", name) for name in foreign}
+        while gone and gone & self.bus.alive_now(keys.alive_all(self.run_id)) and time.monotonic() < deadline:
+            time.sleep(0.1)
 
     @staticmethod
     def _stop(children: list[Child], *, grace_s: float) -> None:
@@ -207,31 +294,47 @@ class LocalStack:
     # -- episodes --
 
     def run_episode(self, spec: EpisodeSpec, *, on_live: Callable[[LiveMetrics], None] | None = None,
-                    wall_timeout_s: float | None = None) -> EpisodeScore:
-        """Start one episode and wait for its score. ``wall_timeout_s`` guards against a stack that stops moving."""
+                    wall_timeout_s: float | None = None, abort: Callable[[], bool] | None = None) -> EpisodeScore:
+        """Start one episode and wait for its score.
+
+        ``wall_timeout_s`` guards against a stack that stops moving. ``abort`` is polled a few times a second: when
+        it returns True the episode is stopped and :class:`EpisodeAborted` raised. A process that dies, or a
+        required liveliness token that vanishes, raises :class:`StackFailure` within a second. A dead brain is
+        different: the simulator ends its episode with ``brain_lost`` and the scorer scores it, so the score is
+        returned; only when no score comes within ``SCORE_AFTER_DEATH_S`` does it raise (kind ``brain_died``).
+        """
         assert self.bus is not None, "start the stack first"
         inbox = Inbox()
         subscriptions = [self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
                          self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox)]
         try:
-            return self._await_score(spec, inbox, on_live=on_live, wall_timeout_s=wall_timeout_s)
+            return self._await_score(spec, inbox, on_live=on_live, wall_timeout_s=wall_timeout_s, abort=abort)
         finally:
             for subscription in subscriptions:
                 subscription.close()
 
-    def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s) -> EpisodeScore:
+    def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s, abort) -> EpisodeScore:
         reply = self._control(ControlRequest(action="start", spec=spec))
         if not reply.ok:
-            raise StackError(f"the simulator refused the episode: {reply.detail}")
+            raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
         episode = reply.episode
         guard = wall_timeout_s or (spec.max_sim_seconds * 20 + 60)
         deadline = time.monotonic() + guard
+        failure: StackFailure | None = None
+        failure_deadline = 0.0
         while True:
-            if (dead := self._dead_child_reason()) is not None:
-                raise StackError(dead)
+            if failure is None and (failure := self._failure()) is not None:
+                if failure.kind != "brain_died":
+                    raise failure
+                failure_deadline = time.monotonic() + SCORE_AFTER_DEATH_S
+            if failure is not None and time.monotonic() > failure_deadline:
+                raise failure
+            if abort is not None and abort():
+                self._control(ControlRequest(action="stop"), attempts=1)
+                raise EpisodeAborted(f"episode {episode} abandoned")
             if time.monotonic() > deadline:
-                self._control(ControlRequest(action="stop"))
-                raise StackError(f"episode {episode} not scored after {guard:.0f} s of wall time")
+                self._control(ControlRequest(action="stop"), attempts=1)
+                raise StackFailure("wall_timeout", f"episode {episode} not scored after {guard:.0f} s of wall time")
             received = inbox.recv(timeout_s=0.2)
             if received is None:
                 continue
@@ -239,7 +342,7 @@ class LocalStack:
             if message.header.episode != episode:
                 continue
             if isinstance(message, EpisodeScore):
-                return message
+                return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
             if on_live is not None:
                 on_live(message)
 
@@ -251,4 +354,5 @@ class LocalStack:
             if payload is not None:
                 return codec.decode(payload, ControlReply)
             time.sleep(0.2)
-        raise StackError(f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}")
+        raise StackFailure("simulator_died",
+                           f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}")

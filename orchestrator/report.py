@@ -38,5 +38,20 @@ def metrics_table(score: EpisodeScore) -> str:
         ("frame-to-command latency p50 / p95", f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms"),
         ("sim time / wall time", f"{m.sim_time_s:.2f} s / {m.wall_time_s:.2f} s (RTF {m.real_time_factor:.2f}x)"),
     ]
+    rows += switch_rows(score) + shadow_rows(score)
     width = max(len(name) for name, _ in rows)
     return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)
+
+
+def switch_rows(score: EpisodeScore) -> list[tuple[str, str]]:
+    """One row per live brain switch: who took over from whom, at which frame and sim time."""
+    return [("brain switch", f"{switch.from_brain} -> {switch.to_brain} at frame {switch.seq} "
+                             f"({switch.stamp_ns / 1e9:.2f} s)") for switch in score.switches]
+
+
+def shadow_rows(score: EpisodeScore) -> list[tuple[str, str]]:
+    """One row per shadow brain: its distance to the driving brain's commands over the frames both answered."""
+    return [(f"shadow {shadow.brain} vs driver",
+             f"|dv| mean {shadow.speed_mae_mps:.3f} m/s, |dw| mean / rms / max {shadow.yaw_rate_mae_radps:.3f} / "
+             f"{shadow.yaw_rate_rmse_radps:.3f} / {shadow.yaw_rate_max_abs_radps:.3f} rad/s over {shadow.frames} "
+             f"frames") for shadow in score.shadows]

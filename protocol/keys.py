@@ -8,6 +8,7 @@ Layout (``<p>`` = ``drivebench/run/<run_id>``, so ``<p>/**`` is one run and runs
     <p>/sim/events               EpisodeEvent
     <p>/sim/control              queryable: ControlRequest -> ControlReply
     <p>/brain/<brain>/cmd        Command of one brain (the simulator applies only the active one)
+    <p>/brain/<brain>/control    queryable of one brain host: ControlRequest -> ControlReply (status, stop)
     <p>/scorer/live              LiveMetrics
     <p>/scorer/score             EpisodeScore
 
@@ -79,6 +80,11 @@ def sim_control(run_id: str) -> str:
 
 def command(run_id: str, brain: str) -> str:
     return f"{run_prefix(run_id)}/brain/{check_name(brain, what='brain name')}/cmd"
+
+
+def brain_control(run_id: str, brain: str) -> str:
+    """Control queryable of one brain host (``status``, ``stop``)."""
+    return f"{run_prefix(run_id)}/brain/{check_name(brain, what='brain name')}/control"
 
 
 def commands_all(run_id: str) -> str:

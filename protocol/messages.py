@@ -300,7 +300,8 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
 class EpisodeEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeEvent.v1", tag_field=TAG_FIELD):
     """Episode life cycle, published by the simulator.
 
-    START carries the spec. LAP carries ``lap`` (1-based). BRAIN_SWITCH carries ``brain``.
+    START carries the spec. LAP carries ``lap`` (1-based). BRAIN_SWITCH carries the new driving ``brain`` and the
+    previous one in ``detail``; its stamp is that of the first frame whose command comes from the new brain.
     END carries ``reason``, ``last_pose_seq`` (so a scorer knows when it has every pose) and ``wall_elapsed_ns``.
     """
 
@@ -367,32 +368,84 @@ class EpisodeMetrics(msgspec.Struct, frozen=True, kw_only=True):
     inference_p95_ms: float
 
 
+class BrainSwitch(msgspec.Struct, frozen=True, kw_only=True):
+    """One live switch of the driving brain within an episode (from a BRAIN_SWITCH event).
+
+    stamp_ns: sim stamp of the first frame whose command came from ``to_brain``.
+    seq: that frame's sequence number (camera frame and pose ``header.seq``).
+    from_brain / to_brain: bus names of the brain that drove before and of the one that drives from ``seq`` on.
+    """
+
+    stamp_ns: int
+    seq: int
+    from_brain: str
+    to_brain: str
+
+
+class ShadowDistance(msgspec.Struct, frozen=True, kw_only=True):
+    """How far a shadow brain's commands were from the driving brain's, over the frames both answered.
+
+    A shadow receives the same frames as the driver and publishes commands that drive nothing. A brain that drove
+    part of the episode is a shadow for the frames it did not drive.
+
+    brain: the shadow's bus name. frames: frames both the shadow and the driver answered.
+    speed_mae_mps: mean |v_shadow - v_driver|. yaw_rate_mae_radps / yaw_rate_rmse_radps / yaw_rate_max_abs_radps:
+        mean, root-mean-square and largest |w_shadow - w_driver|. All 0.0 when ``frames`` is 0.
+    """
+
+    brain: str
+    frames: int
+    speed_mae_mps: float
+    yaw_rate_mae_radps: float
+    yaw_rate_rmse_radps: float
+    yaw_rate_max_abs_radps: float
+
+
 class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeScore.v1", tag_field=TAG_FIELD):
-    """The one final score of an episode, published by the scorer."""
+    """The one final score of an episode, published by the scorer.
+
+    brain: the brain driving at the end of the episode. switches: live brain switches, in order. shadows: one
+    entry per brain that answered frames it did not drive, by name.
+    """
 
     header: Header
     spec: EpisodeSpec
     reason: EndReason
     brain: str
     metrics: EpisodeMetrics
+    switches: list[BrainSwitch] = []
+    shadows: list[ShadowDistance] = []
 
 
 class ControlRequest(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlRequest.v1",
                      tag_field=TAG_FIELD):
-    """Run control, sent as a query to the simulator.
+    """Run control, sent as a query to the simulator (``keys.sim_control``) or to one brain host
+    (``keys.brain_control``).
 
-    action: "start" (needs ``spec``), "stop", or "status".
+    action, simulator: "start" (needs ``spec``), "stop", "status", or "switch" (needs ``brain``: make that alive
+        brain the driving one from the next frame on). Brain host: "status" or "stop" (the host exits cleanly).
     """
 
     action: str
     spec: EpisodeSpec | None = None
+    brain: str = ""
 
 
 class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlReply.v1", tag_field=TAG_FIELD):
+    """Answer to a :class:`ControlRequest`.
+
+    ok: the request was accepted; otherwise ``detail`` says why not. episode: the current (or next) episode number,
+    -1 before the first. state: the server's state ("idle", "starting", "running"; a brain host: "serving").
+    active_brain: the brain driving now (simulator). spec: the running episode's spec (simulator "status" while an
+    episode runs), so a process that joined mid-episode can set up as the episode's START told the others.
+    """
+
     ok: bool
     detail: str = ""
     episode: int = -1
     state: str = ""
+    active_brain: str = ""
+    spec: EpisodeSpec | None = None
 
 
 BUS_MESSAGES: tuple[type[msgspec.Struct], ...] = (

@@ -1,9 +1,14 @@
 """The simulator process: wires :class:`EpisodeSim` to the bus.
 
 Publishes camera frames (ground truth), poses and episode events; applies the active brain's commands; answers run
-control queries (start / stop / status). Lock-step by default: publish frame n, wait for the active brain's command
-for frame n, step. A brain that does not answer in time, or whose liveliness token vanishes, ends the episode with
-a typed reason; nothing stalls silently.
+control queries (start / stop / status / switch). Lock-step by default: publish frame n, wait for the active brain's
+command for frame n, step. A brain that does not answer in time, or whose liveliness token vanishes, ends the episode
+with a typed reason; nothing stalls silently.
+
+Live brain switch: "switch" makes another alive brain the active one at once; the command for the frame being
+waited for (lock-step) or applied next (real-time) comes from it, even when it arrived before the switch (the
+commands of the current frame are kept per brain). A BRAIN_SWITCH event with that frame's stamp records it, so no
+step is lost and the episode goes on.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import time
 import msgspec
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
 from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
@@ -59,7 +64,11 @@ class SimulatorService:
         self._commands = Inbox()
         bus.subscribe(keys.commands_all(run), Command, inbox=self._commands)
         self._alive_brains: set[str] = set()
-        self._alive_lock = threading.Lock()
+        self._alive_lock = threading.Lock()  # guards the alive brains, the active brain and its switches
+        self._active_brain = ""
+        self._switches: list[tuple[str, str]] = []  # (from, to) accepted, not yet announced by an event
+        self._spec: EpisodeSpec | None = None
+        self._event_seq = 0
         bus.watch_alive(keys.alive_all(run), self._on_liveliness)
         self._requests: queue.Queue[tuple[EpisodeSpec, Circuit]] = queue.Queue()
         self._state = "idle"
@@ -85,10 +94,50 @@ class SimulatorService:
         with self._alive_lock:
             return name in self._alive_brains
 
+    def _active(self) -> str:
+        with self._alive_lock:
+            return self._active_brain
+
+    def _active_alive(self) -> bool:
+        """Whether the active brain is alive; read together, so a switch never races a brain's departure."""
+        with self._alive_lock:
+            return self._active_brain in self._alive_brains
+
+    def _status(self) -> ControlReply:
+        running = self._state == "running"
+        return ControlReply(ok=True, state=self._state, episode=self._episode, active_brain=self._active(),
+                            spec=self._spec if running else None)
+
+    def _switch(self, brain: str) -> ControlReply:
+        """Make ``brain`` the active brain from the frame whose command is awaited next (callback thread)."""
+        if self._state != "running":
+            return ControlReply(ok=False, detail=f"no episode is running (simulator {self._state})", state=self._state,
+                                episode=self._episode, active_brain=self._active())
+        if not brain:
+            return ControlReply(ok=False, detail="switch needs a brain name", state=self._state)
+        with self._alive_lock:
+            previous = self._active_brain
+            if brain not in self._alive_brains:
+                detail = f"brain {brain!r} is not alive"
+            elif brain == previous:
+                detail = f"brain {brain!r} is already the active brain"
+            else:
+                detail = ""
+                self._active_brain = brain
+                self._switches.append((previous, brain))
+        if detail:
+            return ControlReply(ok=False, detail=detail, state=self._state, episode=self._episode,
+                                active_brain=previous)
+        log.info("switch requested: %s -> %s", previous, brain)
+        return ControlReply(ok=True, detail=f"{previous} -> {brain} from the next frame", state=self._state,
+                            episode=self._episode, active_brain=brain)
+
     def _on_control(self, payload: bytes) -> bytes:
         request = codec.decode(payload, ControlRequest)
         if request.action == "status":
-            return codec.encode(ControlReply(ok=True, state=self._state, episode=self._episode))
+            return codec.encode(self._status())
+        if request.action == "switch":
+            return codec.encode(self._switch(request.brain))
         if request.action == "stop":
             self._stop_requested.set()
             return codec.encode(ControlReply(ok=True, state=self._state, episode=self._episode))
@@ -119,6 +168,10 @@ class SimulatorService:
                 continue
             self._episode += 1
             self._stop_requested.clear()
+            with self._alive_lock:  # before "running": a switch accepted from now on applies to this episode
+                self._active_brain = spec.active_brain
+                self._switches.clear()
+            self._spec = spec
             self._state = "running"
             try:
                 self.run_episode(spec, circuit)
@@ -129,33 +182,49 @@ class SimulatorService:
         episode = self._episode
         sim = EpisodeSim(spec, scenes=self._scenes, circuit=circuit)
         self._frames = self._frames_latest if spec.realtime else self._frames_lossless
+        if self._state != "running":  # called directly (tests, benchmarks), not through serve_forever
+            with self._alive_lock:
+                self._active_brain = spec.active_brain
+                self._switches.clear()
         self._wait_for_subscribers()
         self._commands.drain()  # answers to an earlier episode are stale
-        event_seq = 0
+        self._event_seq = -1
 
         def header(seq: int, stamp_ns: int) -> Header:
             return Header(run_id=self.config.run_id, episode=episode, seq=seq, stamp_ns=stamp_ns)
 
-        self._events.publish(EpisodeEvent(header=header(event_seq, 0), kind=EventKind.START, spec=spec))
+        self._publish_event(header, EventKind.START, 0, spec=spec)
         log.info("episode %d started: %s", episode, codec.to_json(spec))
         wall_start = time.monotonic_ns()
         stepper = self._realtime_steps if spec.realtime else self._lockstep_steps
         reason = EndReason.STOPPED
         for result in stepper(sim, header):
             if result.lap:
-                event_seq += 1
-                self._events.publish(EpisodeEvent(header=header(event_seq, result.stamp_ns), kind=EventKind.LAP,
-                                                  lap=result.lap))
+                self._publish_event(header, EventKind.LAP, result.stamp_ns, lap=result.lap)
             if result.end is not None:
                 reason = result.end
                 break
         wall_ns = time.monotonic_ns() - wall_start
-        event_seq += 1
-        self._events.publish(EpisodeEvent(header=header(event_seq, sim.stamp_ns), kind=EventKind.END, reason=reason,
-                                          last_pose_seq=sim.seq, wall_elapsed_ns=wall_ns))
+        self._announce_switches(sim, header)  # one accepted after the last frame: the score names the brain
+        self._publish_event(header, EventKind.END, sim.stamp_ns, reason=reason, last_pose_seq=sim.seq,
+                            wall_elapsed_ns=wall_ns)
         log.info("episode %d ended: %s after %.2f s sim, %.2f s wall", episode, reason, sim.stamp_ns / 1e9,
                  wall_ns / 1e9)
         return reason
+
+    def _publish_event(self, header, kind: EventKind, stamp_ns: int, **fields) -> None:
+        self._event_seq += 1
+        self._events.publish(EpisodeEvent(header=header(self._event_seq, stamp_ns), kind=kind, **fields))
+
+    def _announce_switches(self, sim: EpisodeSim, header) -> bool:
+        """Publish a BRAIN_SWITCH event, stamped with the current frame, for each switch accepted since the last
+        call; True when there was one."""
+        with self._alive_lock:
+            switches, self._switches = self._switches, []
+        for previous, brain in switches:
+            self._publish_event(header, EventKind.BRAIN_SWITCH, sim.stamp_ns, brain=brain, detail=previous)
+            log.info("episode %d: %s drives from frame %d on (was %s)", self._episode, brain, sim.seq, previous)
+        return bool(switches)
 
     def _wait_for_subscribers(self) -> None:
         deadline = time.monotonic() + self.config.subscriber_wait_s
@@ -195,13 +264,23 @@ class SimulatorService:
             yield result
 
     def _await_command(self, sim: EpisodeSim, header, spec: EpisodeSpec, frame_sent_ns: int):
-        """(command for the current frame, None) or (None, the reason the episode must end)."""
-        deadline = frame_sent_ns + int(spec.brain_timeout_s * 1e9)
+        """(command for the current frame, None) or (None, the reason the episode must end).
+
+        Every brain's answer to the current frame is kept, so a switch while waiting takes the new brain's answer
+        even if it came first. A switch restarts the timeout: the new brain gets the full time to answer.
+        """
+        timeout_ns = int(spec.brain_timeout_s * 1e9)
+        deadline = frame_sent_ns + timeout_ns
         resend_at = frame_sent_ns + int(RESEND_AFTER_S * 1e9)
+        answers: dict[str, Received] = {}
         while True:
+            if self._announce_switches(sim, header):
+                deadline = max(deadline, time.monotonic_ns() + timeout_ns)
+            if (answer := answers.get(self._active())) is not None:
+                return answer, None
             if self._stop_requested.is_set():
                 return None, EndReason.STOPPED
-            if not self._brain_alive(spec.active_brain):
+            if not self._active_alive():
                 return None, EndReason.BRAIN_LOST
             now = time.monotonic_ns()
             if now >= deadline:
@@ -214,15 +293,19 @@ class SimulatorService:
             if received is None:
                 continue
             command: Command = received.message
-            if (command.brain == spec.active_brain and command.header.episode == self._episode
-                    and command.frame_seq == sim.seq):
-                return received, None
+            if command.header.episode == self._episode and command.frame_seq == sim.seq:
+                answers.setdefault(command.brain, received)  # a repeated answer to a resent frame changes nothing
 
     def _realtime_steps(self, sim: EpisodeSim, header):
-        """Free-running: one step per ``step_s`` of wall time with the latest command of the active brain."""
+        """Free-running: one step per ``step_s`` of wall time with the latest command of the active brain.
+
+        The latest command of every brain is kept, so a newly switched-in brain drives at once with its own latest
+        answer; the timeout counts from its latest command or from the switch, whichever is later.
+        """
         spec = sim.spec
         speed, yaw_rate = 0.0, 0.0
-        last_command_ns = time.monotonic_ns()
+        latest: dict[str, Received] = {}
+        active_since_ns = time.monotonic_ns()
         next_tick = time.monotonic()
         while True:
             self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=0)
@@ -230,14 +313,18 @@ class SimulatorService:
             if (delay := next_tick - time.monotonic()) > 0:
                 time.sleep(delay)
             for received in self._commands.drain():
-                command: Command = received.message
-                if command.brain == spec.active_brain and command.header.episode == self._episode:
-                    speed, yaw_rate = command.speed_mps, command.yaw_rate_radps
-                    last_command_ns = received.arrival_ns
+                if received.message.header.episode == self._episode:
+                    latest[received.message.brain] = received
+            if self._announce_switches(sim, header):
+                active_since_ns = time.monotonic_ns()
+            last_command_ns = active_since_ns
+            if (current := latest.get(self._active())) is not None:
+                speed, yaw_rate = current.message.speed_mps, current.message.yaw_rate_radps
+                last_command_ns = max(last_command_ns, current.arrival_ns)
             ending = None
             if self._stop_requested.is_set():
                 ending = EndReason.STOPPED
-            elif not self._brain_alive(spec.active_brain):
+            elif not self._active_alive():
                 ending = EndReason.BRAIN_LOST
             elif time.monotonic_ns() - last_command_ns > spec.brain_timeout_s * 1e9:
                 ending = EndReason.BRAIN_TIMEOUT

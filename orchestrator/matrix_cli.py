@@ -1,0 +1,97 @@
+"""``drivebench matrix FILE``: run a test matrix into a folder of results and a report.
+
+    drivebench matrix experiments/generalization.yaml -o runs/gen --workers 2 [--record] [--resume] [--plan]
+
+Exit codes: 0 every episode ran; 3 the matrix ran but the stack failed some episodes (listed in the report);
+2 a usage mistake (bad matrix file: one line naming the line); 1 the stack could not run at all; 130 interrupted
+(finished episodes are kept; ``--resume`` runs the rest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+EXIT_SOME_FAILED = 3
+
+
+class MatrixUsageError(Exception):
+    pass
+
+
+def add_matrix_command(commands) -> None:
+    matrix = commands.add_parser(
+        "matrix", help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
+        description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
+                    "as each episode ends, then write DIR/report.html and report.md.")
+    matrix.add_argument("file", type=Path, help="matrix file (YAML)")
+    matrix.add_argument("-o", "--out", type=Path, help="output folder (default: runs/matrix-<name>-<time>)")
+    matrix.add_argument("--workers", type=int, default=1, metavar="N",
+                        help="episodes run at the same time, each on its own stack (default: 1; about a core each)")
+    matrix.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
+    matrix.add_argument("--record-images", choices=("raw", "jpeg"), default="jpeg",
+                        help="camera images in recordings (default: jpeg, ~10x smaller than raw)")
+    matrix.add_argument("--resume", action="store_true",
+                        help="run only the episodes DIR's results do not hold yet (after a crash or Ctrl-C)")
+    matrix.add_argument("--retry-failed", action="store_true",
+                        help="with --resume: also run again the episodes the stack failed")
+    matrix.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+    matrix.add_argument("--no-report", action="store_true", help="do not write the report at the end")
+
+
+def run_matrix_command(args: argparse.Namespace) -> int:
+    from orchestrator.matrix import MatrixError, load_matrix
+    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
+    from orchestrator.results import ResultsError
+
+    try:
+        matrix = load_matrix(args.file)
+    except MatrixError as error:
+        raise MatrixUsageError(str(error)) from None
+    if args.plan:
+        print(plan_table(matrix))
+        return 0
+    if args.workers < 1:
+        raise MatrixUsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.resume and args.out is None:
+        raise MatrixUsageError("--resume needs -o DIR, the folder of the matrix run to resume")
+    if args.retry_failed and not args.resume:
+        raise MatrixUsageError("--retry-failed goes with --resume")
+    out_dir = args.out or Path("runs") / f"matrix-{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if not args.resume and (out_dir / "results.sqlite").exists():
+        raise MatrixUsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
+                               f"choose another -o folder")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(filename=out_dir / "matrix.log", level=logging.INFO,
+                        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
+    options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
+                         resume=args.resume, retry_failed=args.retry_failed)
+    print(f"drivebench: matrix {matrix.name}: {len(matrix.episodes)} episode(s), {args.workers} worker(s); "
+          f"output {out_dir}", file=sys.stderr)
+    display = ProgressDisplay()
+    runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
+    try:
+        progress = runner.run()
+    except ResultsError as error:
+        raise MatrixUsageError(str(error)) from None
+    except KeyboardInterrupt:
+        display.close()
+        print(f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
+              f"`drivebench matrix {args.file} -o {out_dir} --resume` runs the rest", file=sys.stderr)
+        return 130
+    finally:
+        display.close()
+    print(summary_line(progress, out_dir), file=sys.stderr)
+    if not args.no_report:
+        _write_report(out_dir)
+    return EXIT_SOME_FAILED if progress.failed else 0
+
+
+def _write_report(out_dir: Path) -> None:
+    from orchestrator.matrix_report import write_report
+
+    files = write_report(out_dir)
+    print(f"report: {files.html} and {files.markdown}", file=sys.stderr)

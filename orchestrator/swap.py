@@ -1,0 +1,383 @@
+"""``drivebench swap``: replace the driving brain of a running stack, live, without losing a step.
+
+    drivebench swap BRAIN [--weights CKPT] [--brain-option K=V] [--name NAME] [--run RUN_ID] [--router EP]
+                          [--runs-dir runs] [--keep-old] [--timeout S]
+
+How (:func:`swap_brain`): ask the simulator's status for the active brain and the running episode; start the new
+brain host as a detached process (it outlives this command, and is not tied to it as the stack's children are to
+the stack); wait for its liveliness token and for its first command answering a frame of the running episode; send
+"switch" to the simulator (its command for the next frame drives; in lock-step no step is lost); then ask the old
+brain to stop (its control key), unless ``--keep-old``. Without an episode running there is nothing to switch: the
+new brain is left running for the next episode to name it, and the old one is kept.
+
+Finding the stack: ``drivebench run`` writes ``<run folder>/stack.json`` ({"router", "run_id", "pid"}) while it runs.
+Without ``--router``, the newest such file under ``--runs-dir`` whose process is alive (with ``--run``: that run's)
+gives the router and the run id; ``--router EP --run RUN_ID`` reach any stack (compose, another machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from brains.registry import brain_names
+from orchestrator.launcher import STACK_FILE
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, BusError
+from protocol.messages import Command, ControlReply, ControlRequest
+
+EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
+DEFAULT_TIMEOUT_S = 60.0
+STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
+STOP_WAIT_S = 5.0  # how long to wait for the old brain's token to go after it accepted "stop"
+
+
+class SwapError(RuntimeError):
+    """The swap could not be done (no stack, the new brain died or never answered, the switch was refused)."""
+
+
+class SwapUsageError(ValueError):
+    """A usage mistake (unknown brain, bad weights file, a name already taken)."""
+
+
+@dataclass(frozen=True)
+class StackInfo:
+    """Where a running stack is: its router endpoint, run id and, when known, its run folder."""
+
+    router: str
+    run_id: str
+    run_dir: Path | None = None
+
+
+@dataclass(frozen=True)
+class SwapResult:
+    """What a swap did.
+
+    name: the new brain's bus name (``brain`` is its registered brain). old_brain: the brain active before ("" if
+    unknown). switched: the new brain drives now (False: no episode was running). old_stopped: the old brain
+    accepted "stop". episode: the episode switched in, -1 if none. process: the detached brain host.
+    """
+
+    run_id: str
+    brain: str
+    name: str
+    old_brain: str
+    switched: bool
+    old_stopped: bool
+    episode: int
+    log_path: Path
+    process: subprocess.Popen = field(compare=False, repr=False)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def summary(self) -> str:
+        """One line for the user."""
+        if not self.switched:
+            return (f"drivebench: run {self.run_id}: no episode is running; brain {self.name} ({self.brain}, pid "
+                    f"{self.pid}) is up for the next episode, {self.old_brain or 'the old brain'} kept; log "
+                    f"{self.log_path}")
+        old = ("stopped" if self.old_stopped else "kept running") if self.old_brain else "unknown"
+        return (f"drivebench: run {self.run_id}: {self.name} ({self.brain}, pid {self.pid}) drives episode "
+                f"{self.episode} in place of {self.old_brain} ({old}); log {self.log_path}")
+
+
+# -- the swap ----------------------------------------------------------------------------------------------------------
+
+
+def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, options: tuple[str, ...],
+               log_path: Path | None, timeout_s: float = DEFAULT_TIMEOUT_S, keep_old: bool = False) -> SwapResult:
+    """Start brain ``brain`` as ``name`` on the stack at ``router`` / ``run_id`` and make it the driving brain.
+
+    options: constructor options as ``key=value`` YAML overrides (``weights="/abs/ckpt"`` for neural brains).
+    name: its bus name; None = the brain's name, or ``<brain>-2``, ``-3``... when taken.
+    log_path: the new brain host's log file, or a folder to write ``brain-<name>.log`` in (a run folder's ``logs``;
+    None: the temporary folder). timeout_s: for it to come up and to answer its first frame. keep_old: leave the
+    old brain running (it goes on as a shadow).
+    Raises :class:`SwapUsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
+    """
+    if brain not in brain_names():
+        raise SwapUsageError(f"unknown brain {brain!r} (known: {', '.join(brain_names())})")
+    _check_name(run_id, what="run id")
+    with Bus(BusConfig(mode="peer", connect=[router]), name=f"swap-{run_id}") as bus:
+        _wait_for_simulator_token(bus, run_id, router=router)
+        status = _sim_status(bus, run_id, router=router)
+        name = _pick_name(brain, name, _alive_brains(bus, run_id), run_id=run_id)
+        if log_path is None:
+            log_path = Path(tempfile.gettempdir()) / f"drivebench-{run_id}-brain-{name}.log"
+        elif log_path.is_dir():
+            log_path = log_path / f"brain-{name}.log"
+        process = _start_brain(router=router, run_id=run_id, brain=brain, name=name, options=options,
+                               log_path=log_path)
+        try:
+            return _take_over(bus, status, run_id=run_id, brain=brain, name=name, process=process,
+                              log_path=log_path, timeout_s=timeout_s, keep_old=keep_old)
+        except BaseException:
+            _terminate(process)
+            raise
+
+
+def _take_over(bus: Bus, status: ControlReply, *, run_id: str, brain: str, name: str, process: subprocess.Popen,
+               log_path: Path, timeout_s: float, keep_old: bool) -> SwapResult:
+    """Wait until the new brain is up and answering, switch to it, stop the old one."""
+    deadline = time.monotonic() + timeout_s
+    _wait_alive(bus, run_id, name, process=process, log_path=log_path, deadline=deadline)
+    episode = status.episode if status.state == "running" else -1
+    if episode >= 0 and not _wait_first_answer(bus, run_id, name, episode, process=process, log_path=log_path,
+                                               deadline=deadline):
+        episode = -1  # it ended meanwhile
+    old = _sim_status(bus, run_id).active_brain if episode >= 0 else status.active_brain
+    result = SwapResult(run_id=run_id, brain=brain, name=name, old_brain=old, switched=False, old_stopped=False,
+                        episode=episode, log_path=log_path, process=process)
+    if episode < 0:
+        return result
+    reply = _request(bus, keys.sim_control(run_id), ControlRequest(action="switch", brain=name))
+    if reply is None or not reply.ok:
+        raise SwapError(f"the simulator refused the switch to {name}: "
+                        f"{reply.detail if reply is not None else 'no answer'}")
+    stopped = not keep_old and bool(old) and _stop_brain(bus, run_id, old)
+    return SwapResult(run_id=run_id, brain=brain, name=name, old_brain=old, switched=True, old_stopped=stopped,
+                      episode=episode, log_path=log_path, process=process)
+
+
+def _check_name(name: str, *, what: str) -> str:
+    try:
+        return keys.check_name(name, what=what)
+    except ValueError as error:
+        raise SwapUsageError(str(error)) from None
+
+
+def _request(bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = 2.0) -> ControlReply | None:
+    payload = bus.request(key, codec.encode(request), timeout_s=timeout_s)
+    return codec.decode(payload, ControlReply) if payload is not None else None
+
+
+def _sim_status(bus: Bus, run_id: str, *, router: str = "") -> ControlReply:
+    """The simulator's status; retried briefly while a fresh session learns of its queryable."""
+    deadline = time.monotonic() + STATUS_ATTEMPTS_S
+    while True:
+        reply = _request(bus, keys.sim_control(run_id), ControlRequest(action="status"))
+        if reply is not None:
+            return reply
+        if time.monotonic() > deadline:
+            where = f" via {router}" if router else ""
+            raise SwapError(f"no running simulator answers on run {run_id}{where}")
+        time.sleep(0.1)
+
+
+def _wait_for_simulator_token(bus: Bus, run_id: str, *, router: str) -> None:
+    """Until the run's liveliness tokens reach this fresh session (a query right after ``open`` finds none yet):
+    seeing the simulator's says they have, so the brain names alive are known too."""
+    deadline = time.monotonic() + STATUS_ATTEMPTS_S
+    while time.monotonic() < deadline:
+        if any(keys.parse_alive(key)[1] == "simulator" for key in bus.alive_now(keys.alive_all(run_id))):
+            return
+        time.sleep(0.05)
+    raise SwapError(f"no running simulator on run {run_id} via {router}")
+
+
+def _alive_brains(bus: Bus, run_id: str) -> set[str]:
+    tokens = (keys.parse_alive(key) for key in bus.alive_now(keys.alive_all(run_id)))
+    return {name for _, role, name in tokens if role == "brain"}
+
+
+def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) -> str:
+    """``name`` if free; by default the brain's name, else ``<brain>-2``, ``<brain>-3``, ..."""
+    if name:
+        _check_name(name, what="brain name")
+        if name in alive:
+            raise SwapUsageError(f"a brain named {name!r} is already alive on run {run_id}")
+        return name
+    candidates = (brain if n == 1 else f"{brain}-{n}" for n in range(1, len(alive) + 2))
+    return next(candidate for candidate in candidates if candidate not in alive)
+
+
+def _start_brain(*, router: str, run_id: str, brain: str, name: str, options: tuple[str, ...],
+                 log_path: Path) -> subprocess.Popen:
+    """The brain host, detached: its own session, and no parent watch (DRIVEBENCH_PARENT_PID), so that it lives on
+    after this command; the stack stops it (over its control key) when the stack closes."""
+    argv = [sys.executable, "-m", "brains", "--router", router, "--run-id", run_id, "--brain", brain, "--name", name]
+    for option in options:
+        argv += ["--set", f"options.{option}"]
+    env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_PARENT_PID"}
+    env["PYTHONUNBUFFERED"] = "1"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "ab") as log_file:
+        return subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                start_new_session=True)
+
+
+def _died(process: subprocess.Popen, name: str, log_path: Path) -> str | None:
+    """Why the new brain host is gone (exit code and last log line), or None while it runs."""
+    code = process.poll()
+    if code is None:
+        return None
+    try:
+        lines = [line for line in log_path.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        lines = []
+    return f"brain {name!r} exited with code {code}" + (f": {lines[-1]}" if lines else "")
+
+
+def _wait_alive(bus: Bus, run_id: str, name: str, *, process: subprocess.Popen, log_path: Path,
+                deadline: float) -> None:
+    watch = bus.watch_alive(keys.alive(run_id, "brain", name))
+    try:
+        missing = watch.wait_for({keys.alive(run_id, "brain", name)}, timeout_s=max(0.0, deadline - time.monotonic()),
+                                 abort=lambda: _died(process, name, log_path))
+    finally:
+        watch.close()
+    if (dead := _died(process, name, log_path)) is not None:
+        raise SwapError(dead)
+    if missing:
+        raise SwapError(f"brain {name!r} not alive on run {run_id} in time (log {log_path})")
+
+
+def _wait_first_answer(bus: Bus, run_id: str, name: str, episode: int, *, process: subprocess.Popen,
+                       log_path: Path, deadline: float) -> bool:
+    """Wait for the new brain's first command of ``episode``: True, or False if the episode ended meanwhile."""
+    commands = bus.subscribe(keys.command(run_id, name), Command)
+    try:
+        next_status = time.monotonic() + 1.0
+        while True:
+            received = commands.recv(timeout_s=0.1)
+            if received is not None and received.message.header.episode == episode:
+                return True
+            if (dead := _died(process, name, log_path)) is not None:
+                raise SwapError(dead)
+            if time.monotonic() > deadline:
+                raise SwapError(f"brain {name!r} answered no frame of episode {episode} in time (log {log_path})")
+            if time.monotonic() > next_status:
+                status = _sim_status(bus, run_id)
+                if status.state != "running" or status.episode != episode:
+                    return False
+                next_status = time.monotonic() + 1.0
+    finally:
+        commands.close()
+
+
+def _stop_brain(bus: Bus, run_id: str, name: str) -> bool:
+    """Ask brain ``name`` to stop; True once it accepted and its token is gone (or the wait ran out)."""
+    reply = _request(bus, keys.brain_control(run_id, name), ControlRequest(action="stop"))
+    if reply is None or not reply.ok:
+        return False
+    token = keys.alive(run_id, "brain", name)
+    deadline = time.monotonic() + STOP_WAIT_S
+    while token in bus.alive_now(keys.alive_all(run_id)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return True
+
+
+def _terminate(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+# -- finding the stack -------------------------------------------------------------------------------------------------
+
+
+def _pid_alive(pid: object) -> bool:
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def running_stacks(runs_dir: Path) -> list[StackInfo]:
+    """Stacks whose ``stack.json`` lies in ``runs_dir`` or one of its folders and whose process is alive, newest
+    first."""
+    found = []
+    for path in [runs_dir / STACK_FILE, *runs_dir.glob(f"*/{STACK_FILE}")]:
+        try:
+            info = json.loads(path.read_text())
+            mtime = path.stat().st_mtime
+        except (OSError, ValueError):
+            continue
+        if (isinstance(info, dict) and _pid_alive(info.get("pid")) and isinstance(info.get("router"), str)
+                and isinstance(info.get("run_id"), str)):
+            found.append((mtime, StackInfo(router=info["router"], run_id=info["run_id"], run_dir=path.parent)))
+    return [info for _, info in sorted(found, key=lambda item: item[0], reverse=True)]
+
+
+def locate_stack(*, runs_dir: Path, run_id: str | None, router: str | None) -> StackInfo:
+    """The stack to swap on: ``--router`` and ``--run`` when both given, else from the running stacks' files."""
+    stacks = [s for s in running_stacks(runs_dir) if run_id is None or s.run_id == run_id]
+    if router and run_id:
+        return StackInfo(router=router, run_id=run_id, run_dir=stacks[0].run_dir if stacks else None)
+    if not stacks:
+        which = f"run {run_id}" if run_id else "stack"
+        raise SwapError(f"no running {which} found under {runs_dir} (start one with drivebench run, or pass "
+                        f"--router EP --run RUN_ID)")
+    return StackInfo(router=router or stacks[0].router, run_id=stacks[0].run_id, run_dir=stacks[0].run_dir)
+
+
+# -- the command -------------------------------------------------------------------------------------------------------
+
+
+def add_swap_command(commands) -> None:
+    swap = commands.add_parser("swap", help="make another brain drive a running stack, live (lock-step: no step lost)")
+    swap.add_argument("brain", help=f"brain to start ({', '.join(brain_names())})")
+    swap.add_argument("--weights", type=Path, metavar="CKPT", help="checkpoint (or .onnx) of a neural brain")
+    swap.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
+                      help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
+    swap.add_argument("--name", help="its name on the bus (default: the brain's name, or BRAIN-2, -3... if taken)")
+    swap.add_argument("--run", dest="swap_run", metavar="RUN_ID", help="run id (default: the newest running stack)")
+    swap.add_argument("--router", dest="swap_router", metavar="EP",
+                      help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: from the run's stack.json)")
+    swap.add_argument("--runs-dir", type=Path, default=Path("runs"),
+                      help="where drivebench run keeps its run folders (default: runs)")
+    swap.add_argument("--keep-old", action="store_true", help="leave the old brain running (as a shadow)")
+    swap.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
+                      help=f"for the new brain to come up and answer a frame (default: {DEFAULT_TIMEOUT_S:.0f})")
+
+
+def brain_options(brain_option: list[str], weights: Path | None) -> tuple[str, ...]:
+    """``--brain-option`` and ``--weights`` as the brain host's option overrides."""
+    for option in brain_option:
+        if "=" not in option or not option.split("=", 1)[0]:
+            raise SwapUsageError(f"--brain-option must look like KEY=VALUE, got {option!r}")
+    options = tuple(brain_option)
+    if weights is not None:
+        if not weights.is_file():
+            raise SwapUsageError(f"--weights: no such file {weights}")
+        options += (f"weights={json.dumps(str(weights.resolve()))}",)
+    return options
+
+
+def run_swap_command(args: argparse.Namespace) -> int:
+    """``drivebench swap``: one line on stdout when done, one line on stderr when not (exit 2 usage, 1 stack)."""
+    try:
+        if args.brain not in brain_names():
+            raise SwapUsageError(f"unknown brain {args.brain!r} (known: {', '.join(brain_names())})")
+        options = brain_options(args.brain_option, args.weights)
+        stack = locate_stack(runs_dir=args.runs_dir, run_id=args.swap_run, router=args.swap_router)
+        logs = stack.run_dir / "logs" if stack.run_dir is not None else None
+        result = swap_brain(router=stack.router, run_id=stack.run_id, brain=args.brain, name=args.name or None,
+                            options=options, log_path=logs if logs is not None and logs.is_dir() else None,
+                            timeout_s=args.timeout, keep_old=args.keep_old)
+    except SwapUsageError as error:
+        print(f"drivebench: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except (SwapError, BusError) as error:
+        print(f"drivebench: swap failed: {error}", file=sys.stderr)
+        return EXIT_STACK
+    print(result.summary())
+    return EXIT_OK

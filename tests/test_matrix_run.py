@@ -1,0 +1,202 @@
+"""Integration: matrices run end to end on real stacks (real processes, one real Zenoh router, real PyBullet)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from orchestrator.matrix import load_matrix
+from orchestrator.matrix_runner import MatrixRunner, RunOptions
+from orchestrator.results import ResultStore
+
+pytestmark = pytest.mark.integration
+
+SHORT = "limits: {laps: 1, max_sim_seconds: 4}\ncamera: 96x72\n"
+
+
+def write_matrix(folder: Path, body: str) -> Path:
+    path = folder / "m.yaml"
+    path.write_text(body)
+    return path
+
+
+def drivebench(*args: str, **options) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **options)
+
+
+def processes_with(text: str) -> list[int]:
+    """Pids of live processes whose command line contains ``text`` (real /proc, no mocks)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (entry / "stat").read_text().split(") ", 1)[1][0]
+        except OSError:
+            continue
+        if text in cmdline and state != "Z" and int(entry.name) != os.getpid():
+            pids.append(int(entry.name))
+    return pids
+
+
+def started_by(launcher_pid: int) -> list[int]:
+    """Live processes a launcher started (the launcher passes its pid in their environment)."""
+    marker = f"DRIVEBENCH_PARENT_PID={launcher_pid}".encode()
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and marker in (entry / "environ").read_bytes().split(b"\0"):
+                if (entry / "stat").read_text().split(") ", 1)[1][0] != "Z":
+                    pids.append(int(entry.name))
+        except OSError:
+            continue
+    return pids
+
+
+def finished_rows(database: Path) -> list[tuple]:
+    if not database.exists():
+        return []
+    try:
+        with sqlite3.connect(database, timeout=5) as db:
+            return db.execute("SELECT key, run_id, started_at, status FROM episodes ORDER BY idx").fetchall()
+    except sqlite3.OperationalError:  # created but no table yet
+        return []
+
+
+def test_two_episodes_of_different_brains_run_side_by_side_on_one_router(tmp_path):
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: pair
+brains: [explicit, {name: constant, options: {speed_mps: 1.0, yaw_rate_radps: 0.5}}]
+circuits: [simple]
+limits: {laps: 1, max_sim_seconds: 8}
+camera: 96x72
+"""))
+    progress = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=2)).run()
+    assert (progress.done, progress.failed) == (2, 0)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        results = {result.brain: result for result in store.results()}
+    explicit, constant = results["explicit"], results["constant"]
+    # They ran at the same time, on different run ids, and neither saw the other's commands.
+    assert explicit.started_at < constant.ended_at and constant.started_at < explicit.ended_at
+    assert explicit.run_id != constant.run_id
+    assert explicit.score.brain == "explicit" and constant.score.brain == "constant"
+    # The explicit brain drove its 8 s undisturbed; the constant brain circled at 1 m/s into a wall.
+    assert explicit.reason == "time_limit" and explicit.score.metrics.steps == 160
+    assert explicit.score.metrics.completed_distance_m > 15
+    assert constant.reason == "crash"
+    constant_m = constant.score.metrics
+    assert constant_m.completed_distance_m == pytest.approx(1.0 * constant_m.sim_time_s, abs=0.1)
+    assert explicit.score.metrics.command_rate_hz == pytest.approx(20.0, rel=0.05)
+
+
+@pytest.mark.slow
+def test_small_matrix_end_to_end_writes_results_and_report(tmp_path):
+    path = write_matrix(tmp_path, f"""
+name: small
+brains: [explicit, {{name: constant, options: {{speed_mps: 2.0}}}}]
+circuits: [simple, many_curves]
+variations: {{line: [red, white]}}
+{SHORT}""")
+    out = tmp_path / "out"
+    run = drivebench("matrix", str(path), "-o", str(out), "--workers", "2")
+    stdout, stderr = run.communicate(timeout=400)
+    assert run.returncode == 0, stderr
+    rows = finished_rows(out / "results.sqlite")
+    assert len(rows) == 8 and {row[3] for row in rows} == {"done"}
+    with ResultStore(out, create=False) as store:
+        results = store.results()
+    assert {(r.brain, r.circuit, r.variation) for r in results} == {
+        (brain, circuit, f"line={line}") for brain in ("explicit", "constant") for circuit in ("simple", "many_curves")
+        for line in ("red", "white")}
+    for result in results:
+        assert result.score.spec.world.line == result.variation.removeprefix("line=")
+        assert (out / result.trajectory).is_file()
+        assert (out / "episodes" / f"{result.index:04d}" / "score.json").is_file()
+    report = (out / "report.md").read_text()
+    assert "explicit" in report and "constant" in report and "many_curves" in report
+    assert (out / "report.html").is_file() and (out / "episodes.csv").is_file()
+    assert "8 episode(s) run (8 done, 0 failed)" in stderr
+
+
+def test_resume_after_sigkill_reruns_only_what_did_not_finish(tmp_path):
+    path = write_matrix(tmp_path, f"""
+name: resumable
+brains: [{{name: constant, options: {{speed_mps: 1.0}}}}]
+circuits: [simple]
+repetitions: 4
+{SHORT}""")
+    out = tmp_path / "out"
+    first = drivebench("matrix", str(path), "-o", str(out), "--no-report")
+    deadline = time.monotonic() + 120
+    while len(finished_rows(out / "results.sqlite")) < 2:
+        assert first.poll() is None, first.communicate()[1]
+        assert time.monotonic() < deadline, "no episode finished in 120 s"
+        time.sleep(0.1)
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    before = finished_rows(out / "results.sqlite")
+    assert 2 <= len(before) < 4
+    # Its stacks' processes notice that their launcher is gone and stop by themselves: nothing is orphaned.
+    deadline = time.monotonic() + 10
+    while started_by(first.pid):
+        assert time.monotonic() < deadline, f"orphaned stack processes {started_by(first.pid)}"
+        time.sleep(0.2)
+
+    resumed = drivebench("matrix", str(path), "-o", str(out), "--resume", "--no-report")
+    _, stderr = resumed.communicate(timeout=200)
+    assert resumed.returncode == 0, stderr
+    after = finished_rows(out / "results.sqlite")
+    assert len(after) == 4 and {row[3] for row in after} == {"done"}
+    assert [row for row in after if row[0] in {b[0] for b in before}] == before  # finished ones untouched
+    assert f"{4 - len(before)} episode(s) run" in stderr and f"{len(before)} already in the results" in stderr
+
+
+def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path):
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: killing
+brains: [{name: constant, options: {speed_mps: 0.5}}]
+circuits: [simple]
+repetitions: 2
+limits: {laps: 1, max_sim_seconds: 30}
+camera: 96x72
+"""))
+    killed: list[int] = []
+
+    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
+        live = progress.workers[0].live
+        if killed or live is None or live.header.run_id[:6] != "m0000-" or live.sim_time_s < 2.0:
+            return
+        for pid in processes_with(f"--run-id {live.header.run_id}"):
+            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1),
+                          on_change=kill_the_first_brain_2_s_into_its_episode)
+    progress = runner.run()
+    assert killed, "the brain process of the first episode was never found"
+    assert (progress.done, progress.failed) == (1, 1)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        first, second = store.results()
+    assert first.status == "failed" and first.failure_kind == "brain_died", first.failure
+    assert "exited with code -9" in first.failure
+    assert first.reason == "brain_lost" and first.score is not None  # scored up to the moment it died
+    assert second.status == "done" and second.reason == "time_limit"  # a fresh brain drove the next one
+
+
+def test_a_bad_matrix_file_is_one_line_naming_the_line_and_nothing_starts(tmp_path):
+    path = write_matrix(tmp_path, "name: bad\nbrains: [explicit]\ncircuits: [simple, nowhere]\n")
+    run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"))
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 2
+    assert len(stderr.strip().splitlines()) == 1 and ":3:" in stderr and "nowhere" in stderr, stderr
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,196 @@
+"""Integration: live brain swap and shadow brains on real stacks (real processes, real Zenoh on loopback)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from mcap_validation import assert_valid_mcap
+from orchestrator.launcher import BrainLaunch
+from orchestrator.swap import SwapError, swap_brain
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Inbox
+from recorder.reading import read_messages
+from protocol.messages import (
+    CameraSpec, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Pose,
+)
+
+pytestmark = pytest.mark.integration
+
+SMALL = CameraSpec(width_px=160, height_px=120)
+TINY = CameraSpec(width_px=96, height_px=72)
+
+
+def run_in_thread(stack, spec: EpisodeSpec) -> tuple[threading.Thread, dict]:
+    """Run one episode in a thread; its score (or exception) lands in the returned dict."""
+    outcome: dict = {}
+
+    def run() -> None:
+        try:
+            outcome["score"] = stack.run_episode(spec, wall_timeout_s=120)
+        except Exception as error:  # noqa: BLE001 - reported by the test
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, outcome
+
+
+def wait_for(predicate, *, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def control(stack, request: ControlRequest) -> ControlReply:
+    return codec.decode(stack.bus.request(keys.sim_control(stack.run_id), codec.encode(request), timeout_s=2.0),
+                        ControlReply)
+
+
+def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
+    recording = tmp_path / "swap.mcap"
+    stack = make_stack(BrainLaunch("explicit"), record=recording)
+    poses, events = Inbox(), Inbox()
+    stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=poses)
+    stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
+    thread, outcome = run_in_thread(stack, EpisodeSpec(circuit="simple", laps=2, max_sim_seconds=60.0, camera=TINY))
+    wait_for(lambda: poses.received >= 60, timeout_s=60, what="3 s of sim time")  # 20 Hz
+
+    result = swap_brain(router=stack.endpoint, run_id=stack.run_id, brain="explicit", name=None, options=(),
+                        log_path=stack.run_dir / "logs", timeout_s=60)
+    assert (result.name, result.old_brain, result.switched, result.old_stopped) == ("explicit-2", "explicit", True,
+                                                                                     True)
+    assert result.log_path == stack.run_dir / "logs" / "brain-explicit-2.log"
+    assert stack.child("brain", "explicit").process.wait(timeout=10) == 0  # stopped on request, cleanly
+
+    thread.join(timeout=120)
+    score = outcome.get("score")
+    assert score is not None, outcome.get("error")
+    assert score.reason == EndReason.TIME_LIMIT  # not brain_lost: the old brain left after the switch
+    assert score.brain == "explicit-2"
+    assert len(score.switches) == 1
+    switch = score.switches[0]
+    assert (switch.from_brain, switch.to_brain) == ("explicit", "explicit-2")
+    assert 60 <= switch.seq < 1200 and switch.stamp_ns == switch.seq * 50_000_000
+    assert score.metrics.steps == 1200
+    assert score.metrics.command_rate_hz == pytest.approx(20.0, rel=0.02)  # one driving command per frame
+
+    seqs = {received.message.header.seq for received in poses.drain() if received.message.header.episode == 0}
+    assert seqs == set(range(1201))  # every step, none missing, the start pose included
+    switch_events = [r.message for r in events.drain() if r.message.kind == EventKind.BRAIN_SWITCH]
+    assert [(e.brain, e.detail, e.header.stamp_ns) for e in switch_events] == [("explicit-2", "explicit",
+                                                                                switch.stamp_ns)]
+
+    stack.close()  # stops the swapped-in brain too, although the stack did not start it
+    assert result.process.wait(timeout=10) == 0
+
+    # The recording has the switch, in the event and in the score, and both brains' commands; viewers open it.
+    recorded = list(read_messages(recording, keys_glob="*/scorer/score"))
+    assert [r.message for r in recorded] == [score]
+    recorded_events = [r.message for r in read_messages(recording, keys_glob="*/sim/events")]
+    assert [e.brain for e in recorded_events if e.kind == EventKind.BRAIN_SWITCH] == ["explicit-2"]
+    command_keys = {r.key for r in read_messages(recording, keys_glob="*/brain/*/cmd")}
+    assert command_keys == {keys.command(stack.run_id, "explicit"), keys.command(stack.run_id, "explicit-2")}
+    assert_valid_mcap(recording)
+
+
+def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
+    stack = make_stack(BrainLaunch("explicit"))
+    reply = control(stack, ControlRequest(action="switch", brain="explicit"))
+    assert not reply.ok and "no episode is running" in reply.detail
+    with pytest.raises(SwapError, match="brain 'constant' exited with code 2: .*bad options for brain 'constant'"):
+        swap_brain(router=stack.endpoint, run_id=stack.run_id, brain="constant", name=None, options=("warp=9",),
+                   log_path=stack.run_dir / "logs", timeout_s=30)
+    thread, outcome = run_in_thread(stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64,
+                                                                                               height_px=48)))
+    wait_for(lambda: control(stack, ControlRequest(action="status")).state == "running", timeout_s=30,
+             what="the episode to run")
+    status = control(stack, ControlRequest(action="status"))
+    assert status.active_brain == "explicit" and status.spec is not None and status.spec.max_sim_seconds == 4.0
+    reply = control(stack, ControlRequest(action="switch", brain="ghost"))
+    assert not reply.ok and "'ghost' is not alive" in reply.detail
+    reply = control(stack, ControlRequest(action="switch", brain="explicit"))
+    assert not reply.ok and "already the active brain" in reply.detail
+    thread.join(timeout=60)
+    assert outcome["score"].reason == EndReason.TIME_LIMIT and outcome["score"].switches == []
+
+
+def test_shadow_brains_are_scored_against_the_driver(make_stack):
+    stack = make_stack(BrainLaunch("explicit"), BrainLaunch("explicit", name="shadow"), BrainLaunch("constant"))
+    score = stack.run_episode(EpisodeSpec(max_sim_seconds=10.0, camera=SMALL), wall_timeout_s=120)
+    assert score.reason == EndReason.TIME_LIMIT and score.brain == "explicit"
+    assert score.metrics.command_rate_hz == pytest.approx(20.0, rel=0.02)  # shadows' commands drive nothing
+    shadows = {shadow.brain: shadow for shadow in score.shadows}
+    assert set(shadows) == {"shadow", "constant"}
+    twin = shadows["shadow"]
+    assert twin.frames >= 180  # of 200: a shadow may skip a frame, never drives one
+    assert twin.speed_mae_mps < 1e-6 and twin.yaw_rate_max_abs_radps < 1e-6  # the same brain on the same frames
+    constant = shadows["constant"]
+    assert constant.frames >= 180
+    assert constant.yaw_rate_mae_radps > 0.05  # it never steers; the explicit brain does on simple's curves
+    assert constant.speed_mae_mps > 0.5
+
+
+def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_the_swap_command_finds_a_running_stack_by_its_stack_file(tmp_path):
+    out = tmp_path / "run"
+    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--camera",
+                            "96x72", "--out", str(out), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    try:
+        wait_for(lambda: (out / "stack.json").is_file() and "started" in _read(out / "logs" / "simulator.log"),
+                 timeout_s=60, what="the run to start its episode")
+        stack = json.loads((out / "stack.json").read_text())
+        assert stack["pid"] == run.pid and stack["router"].startswith("tcp/127.0.0.1:")
+        swapped = drivebench("swap", "explicit", "--runs-dir", str(tmp_path), timeout=90)
+        assert swapped.returncode == 0, swapped.stderr
+        assert swapped.stdout.count("\n") == 1 and "explicit-2" in swapped.stdout and "stopped" in swapped.stdout
+        stop_episode(stack["router"], stack["run_id"])  # the episode is long: it cannot end before the swap
+        stdout, stderr = run.communicate(timeout=120)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, stderr
+    score = json.loads(stdout)
+    assert score["reason"] == "stopped" and score["brain"] == "explicit-2"
+    assert [(s["from_brain"], s["to_brain"]) for s in score["switches"]] == [("explicit", "explicit-2")]
+    assert not (out / "stack.json").exists()  # removed when the stack closed
+    assert "stopped on request" in _read(out / "logs" / "brain-explicit-2.log")  # the stack stopped it too
+
+
+def test_the_swap_command_without_a_running_stack_says_so_in_one_line(tmp_path):
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "stack.json").write_text(json.dumps({"router": "tcp/127.0.0.1:9", "run_id": "gone",
+                                                             "pid": 2 ** 22 + 1}))  # no such process
+    result = drivebench("swap", "explicit", "--runs-dir", str(tmp_path), timeout=30)
+    assert result.returncode == 1
+    assert "no running stack found" in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    result = drivebench("swap", "hal", "--runs-dir", str(tmp_path), timeout=30)
+    assert result.returncode == 2 and "unknown brain 'hal'" in result.stderr
+
+
+def stop_episode(router: str, run_id: str) -> None:
+    with Bus(BusConfig(mode="peer", connect=[router]), name="test") as bus:
+        for _ in range(50):
+            if bus.request(keys.sim_control(run_id), codec.encode(ControlRequest(action="stop")), timeout_s=2.0):
+                return
+            time.sleep(0.1)
+    raise AssertionError("the simulator did not answer stop")
+
+
+def _read(path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
