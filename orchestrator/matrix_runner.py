@@ -32,7 +32,9 @@ import msgspec
 import numpy as np
 import yaml
 
-from orchestrator.launcher import BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure
+from orchestrator.launcher import (
+    BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure, free_loopback_port,
+)
 from orchestrator.matrix import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol import codec, keys
@@ -124,7 +126,7 @@ class MatrixRunner:
         for episode in todo:
             jobs.put(episode)
         # One router for the whole matrix, embedded here; every episode's processes connect to it.
-        router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{_free_port()}"]), name="matrix-router")
+        router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
         endpoint = router.config.listen[0]
         threads = [threading.Thread(target=self._work, args=(jobs, store, progress, state, endpoint),
                                     name=f"matrix-worker-{i}", daemon=True)
@@ -260,12 +262,6 @@ class MatrixRunner:
 
 def _launch(entry: BrainEntry) -> BrainLaunch:
     return BrainLaunch(entry.brain, name=entry.label, options=entry.launch_options())
-
-
-def _free_port() -> int:
-    from orchestrator.launcher import free_loopback_port
-
-    return free_loopback_port()
 
 
 class Trace:
