@@ -26,16 +26,15 @@ import msgspec
 from brains.base import Brain, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, make_brain
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, BusError, Traffic
-from protocol.episodes import EpisodeStarts
+from protocol.bus import Bus, BusConfig, Traffic
+from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
-from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header
+from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, Header
 
 log = logging.getLogger("drivebench.brain")
 
 FRAME_BACKLOG = 64  # lock-step: frames kept for a brain that lags (a shadow); older ones are skipped
 STOP_LINGER_S = 0.2  # after a stop request: time for the reply to leave before the session closes
-STATUS_TIMEOUT_S = 2.0  # a late joiner's query for the running episode's spec
 
 
 class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -112,26 +111,12 @@ class BrainHost:
 
     def _seed_for(self, episode: int) -> int:
         """The episode's seed (and mode) from its START event, or from the simulator for a late joiner."""
-        spec = self._starts.spec(episode) or self._running_spec(episode)
+        spec = self._starts.spec(episode) or running_spec(self.bus, self.config.run_id, episode)
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
         self._realtime = spec.realtime
         return spec.seed
-
-    def _running_spec(self, episode: int) -> EpisodeSpec | None:
-        """The spec of ``episode`` from the simulator's status (we joined after its START), or None."""
-        request = codec.encode(ControlRequest(action="status"))
-        try:
-            payload = self.bus.request(keys.sim_control(self.config.run_id), request, timeout_s=STATUS_TIMEOUT_S)
-            reply = codec.decode(payload, ControlReply) if payload is not None else None
-        except (BusError, codec.DecodeError) as error:
-            log.warning("cannot ask the simulator for episode %d's spec: %s", episode, error)
-            return None
-        if reply is None or reply.episode != episode or reply.spec is None:
-            return None
-        log.info("joined episode %d after its start: seed %d from the simulator's status", episode, reply.spec.seed)
-        return reply.spec
 
     def answer(self, frame: CameraFrame) -> None:
         h = frame.header

@@ -2,11 +2,43 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
-from protocol import keys
-from protocol.bus import Bus, Inbox
-from protocol.messages import EpisodeEvent, EpisodeSpec, EventKind
+from protocol import codec, keys
+from protocol.bus import Bus, BusError, Inbox
+from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EpisodeSpec, EventKind, Header
+
+log = logging.getLogger("drivebench.episodes")
+
+STATUS_TIMEOUT_S = 2.0
+
+
+def running_spec(bus: Bus, run_id: str, episode: int) -> EpisodeSpec | None:
+    """The spec of ``episode`` from the simulator's status while it runs, else None (and a log line why).
+
+    For a process that sees an episode's messages but missed its START event: it joined late, or its subscription
+    reached the simulator only after START went out. Blocks for up to ``STATUS_TIMEOUT_S``: call it from a main
+    loop, never from a Zenoh callback.
+    """
+    try:
+        payload = bus.request(keys.sim_control(run_id), codec.encode(ControlRequest(action="status")),
+                              timeout_s=STATUS_TIMEOUT_S)
+        reply = codec.decode(payload, ControlReply) if payload is not None else None
+    except (BusError, codec.DecodeError) as error:
+        log.warning("cannot ask the simulator for episode %d's spec: %s", episode, error)
+        return None
+    if reply is None or reply.episode != episode or reply.spec is None:
+        log.warning("missed the start of episode %d, and the simulator no longer runs it", episode)
+        return None
+    log.info("missed the start of episode %d: its spec comes from the simulator's status", episode)
+    return reply.spec
+
+
+def start_event(run_id: str, episode: int, spec: EpisodeSpec) -> EpisodeEvent:
+    """The START event of an episode, exactly as the simulator publishes it."""
+    return EpisodeEvent(header=Header(run_id=run_id, episode=episode, seq=0, stamp_ns=0), kind=EventKind.START,
+                        spec=spec)
 
 
 class EpisodeStarts:

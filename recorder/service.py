@@ -19,6 +19,7 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
+from protocol.episodes import running_spec, start_event
 from protocol.messages import EpisodeEvent, EventKind
 from protocol.recording import FORMAT_VERSION, RECORDED_MESSAGES, check_image_format
 from protocol.runtime import UserError
@@ -80,6 +81,8 @@ class RecorderService:
             self._attach(Path(name))
         self._inbox = Inbox()
         self._bus = bus
+        self._started: set[int] = set()  # episodes whose START is written
+        self._asked: set[int] = set()  # episodes whose missing START we asked the simulator for
         self._subscription = bus.subscribe(keys.run_all(config.run_id), RecordedMessage, inbox=self._inbox)
         bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
 
@@ -109,10 +112,27 @@ class RecorderService:
         return written
 
     def _write(self, key: str, message: msgspec.Struct) -> None:
+        is_start = isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None
+        episode = getattr(getattr(message, "header", None), "episode", None)
+        if is_start and episode in self._started:
+            return  # recovered from the simulator before it arrived: the same message, already written
+        if not is_start and episode is not None and episode not in self._started | self._asked:
+            self._recover_start(episode)
         self.writer.write(key, message)
-        if isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None:
-            self.writer.add_metadata(f"episode:{message.header.episode}", {
+        if is_start:
+            self._started.add(episode)
+            self.writer.add_metadata(f"episode:{episode}", {
                 "run_id": message.header.run_id, "spec": codec.to_json(message.spec)})
+
+    def _recover_start(self, episode: int) -> None:
+        """An episode's messages arrive without its START: we joined late, or the simulator published START before
+        our subscription reached it. START holds nothing but the spec, so ask the simulator for the running
+        episode's spec and write the very message it published (a recording without START cannot be replayed or
+        turned into a dataset)."""
+        self._asked.add(episode)  # once per episode
+        spec = running_spec(self._bus, self.config.run_id, episode)
+        if spec is not None:
+            self._write(keys.events(self.config.run_id), start_event(self.config.run_id, episode, spec))
 
     def close(self) -> None:
         self._subscription.close()

@@ -7,10 +7,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -18,7 +20,9 @@ from mcap_validation import assert_valid_mcap
 from orchestrator.launcher import free_loopback_port
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
-from protocol.messages import CameraFrame, CameraSpec, Command, EndReason, EpisodeSpec, Header, Pose
+from protocol.messages import (
+    CameraFrame, CameraSpec, Command, ControlRequest, EndReason, EpisodeSpec, Header, Pose,
+)
 from recorder.reading import RecordingError, read_messages, recording_info
 from recorder.repair import repair
 from recorder.replay import rebased
@@ -269,3 +273,28 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     expected = sorted((keys.with_run_id(r.key, "again"), codec.encode(rebased(r.message, "again"))) for r in original)
     assert sorted((r.key, codec.encode(r.message)) for r in replayed) == expected
     assert_valid_mcap(first, second)
+
+
+@pytest.mark.integration
+def test_a_recorder_that_joins_mid_episode_writes_the_start_the_simulator_published(tmp_path, make_stack):
+    stack = make_stack()
+    spec = EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48))
+    episode = threading.Thread(target=stack.run_episode, args=(spec,), daemon=True)
+    episode.start()
+    time.sleep(1.0)  # the START event is long gone
+    output = tmp_path / "late.mcap"
+    recorder = start_recorder(stack.endpoint, stack.bus, stack.run_id, output)
+    time.sleep(1.5)
+    stack._control(ControlRequest(action="stop"))
+    episode.join(timeout=30)
+    time.sleep(0.5)
+    recorder.send_signal(signal.SIGTERM)
+    log = recorder.communicate(timeout=30)[0]
+    events = [r.message for r in read_messages(output) if r.key == keys.events(stack.run_id)]
+    assert [event.kind for event in events] == ["start", "end"], log
+    start = events[0]
+    assert start.spec == msgspec.convert(msgspec.to_builtins(spec), EpisodeSpec)
+    assert (start.header.episode, start.header.seq, start.header.stamp_ns) == (0, 0, 0)
+    assert "missed the start of episode 0" in log
+    assert "episode:0" in recording_info(output).metadata  # the spec is in the file's metadata too
+    assert_valid_mcap(output)

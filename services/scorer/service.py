@@ -22,6 +22,7 @@ from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Traffic
 from protocol.messages import (
     BrainSwitch, Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
 )
+from protocol.episodes import running_spec
 from services.circuits import CircuitError, load_circuit
 from services.scorer.metrics import EpisodeScorer
 from services.scorer.shadows import CommandMatcher
@@ -65,6 +66,7 @@ class ScorerService:
         bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._inbox)
         bus.subscribe(keys.pose(run), Pose, inbox=self._inbox)
         bus.subscribe(keys.commands_all(run), Command, inbox=self._inbox)
+        self._bus = bus
         self._live = bus.publisher(keys.live_metrics(run), LiveMetrics, Traffic.METRICS)
         self._scores = bus.publisher(keys.score(run), EpisodeScore, Traffic.EVENTS)
         self._episode: _Episode | None = None
@@ -97,22 +99,19 @@ class ScorerService:
         if current is not None and current.number == episode:
             return current
         if episode not in self._scored and episode not in self._ignored_episodes:
-            self._ignored_episodes.add(episode)
+            self._ignored_episodes.add(episode)  # ask once
+            # Its START went out before our subscription reached the simulator (or we joined late).
+            if (spec := running_spec(self._bus, self.config.run_id, episode)) is not None:
+                self._begin(episode, spec)
+                return self._episode
             log.warning("ignoring messages of episode %d: its start event was not seen", episode)
         return None
 
     def _on_event(self, event: EpisodeEvent) -> None:
         number = event.header.episode
         if event.kind == EventKind.START and event.spec is not None:
-            try:
-                circuit = load_circuit(event.spec.circuit)
-            except CircuitError as error:
-                log.warning("cannot score episode %d: %s", number, error)
-                return
-            scorer = EpisodeScorer(circuit=circuit, laps_target=event.spec.laps, step_s=event.spec.step_s)
-            commands = CommandMatcher(first_driver=event.spec.active_brain, on_driver=_driver_feed(scorer))
-            self._episode = _Episode(number=number, spec=event.spec, scorer=scorer, commands=commands,
-                                     active_brain=event.spec.active_brain)
+            if not (self._episode is not None and self._episode.number == number):  # not already recovered
+                self._begin(number, event.spec)
             return
         current = self._current(number)
         if current is None:
@@ -131,6 +130,17 @@ class ScorerService:
                                                 to_brain=event.brain))
         current.active_brain = event.brain
         log.info("episode %d: %s drives from frame %d on (was %s)", current.number, event.brain, seq, event.detail)
+
+    def _begin(self, number: int, spec: EpisodeSpec) -> None:
+        try:
+            circuit = load_circuit(spec.circuit)
+        except CircuitError as error:
+            log.warning("cannot score episode %d: %s", number, error)
+            return
+        scorer = EpisodeScorer(circuit=circuit, laps_target=spec.laps, step_s=spec.step_s)
+        commands = CommandMatcher(first_driver=spec.active_brain, on_driver=_driver_feed(scorer))
+        self._episode = _Episode(number=number, spec=spec, scorer=scorer, commands=commands,
+                                 active_brain=spec.active_brain)
 
     def _on_pose(self, pose: Pose) -> None:
         current = self._current(pose.header.episode)
