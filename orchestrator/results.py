@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -86,7 +85,6 @@ class EpisodeResult:
     recording: str | None = None
     trajectory: str | None = None
     logs: str | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def wall_s(self) -> float:
@@ -183,7 +181,3 @@ def _from_json(text: str, message_type: type):
         return msgspec.json.decode(text, type=message_type)
     except (msgspec.DecodeError, msgspec.ValidationError) as error:
         raise ValueError(str(error)) from None
-
-
-def now_s() -> float:
-    return time.time()
