@@ -12,7 +12,8 @@ frame, without calling the brain.
 
 Each host serves its own control key (``keys.brain_control``): "status", and "stop", which makes it exit cleanly
 (code 0), so a live brain swap can retire the old brain. A host that joins in the middle of an episode (it never saw
-the START event) asks the simulator's "status" for the running episode's spec, so it is seeded as the others were.
+the START event) asks the simulator's read-only status (``keys.sim_status``, which every identity may query under
+access control) for the running episode's spec, so it is seeded as the others were.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ class BrainHost:
                                                            f"status and stop)"))
 
     def _seed_for(self, episode: int) -> int:
-        """The episode's seed (and mode) from its START event, or from the simulator for a late joiner."""
+        """The episode's seed (and mode) from its START event, or from the simulator's status for a late joiner."""
         spec = self._starts.spec(episode) or running_spec(self.bus, self.config.run_id, episode)
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
@@ -155,12 +156,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")
     parser.add_argument("--name", help="name on the bus (default: the brain's name)")
     parser.add_argument("--weights", metavar="CKPT",
-                        help="neural brains: checkpoint or exported ONNX file (= --set options.weights=CKPT)")
+                        help="neural brains: checkpoint or exported ONNX file (= --set options.weights=CKPT; empty: "
+                             "the shipped weights of that network, if any)")
     args = parser.parse_args(argv)
 
     def run() -> int:
         config = load_service_config(BrainHostConfig, args, extra={"brain": args.brain, "name": args.name,
-                                                                   "options.weights": args.weights})
+                                                                   "options.weights": args.weights or None})
         log_config(config)
         try:
             brain = make_brain(config.brain, **config.options)

@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
-    run.add_argument("--brain", default="explicit", help="brain to drive (default: explicit)")
+    run.add_argument("--brain", help="brain to drive (default: explicit; with --attach: the bus name of a running "
+                                     "brain, by default the only one alive)")
     run.add_argument("--weights", type=Path, metavar="CKPT",
                      help="checkpoint (or exported .onnx) of a neural brain (drivebench train makes them)")
     run.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
@@ -82,8 +83,18 @@ def build_parser() -> argparse.ArgumentParser:
                      help="free-running at wall-clock rate with the latest command (default: lock-step)")
     run.add_argument("--brain-timeout", type=float, default=10.0, metavar="SECONDS",
                      help="lock-step: wall seconds to wait for the brain's answer to a frame (default: 10)")
-    run.add_argument("--run-id", help="run id used in every key (default: random)")
-    run.add_argument("--out", type=Path, help="run folder (default: runs/<time>-<run id>)")
+    run.add_argument("--run-id", help="run id used in every key (default: random; with --attach: "
+                                      "$DRIVEBENCH_RUN_ID, else the only run alive on the router)")
+    run.add_argument("--out", type=Path, help="run folder (default: RUNS_DIR/<time>-<run id>)")
+    run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run folders go (default: runs)")
+    run.add_argument("--attach", action="store_true",
+                     help="drive an episode on a stack that is already running (docker compose, other machines) "
+                          "instead of starting one: nothing is started or stopped")
+    run.add_argument("--router", metavar="ENDPOINT",
+                     help="with --attach: the router of that stack, e.g. tcp/10.0.0.5:7447 "
+                          "(default: $DRIVEBENCH_ROUTER)")
+    run.add_argument("--wait", type=float, default=120.0, metavar="SECONDS",
+                     help="with --attach: how long to wait for the stack's processes to be alive (default: 120)")
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
     run.add_argument("--record-images", choices=("raw", "jpeg"), default="raw",
@@ -104,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_matrix_command(commands)
     add_report_command(commands)
+    from orchestrator.health import add_health_command
+
+    add_health_command(commands)
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
@@ -126,7 +140,7 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         load_circuit(args.circuit)
     except CircuitError as error:
         raise UsageError(str(error)) from None
-    if args.brain not in brain_names():
+    if not args.attach and args.brain not in brain_names():
         raise UsageError(f"unknown brain {args.brain!r} (known: {', '.join(brain_names())})")
     width, height = args.camera
     try:
@@ -161,9 +175,14 @@ class Progress:
 
 
 def command_run(args: argparse.Namespace) -> int:
+    if args.attach:
+        return command_run_attached(args)
+    if args.router is not None:
+        raise UsageError("--router needs --attach (without it, drivebench run starts its own router)")
+    args.brain = args.brain or "explicit"
     spec = episode_spec(args)
     run_id = args.run_id or uuid.uuid4().hex[:8]
-    run_dir = args.out or Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
+    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(filename=run_dir / "launcher.log", level=logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -196,6 +215,59 @@ def command_run(args: argparse.Namespace) -> int:
     if args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
+
+
+def command_run_attached(args: argparse.Namespace) -> int:
+    """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
+    from orchestrator.launcher import AttachedStack
+
+    for flag, given in (("--weights", args.weights), ("--brain-option", args.brain_option), ("--shadow", args.shadow),
+                        ("--record", args.record)):
+        if given:
+            raise UsageError(f"{flag} cannot be used with --attach: the running stack's processes are already "
+                             f"configured (record with the compose profile 'record' or `python -m recorder`)")
+    if not (args.router or os.environ.get("DRIVEBENCH_ROUTER")):
+        raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+    run_id = args.run_id or os.environ.get("DRIVEBENCH_RUN_ID") or only_running_run(args.router, wait_s=args.wait)
+    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(filename=run_dir / "driver.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    stack = AttachedStack(run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain,
+                          startup_timeout_s=args.wait)
+    with stack:
+        args.brain = stack.brain_name
+        spec = episode_spec(args)
+        (run_dir / "config.yaml").write_text(yaml.safe_dump({
+            "run_id": run_id, "router": stack.endpoint, "attached": True, "episode": msgspec.to_builtins(spec),
+        }, sort_keys=False))
+        print(f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
+              f"{spec.laps} lap(s); run folder {run_dir}", file=sys.stderr)
+        progress = Progress(spec.laps, enabled=sys.stderr.isatty())
+        try:
+            score = stack.run_episode(spec, on_live=progress.update)
+        finally:
+            progress.close()
+    (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
+    report(score, run_dir, as_json=args.json)
+    return EXIT_OK
+
+
+def only_running_run(router: str | None, *, wait_s: float) -> str:
+    """The run id of the only run with a simulator alive on the router (waiting up to ``wait_s`` for one)."""
+    from orchestrator.launcher import running_runs
+    from protocol.bus import Bus, BusConfig
+
+    endpoint = router or os.environ.get("DRIVEBENCH_ROUTER", "")
+    if not endpoint:
+        raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+    with Bus(BusConfig(mode="client", connect=endpoint.split(",")), name="driver-discovery") as bus:
+        deadline = time.monotonic() + wait_s
+        while not (runs := running_runs(bus)) and time.monotonic() < deadline:
+            time.sleep(0.5)
+    if len(runs) != 1:
+        found = f"runs {', '.join(sorted(runs))}" if runs else "no run"
+        raise UsageError(f"{found} alive on {endpoint}: choose one with --run-id or DRIVEBENCH_RUN_ID")
+    return runs.pop()
 
 
 def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]:
@@ -283,6 +355,10 @@ def main(argv: list[str] | None = None) -> int:
             from orchestrator.matrix_cli import run_matrix_command
 
             return run_matrix_command(args)
+        if args.command == "health":
+            from orchestrator.health import run_health_command
+
+            return run_health_command(args)
         if args.command == "report":
             from orchestrator.matrix_report import run_report
 

@@ -356,3 +356,75 @@ class LocalStack:
             time.sleep(0.2)
         raise StackFailure("simulator_died",
                            f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}")
+
+
+def running_runs(bus: Bus, *, timeout_s: float = 1.0) -> set[str]:
+    """The runs that have a simulator alive on this bus (their liveliness tokens)."""
+    runs = set()
+    for key in bus.alive_now(keys.alive_everywhere(), timeout_s=timeout_s):
+        try:
+            run_id, role, _ = keys.parse_alive(key)
+        except ValueError:
+            continue
+        if role == "simulator":
+            runs.add(run_id)
+    return runs
+
+
+@dataclass
+class AttachedStack(LocalStack):
+    """A stack that someone else started (``docker compose``, other machines): nothing is spawned or stopped here.
+
+    It joins the router at ``router_endpoint`` (None: the ``DRIVEBENCH_ROUTER`` environment variable) as a client,
+    waits until the simulator, the noise injector, the scorer and the brain are alive, and runs episodes through the
+    simulator's control queryable like :class:`LocalStack`. ``brain_name`` is the bus name of the brain to drive;
+    None takes the only brain alive on the run (an error when there are several).
+    """
+
+    brain_name: str | None = None
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.run_id, what="run id")
+        self.endpoint = self.router_endpoint or os.environ.get("DRIVEBENCH_ROUTER", "")
+        self.bus = None
+        self._watch = None
+        self._required = set()
+
+    def start(self) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if not self.endpoint:
+            raise StackError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+        self.bus = Bus(BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
+                       name=f"driver-{self.run_id}")
+        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        self._required = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "noise", "noise"),
+                          keys.alive(self.run_id, "scorer", "scorer")}
+        missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
+        if missing:
+            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
+            raise StackError(f"run {self.run_id!r} on {self.endpoint}: not alive after "
+                             f"{self.startup_timeout_s:.0f} s: {names}")
+        self.brain_name = self._wait_for_brain(watch)
+        log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
+
+    def _wait_for_brain(self, watch) -> str:
+        deadline = time.monotonic() + self.startup_timeout_s
+        while True:
+            brains = sorted(name for _, role, name in map(keys.parse_alive, watch.alive()) if role == "brain")
+            if self.brain_name is not None and self.brain_name in brains:
+                return self.brain_name
+            if self.brain_name is None and len(brains) == 1:
+                return brains[0]
+            if self.brain_name is None and len(brains) > 1:
+                raise StackError(f"run {self.run_id!r} has several brains alive ({', '.join(brains)}): "
+                                 f"choose one with --brain")
+            if time.monotonic() > deadline:
+                wanted = f"brain {self.brain_name!r}" if self.brain_name else "a brain"
+                raise StackError(f"run {self.run_id!r}: {wanted} not alive after {self.startup_timeout_s:.0f} s"
+                                 + (f" (alive: {', '.join(brains)})" if brains else ""))
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None

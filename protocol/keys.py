@@ -6,7 +6,8 @@ Layout (``<p>`` = ``drivebench/run/<run_id>``, so ``<p>/**`` is one run and runs
     <p>/noise/camera             CameraFrame, perturbed (what brains see when a noise injector runs)
     <p>/sim/pose                 Pose, ground truth
     <p>/sim/events               EpisodeEvent
-    <p>/sim/control              queryable: ControlRequest -> ControlReply
+    <p>/sim/control              queryable: ControlRequest -> ControlReply (start, stop, switch, status)
+    <p>/sim/status               queryable: anything -> ControlReply of "status" (read-only: any process may ask)
     <p>/brain/<brain>/cmd        Command of one brain (the simulator applies only the active one)
     <p>/brain/<brain>/control    queryable of one brain host: ControlRequest -> ControlReply (status, stop)
     <p>/scorer/live              LiveMetrics
@@ -78,6 +79,12 @@ def sim_control(run_id: str) -> str:
     return f"{run_prefix(run_id)}/sim/control"
 
 
+def sim_status(run_id: str) -> str:
+    """The simulator's read-only status queryable, apart from ``sim_control`` so that access control can let every
+    process read the status while only the orchestrator may start, stop or switch."""
+    return f"{run_prefix(run_id)}/sim/status"
+
+
 def command(run_id: str, brain: str) -> str:
     return f"{run_prefix(run_id)}/brain/{check_name(brain, what='brain name')}/cmd"
 
@@ -112,6 +119,11 @@ def alive(run_id: str, role: str, name: str) -> str:
 
 def alive_all(run_id: str) -> str:
     return f"{ROOT}/alive/{check_name(run_id, what='run id')}/**"
+
+
+def alive_everywhere() -> str:
+    """Every liveliness token of every run (to find which runs are alive on a router)."""
+    return f"{ROOT}/alive/**"
 
 
 def parse_alive(key: str) -> tuple[str, str, str]:

@@ -25,6 +25,8 @@ T = TypeVar("T")
 
 log = logging.getLogger("drivebench")
 
+RUN_ID_ENV = "DRIVEBENCH_RUN_ID"  # the run id of a service started without --run-id (compose sets it for all)
+
 
 class UserError(Exception):
     """A mistake the user can fix (bad name, bad file, unreachable router): one line, no traceback."""
@@ -51,7 +53,7 @@ def service_parser(description: str) -> argparse.ArgumentParser:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one config field, e.g. --set bus.lease_ms=2000 (repeatable)")
     parser.add_argument("--router", help="router endpoint to connect to, e.g. tcp/127.0.0.1:7447")
-    parser.add_argument("--run-id", help="run id (every key of the run carries it)")
+    parser.add_argument("--run-id", help=f"run id (every key of the run carries it; default: ${RUN_ID_ENV})")
     return parser
 
 
@@ -60,8 +62,9 @@ def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra
     overrides = list(args.set)
     if getattr(args, "router", None):
         overrides.append(f"bus.connect=[{json.dumps(args.router)}]")
-    if getattr(args, "run_id", None):
-        overrides.append(f"run_id={json.dumps(args.run_id)}")
+    run_id = getattr(args, "run_id", None) or os.environ.get(RUN_ID_ENV)
+    if run_id:
+        overrides.append(f"run_id={json.dumps(run_id)}")
     for key, value in (extra or {}).items():
         if value is not None:
             overrides.append(f"{key}={json.dumps(value)}")

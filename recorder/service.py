@@ -28,13 +28,15 @@ from recorder.writer import RecordingWriter
 
 log = logging.getLogger("drivebench.recorder")
 
+STARTED_AT = time.strftime("%Y%m%d-%H%M%S")  # the {time} of output file names: one value for the whole process
 RecordedMessage = Union[RECORDED_MESSAGES]  # noqa: UP007 - a runtime union of the tagged structs for msgspec
 
 
 class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Config of the recorder process.
 
-    output: the MCAP file to write; ``{run_id}`` is replaced by the run id. Written as ``<output>.part`` until done.
+    output: the MCAP file to write; ``{run_id}`` is replaced by the run id and ``{time}`` by the recorder's start time
+        (``YYYYmmdd-HHMMSS``, so a restarted recorder never overwrites). Written as ``<output>.part`` until done.
     image_format: "raw" (lossless ``foxglove.RawImage``: training data, exact replay) or "jpeg"
         (``foxglove.CompressedImage``, ~10x smaller, lossy).
     jpeg_quality: 1-100, for image_format "jpeg".
@@ -62,7 +64,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 
     @property
     def output_path(self) -> Path:
-        return Path(self.output.replace("{run_id}", self.run_id))
+        return Path(self.output.replace("{run_id}", self.run_id).replace("{time}", STARTED_AT))
 
 
 class RecorderService:

@@ -225,6 +225,22 @@ def test_named_brain_refuses_another_network_and_needs_weights(ckpts):
         make_brain("neural", weights=ckpts["memdccp"], backend="tensorrt")
 
 
+def test_device_option_runs_on_the_cpu_and_names_what_is_missing(ckpts):
+    import torch
+
+    images = noise_frames(3)
+    on_cpu = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="cpu"), images))
+    automatic = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="auto"), images))
+    np.testing.assert_allclose(automatic, on_cpu, rtol=1e-4, atol=1e-5)
+    with pytest.raises(BrainOptionsError, match="needs backend torch"):
+        make_brain("memdccp", weights=ckpts["memdccp"], device="cuda")
+    with pytest.raises(BrainOptionsError, match="device must be cpu, cuda, cuda:N or auto, got 'tpu'"):
+        make_brain("memdccp", weights=ckpts["memdccp"], backend="torch", device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(BrainOptionsError, match="no CUDA device here"):
+            make_brain("memdccp", weights=ckpts["memdccp"], backend="torch", device="cuda")
+
+
 @pytest.mark.parametrize("argv, line", [
     ([], "brain: error: brain 'memdccp' needs --weights CKPT (or --set options.weights=CKPT)"),
     (["--weights", "/nowhere/m.pt"], "brain: error: /nowhere/m.pt: no such checkpoint file"),

