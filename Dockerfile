@@ -6,6 +6,8 @@ ARG BASE_IMAGE=python:3.11-slim-bookworm
 
 FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+# EXTRAS=ml: neural brains (torch, onnxruntime). EXTRAS="" gives a small image for the explicit brain and the rest.
+ARG EXTRAS=ml
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 # A compiler only for packages without a wheel for this platform (pybullet on some architectures).
 RUN apt-get update && apt-get install -y --no-install-recommends build-essential \
@@ -13,7 +15,7 @@ RUN apt-get update && apt-get install -y --no-install-recommends build-essential
 RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 # torch first, from the chosen index: a plain requirement would take PyPI's multi-GB CUDA build on x86-64.
-RUN pip install --index-url "${TORCH_INDEX_URL}" torch
+RUN case ",${EXTRAS}," in *,ml,*) pip install --index-url "${TORCH_INDEX_URL}" torch ;; esac
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY protocol protocol
@@ -21,7 +23,7 @@ COPY services services
 COPY brains brains
 COPY recorder recorder
 COPY orchestrator orchestrator
-RUN pip install ".[ml]"
+RUN pip install ".[${EXTRAS}]"
 
 FROM ${BASE_IMAGE}
 # libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed.

@@ -102,6 +102,8 @@ def test_services_share_one_image_host_networking_and_clean_stops():
     for name, service in services.items():
         assert service["image"] == "drivebench:latest", name
         assert service["build"]["context"] == str(ROOT), name
+        assert service["build"]["network"] == "host", name
+        assert service["build"]["args"]["EXTRAS"] == "ml", name
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
         assert "networks" not in service, name
         assert service["init"] is True, name
@@ -147,7 +149,8 @@ def test_dockerfile_copies_every_package_the_project_installs():
     assert packages <= copied, f"packages not copied into the image: {packages - copied}"
     for path in copied:
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
-    assert 'pip install ".[ml]"' in dockerfile and "TORCH_INDEX_URL" in dockerfile
+    assert 'pip install ".[${EXTRAS}]"' in dockerfile and "ARG EXTRAS=ml" in dockerfile
+    assert "TORCH_INDEX_URL" in dockerfile
     assert (ROOT / ".dockerignore").read_text().count(".venv") == 1
 
 
