@@ -266,3 +266,18 @@ def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path
     events = [r.message for r in read_messages(recordings[0], keys_glob="*/sim/events")]
     assert [e.spec.active_brain for e in events if e.kind == EventKind.START] == [
         "explicit", "deepest_lstm_tiny_pilotnet"]
+
+
+def test_every_service_command_names_a_real_module_or_drivebench_command():
+    from orchestrator.cli import build_parser
+
+    for name, service in resolved()["services"].items():
+        command = service["command"]
+        if command[0] == "drivebench":
+            build_parser().parse_args(command[1:])  # argparse exits (fails the test) on a bad option
+        else:
+            assert command[:2] == ["python", "-m"], name
+            assert importlib.util.find_spec(command[2]) is not None, f"{name}: no module {command[2]}"
+        if "healthcheck" in service:
+            assert service["healthcheck"]["test"][1] == "drivebench", name
+            build_parser().parse_args(service["healthcheck"]["test"][2:])
