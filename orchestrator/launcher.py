@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, BusError, Inbox
+from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
 
 log = logging.getLogger("drivebench.launcher")
@@ -52,6 +52,8 @@ class StackFailure(StackError):
 class EpisodeAborted(StackError):
     """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
 
+
+LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions read their bus settings from: none
 
 # Which failure a dead or vanished process of each role means for its episode.
 FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
@@ -131,14 +133,17 @@ class LocalStack:
 
     def start(self) -> None:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        # A local stack is configured by its own arguments alone (LOCAL_ENV): bus variables meant for a stack spread
+        # over machines (router, mode, TLS, credentials) must not leak into it.
         if self.router_endpoint is not None:
-            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}")
+            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}",
+                           env=LOCAL_ENV)
         elif self.embed_router:
-            self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher")
+            self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher", env=LOCAL_ENV)
         else:
             self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
             self._wait_for_router()
-            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher")
+            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher", env=LOCAL_ENV)
         watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer"),
                   keys.alive(self.run_id, "noise", "noise")}
@@ -189,7 +194,8 @@ class LocalStack:
 
     def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
         log_path = self.run_dir / "logs" / f"{role}-{name}.log" if role == "brain" else self.run_dir / "logs" / f"{role}.log"
-        env = dict(os.environ, PYTHONUNBUFFERED="1", DRIVEBENCH_PARENT_PID=str(os.getpid()))
+        env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
+        env |= {"PYTHONUNBUFFERED": "1", "DRIVEBENCH_PARENT_PID": str(os.getpid())}
         with open(log_path, "ab") as log_file:
             process = subprocess.Popen(
                 [sys.executable, "-m", module, *(["--router", self.endpoint, "--run-id", self.run_id] if connect else []),

@@ -107,7 +107,8 @@ def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, option
     if brain not in brain_names():
         raise SwapUsageError(f"unknown brain {brain!r} (known: {', '.join(brain_names())})")
     _check_name(run_id, what="run id")
-    with Bus(BusConfig(mode="peer", connect=[router]), name=f"swap-{run_id}") as bus:
+    # The mode comes from the environment: a peer on a plain stack, a client of a secure router (DRIVEBENCH_TLS_*).
+    with Bus(BusConfig(connect=[router]), name=f"swap-{run_id}") as bus:
         _wait_for_simulator_token(bus, run_id, router=router)
         status = _sim_status(bus, run_id, router=router)
         name = _pick_name(brain, name, _alive_brains(bus, run_id), run_id=run_id)

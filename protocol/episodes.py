@@ -15,14 +15,16 @@ STATUS_TIMEOUT_S = 2.0
 
 
 def running_spec(bus: Bus, run_id: str, episode: int) -> EpisodeSpec | None:
-    """The spec of ``episode`` from the simulator's status while it runs, else None (and a log line why).
+    """The spec of ``episode`` from the simulator's status (``keys.sim_status``) while it runs, else None (and a log
+    line why).
 
     For a process that sees an episode's messages but missed its START event: it joined late, or its subscription
     reached the simulator only after START went out. Blocks for up to ``STATUS_TIMEOUT_S``: call it from a main
     loop, never from a Zenoh callback.
     """
     try:
-        payload = bus.request(keys.sim_control(run_id), codec.encode(ControlRequest(action="status")),
+        # The read-only status key, not sim/control: access control lets only the orchestrator use that one.
+        payload = bus.request(keys.sim_status(run_id), codec.encode(ControlRequest(action="status")),
                               timeout_s=STATUS_TIMEOUT_S)
         reply = codec.decode(payload, ControlReply) if payload is not None else None
     except (BusError, codec.DecodeError) as error:

@@ -1,9 +1,9 @@
 """The simulator process: wires :class:`EpisodeSim` to the bus.
 
 Publishes camera frames (ground truth), poses and episode events; applies the active brain's commands; answers run
-control queries (start / stop / status / switch). Lock-step by default: publish frame n, wait for the active brain's
-command for frame n, step. A brain that does not answer in time, or whose liveliness token vanishes, ends the episode
-with a typed reason; nothing stalls silently.
+control queries (start / stop / status / switch), and status queries on a read-only key of their own. Lock-step by
+default: publish frame n, wait for the active brain's command for frame n, step. A brain that does not answer in
+time, or whose liveliness token vanishes, ends the episode with a typed reason; nothing stalls silently.
 
 Live brain switch: "switch" makes another alive brain the active one at once; the command for the frame being
 waited for (lock-step) or applied next (real-time) comes from it, even when it arrived before the switch (the
@@ -76,6 +76,9 @@ class SimulatorService:
         self._stop_requested = threading.Event()
         self._scenes = SceneCache()
         bus.serve(keys.sim_control(run), self._on_control)
+        # Status alone on its own key: access control lets every process read it (a late-joining brain host, scorer
+        # or recorder) while only the orchestrator may use sim/control; "status" there still works too.
+        bus.serve(keys.sim_status(run), self._on_status)
         bus.declare_alive(keys.alive(run, "simulator", config.name))
 
     # -- callbacks (Zenoh's callback thread: never block) --
@@ -89,6 +92,15 @@ class SimulatorService:
             return
         with self._alive_lock:
             (self._alive_brains.add if alive else self._alive_brains.discard)(name)
+
+    def _on_own_key(self, received: Received) -> bool:
+        """Whether a command came on its own brain's key: a brain allowed to publish on its key (access control
+        works on keys) must not answer for another brain by naming it in the message."""
+        if keys.brain_of_command_key(received.key) == received.message.brain:
+            return True
+        self.bus.rejects.reject(received.key, ValueError(f"command names brain {received.message.brain!r}, not the "
+                                                         "brain of its key"))
+        return False
 
     def _brain_alive(self, name: str) -> bool:
         with self._alive_lock:
@@ -131,6 +143,11 @@ class SimulatorService:
         log.info("switch requested: %s -> %s", previous, brain)
         return ControlReply(ok=True, detail=f"{previous} -> {brain} from the next frame", state=self._state,
                             episode=self._episode, active_brain=brain)
+
+    def _on_status(self, payload: bytes) -> bytes:
+        """The read-only status queryable (``keys.sim_status``): any payload, the status reply."""
+        del payload
+        return codec.encode(self._status())
 
     def _on_control(self, payload: bytes) -> bytes:
         request = codec.decode(payload, ControlRequest)
@@ -293,7 +310,7 @@ class SimulatorService:
             if received is None:
                 continue
             command: Command = received.message
-            if command.header.episode == self._episode and command.frame_seq == sim.seq:
+            if command.header.episode == self._episode and command.frame_seq == sim.seq and self._on_own_key(received):
                 answers.setdefault(command.brain, received)  # a repeated answer to a resent frame changes nothing
 
     def _realtime_steps(self, sim: EpisodeSim, header):
@@ -313,7 +330,7 @@ class SimulatorService:
             if (delay := next_tick - time.monotonic()) > 0:
                 time.sleep(delay)
             for received in self._commands.drain():
-                if received.message.header.episode == self._episode:
+                if received.message.header.episode == self._episode and self._on_own_key(received):
                     latest[received.message.brain] = received
             if self._announce_switches(sim, header):
                 active_since_ns = time.monotonic_ns()
