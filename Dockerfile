@@ -23,7 +23,8 @@ COPY services services
 COPY brains brains
 COPY recorder recorder
 COPY orchestrator orchestrator
-RUN pip install ".[${EXTRAS}]"
+# EXTRAS="" installs plain "." (pip rejects ".[]" as an invalid requirement).
+RUN if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi
 
 FROM ${BASE_IMAGE}
 # libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed.
@@ -34,6 +35,7 @@ ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \
     DRIVEBENCH_ROUTER=tcp/127.0.0.1:7447 DRIVEBENCH_RUN_ID=compose
 WORKDIR /app
 COPY experiments experiments
+COPY deploy deploy
 # Results, recordings and matrices go to /results (a mounted folder in compose.yaml).
 RUN mkdir -p /results
 VOLUME /results

@@ -360,8 +360,10 @@ class LocalStack:
             if payload is not None:
                 return codec.decode(payload, ControlReply)
             time.sleep(0.2)
+        hint = (" (under the router's access control, only an orchestrator identity may start, stop or switch runs)"
+                if self.bus.resolved.secure else "")
         raise StackFailure("simulator_died",
-                           f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}")
+                           f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}")
 
 
 def running_runs(bus: Bus, *, timeout_s: float = 1.0) -> set[str]:

@@ -42,16 +42,18 @@ def compose_binary() -> Path:
 
 
 def compose(*args: str, file: Path = COMPOSE_FILE, env: dict[str, str] | None = None,
-            profiles: tuple[str, ...] = PROFILES) -> subprocess.CompletedProcess:
+            profiles: tuple[str, ...] = PROFILES, overrides: tuple[Path, ...] = ()) -> subprocess.CompletedProcess:
     profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
+    profile_args += [arg for override in overrides for arg in ("-f", str(override))]
     # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
     base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_") and k not in ("BRAIN", "TAG")}
     return subprocess.run([str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent),
                            *profile_args, *args], capture_output=True, text=True, env=base | (env or {}), timeout=60)
 
 
-def resolved(env: dict[str, str] | None = None, profiles: tuple[str, ...] = PROFILES) -> dict:
-    result = compose("config", "--format", "json", env=env, profiles=profiles)
+def resolved(env: dict[str, str] | None = None, profiles: tuple[str, ...] = PROFILES,
+             overrides: tuple[Path, ...] = ()) -> dict:
+    result = compose("config", "--format", "json", env=env, profiles=profiles, overrides=overrides)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)
 
@@ -160,18 +162,24 @@ def test_dockerfile_copies_every_package_the_project_installs():
 class ComposeEmulation:
     """Runs services of the resolved file as local processes: command, environment, healthcheck, depends_on.
 
-    The one volume is translated: ``/results`` in commands becomes the test's results folder.
+    The volumes are translated: ``/results`` (and ``/certs``) in commands and environments become the test's
+    folders.
     """
 
-    def __init__(self, config: dict, results: Path, logs: Path):
+    def __init__(self, config: dict, results: Path, logs: Path, certs: Path | None = None):
         self.services = config["services"]
         self.results = results
         self.logs = logs
+        self.certs = certs
         self.processes: dict[str, subprocess.Popen] = {}
+
+    def _in_volumes(self, word: str) -> str:
+        word = word.replace("/results", str(self.results))
+        return word.replace("/certs", str(self.certs)) if self.certs is not None else word
 
     def argv(self, name: str, key: str = "command") -> list[str]:
         words = self.services[name][key] if key == "command" else self.services[name]["healthcheck"]["test"][1:]
-        words = [w.replace("/results", str(self.results)) for w in words]
+        words = [self._in_volumes(w) for w in words]
         if words[0] == "python":
             return [sys.executable, *words[1:]]
         if words[0] == "drivebench":
@@ -180,7 +188,8 @@ class ComposeEmulation:
 
     def env(self, name: str) -> dict[str, str]:
         base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-        return base | self.services[name]["environment"] | {"PYTHONUNBUFFERED": "1"}
+        service_env = {k: self._in_volumes(v) for k, v in self.services[name]["environment"].items()}
+        return base | service_env | {"PYTHONUNBUFFERED": "1"}
 
     def start(self, name: str) -> subprocess.Popen:
         for dependency in self.services[name].get("depends_on", {}):
@@ -281,3 +290,59 @@ def test_every_service_command_names_a_real_module_or_drivebench_command():
         if "healthcheck" in service:
             assert service["healthcheck"]["test"][1] == "drivebench", name
             build_parser().parse_args(service["healthcheck"]["test"][2:])
+
+
+SECURE_FILE = ROOT / "compose.secure.yaml"
+
+
+def test_the_secure_override_validates_and_gives_each_service_its_own_certificate():
+    result = compose("config", "-q", overrides=(SECURE_FILE,))
+    assert result.returncode == 0, result.stderr
+    services = resolved(overrides=(SECURE_FILE,))["services"]
+    identity = {"router": "router", "simulator": "sim", "noise": "noise", "brain": "brain", "brain-gpu": "brain",
+                "scorer": "scorer", "run": "orchestrator", "recorder": "recorder", "viz": "viz"}
+    for name, cert in identity.items():
+        environment = services[name]["environment"]
+        assert environment["DRIVEBENCH_TLS_CERT"] == f"/certs/{cert}.pem", name
+        assert environment["DRIVEBENCH_TLS_ROOT_CA"] == "/certs/ca.pem", name
+        assert environment["DRIVEBENCH_ROUTER"] == "tls/localhost:7447", name
+        assert {"target": "/certs", "read_only": True}.items() <= services[name]["volumes"][1].items(), name
+    assert "DRIVEBENCH_TLS_CERT" not in services["orchestrator"]["environment"]  # its matrices run local stacks
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_secure_compose_services_drive_an_episode_and_refuse_a_viewer_driver(tmp_path):
+    """compose.yaml + compose.secure.yaml with certificates made by scripts/make-certs.sh in the test: mutual TLS
+    and access control; the `run` service with the orchestrator's certificate drives, with a viewer's it cannot."""
+    certs, results, logs = tmp_path / "certs", tmp_path / "results", tmp_path / "logs"
+    made = subprocess.run(["bash", str(ROOT / "scripts" / "make-certs.sh"), str(certs)], capture_output=True,
+                          text=True, timeout=120)
+    assert made.returncode == 0, made.stderr
+    results.mkdir()
+    logs.mkdir()
+    port = free_loopback_port()
+    config = resolved(env={"DRIVEBENCH_RUN_ID": f"secure{port}", "MAX_SIM_SECONDS": "4"}, profiles=(),
+                      overrides=(SECURE_FILE,))
+    for service in config["services"].values():  # a free port instead of 7447, in the commands and the variables
+        service["command"] = [w.replace(":7447", f":{port}") for w in service["command"]]
+        service["environment"]["DRIVEBENCH_ROUTER"] = service["environment"]["DRIVEBENCH_ROUTER"].replace(
+            ":7447", f":{port}")
+    stack = ComposeEmulation(config, results, logs, certs=certs)
+    try:
+        for name in ("router", "simulator", "noise", "scorer", "brain"):
+            stack.up(name)
+        assert stack.start("run").wait(timeout=120) == 0, stack.log("run")
+        stack.processes.pop("run")
+        as_viewer = stack.env("run") | {"DRIVEBENCH_TLS_CERT": str(certs / "viewer.pem"),
+                                        "DRIVEBENCH_TLS_KEY": str(certs / "viewer.key")}
+        refused = subprocess.run(stack.argv("run"), capture_output=True, text=True, env=as_viewer, cwd=ROOT,
+                                 timeout=120)
+        assert refused.returncode == 1, refused.stderr
+        assert "only an orchestrator identity may start" in refused.stderr.strip().splitlines()[-1]
+    finally:
+        stack.close()
+    scores = list((results / "runs").glob(f"*-secure{port}/score.json"))
+    assert len(scores) == 1, list((results / "runs").iterdir())
+    score = json.loads(scores[0].read_text())
+    assert score["reason"] == "time_limit" and score["metrics"]["progress_m"] > 15, score
