@@ -3,6 +3,7 @@
     drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--record F.mcap] [--json] ...
     drivebench swap BRAIN [--weights CKPT] [--name NAME] [--run RUN_ID] [--router EP] [--keep-old]
     drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR
+    drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
     drivebench recorder info|repair, replay, dataset build|collect, train, export, circuits list|show|import
 
 ``run`` starts a local stack (embedded router, simulator, brain, scorer: one process each), drives one episode,
@@ -116,8 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_matrix_command(commands)
     add_report_command(commands)
     from orchestrator.health import add_health_command
+    from services.viz.cli import add_view_command
 
     add_health_command(commands)
+    add_view_command(commands)  # drivebench view: a run live in Foxglove
 
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
@@ -254,7 +257,7 @@ def command_run_attached(args: argparse.Namespace) -> int:
 
 def only_running_run(router: str | None, *, wait_s: float) -> str:
     """The run id of the only run with a simulator alive on the router (waiting up to ``wait_s`` for one)."""
-    from orchestrator.launcher import running_runs
+    from protocol.episodes import running_runs
     from protocol.bus import Bus, BusConfig
 
     endpoint = router or os.environ.get("DRIVEBENCH_ROUTER", "")
@@ -355,6 +358,10 @@ def main(argv: list[str] | None = None) -> int:
             from orchestrator.matrix_cli import run_matrix_command
 
             return run_matrix_command(args)
+        if args.command == "view":
+            from services.viz.cli import run_view_command
+
+            return run_view_command(args)
         if args.command == "health":
             from orchestrator.health import run_health_command
 

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import sys
 
 from protocol import keys
-from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError
+from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.runtime import RUN_ID_ENV
 
 ROLES = ("router", "simulator", "noise", "brain", "scorer", "recorder", "viz")
@@ -28,23 +27,12 @@ def add_health_command(commands: argparse._SubParsersAction) -> None:
     health.add_argument("--router", metavar="ENDPOINT", help=f"the router (default: ${ROUTER_ENV})")
 
 
-def router_address(endpoint: str) -> tuple[str, int]:
-    """(host, port) of a Zenoh endpoint like ``tcp/10.0.0.5:7447``, ``tls/localhost:7447`` or ``tcp/[::1]:7447``."""
-    _, _, address = endpoint.partition("/")
-    host, _, port = address.split("#")[0].rpartition(":")
-    if not host or not port.isdigit():
-        raise ValueError(f"not a tcp/tls endpoint with a port: {endpoint!r}")
-    host = host.strip("[]")
-    return ("127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host), int(port)
-
-
 def check_health(role: str, *, endpoint: str, run_id: str, name: str | None = None) -> str | None:
     """None when healthy, else why not (one line)."""
     try:
-        host, port = router_address(endpoint.split(",")[0])
-        socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
-    except (OSError, ValueError) as error:
-        return f"router {endpoint} not reachable: {error}"
+        probe_router(endpoint.split(",")[0], timeout_s=CONNECT_TIMEOUT_S)
+    except BusError as error:
+        return str(error)
     if role == "router":
         return None
     try:

@@ -366,19 +366,6 @@ class LocalStack:
                            f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}")
 
 
-def running_runs(bus: Bus, *, timeout_s: float = 1.0) -> set[str]:
-    """The runs that have a simulator alive on this bus (their liveliness tokens)."""
-    runs = set()
-    for key in bus.alive_now(keys.alive_everywhere(), timeout_s=timeout_s):
-        try:
-            run_id, role, _ = keys.parse_alive(key)
-        except ValueError:
-            continue
-        if role == "simulator":
-            runs.add(run_id)
-    return runs
-
-
 @dataclass
 class AttachedStack(LocalStack):
     """A stack that someone else started (``docker compose``, other machines): nothing is spawned or stopped here.

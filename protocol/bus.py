@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import re
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -619,3 +620,27 @@ class Bus:
     def close(self) -> None:
         if not self.session.is_closed():
             self.session.close()
+
+
+def router_address(endpoint: str) -> tuple[str, int]:
+    """(host, port) of a Zenoh endpoint like ``tcp/10.0.0.5:7447``, ``tls/localhost:7447`` or ``tcp/[::1]:7447``;
+    an unspecified address (``0.0.0.0``, ``[::]``) is this machine's loopback."""
+    _, _, address = endpoint.partition("/")
+    host, _, port = address.split("#")[0].split("?")[0].rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"not a tcp/tls endpoint with a port: {endpoint!r}")
+    host = host.strip("[]")
+    return ("127.0.0.1" if host == "0.0.0.0" else "::1" if host == "::" else host), int(port)
+
+
+def probe_router(endpoint: str, *, timeout_s: float = 2.0) -> None:
+    """Raise :class:`BusError` unless the router's TCP port accepts connections. A client waits forever for a
+    router that is not there; tools that must answer now (healthchecks, ``drivebench view``) ask this first."""
+    try:
+        host, port = router_address(endpoint)
+    except ValueError as error:
+        raise BusError(str(error)) from None
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as error:
+        raise BusError(f"router {endpoint} not reachable: {error.strerror or error}") from None

@@ -68,3 +68,16 @@ class EpisodeStarts:
             elif remaining <= 0:
                 break
         return self._specs.pop(episode, None)
+
+
+def running_runs(bus: Bus, *, timeout_s: float = 1.0) -> set[str]:
+    """The runs that have a simulator alive on this bus (from their liveliness tokens)."""
+    runs = set()
+    for key in bus.alive_now(keys.alive_everywhere(), timeout_s=timeout_s):
+        try:
+            run_id, role, _ = keys.parse_alive(key)
+        except ValueError:
+            continue
+        if role == "simulator":
+            runs.add(run_id)
+    return runs

@@ -53,12 +53,22 @@ def protobuf_schema(message_class: type[Message]) -> Schema:
 
 
 class ViewMaker:
-    """Turns recorded bus messages into view messages (call :meth:`on_message` for each, in recording order)."""
+    """Turns recorded bus messages into view messages (call :meth:`on_message` for each, in recording order).
 
-    def __init__(self, run_id: str):
+    track_resend_ns: how often (log time) the track goes out again; a recording needs it every second so a seek
+        finds it, a live view (``services.viz``) only once per episode (None), as a live viewer keeps scene entities.
+    """
+
+    def __init__(self, run_id: str, *, track_resend_ns: int | None = TRACK_RESEND_NS):
         self.run_id = run_id
         self._track: object | None = None  # the SceneUpdate of the current episode's circuit
         self._track_sent_ns: int | None = None
+        self._track_resend_ns = track_resend_ns
+
+    @property
+    def track(self) -> ViewMessage | None:
+        """The current episode's track as a view message (log time 0), None before the first START."""
+        return None if self._track is None else self._view("track", self._track, 0)
 
     def on_message(self, message: object, *, log_time_ns: int) -> list[ViewMessage]:
         views: list[ViewMessage] = []
@@ -68,7 +78,8 @@ class ViewMaker:
         if isinstance(message, Pose):
             views += self._pose_views(message, log_time_ns)
         if self._track is not None and (self._track_sent_ns is None
-                                        or log_time_ns - self._track_sent_ns >= TRACK_RESEND_NS):
+                                        or (self._track_resend_ns is not None
+                                            and log_time_ns - self._track_sent_ns >= self._track_resend_ns)):
             self._track_sent_ns = log_time_ns
             views.append(self._view("track", self._track, log_time_ns))
         return views

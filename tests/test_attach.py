@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from orchestrator.health import router_address
+from protocol.bus import router_address
 from orchestrator.launcher import free_loopback_port
 
 

@@ -1,0 +1,291 @@
+"""The core of the live view: bus messages in, Foxglove WebSocket channels out. Knows nothing of Zenoh.
+
+It serves a Foxglove WebSocket server (foxglove-sdk, subprotocol ``foxglove.sdk.v1``) and maps each bus message to
+the channel a recording would hold for it (``protocol.recording``, ``recorder.views``), so a layout made for a
+recording of a run also works live on that run:
+
+* camera frames -> ``foxglove.CompressedImage`` (protobuf, JPEG; the recording's image schema with the run id,
+  episode, sequence number and dropped flag as extra fields), one channel per camera key;
+* poses -> the views ``car_pose`` (``foxglove.PoseInFrame``) and ``world_from_car`` (``foxglove.FrameTransform``),
+  and the episode's circuit as ``track`` (``foxglove.SceneUpdate``), sent once per episode and again whenever a
+  viewer subscribes to it;
+* poses themselves, commands (one channel per brain), live metrics, episode events and scores -> JSON with a JSON
+  Schema.
+
+Log times are simulated time: the first episode seen starts at 0 and each later one one second after the previous
+one's last message (``recorder.writer.EpisodeClock``, as in recordings), so a viewer's clock never runs back. The
+geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
+
+A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
+client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import re
+import threading
+from collections import Counter
+from collections.abc import Iterable
+
+import foxglove
+import msgspec
+from foxglove.websocket import ServerListener
+
+from protocol import keys
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
+from protocol.recording import Schema, channel_layout, to_record
+from recorder.views import ViewMaker, ViewMessage, protobuf_schema
+from recorder.writer import EpisodeClock
+
+log = logging.getLogger("drivebench.viz")
+_SDK_LOG = logging.getLogger("foxglove")  # foxglove-sdk's Rust log records arrive under it
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+SDK_LOG_LEVEL = "WARNING"
+JSON_MESSAGES = (Command, EpisodeEvent, LiveMetrics, EpisodeScore)
+
+
+class BridgeError(RuntimeError):
+    """The server could not start (port taken, bad host): one line."""
+
+
+def view_topics(run_id: str) -> dict[str, str]:
+    """Topics of the derived views: car pose, world -> car transform, track."""
+    return {name: keys.view(run_id, name) for name in ("car_pose", "world_from_car", "track")}
+
+
+class _LostSubscriptions(logging.Handler):
+    """Channels a viewer could not subscribe to, from foxglove-sdk 0.30's error log.
+
+    A channel created while viewers are connected is advertised to them before the server knows it: a viewer that
+    subscribes at once (our test client; Foxglove, for a topic its panels show) is refused ("attempted to subscribe to
+    unknown channel: N") and is never told. Measured: 1 in ~200 new channels in an idle process, about every other
+    one in a busy bridge. The bridge advertises such a channel again (``LiveBridge._readvertise_lost``).
+    Runs on the SDK's threads: only queues the id.
+    """
+
+    _PATTERN = re.compile(r"subscribe to unknown channel: (\d+)")
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.WARNING)
+        self._ids: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if (match := self._PATTERN.search(record.getMessage())) is not None:
+            self._ids.put(int(match.group(1)))
+
+    def drain(self) -> list[int]:
+        ids = []
+        while not self._ids.empty():
+            ids.append(self._ids.get())
+        return ids
+
+
+class _Listener(ServerListener):
+    """foxglove-sdk server callbacks (they run on the SDK's threads: only set flags here). The SDK calls every
+    method of ``ServerListener`` (no-ops there), so it must be a subclass."""
+
+    def __init__(self, bridge: LiveBridge):
+        self._bridge = bridge
+
+    def on_subscribe(self, client, channel) -> None:
+        self._bridge._on_subscribe(client.id, channel.topic)
+
+
+class LiveBridge:
+    """One Foxglove WebSocket server for one run.
+
+    host / port: where to listen (port 0: any free port, see :attr:`port`). backlog: messages queued per client
+    before its oldest are dropped (``message_backlog_size``). jpeg_quality: 1-100.
+
+    Thread use: :meth:`publish_frame` from any thread (one per camera key), :meth:`publish` and :meth:`maintain`
+    from one thread.
+    """
+
+    def __init__(self, *, run_id: str, host: str, port: int, backlog: int, jpeg_quality: int = 90,
+                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False):
+        self.run_id = run_id
+        self.jpeg_quality = jpeg_quality
+        self.sent: Counter[str] = Counter()  # messages sent per topic (logged while some viewer subscribed)
+        self.frames_skipped = 0  # frames not encoded: nobody subscribed to their channel
+        self.bad_frames = 0
+        self.readvertised = 0  # channels advertised again after a viewer's subscription to them was lost
+        self._context = foxglove.Context()
+        self._channels: dict[str, foxglove.Channel] = {}
+        self._channels_lock = threading.Lock()
+        self._clock = EpisodeClock()
+        self._clock_lock = threading.Lock()
+        self._views = ViewMaker(run_id, track_resend_ns=None)  # a live viewer keeps the track: once per episode
+        self._view_topics = view_topics(run_id)
+        self._track_wanted = threading.Event()
+        self._last_log_time_ns = 0
+        # The SDK hands its Rust log records to Python logging, taking the GIL from whichever thread logs, possibly
+        # while holding its own locks. Keep that off the hot path ("outbox full" is logged from ``log()``): only
+        # warnings and errors go through; a new viewer is logged here instead (``_on_subscribe``).
+        foxglove.set_log_level(SDK_LOG_LEVEL)
+        self._viewers: set[int] = set()
+        self._ids: dict[int, str] = {}  # channel id -> topic
+        self._lost = _LostSubscriptions()
+        # Every channel known now is created before the server starts, so a viewer meets them all in its first
+        # advertisement. One created later races its viewers' subscriptions (see _LostSubscriptions): the perturbed
+        # camera and each brain's commands when their process comes up later (``advertise_*``) or at their first
+        # message.
+        for key, message_type in ((keys.camera_raw(run_id), CameraFrame), (keys.pose(run_id), Pose),
+                                  (keys.events(run_id), EpisodeEvent), (keys.live_metrics(run_id), LiveMetrics),
+                                  (keys.score(run_id), EpisodeScore)):
+            self._bus_channel(key, message_type)
+        for brain in brains:
+            self.advertise_command(brain)
+        if perturbed:
+            self.advertise_perturbed_camera()
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+        for name_, message_class in (("car_pose", PoseInFrame), ("world_from_car", FrameTransform),
+                                     ("track", SceneUpdate)):
+            self._channel(self._view_topics[name_], "protobuf", protobuf_schema(message_class))
+        _SDK_LOG.addHandler(self._lost)
+        try:
+            self._server = foxglove.start_server(
+                name=name, host=host, port=port, context=self._context, message_backlog_size=backlog,
+                server_listener=_Listener(self))
+        except RuntimeError as error:
+            _SDK_LOG.removeHandler(self._lost)
+            raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
+                              f"{str(error).removeprefix('FoxgloveError: ')}") from None
+
+    @property
+    def port(self) -> int:
+        """The port the server listens on (the actual one when started with port 0)."""
+        return self._server.port
+
+    # -- channels --
+
+    def _channel(self, topic: str, encoding: str, schema: Schema) -> foxglove.Channel:
+        with self._channels_lock:
+            channel = self._channels.get(topic)
+            if channel is None:
+                channel = self._channels[topic] = foxglove.Channel(
+                    topic, message_encoding=encoding, context=self._context,
+                    schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data))
+                self._ids[channel.id()] = topic
+            return channel
+
+    def _readvertise_lost(self) -> None:
+        """Advertise again, under a new id, each channel a viewer failed to subscribe to (it then subscribes again,
+        as Foxglove does for the topics its panels show)."""
+        for channel_id in self._lost.drain():
+            with self._channels_lock:
+                topic = self._ids.pop(channel_id, None)
+                old = self._channels.pop(topic, None) if topic is not None else None
+                if old is None:
+                    continue  # not ours, or already replaced
+                schema, encoding = old.schema(), old.message_encoding
+                # Closed first: the SDK hands back the open channel of the same topic and schema, same id and all.
+                old.close()
+                new = self._channels[topic] = foxglove.Channel(
+                    topic, message_encoding=encoding, context=self._context, schema=schema)
+                self._ids[new.id()] = topic
+            self.readvertised += 1
+            log.info("advertised %s again: a viewer's subscription to it was lost", topic)
+
+    def _bus_channel(self, key: str, message_type: type[msgspec.Struct]) -> foxglove.Channel:
+        """The channel of bus key ``key`` (its layout is only worked out the first time)."""
+        with self._channels_lock:
+            channel = self._channels.get(key)
+        return channel if channel is not None else self._channel(key, *_layout(key, message_type))
+
+    def advertise_command(self, brain: str) -> None:
+        """Advertise the command channel of ``brain`` before its first command (a viewer then misses none)."""
+        self._bus_channel(keys.command(self.run_id, brain), Command)
+
+    def advertise_perturbed_camera(self) -> None:
+        """Advertise the perturbed camera (a noise injector is alive) before its first frame."""
+        self._bus_channel(keys.camera_perturbed(self.run_id), CameraFrame)
+
+    def topics(self) -> list[str]:
+        with self._channels_lock:
+            return sorted(self._channels)
+
+    def _on_subscribe(self, client_id: int, topic: str) -> None:
+        if client_id not in self._viewers:
+            self._viewers.add(client_id)
+            log.info("viewer %d subscribed (first to %s)", client_id, topic)
+        if topic == self._view_topics["track"]:
+            self._track_wanted.set()  # a new viewer: send it the circuit (from the publishing thread)
+
+    # -- messages --
+
+    def log_time_ns(self, message: msgspec.Struct) -> int:
+        header = message.header
+        with self._clock_lock:
+            return self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
+
+    def publish_frame(self, key: str, frame: CameraFrame) -> bool:
+        """Encode one camera frame as JPEG and send it; False when skipped (no viewer, dropped or bad frame)."""
+        channel = self._bus_channel(key, CameraFrame)
+        if not channel.has_sinks():
+            self.frames_skipped += 1
+            return False
+        if frame.dropped or not frame.data:
+            return False  # the noise injector lost it: nothing to show
+        try:
+            data = to_record(frame, image_format="jpeg", jpeg_quality=self.jpeg_quality)
+        except ValueError as error:  # a payload of the wrong size
+            self.bad_frames += 1
+            if self.bad_frames == 1:
+                log.warning("dropped bad camera frame on %s: %s (further ones are only counted)", key, error)
+            return False
+        channel.log(data, log_time=self.log_time_ns(frame))
+        self.sent[key] += 1
+        return True
+
+    def publish(self, key: str, message: msgspec.Struct) -> None:
+        """Send one small bus message (command, metrics, event, score, pose) and the views it implies."""
+        log_time = self.log_time_ns(message)
+        self._last_log_time_ns = max(self._last_log_time_ns, log_time)
+        if isinstance(message, (*JSON_MESSAGES, Pose)):
+            channel = self._bus_channel(key, type(message))
+            if channel.has_sinks():  # nobody subscribed: not even worth encoding
+                channel.log(to_record(message), log_time=log_time)
+                self.sent[key] += 1
+        if isinstance(message, Pose):
+            # The geometry is stamped with the viewer's clock (see the module docstring).
+            message = msgspec.structs.replace(message, header=msgspec.structs.replace(message.header,
+                                                                                      stamp_ns=log_time))
+        if isinstance(message, (Pose, EpisodeEvent)):
+            for view in self._views.on_message(message, log_time_ns=log_time):
+                self._publish_view(view, log_time)
+                if view.topic == self._view_topics["track"]:
+                    self._track_wanted.clear()
+
+    def maintain(self) -> None:
+        """Periodic work (call a few times a second): advertise again the channels whose subscription was lost, send
+        the track to a viewer that subscribed since."""
+        self._readvertise_lost()
+        if self._track_wanted.is_set():
+            self._track_wanted.clear()
+            if (track := self._views.track) is not None:
+                self._publish_view(track, self._last_log_time_ns)
+
+    def _publish_view(self, view: ViewMessage, log_time: int) -> None:
+        channel = self._channel(view.topic, "protobuf", view.schema)
+        if channel.has_sinks():
+            channel.log(view.message.SerializeToString(), log_time=log_time)
+            self.sent[view.topic] += 1
+
+    def close(self) -> None:
+        _SDK_LOG.removeHandler(self._lost)
+        self._server.stop()
+        with self._channels_lock:
+            for channel in self._channels.values():
+                channel.close()
+
+
+def _layout(key: str, message_type: type[msgspec.Struct]) -> tuple[str, Schema]:
+    """(message encoding, schema) of the channel of ``key``: the recording's, with JPEG images."""
+    layout = channel_layout(key, message_type, image_format="jpeg")
+    return layout.message_encoding, layout.schema

@@ -1,0 +1,479 @@
+"""The live view: real Foxglove WebSocket clients (``websockets``, subprotocol ``foxglove.sdk.v1``) on a real stack.
+
+Messages are parsed the way a viewer does: text ops (``serverInfo``, ``advertise``), binary ``messageData`` frames
+(opcode 1, uint32 subscription id, uint64 log time in ns, payload), protobuf decoded with foxglove_schemas_protobuf,
+JPEG with OpenCV, JSON with ``json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from websockets.client import ClientProtocol
+from websockets.frames import Opcode
+from websockets.sync.client import connect
+from websockets.uri import parse_uri
+
+from orchestrator.launcher import free_loopback_port
+from protocol import keys
+from protocol.bus import Bus, BusConfig, Inbox
+from protocol.messages import (
+    CameraFrame, CameraSpec, Command, ControlRequest, EndReason, EpisodeSpec, Header, SaltPepper,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+SUBPROTOCOL = "foxglove.sdk.v1"
+MESSAGE_DATA = 1
+CAMERA = CameraSpec(width_px=320, height_px=240)
+
+
+# -- a Foxglove WebSocket client -------------------------------------------------------------------------------------
+
+
+@dataclass
+class Received:
+    arrival: float  # time.monotonic()
+    log_time_ns: int
+    payload: bytes
+
+
+@dataclass
+class FoxgloveClient:
+    """Reads everything on a background thread; subscribes to every advertised channel ``wanted`` accepts."""
+
+    ws: object
+    wanted: object  # topic -> bool
+    server_info: dict = field(default_factory=dict)
+    channels: dict[str, dict] = field(default_factory=dict)  # topic -> advertised channel
+    messages: dict[str, list[Received]] = field(default_factory=lambda: defaultdict(list))  # topic -> messages
+    _topic_of_subscription: dict[int, str] = field(default_factory=dict)
+    _advertised: threading.Condition = field(default_factory=threading.Condition)
+
+    def run(self) -> None:
+        try:
+            for message in self.ws:
+                if isinstance(message, str):
+                    self._on_text(json.loads(message))
+                elif message[0] == MESSAGE_DATA:
+                    subscription, log_time = struct.unpack_from("<IQ", message, 1)
+                    self.messages[self._topic_of_subscription[subscription]].append(
+                        Received(time.monotonic(), log_time, message[13:]))
+        except Exception:  # noqa: BLE001 - the connection closed under us at the end of a test
+            pass
+
+    def _on_text(self, message: dict) -> None:
+        if message["op"] == "serverInfo":
+            self.server_info = message
+        elif message["op"] == "advertise":
+            subscriptions = []
+            for channel in message["channels"]:
+                if self.wanted(channel["topic"]):
+                    subscription = len(self._topic_of_subscription)
+                    self._topic_of_subscription[subscription] = channel["topic"]
+                    subscriptions.append({"id": subscription, "channelId": channel["id"]})
+            if subscriptions:
+                self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+            with self._advertised:
+                self.channels.update({channel["topic"]: channel for channel in message["channels"]})
+                self._advertised.notify_all()
+
+    def wait_for_channels(self, topics: set[str], timeout_s: float = 10.0) -> None:
+        with self._advertised:
+            assert self._advertised.wait_for(lambda: topics <= set(self.channels), timeout=timeout_s), \
+                f"never advertised: {topics - set(self.channels)}"
+
+
+@contextmanager
+def foxglove_client(port: int, wanted=lambda topic: True):
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None, open_timeout=10) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        client = FoxgloveClient(ws=ws, wanted=wanted)
+        reader = threading.Thread(target=client.run, daemon=True)
+        reader.start()
+        yield client
+
+
+class StuckClient:
+    """A viewer that connects, subscribes to everything advertised, and then never reads again.
+
+    Sans-I/O ``websockets`` over a plain socket (64 kB receive buffer): once it stops calling ``recv`` nothing is
+    read at all, so the kernel's socket buffers (a few MB on loopback), then the server's per-client backlog fill.
+    """
+
+    def __init__(self, port: int, topics: set[str]):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024)  # before connecting: sets the window
+        self.sock.connect(("127.0.0.1", port))
+        self.protocol = ClientProtocol(parse_uri(f"ws://127.0.0.1:{port}"), subprotocols=[SUBPROTOCOL], max_size=None)
+        self.protocol.send_request(self.protocol.connect())
+        self._send()
+        channels: dict[int, str] = {}
+        deadline = time.monotonic() + 10
+        while not topics <= set(channels.values()):
+            assert time.monotonic() < deadline, f"never advertised: {topics - set(channels.values())}"
+            self.sock.settimeout(max(0.1, deadline - time.monotonic()))
+            self.protocol.receive_data(self.sock.recv(65536))
+            for event in self.protocol.events_received():
+                if getattr(event, "opcode", None) == Opcode.TEXT and json.loads(event.data)["op"] == "advertise":
+                    channels.update({c["id"]: c["topic"] for c in json.loads(event.data)["channels"]})
+            self._send()
+        self.protocol.send_text(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": i, "channelId": channel} for i, channel in enumerate(channels)]}).encode())
+        self._send()
+
+    def _send(self) -> None:
+        for data in self.protocol.data_to_send():
+            self.sock.sendall(data)
+
+    def drain(self, *, quiet_s: float = 1.0, limit_s: float = 10.0) -> tuple[int, bool]:
+        """Read what is waiting, until ``quiet_s`` without data: (messageData frames read, closed by the server)."""
+        self.sock.settimeout(quiet_s)
+        frames, closed, deadline = 0, False, time.monotonic() + limit_s
+        self.bytes_read = 0
+        try:
+            while time.monotonic() < deadline:
+                data = self.sock.recv(1 << 20)
+                if not data:
+                    closed = True
+                    break
+                self.bytes_read += len(data)
+                self.protocol.receive_data(data)
+                frames += sum(1 for event in self.protocol.events_received()
+                              if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA)
+        except TimeoutError:
+            pass
+        except OSError:
+            closed = True
+        return frames, closed
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+# -- the viz process -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Viz:
+    process: subprocess.Popen
+    port: int
+    log_path: Path
+
+    def rss_mb(self) -> float:
+        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise AssertionError("no VmRSS")
+
+    def cpu_s(self) -> float:
+        """User + system CPU seconds the process has used."""
+        fields = Path(f"/proc/{self.process.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+@contextmanager
+def viz_process(stack, *extra: str):
+    port = free_loopback_port()
+    log_path = stack.run_dir / "logs" / "viz.log"
+    token = keys.alive(stack.run_id, "viz", "viz")
+    watch = stack.bus.watch_alive(token)
+    with open(log_path, "ab") as log_file:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "services.viz", "--router", stack.endpoint, "--run-id", stack.run_id,
+             "--set", f"port={port}", *extra], cwd=ROOT, stdout=log_file, stderr=subprocess.STDOUT)
+    viz = Viz(process, port, log_path)
+    try:
+        missing = watch.wait_for({token}, timeout_s=30, abort=lambda: "dead" if process.poll() is not None else None)
+        watch.close()
+        assert not missing, f"viz did not come up ({process.poll()}): {viz.log()}"
+        yield viz
+    finally:
+        process.send_signal(signal.SIGTERM)
+        try:
+            code = process.wait(timeout=20)
+            assert code == 128 + signal.SIGTERM, f"exit code {code}: {viz.log()}"
+        finally:
+            if process.poll() is None:
+                process.kill()
+
+
+def decode_jpeg_image(payload: bytes) -> np.ndarray:
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    image = CompressedImage()
+    image.ParseFromString(payload)  # the stock schema: the drivebench extra fields are skipped as unknown
+    assert image.format == "jpeg" and image.frame_id == "camera"
+    pixels = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
+    assert pixels is not None, "not a JPEG"
+    return pixels
+
+
+# -- tests -------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.integration
+def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_stack):
+    stack = make_stack()
+    run = stack.run_id
+    views = {name: keys.view(run, name) for name in ("car_pose", "world_from_car", "track")}
+    camera, command = keys.camera_raw(run), keys.command(run, "explicit")
+    with viz_process(stack) as viz, foxglove_client(viz.port) as client:
+        client.wait_for_channels({camera, keys.pose(run), keys.live_metrics(run), keys.events(run),
+                                  keys.score(run), *views.values()})
+        assert client.server_info["name"] == f"drivebench {run}"
+        advertised = client.channels[camera]
+        assert (advertised["encoding"], advertised["schemaName"], advertised["schemaEncoding"]) == \
+            ("protobuf", "foxglove.CompressedImage", "protobuf")
+        assert client.channels[keys.live_metrics(run)]["schemaEncoding"] == "jsonschema"
+        time.sleep(0.5)  # the subscriptions reach the server
+
+        frames = Inbox()  # the camera on the bus, as the simulator publishes it
+        stack.bus.subscribe(camera, CameraFrame, inbox=frames)
+        started, cpu_before = time.monotonic(), viz.cpu_s()
+        score = stack.run_episode(EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA))
+        ended, cpu_used = time.monotonic(), viz.cpu_s() - cpu_before
+        time.sleep(1.0)  # the last messages in flight
+
+    assert score.reason == EndReason.TIME_LIMIT
+    on_bus = [r for r in frames.drain() if r.message.header.episode == score.header.episode]
+    last_stamp = on_bus[-1].message.header.stamp_ns
+    assert [r.message.header.seq for r in on_bus] == list(range(len(on_bus))) and last_stamp >= 7_900_000_000
+    images = [m for m in client.messages[camera] if started <= m.arrival <= ended + 1.0]
+    seconds = ended - started
+    bus_rate, ws_rate = len(on_bus) / seconds, len(images) / seconds
+    print(f"\ncamera on the bus: {len(on_bus)} frames in {seconds:.2f} s = {bus_rate:.1f} Hz; over the WebSocket: "
+          f"{len(images)} images = {ws_rate:.1f} Hz ({100 * ws_rate / bus_rate:.1f} %), "
+          f"{sum(len(m.payload) for m in images) / len(images) / 1e3:.1f} kB each; viz CPU {cpu_used:.2f} s "
+          f"= {100 * cpu_used / seconds:.0f} % of a core (two cameras encoded)")
+    assert ws_rate >= 0.9 * bus_rate
+    for image in images:
+        assert decode_jpeg_image(image.payload).shape == (CAMERA.height_px, CAMERA.width_px, 3)
+    # Log time = sim time (the run's first episode starts at 0): every image on the 50 ms step grid, in order.
+    stamps = [image.log_time_ns for image in images]
+    assert stamps == sorted(stamps) and all(stamp % 50_000_000 == 0 for stamp in stamps)
+    assert stamps[-1] == last_stamp
+
+    # The car on the circuit: pose, transform, and the track drawn once for the episode.
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    poses = [json.loads(m.payload) for m in client.messages[keys.pose(run)]]
+    assert len(poses) >= 0.9 * len(on_bus) and {"x_m", "y_m", "yaw_rad", "header"} <= set(poses[-1])
+    car = PoseInFrame.FromString(client.messages[views["car_pose"]][-1].payload)
+    transform = FrameTransform.FromString(client.messages[views["world_from_car"]][-1].payload)
+    assert car.frame_id == "world" and (transform.parent_frame_id, transform.child_frame_id) == ("world", "car")
+    assert (car.pose.position.x, car.pose.position.y) == pytest.approx((poses[-1]["x_m"], poses[-1]["y_m"]))
+    assert client.messages[views["car_pose"]][-1].log_time_ns == poses[-1]["header"]["stamp_ns"] \
+        == car.timestamp.seconds * 1_000_000_000 + car.timestamp.nanos
+    tracks = [SceneUpdate.FromString(m.payload) for m in client.messages[views["track"]]]
+    assert 1 <= len(tracks) <= 2  # once for the episode (and once more if the subscription came after it)
+    assert [entity.id for entity in tracks[-1].entities] == ["track", "car"] and len(tracks[-1].entities[0].lines) >= 2
+
+    # Commands of the brain, live metrics, events and the score: JSON a viewer can plot.
+    commands = [json.loads(m.payload) for m in client.messages[command]]
+    assert len(commands) >= 0.9 * len(on_bus) and commands[-1]["brain"] == "explicit" and "speed_mps" in commands[-1]
+    live = [json.loads(m.payload) for m in client.messages[keys.live_metrics(run)]]
+    assert live and live[-1]["real_time_factor"] > 0 and live[-1]["laps_target"] == 1
+    events = [json.loads(m.payload) for m in client.messages[keys.events(run)]]
+    assert [event["kind"] for event in events] == ["start", "end"] and events[0]["spec"]["circuit"] == "simple"
+    scores = [json.loads(m.payload) for m in client.messages[keys.score(run)]]
+    assert len(scores) == 1 and scores[0]["reason"] == "time_limit"
+    perturbed = client.messages[keys.camera_perturbed(run)]  # the stack's noise injector publishes one
+    assert perturbed and decode_jpeg_image(perturbed[-1].payload).shape == (CAMERA.height_px, CAMERA.width_px, 3)
+
+
+def test_channels_added_while_viewers_connect_reach_them():
+    """A brain that comes up while viewers connect gets a command channel they subscribe to at once, as Foxglove
+    does. foxglove-sdk 0.30 refuses some of these subscriptions (a few in 30 here); the bridge then advertises the
+    channel again, and every viewer gets its messages."""
+    from services.viz.bridge import LiveBridge
+
+    bridge = LiveBridge(run_id="r", host="127.0.0.1", port=0, backlog=1000)
+    brains = [f"brain{i}" for i in range(30)]
+    try:
+        with ExitStack() as viewers:
+            clients = []
+            for brain in brains:  # a viewer connects, and a brain comes up
+                clients.append(viewers.enter_context(foxglove_client(bridge.port)))
+                bridge.advertise_command(brain)
+            deadline, seq = time.monotonic() + 15, 0
+            while missing := [b for b in brains if not all(c.messages[keys.command("r", b)] for c in clients)]:
+                assert time.monotonic() < deadline, f"never reached every viewer: {missing}"
+                bridge.maintain()
+                for brain in brains:
+                    bridge.publish(keys.command("r", brain), Command(
+                        header=Header(run_id="r", episode=0, seq=seq, stamp_ns=seq * 50_000_000), brain=brain,
+                        frame_seq=seq, speed_mps=1.0, yaw_rate_radps=0.0))
+                seq += 1
+                time.sleep(0.05)
+        print(f"\n{len(brains)} channels added as {len(clients)} viewers connected; advertised again after a lost "
+              f"subscription: {bridge.readvertised}")
+    finally:
+        bridge.close()
+
+
+def sample_rss(viz: Viz, stop: threading.Event, samples: list[float]) -> None:
+    while not stop.is_set():
+        samples.append(viz.rss_mb())
+        stop.wait(0.1)
+
+
+@pytest.mark.integration
+def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_stack):
+    stack = make_stack()
+    run = stack.run_id
+    everything = {keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run), keys.command(run, "explicit"),
+                  keys.view(run, "track")}
+    # Salt and pepper makes the perturbed camera's JPEGs big (~50 kB): an episode then sends far more than the
+    # kernel's socket buffers hold (a few MB), so the server's per-client backlog really fills and drops.
+    spec = EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA, noise=[SaltPepper(probability=0.2)])
+    backlog = 120
+    with viz_process(stack, "--set", f"backlog={backlog}") as viz:
+        alone = stack.run_episode(spec)  # the viz serves nobody
+        with foxglove_client(viz.port) as reader:  # a viewer that keeps up, subscribed to every channel
+            reader.wait_for_channels(everything)
+            time.sleep(0.5)
+            reading = stack.run_episode(spec)
+        rss_before = viz.rss_mb()
+
+        # The same viewer, but it never reads: its messages pile up in the kernel, then in the server's backlog.
+        stuck = StuckClient(viz.port, everything)
+        time.sleep(0.5)
+        samples: list[float] = []
+        stop = threading.Event()
+        sampler = threading.Thread(target=sample_rss, args=(viz, stop, samples), daemon=True)
+        sampler.start()
+        with_stuck = stack.run_episode(spec)
+        stop.set()
+        sampler.join()
+        time.sleep(0.5)
+        read_late, closed = stuck.drain()  # what the socket buffers and the backlog still held
+        stuck.close()
+    sent = [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
+    sent_while_stuck = sent[2] - sent[1]
+    rtf = {name: score.metrics.real_time_factor
+           for name, score in (("alone", alone), ("reading", reading), ("stuck", with_stuck))}
+    half = len(samples) // 2
+    noisy = reader.messages[keys.camera_perturbed(run)]
+    print(f"\nreal-time factor: {rtf['alone']:.2f} with no viewer, {rtf['reading']:.2f} with a viewer reading every "
+          f"channel, {rtf['stuck']:.2f} with one that never reads ({100 * rtf['stuck'] / rtf['reading']:.0f} % of "
+          f"reading, {100 * rtf['stuck'] / rtf['alone']:.0f} % of none); viz RSS {rss_before:.1f} MB before, max "
+          f"{max(samples):.1f} MB (first half {max(samples[:half]):.1f}, second half {max(samples[half:]):.1f}); "
+          f"sent to the stuck viewer {sent_while_stuck} messages (the reader got {len(noisy)} noisy images, "
+          f"{sum(len(m.payload) for m in noisy) / 1e6:.1f} MB), of which it could still read {read_late} "
+          f"({stuck.bytes_read / 1e6:.1f} MB) afterwards")
+    assert alone.reason == reading.reason == with_stuck.reason == EndReason.TIME_LIMIT
+    assert with_stuck.metrics.steps == alone.metrics.steps  # lock-step: nothing lost either
+    # Generous: 2 cores shared by simulator, brain, noise, scorer, viz and this test; episodes vary by ~20 %.
+    assert rtf["stuck"] >= 0.6 * rtf["reading"]
+    assert max(samples) < rss_before + 60  # the backlog: 120 messages, at most ~50 kB each, plus the encoders
+    assert max(samples[half:]) < max(samples[:half]) + 15  # flat: it does not grow with the messages sent
+    assert not closed and read_late < sent_while_stuck  # still connected; the oldest were dropped, not queued
+
+
+# -- drivebench view -----------------------------------------------------------------------------------------------
+
+
+def view_args(*argv: str) -> argparse.Namespace:
+    from services.viz.cli import add_view_command
+
+    parser = argparse.ArgumentParser(prog="drivebench")
+    add_view_command(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["view", *argv])
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_view_without_a_router_says_so_in_one_line(capsys, monkeypatch):
+    from services.viz.cli import run_view_command
+
+    monkeypatch.delenv("DRIVEBENCH_ROUTER", raising=False)
+    assert run_view_command(view_args()) == 2
+    assert "no router" in one_error_line(capsys)
+    assert run_view_command(view_args("--router", "tcp/127.0.0.1:7447", "--port", "70000")) == 2
+    assert "port" in one_error_line(capsys)
+
+
+@pytest.mark.integration
+def test_view_with_no_run_several_runs_or_no_router_listening_says_so_in_one_line(capsys, monkeypatch):
+    from services.viz.cli import run_view_command
+
+    monkeypatch.delenv("DRIVEBENCH_RUN_ID", raising=False)
+    nobody = f"tcp/127.0.0.1:{free_loopback_port()}"
+    assert run_view_command(view_args("--router", nobody)) == 1
+    assert f"router {nobody} not reachable" in one_error_line(capsys)
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    with Bus(BusConfig(mode="router", listen=[endpoint]), name="test-router") as bus:
+        monkeypatch.setenv("DRIVEBENCH_ROUTER", endpoint)
+        assert run_view_command(view_args()) == 1
+        assert "no run is alive" in one_error_line(capsys)
+        bus.declare_alive(keys.alive("run-a", "simulator", "sim"))
+        bus.declare_alive(keys.alive("run-b", "simulator", "sim"))
+        assert run_view_command(view_args()) == 1
+        assert "2 runs are alive" in (line := one_error_line(capsys)) and "run-a, run-b" in line
+
+
+@pytest.mark.integration
+def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigterm(make_stack):
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    stack = make_stack()
+    run = stack.run_id
+    episode = threading.Thread(target=stack.run_episode, daemon=True,
+                               args=(EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48)),))
+    episode.start()
+    time.sleep(1.0)  # its START event is long gone when the view joins
+    port = free_loopback_port()
+    env = {k: v for k, v in os.environ.items() if k not in ("DRIVEBENCH_RUN_ID", "DRIVEBENCH_ROUTER")}
+    view = subprocess.Popen([sys.executable, "-m", "services.viz.cli", "view", "--router", stack.endpoint,
+                             "--port", str(port)], cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        while not any(line.startswith("drivebench view:") for line in lines):
+            line = view.stderr.readline()
+            assert line, f"view exited ({view.wait()}): {''.join(lines)}"
+            lines.append(line)
+        assert f"run {run} via {stack.endpoint}" in lines[-1] and f"ws://127.0.0.1:{port}" in lines[-1]
+        with foxglove_client(port) as client:
+            deadline = time.monotonic() + 20
+            wanted = (keys.view(run, "track"), keys.camera_raw(run), keys.command(run, "explicit"))
+            while not all(client.messages[topic] for topic in wanted):
+                assert time.monotonic() < deadline, f"missing: {[t for t in wanted if not client.messages[t]]}"
+                time.sleep(0.1)
+            track = SceneUpdate.FromString(client.messages[keys.view(run, "track")][0].payload)
+            assert track.entities[0].id == "track"  # the circuit, from the spec the simulator gave for episode 0
+            assert decode_jpeg_image(client.messages[keys.camera_raw(run)][-1].payload).shape == (48, 64, 3)
+        stack._control(ControlRequest(action="stop"))
+        episode.join(timeout=30)
+        view.send_signal(signal.SIGTERM)
+        assert view.wait(timeout=20) == 0
+        assert "missed the start of episode 0" in view.stderr.read()
+    finally:
+        if view.poll() is None:
+            view.kill()
