@@ -58,6 +58,8 @@ LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions r
 # Which failure a dead or vanished process of each role means for its episode.
 FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
                    "noise": "scorer_died", "recorder": "scorer_died", "router": "simulator_died"}
+# How long a start refused because the simulator has not yet seen the brain's token is retried.
+START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
 SCORE_AFTER_DEATH_S = 1.5
 
@@ -320,7 +322,7 @@ class LocalStack:
                 subscription.close()
 
     def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s, abort) -> EpisodeScore:
-        reply = self._control(ControlRequest(action="start", spec=spec))
+        reply = self._start(spec)
         if not reply.ok:
             raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
         episode = reply.episode
@@ -351,6 +353,17 @@ class LocalStack:
                 return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
             if on_live is not None:
                 on_live(message)
+
+    def _start(self, spec: EpisodeSpec) -> ControlReply:
+        """Ask the simulator to start ``spec``. A refusal because the brain is not alive is retried for a moment:
+        the brain's liveliness token reaches the simulator on its own route, which may be slower than ours (a
+        brain on another machine, seen here through the router)."""
+        deadline = time.monotonic() + START_RETRY_S
+        while True:
+            reply = self._control(ControlRequest(action="start", spec=spec))
+            if reply.ok or "is not alive" not in reply.detail or time.monotonic() > deadline:
+                return reply
+            time.sleep(0.2)
 
     def _control(self, request: ControlRequest, *, attempts: int = 10) -> ControlReply:
         """A control query to the simulator; retried while its queryable is not yet reachable."""

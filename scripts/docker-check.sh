@@ -12,7 +12,8 @@
 # 2. a base image without any registry: a debootstrap'ed bookworm (python3 3.11, python3-venv, ca-certificates)
 #    `docker import`ed as $BASE_IMAGE, its rootfs kept under $CACHE;
 # 3. `docker compose build` (EXTRAS= : no torch, the explicit brain needs none), then
-#    `docker compose --profile record up --exit-code-from run` into a fresh results folder;
+#    `docker compose --profile record --profile viz up --exit-code-from run` into a fresh results folder, a
+#    Foxglove WebSocket client (scripts/foxglove_probe.py) counting the live view's camera images meanwhile;
 # 4. checks: run exited 0, runs/*/config.yaml and score.json written, one finished recordings/*.mcap (no .part)
 #    that the project's reader and, where node is installed, the independent validator accept; then
 #    `docker compose down`.
@@ -56,8 +57,8 @@ stop_engine() {
 cleanup() {
   local status=$?
   if [ -n "${COMPOSE_UP:-}" ]; then
-    compose --profile record logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
-    compose --profile record down --timeout 60 >>"$LOG" 2>&1 || true
+    compose --profile record --profile viz logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+    compose --profile record --profile viz down --timeout 60 >>"$LOG" 2>&1 || true
   fi
   stop_engine
   exit $status
@@ -167,6 +168,8 @@ fi
 # Loopback only: the router must not listen on the machine's other interfaces during a check.
 export DRIVEBENCH_LISTEN=tcp/127.0.0.1:$PORT DRIVEBENCH_ROUTER=tcp/127.0.0.1:$PORT
 export TAG=${TAG:-latest}
+# The live view on loopback too, on a free port.
+export VIZ_HOST=127.0.0.1 VIZ_PORT=${VIZ_PORT:-$("$PYTHON" -c "import socket; s=socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])")}
 
 say "docker compose build (BASE_IMAGE=$BASE_IMAGE, EXTRAS='$EXTRAS')"
 t=$(date +%s)
@@ -176,13 +179,13 @@ say "build took $(elapsed "$t") s; image drivebench:$TAG is $(docker image inspe
   awk '{printf "%.0f MB", $1/1e6}')"
 
 docker history --format '{{.Size}}\t{{.CreatedBy}}' "drivebench:$TAG" | cut -c1-150 >>"$LOG"
-say "docker compose --profile record up --exit-code-from run (results in $RESULTS_DIR)"
+say "docker compose --profile record --profile viz up --exit-code-from run (results in $RESULTS_DIR)"
 COMPOSE_UP=1
 t=$(date +%s)
-compose --profile record up --exit-code-from run >"$RESULTS_DIR/up.log" 2>&1 &
+compose --profile record --profile viz up --exit-code-from run >"$RESULTS_DIR/up.log" 2>&1 &
 UP=$!
 # Watch: when every long-running service is healthy, when `run` starts, when it exits.
-SERVICES="router simulator noise brain scorer recorder"
+SERVICES="router simulator noise brain scorer recorder viz"
 healthy_at="" run_started_at=""
 while kill -0 "$UP" 2>/dev/null; do
   states=$(docker ps -a --filter label=com.docker.compose.project=drivebench \
@@ -193,20 +196,25 @@ while kill -0 "$UP" 2>/dev/null; do
     [ -n "$ok" ] && healthy_at=$(date +%s) && say "all of {$SERVICES} healthy after $(elapsed "$t") s"
   fi
   if [ -z "$run_started_at" ] && grep -qE '^run (running|exited)' <<<"$states"; then
-    run_started_at=$(date +%s); say "run started"
+    run_started_at=$(date +%s); say "run started; a Foxglove client probes the live view on port $VIZ_PORT"
+    "$PYTHON" "$ROOT/scripts/foxglove_probe.py" "ws://127.0.0.1:$VIZ_PORT" --seconds 8 >"$RESULTS_DIR/viz-probe.json" \
+      2>>"$LOG" &
+    PROBE=$!
   fi
   sleep 1
 done
 status=0; wait "$UP" || status=$?
 say "compose up exited $status after $(elapsed "$t") s (episode and shutdown: $(elapsed "${run_started_at:-$t}") s)"
-compose --profile record ps -a >>"$LOG" 2>&1 || true
-run_container=$(compose --profile record ps -a -q run 2>/dev/null | head -1)
+compose --profile record --profile viz ps -a >>"$LOG" 2>&1 || true
+run_container=$(compose --profile record --profile viz ps -a -q run 2>/dev/null | head -1)
 if [ -n "$run_container" ]; then
   docker inspect --format '{{.State.StartedAt}} {{.State.FinishedAt}} {{.State.ExitCode}}' "$run_container" |
     "$PYTHON" -c "import sys, datetime as d; a, b, c = sys.stdin.read().split(); p = lambda t: d.datetime.fromisoformat(t[:26].rstrip('Z') + '+00:00'); print(f'run container: {(p(b) - p(a)).total_seconds():.1f} s from start to exit, exit code {c}')" |
     tee -a "$LOG" >&2 || true
 fi
 [ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; die "compose up --exit-code-from run exited $status"; }
+wait "${PROBE:-}" 2>/dev/null || die "the live view served no decodable camera image: $(cat "$RESULTS_DIR/viz-probe.json")"
+say "live view: $(cat "$RESULTS_DIR/viz-probe.json")"
 
 # -- 4. checks -----------------------------------------------------------------------------------------------------
 docker network ls --format '{{.Name}}' | grep -q '^drivebench' && die "compose created a network: it must not"
@@ -235,8 +243,8 @@ if command -v node >/dev/null && [ -d "$ROOT/tools/mcap-validate/node_modules" ]
 else
   say "node or tools/mcap-validate/node_modules missing: independent MCAP validation skipped"
 fi
-compose --profile record logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+compose --profile record --profile viz logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
 say "docker compose down"
-compose --profile record down --timeout 60 >>"$LOG" 2>&1
+compose --profile record --profile viz down --timeout 60 >>"$LOG" 2>&1
 COMPOSE_UP=""
 say "OK: image built, services healthy, episode scored, recording complete; everything in $RESULTS_DIR"
