@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Union
@@ -96,9 +98,22 @@ class RecorderService:
         self.writer.add_metadata(f"file:{path.name}", {"path": str(path), "text": text})
 
     def serve_forever(self) -> None:
+        """Record until SIGTERM or SIGINT, then leave as those signals do (exit 143 or 130) after the current write.
+
+        The signals only set a flag here: raised at an arbitrary point, as the services' default handler does,
+        they could interrupt the MCAP writer in the middle of a chunk, and ``close()`` would then write the rest
+        after a half-written record (a CI run lost 8 steps to a corrupted chunk that way).
+        """
         log.info("recording run %s to %s", self.config.run_id, self.writer.path)
-        while True:
+        stop: list[int] = []
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(signum, lambda received, frame: stop.append(received))  # noqa: ARG005
+        while not stop:
             self.record_pending(timeout_s=0.2)
+        if stop[0] == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + stop[0])
 
     def record_pending(self, *, timeout_s: float) -> int:
         """Write what has arrived (waiting up to ``timeout_s`` for the first); flush when due."""
