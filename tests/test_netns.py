@@ -97,8 +97,12 @@ def test_an_episode_runs_with_router_brain_and_scorer_in_separate_namespaces(tmp
         for module in ("services.simulator", "services.noise"):
             processes.append(net.popen("A", [sys.executable, "-m", module], env=env_a,
                                        log=tmp_path / f"{module}.log"))
+        # The brain's machine as the README sets it up: a client, so only the router's port must be reachable.
+        # (As a peer it relies on a direct link to the simulator; twice in full-suite runs the simulator had not
+        # seen the brain's token 5 s after the driver had.)
         processes.append(net.popen("B", [sys.executable, "-m", "brains", "--brain", "explicit"],
-                                   env={"DRIVEBENCH_ROUTER": router_b, "DRIVEBENCH_RUN_ID": run_id},
+                                   env={"DRIVEBENCH_ROUTER": router_b, "DRIVEBENCH_RUN_ID": run_id,
+                                        "DRIVEBENCH_MODE": "client"},
                                    log=tmp_path / "brain.log"))
         processes.append(net.popen("C", [sys.executable, "-m", "services.scorer"],
                                    env={"DRIVEBENCH_ROUTER": router_c, "DRIVEBENCH_RUN_ID": run_id},
