@@ -231,10 +231,12 @@ def command_run_attached(args: argparse.Namespace) -> int:
                              f"configured (record with the compose profile 'record' or `python -m recorder`)")
     if not (args.router or os.environ.get("DRIVEBENCH_ROUTER")):
         raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+    wait_for_router(args.router or os.environ["DRIVEBENCH_ROUTER"], wait_s=args.wait)
     run_id = args.run_id or os.environ.get("DRIVEBENCH_RUN_ID") or only_running_run(args.router, wait_s=args.wait)
     run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(filename=run_dir / "driver.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.basicConfig(filename=run_dir / "driver.log", level=logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stack = AttachedStack(run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain,
                           startup_timeout_s=args.wait)
     with stack:
@@ -253,6 +255,20 @@ def command_run_attached(args: argparse.Namespace) -> int:
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
     report(score, run_dir, as_json=args.json)
     return EXIT_OK
+
+
+def wait_for_router(endpoint: str, *, wait_s: float) -> None:
+    """Until the router's port answers (a Zenoh client would wait for an absent router forever, silently)."""
+    from protocol.bus import probe_router
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return probe_router(endpoint.split(",")[0].strip())
+        except BusError as error:
+            if time.monotonic() > deadline or "not a tcp/tls endpoint" in str(error):
+                raise StackError(f"{error} (waited {wait_s:.0f} s)") from None
+            time.sleep(0.5)
 
 
 def only_running_run(router: str | None, *, wait_s: float) -> str:

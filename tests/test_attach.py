@@ -79,6 +79,14 @@ def test_attach_names_what_is_not_alive(router):
     assert f"no run alive on {router}: choose one with --run-id or DRIVEBENCH_RUN_ID" in one_line(result)
 
 
+def test_attach_to_a_router_that_is_not_there_fails_in_one_line_after_the_wait():
+    dead = f"tcp/127.0.0.1:{free_loopback_port()}"
+    result = drivebench("run", "--attach", "--router", dead, "--run-id", "r1", "--wait", "1")
+    assert result.returncode == 1
+    line = one_line(result)
+    assert line.startswith(f"drivebench: the stack could not run: router {dead} not reachable") and "waited 1 s" in line
+
+
 @pytest.mark.integration
 def test_health_says_what_is_missing(router):
     result = drivebench("health", "simulator", "--router", router, "--run", "r1")
