@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
+    run.add_argument("--direction", choices=("forward", "reverse"), default="forward",
+                     help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
+                          "way round (default: forward; also --variation direction=reverse)")
     run.add_argument("--brain", help="brain to drive (default: explicit; with --attach: the bus name of a running "
                                      "brain, by default the only one alive)")
     run.add_argument("--weights", type=Path, metavar="CKPT",
@@ -74,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)")
     run.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                      help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
-                          "camera=left (presets: left, right, rotate_down, rotate_up) or camera_yaw_rad=0.1")
+                          "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
+                          "direction=reverse")
     run.add_argument("--noise", action="append", default=[], metavar="MODEL[=VALUE]",
                      help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
                           "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
@@ -150,7 +154,7 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         spec = EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
                            realtime=args.realtime, camera=CameraSpec(width_px=width, height_px=height),
                            active_brain=args.brain, brain_timeout_s=args.brain_timeout,
-                           noise=[noise_stage(item) for item in args.noise])
+                           noise=[noise_stage(item) for item in args.noise], direction=args.direction)
         for variation in args.variation:
             spec = apply_variation(spec, variation)
         return spec

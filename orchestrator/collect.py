@@ -40,19 +40,30 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
     circuits = [name.strip() for name in args.circuits.split(",") if name.strip()]
     if not circuits:
         raise CollectError("--circuits needs at least one circuit name")
+    directions = ("forward", "reverse") if args.direction == "both" else (args.direction,)
     specs = []
     for index, circuit in enumerate(circuits):
-        try:
-            load_circuit(circuit)
-            spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=index,
-                               camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
-                               active_brain=DRIVER if args.recovery_noise > 0 else args.brain)
-            for variation in args.variation:
-                spec = apply_variation(spec, variation)
-        except (CircuitError, ValueError) as error:
-            raise CollectError(str(error)) from None
-        specs.append(spec)
+        for direction in directions:
+            try:
+                load_circuit(circuit)
+                # seed = circuit index (reverse: + the circuit count) keeps forward-only collections as they were
+                seed = index + (len(circuits) if direction == "reverse" else 0)
+                spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=seed,
+                                   camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
+                                   active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
+                                   direction=direction)
+                for variation in args.variation:
+                    spec = apply_variation(spec, variation)
+            except (CircuitError, ValueError) as error:
+                raise CollectError(str(error)) from None
+            specs.append(spec)
     return specs
+
+
+def _episode_name(spec: EpisodeSpec) -> str:
+    """File-name part of a collected episode: the circuit, and ``-reverse`` when driven the other way round."""
+    name = spec.circuit.replace(":", "-")
+    return f"{name}-reverse" if spec.direction == "reverse" else name
 
 
 def collect(args: argparse.Namespace, options) -> int:
@@ -68,10 +79,11 @@ def collect(args: argparse.Namespace, options) -> int:
     work = output.parent / f"{output.name}.recordings"
     recordings = []
     for spec in specs:
-        run_id = f"collect-{spec.circuit.replace(':', '-')}-{uuid.uuid4().hex[:6]}"
-        recording = work / f"{spec.circuit.replace(':', '-')}.mcap"
+        run_id = f"collect-{_episode_name(spec)}-{uuid.uuid4().hex[:6]}"
+        recording = work / f"{_episode_name(spec)}.mcap"
         recording.unlink(missing_ok=True)
-        print(f"collect: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s) -> {recording}", file=sys.stderr)
+        print(f"collect: {spec.active_brain} on {spec.circuit} ({spec.direction}), {spec.laps} lap(s) -> {recording}",
+              file=sys.stderr)
         progress = Progress(spec.laps, enabled=sys.stderr.isatty())
         try:
             with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args),

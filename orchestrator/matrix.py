@@ -7,6 +7,8 @@ A matrix file::
     brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
     circuits: [simple, montmelo, montreal]    # built-in, user or random:SEED circuits
     variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
+    # or, instead of the product, the worlds one by one:
+    #   worlds: [{line: red}, {line: none, walls: off}, {line: red, direction: reverse}]
     perturbations: [none, {salt_pepper: 0.2}, {camera: left}, "gaussian=10"]         # default: [none]
     repetitions: 3                            # default 1; episode seed = seed + repetition
     limits: {laps: 1, max_sim_seconds: 300, brain_timeout_s: 10}                      # also step_s
@@ -16,6 +18,15 @@ A matrix file::
     shadows: [{name: constant, options: {speed_mps: 2}}]   # brains that see the same frames but never drive
     exclude: [{brain: explicit, line: none}]  # drop every combination matching ALL the given keys
     include: [{brain: explicit, circuit: monaco}]          # extra combinations, expanded over repetitions
+
+Parts: a matrix may be several experiments over the same brains (the paper's tables), each its own product::
+
+    parts:
+      montmelo: {circuits: [montmelo], repetitions: 3}
+      noise: {circuits: [montreal], perturbations: [{salt_pepper: 0.2}, {salt_pepper: 0.4}]}
+
+A part sets any of circuits, variations or worlds, perturbations, repetitions, limits, exclude and include; what it
+does not set comes from the top level. Its episodes' keys start with ``<part>:``, and parts expand in written order.
 
 Expansion order: brains, then circuits, then the variation values (product, keys in written order), then
 perturbations, then repetitions (innermost). ``exclude`` applies to that product only; ``include`` entries come
@@ -27,8 +38,8 @@ Labels (as stored in results and used in episode keys):
                  when no variation applies)
     perturbation ``"none"``, or its items joined by ``+``: ``"salt_pepper=0.2+camera=left"``,
                  ``"occlusion:patches=2,size_fraction=0.3"`` for a model given a mapping of parameters
-    episode key  ``"<brain label>/<circuit>/<variation label>/<perturbation label>/r<repetition>"`` (stable across
-                 re-parses of the same text: what ``--resume`` compares)
+    episode key  ``"<brain label>/<circuit>/<variation label>/<perturbation label>/r<repetition>"``, in a part
+                 ``"<part>:<brain label>/..."`` (stable across re-parses of the same text: what ``--resume`` compares)
 
 Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong (what is allowed)``.
 """
@@ -52,16 +63,18 @@ from brains.registry import brain_names
 from protocol.keys import check_name
 from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
-from protocol.variations import CAMERA_KEYS, WORLD_KEYS
+from protocol.variations import CAMERA_KEYS, ROUTE_KEYS, WORLD_KEYS
 from protocol.variations import VariationError, apply_variation, noise_stage, parse_pairs
 from services.circuits import circuit_names
 from services.circuits.library import is_circuit_name
 
-TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "perturbations", "repetitions", "limits", "camera",
-                  "seed", "realtime", "shadows", "exclude", "include")
+TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
+                  "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")
+# What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
+PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
 BRAIN_KEYS = ("name", "weights", "label", "options")
 LIMIT_KEYS = ("laps", "max_sim_seconds", "brain_timeout_s", "step_s")
-VARIATION_KEYS = (*WORLD_KEYS, *CAMERA_KEYS)
+VARIATION_KEYS = (*WORLD_KEYS, *CAMERA_KEYS, *ROUTE_KEYS)
 CAMERA_PERTURBATION_KEYS = CAMERA_KEYS
 NOISE_MODEL_NAMES = tuple(model.__struct_config__.tag for model in NOISE_MODELS)
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
@@ -139,6 +152,14 @@ class PlannedEpisode:
     perturbation: str
     repetition: int
     spec: EpisodeSpec
+    part: str = ""
+
+
+def part_of(key: str) -> str:
+    """The part of an episode key (``"noise:explicit/montreal/..."`` -> ``"noise"``), ``""`` outside parts. Brain
+    labels have no ``:``, so a ``:`` before the first ``/`` can only end a part's name."""
+    head = key.split("/", 1)[0]
+    return head.split(":", 1)[0] if ":" in head else ""
 
 
 @dataclass(frozen=True)
@@ -148,6 +169,7 @@ class Matrix:
     name: the matrix's name (default: the file's stem). source: where it was read from. text: the file's text.
     brains: the driving brains, in written order. shadows: brains that get the same frames but never drive.
     episodes: every planned episode, in expansion order. variation_keys: the variation axes, in written order.
+    parts: the part names in written order (empty for a matrix without parts).
     """
 
     name: str
@@ -157,6 +179,7 @@ class Matrix:
     shadows: tuple[BrainEntry, ...]
     episodes: tuple[PlannedEpisode, ...]
     variation_keys: tuple[str, ...]
+    parts: tuple[str, ...] = ()
 
 
 def load_matrix(path: Path) -> Matrix:
@@ -180,13 +203,55 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
     reader = _Reader(source)
     root = reader.compose(text)
     top = reader.mapping(root, what="the matrix", allowed=TOP_LEVEL_KEYS)
-    for required in ("brains", "circuits"):
-        if required not in top:
-            raise reader.error(root, f"missing {required!r} (a matrix needs brains and circuits)")
-    plan = _Plan.read(reader, top, base_dir=Path(base_dir))
-    episodes = plan.expand(reader, top)
+    if "brains" not in top:
+        raise reader.error(root, "missing 'brains' (a matrix needs brains and circuits)")
+    _check_one_world_form(reader, top)
+    parts = _parts(reader, root, top)
+    episodes: list[PlannedEpisode] = []
+    variation_keys: dict[str, None] = {}
+    for part, entries in parts:
+        plan = _Plan.read(reader, entries, base_dir=Path(base_dir), part=part)
+        episodes += plan.expand(reader, entries, first_index=len(episodes))
+        variation_keys.update(dict.fromkeys(axis.key for axis in plan.axes))
+    if len(episodes) > MAX_EPISODES:
+        raise reader.error(top["parts"][0], f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})")
     return Matrix(name=_name(reader, top, source), source=source, text=text, brains=plan.brains,
-                  shadows=plan.shadows, episodes=episodes, variation_keys=tuple(axis.key for axis in plan.axes))
+                  shadows=plan.shadows, episodes=tuple(episodes), variation_keys=tuple(variation_keys),
+                  parts=tuple(part for part, _ in parts if part))
+
+
+def _check_one_world_form(reader: _Reader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
+    if "variations" in entries and "worlds" in entries:
+        raise reader.error(entries["worlds"][0], "give variations (a product) or worlds (a list), not both")
+
+
+def _parts(reader: _Reader, root: yaml.Node,
+           top: dict[str, tuple[yaml.Node, yaml.Node]]) -> list[tuple[str, dict[str, tuple[yaml.Node, yaml.Node]]]]:
+    """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
+    if "parts" not in top:
+        if "circuits" not in top:
+            raise reader.error(root, "missing 'circuits' (a matrix needs brains and circuits)")
+        return [("", top)]
+    shared = {key: entry for key, entry in top.items() if key != "parts"}
+    parts = []
+    for name, (name_node, part_node) in reader.mapping(top["parts"][1], what="parts").items():
+        try:
+            check_name(name, what="part name")
+        except ValueError as error:
+            raise reader.error(name_node, str(error)) from None
+        entries = reader.mapping(part_node, what=f"part {name!r}", allowed=PART_KEYS)
+        _check_one_world_form(reader, entries)
+        merged = dict(shared)
+        if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
+            merged.pop("variations", None)
+            merged.pop("worlds", None)
+        merged.update(entries)
+        if "circuits" not in merged:
+            raise reader.error(name_node, f"part {name!r} has no circuits (give them in the part or at the top level)")
+        parts.append((name, merged))
+    if not parts:
+        raise reader.error(top["parts"][1], "parts is empty (give at least one part, or leave parts out)")
+    return parts
 
 
 # -- reading YAML nodes with their line numbers ------------------------------------------------------------------
@@ -541,6 +606,26 @@ def _worlds(axes: list[_Axis]) -> list[_World]:
             for combination in itertools.product(*(axis.values for axis in axes))]
 
 
+def _listed_worlds(reader: _Reader, node: yaml.Node) -> tuple[list[_World], list[_Axis]]:
+    """``worlds:``, a list of variation mappings: the worlds in written order, and per key the values they use
+    (the axes exclude entries may name)."""
+    worlds: dict[str, tuple[_World, int]] = {}
+    values: dict[str, dict[str, tuple[str, Any, int]]] = {}
+    for item in reader.items(node, what="worlds"):
+        items = []
+        for key, (key_node, value_node) in reader.mapping(item, what="a world").items():
+            _check_variation_key(reader, key_node, key)
+            value = _variation_value(reader, value_node, key=key)
+            items.append((key, value))
+            values.setdefault(key, {}).setdefault(_text(value), (_text(value), value, _line(value_node)))
+        world = _world(items)
+        if world.label in worlds:
+            raise reader.error(item, f"world {world.label!r} is listed twice (also on line {worlds[world.label][1]})")
+        worlds[world.label] = (world, _line(item))
+    axes = [_Axis(key=key, values=tuple(texts.values())) for key, texts in values.items()]
+    return [world for world, _ in worlds.values()], axes
+
+
 def _world(items: list[tuple[str, Any]]) -> _World:
     if not items:
         return _World(label=DEFAULT_VARIATION)
@@ -674,25 +759,29 @@ class _Combination:
         return {"brain": self.brain.label, "circuit": self.circuit, "perturbation": self.perturbation.label,
                 "repetition": str(repetition), **self.world.texts}
 
-    def key(self, repetition: int) -> str:
-        return f"{self.brain.label}/{self.circuit}/{self.world.label}/{self.perturbation.label}/r{repetition}"
+    def key(self, repetition: int, *, part: str = "") -> str:
+        prefix = f"{part}:" if part else ""
+        return f"{prefix}{self.brain.label}/{self.circuit}/{self.world.label}/{self.perturbation.label}/r{repetition}"
 
 
 @dataclass
 class _Plan:
-    """Everything read from the file, before expansion."""
+    """Everything read from the file (or one part of it), before expansion."""
 
     brains: tuple[BrainEntry, ...]
     shadows: tuple[BrainEntry, ...]
     circuits: list[str]
     axes: list[_Axis]
+    worlds: list[_World]
     perturbations: list[_Perturbation]
     repetitions: int
     seed: int
     base: EpisodeSpec
+    part: str = ""
 
     @classmethod
-    def read(cls, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path) -> _Plan:
+    def read(cls, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path,
+             part: str = "") -> _Plan:
         brains = _brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
         shadows = (_brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir)
                    if "shadows" in top else [])
@@ -700,12 +789,18 @@ class _Plan:
         repetitions = reader.integer(top["repetitions"][1], what="repetitions", minimum=1) \
             if "repetitions" in top else 1
         seed = reader.integer(top["seed"][1], what="seed", minimum=0) if "seed" in top else 0
+        if "worlds" in top:
+            worlds, axes = _listed_worlds(reader, top["worlds"][1])
+        else:
+            axes = _axes(reader, _value_node(top, "variations"))
+            worlds = _worlds(axes)
         return cls(brains=tuple(entry for entry, _ in brains), shadows=tuple(entry for entry, _ in shadows),
-                   circuits=_circuits(reader, top["circuits"][1]), axes=_axes(reader, _value_node(top, "variations")),
+                   circuits=_circuits(reader, top["circuits"][1]), axes=axes, worlds=worlds,
                    perturbations=_perturbations(reader, _value_node(top, "perturbations")),
-                   repetitions=repetitions, seed=seed, base=_base_spec(reader, top))
+                   repetitions=repetitions, seed=seed, base=_base_spec(reader, top), part=part)
 
-    def expand(self, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> tuple[PlannedEpisode, ...]:
+    def expand(self, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], *,
+               first_index: int = 0) -> list[PlannedEpisode]:
         self._check_size(reader, top)
         excludes = [self._exclude(reader, item) for item in _list_of(reader, top, "exclude")]
         planned: dict[str, tuple[_Combination, int]] = {}
@@ -713,26 +808,27 @@ class _Plan:
             for repetition in range(self.repetitions):
                 coordinates = combination.coordinates(repetition)
                 if not any(_matches(exclude, coordinates) for exclude in excludes):
-                    planned[combination.key(repetition)] = (combination, repetition)
+                    planned[combination.key(repetition, part=self.part)] = (combination, repetition)
         for item in _list_of(reader, top, "include"):
             combination = self._include(reader, item)
             for repetition in range(self.repetitions):
-                planned.setdefault(combination.key(repetition), (combination, repetition))
+                planned.setdefault(combination.key(repetition, part=self.part), (combination, repetition))
         if not planned:
             where = top["exclude"][0] if "exclude" in top else None
-            raise reader.error(where, "the matrix expands to no episodes (every combination is excluded)")
-        return tuple(self._episode(reader, key, index, combination, repetition)
-                     for index, (key, (combination, repetition)) in enumerate(planned.items()))
+            what = f"part {self.part!r}" if self.part else "the matrix"
+            raise reader.error(where, f"{what} expands to no episodes (every combination is excluded)")
+        return [self._episode(reader, key, first_index + index, combination, repetition)
+                for index, (key, (combination, repetition)) in enumerate(planned.items())]
 
     def _check_size(self, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
         count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
-        count *= math.prod(len(axis.values) for axis in self.axes)
+        count *= len(self.worlds)
         if count > MAX_EPISODES:
             raise reader.error(_value_node(top, "repetitions"),
                                f"the matrix expands to {count} episodes (at most {MAX_EPISODES})")
 
     def _product(self) -> Iterator[_Combination]:
-        for brain, circuit, world, perturbation in itertools.product(self.brains, self.circuits, _worlds(self.axes),
+        for brain, circuit, world, perturbation in itertools.product(self.brains, self.circuits, self.worlds,
                                                                      self.perturbations):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
@@ -810,7 +906,7 @@ class _Plan:
                               line=combination.perturbation.line) from None
         return PlannedEpisode(key=key, index=index, brain=combination.brain, circuit=combination.circuit,
                               variation=combination.world.label, perturbation=combination.perturbation.label,
-                              repetition=repetition, spec=spec)
+                              repetition=repetition, spec=spec, part=self.part)
 
 
 def _value_node(top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> yaml.Node | None:

@@ -54,6 +54,9 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
     collect = dataset_commands.add_parser(
         "collect", help="drive the explicit brain on each circuit with recording on, then build the dataset")
     collect.add_argument("--circuits", required=True, help="comma-separated circuit names")
+    collect.add_argument("--direction", choices=("forward", "reverse", "both"), default="forward",
+                         help="drive each circuit forward (its own direction: clockwise for the built-ins), reverse, "
+                              "or both, one episode each (default: forward)")
     collect.add_argument("--laps", type=int, default=1, help="laps per circuit (default 1)")
     collect.add_argument("--brain", default="explicit", help="the brain whose driving is recorded (default explicit)")
     collect.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",

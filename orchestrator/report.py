@@ -19,7 +19,8 @@ def metrics_table(score: EpisodeScore) -> str:
     spec = score.spec
     laps = ", ".join(f"{t:.2f}" for t in m.lap_times_s) or "-"
     rows = [
-        ("episode", f"{score.brain} on {spec.circuit}, {spec.laps} lap(s), seed {spec.seed}"),
+        ("episode", f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}, "
+                    f"{spec.laps} lap(s), seed {spec.seed}"),
         ("ended by", str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),
         ("lap times", f"{laps} s"),

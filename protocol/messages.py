@@ -54,6 +54,10 @@ class EventKind(enum.StrEnum):
     END = "end"
 
 
+# Driving directions of an episode round its circuit (``EpisodeSpec.direction``).
+DIRECTIONS: tuple[str, ...] = ("forward", "reverse")
+
+
 class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Visual variations of a circuit's world (Behavior Metrics ships them as separate worlds).
 
@@ -219,6 +223,8 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
     brain_timeout_s: lock-step: wall seconds to wait for the answer to one frame before ending the episode.
     world: visual variation of the circuit's world.
     noise: camera perturbations applied in order by the noise injector (empty: brains see ground truth).
+    direction: "forward" drives the circuit in its own order (every built-in circuit runs clockwise, seen from
+        above, as the paper's recordings did); "reverse" drives it the other way round from the same start point.
     """
 
     circuit: str = "simple"
@@ -232,8 +238,11 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
     brain_timeout_s: float = 10.0
     world: WorldVariation = WorldVariation()
     noise: list[NoiseStage] = []
+    direction: str = "forward"
 
     def __post_init__(self) -> None:
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, got {self.direction!r}")
         if self.laps < 1:
             raise ValueError(f"laps must be >= 1, got {self.laps}")
         if not self.max_sim_seconds > 0:

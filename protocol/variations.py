@@ -1,6 +1,6 @@
 """Short forms of world variations, camera presets and noise stages, for command lines and matrix files.
 
-    apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun")
+    apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun,direction=reverse")
     noise_stage("salt_pepper=0.2")  ->  SaltPepper(probability=0.2)
     noise_stage({"occlusion": {"patches": 2, "size_fraction": 0.3}})
 
@@ -14,7 +14,7 @@ from typing import Any
 import msgspec
 import yaml
 
-from protocol.messages import NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+from protocol.messages import DIRECTIONS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
 
 
 class VariationError(ValueError):
@@ -37,6 +37,7 @@ _CAMERA_KEYS = {"camera_offset_m": "lateral_offset_m", "camera_height_m": "heigh
 _WORLD_KEYS = ("line", "road", "walls", "lighting")
 WORLD_KEYS: tuple[str, ...] = _WORLD_KEYS  # variation keys that change the world
 CAMERA_KEYS: tuple[str, ...] = ("camera", *_CAMERA_KEYS)  # variation keys that move the camera
+ROUTE_KEYS: tuple[str, ...] = ("direction",)  # variation keys that change the route driven, not the pictures
 _BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True, "no": False}
 
 # The parameter a bare ``model=value`` sets.
@@ -63,8 +64,13 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
     pairs = parse_pairs(text) if isinstance(text, str) else [(str(k), v) for k, v in text.items()]
     world = msgspec.structs.asdict(spec.world)
     camera = msgspec.structs.asdict(spec.camera)
+    direction = spec.direction
     for key, value in pairs:
-        if key == "walls":
+        if key == "direction":
+            if value not in DIRECTIONS:
+                raise VariationError(f"direction must be one of {', '.join(DIRECTIONS)}, got {value!r}")
+            direction = value
+        elif key == "walls":
             walls = _BOOLEAN.get(str(value).lower()) if not isinstance(value, bool) else value
             if walls is None:
                 raise VariationError(f"walls must be on or off, got {value!r}")
@@ -78,9 +84,10 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
         elif key in _CAMERA_KEYS:
             camera[_CAMERA_KEYS[key]] = _number(key, value)
         else:
-            raise VariationError(f"unknown variation {key!r} (known: {', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS])})")
+            raise VariationError(f"unknown variation {key!r} (known: "
+                                 f"{', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS, *ROUTE_KEYS])})")
     try:
-        return msgspec.structs.replace(spec, world=msgspec.convert(world, WorldVariation),
+        return msgspec.structs.replace(spec, direction=direction, world=msgspec.convert(world, WorldVariation),
                                        camera=msgspec.convert(camera, type(spec.camera)))
     except msgspec.ValidationError as error:
         raise VariationError(str(error)) from None

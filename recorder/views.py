@@ -114,7 +114,7 @@ def _track_scene(spec: EpisodeSpec):
 
     update = SceneUpdate()
     try:
-        circuit = load_circuit(spec.circuit)
+        circuit = load_circuit(spec.circuit, direction=spec.direction)
     except CircuitError:
         return update  # a circuit only the simulator's machine has: record without the track
     points = circuit.centreline.points_m[:: max(1, len(circuit.centreline) // 2000)]

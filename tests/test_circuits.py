@@ -303,3 +303,24 @@ def test_a_tall_circuit_picture_is_capped_and_centred():
     assert image.shape == (600 + 34, 400, 3)  # 1.5 x the width, plus the text band
     road_columns = np.flatnonzero(np.all(image == ROAD_RGB, axis=2).any(axis=0))
     assert abs((road_columns.min() + road_columns.max()) / 2 - 200) < 3
+
+
+@pytest.mark.parametrize("name", ["simple", "montreal", "random:3"])
+def test_a_reversed_circuit_is_the_same_road_driven_the_other_way(name):
+    forward = load_circuit(name)
+    reverse = load_circuit(name, direction="reverse")
+    assert reverse.length_m == pytest.approx(forward.length_m, rel=1e-9)
+    assert reverse.start_pose()[:2] == pytest.approx(forward.start_pose()[:2])
+    turn = np.angle(np.exp(1j * (reverse.start_pose()[2] - forward.start_pose()[2])))
+    assert abs(turn) == pytest.approx(np.pi, abs=0.1)
+    assert reverse.clockwise != forward.clockwise
+    assert {tuple(p) for p in reverse.centreline.points_m} == {tuple(p) for p in forward.centreline.points_m}
+
+
+def test_every_builtin_circuit_runs_clockwise_forward():
+    assert all(load_circuit(name).clockwise for name in builtin_circuit_names())
+
+
+def test_a_bad_direction_is_refused():
+    with pytest.raises(CircuitError, match="direction must be forward or reverse"):
+        load_circuit("simple", direction="backwards")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from orchestrator.matrix import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix
+from orchestrator.matrix import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix, part_of
 from protocol.messages import Gaussian, Occlusion, SaltPepper
 
 EXAMPLE = """\
@@ -239,6 +239,49 @@ def test_include_adds_combinations_over_repetitions_at_the_end_without_duplicate
     assert (last.world.line, last.world.lighting, last.world.walls, last.seed) == ("white", "no_sun", True, 9)
 
 
+def test_worlds_list_the_worlds_one_by_one_and_exclude_names_their_values():
+    matrix = parse(MINIMAL + textwrap.dedent("""\
+        worlds:
+          - {line: red, road: grey, walls: on}
+          - {line: none, walls: off}
+          - {line: red, direction: reverse}
+        exclude: [{line: none}]
+    """))
+    assert [episode.variation for episode in matrix.episodes] == [
+        "line=red,road=grey,walls=on", "line=red,direction=reverse"]
+    assert matrix.variation_keys == ("line", "road", "walls", "direction")
+    assert [episode.spec.direction for episode in matrix.episodes] == ["forward", "reverse"]
+
+
+def test_parts_expand_in_order_over_the_same_brains_with_their_own_axes():
+    matrix = parse("""\
+        brains: [explicit, {name: constant, label: slow}]
+        circuits: [simple]
+        limits: {laps: 1, max_sim_seconds: 100}
+        seed: 4
+        parts:
+          laps: {circuits: [montmelo], repetitions: 2}
+          worlds: {worlds: [{line: white}, {direction: reverse}], limits: {max_sim_seconds: 50}}
+          noise: {perturbations: [{salt_pepper: 0.4}]}
+    """)
+    assert matrix.parts == ("laps", "worlds", "noise")
+    keys = [episode.key for episode in matrix.episodes]
+    assert keys == [
+        "laps:explicit/montmelo/default/none/r0", "laps:explicit/montmelo/default/none/r1",
+        "laps:slow/montmelo/default/none/r0", "laps:slow/montmelo/default/none/r1",
+        "worlds:explicit/simple/line=white/none/r0", "worlds:explicit/simple/direction=reverse/none/r0",
+        "worlds:slow/simple/line=white/none/r0", "worlds:slow/simple/direction=reverse/none/r0",
+        "noise:explicit/simple/default/salt_pepper=0.4/r0", "noise:slow/simple/default/salt_pepper=0.4/r0",
+    ]
+    assert [episode.index for episode in matrix.episodes] == list(range(10))
+    assert [part_of(key) for key in keys] == ["laps"] * 4 + ["worlds"] * 4 + ["noise"] * 2
+    assert [episode.part for episode in matrix.episodes] == [part_of(key) for key in keys]
+    assert {episode.spec.max_sim_seconds for episode in matrix.episodes if episode.part == "worlds"} == {50}
+    assert {episode.spec.max_sim_seconds for episode in matrix.episodes if episode.part != "worlds"} == {100}
+    assert {episode.spec.seed for episode in matrix.episodes} == {4, 5}
+    assert part_of("explicit/simple/default/occlusion:patches=2/r0") == ""
+
+
 # -- errors --------------------------------------------------------------------------------------------------------
 
 
@@ -298,6 +341,15 @@ ERRORS = [
     (MINIMAL + "seed: 1\x07\n", 3, ["invalid YAML", "#x0007"]),
     (MINIMAL + "exclude:\n  - {circuit: montmelo}\n", 4, ["'montmelo'", "known: simple"]),
     (MINIMAL + "exclude:\n  - {brain: explicit, repetition: 3}\n", 4, ["repetition", "'3'", "known: 0"]),
+    (MINIMAL + "variations: {line: [red]}\nworlds: [{line: red}]\n", 4, ["variations", "worlds", "not both"]),
+    (MINIMAL + "worlds:\n  - {line: red}\n  - {fog: 1}\n", 5, ["'fog'", "allowed"]),
+    (MINIMAL + "worlds:\n  - {line: red}\n  - {line: red}\n", 5, ["'line=red'", "twice", "line 4"]),
+    (MINIMAL + "worlds:\n  - {direction: backwards}\n", 4, ["'backwards'", "forward, reverse"]),
+    ("brains: [explicit]\nparts:\n  a: {repetitions: 2}\n", 3, ["part 'a' has no circuits"]),
+    (MINIMAL + "parts:\n  a: {seed: 2}\n", 4, ["'seed'", "allowed", "circuits"]),
+    (MINIMAL + "parts:\n  a b: {circuits: [simple]}\n", 4, ["'a b'", "letters, digits"]),
+    (MINIMAL + "parts: {}\n", 3, ["parts is empty"]),
+    (MINIMAL + "parts:\n  a:\n    exclude: [{brain: explicit}]\n", 5, ["part 'a' expands to no episodes"]),
     (MINIMAL + "exclude:\n  - {perturbation: gaussian=3}\n", 4, ["'gaussian=3'", "known: none"]),
     (MINIMAL + "exclude:\n  - {}\n", 4, ["empty exclude"]),
     (MINIMAL + "exclude:\n  - {brain: explicit}\n", 3, ["no episodes", "excluded"]),

@@ -169,3 +169,20 @@ def test_realtime_mode_runs_at_wall_clock_rate(make_stack):
     assert score.reason == EndReason.TIME_LIMIT
     assert score.metrics.real_time_factor == pytest.approx(1.0, abs=0.1)
     assert score.metrics.progress_m > 5  # the explicit brain drove with its latest commands
+
+
+@pytest.mark.slow
+def test_explicit_brain_laps_simple_in_reverse_and_the_scorer_follows_the_direction(make_stack):
+    stack = make_stack(BrainLaunch("explicit"))
+    inbox = Inbox()
+    stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=inbox)
+    spec = EpisodeSpec(circuit="simple", laps=1, direction="reverse", camera=CameraSpec(width_px=320, height_px=240))
+    score = stack.run_episode(spec)
+    assert score.reason == EndReason.LAPS_COMPLETED, score
+    assert score.metrics.completed_laps == 1 and score.metrics.percentage_completed > 100
+    poses = next(iter(poses_by_episode(inbox).values()))
+    from services.circuits import load_circuit
+
+    forward_yaw = load_circuit("simple").start_pose()[2]
+    heading_change = np.angle(np.exp(1j * (poses[1, 3] - forward_yaw)))
+    assert abs(heading_change) > 2.5  # it set off the other way round

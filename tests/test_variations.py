@@ -101,9 +101,14 @@ def test_variation_parsing():
     spec = apply_variation(EpisodeSpec(), "line=white,road=white,walls=off,lighting=no_sun")
     assert spec.world == WorldVariation(line="white", road="white", walls=False, lighting="no_sun")
     assert apply_variation(EpisodeSpec(), {"walls": False, "line": "none"}).world.walls is False
+    reverse = apply_variation(EpisodeSpec(), "direction=reverse,line=white")
+    assert reverse.direction == "reverse" and reverse.world.line == "white"
+    with pytest.raises(ValueError, match="direction must be one of forward, reverse"):
+        EpisodeSpec(direction="sideways")
     for bad, message in [("line=blue", "line must be one of red, white, none"), ("walls=maybe", "walls must be on"),
                          ("camera=top", "unknown camera preset 'top'"), ("fog=1", "unknown variation 'fog'"),
-                         ("line", "must look like key=value"), ("camera_hfov_rad=9", "hfov_rad must be within")]:
+                         ("line", "must look like key=value"), ("camera_hfov_rad=9", "hfov_rad must be within"),
+                         ("direction=backwards", "direction must be one of forward, reverse")]:
         with pytest.raises(VariationError, match=message):
             apply_variation(EpisodeSpec(), bad)
 

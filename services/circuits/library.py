@@ -11,6 +11,7 @@ Three kinds of names:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -79,6 +80,17 @@ class Circuit:
         """(x_m, y_m, yaw_rad) of the start, on the centre line facing the driving direction."""
         return self.centreline.pose_at(0.0)
 
+    def reversed(self) -> Circuit:
+        """The same road driven the other way round: same start point, centreline in the opposite order (so
+        progress, laps and the sign of lateral offsets follow the new driving direction)."""
+        points = self.centreline.points_m
+        return dataclasses.replace(self, centreline=Centreline(np.concatenate([points[:1], points[:0:-1]])))
+
+    @property
+    def clockwise(self) -> bool:
+        """Whether the driving direction is clockwise seen from above (negative signed area)."""
+        return signed_area_m2(self.centreline.points_m) < 0
+
 
 # -- names and loading -----------------------------------------------------------------------------------------------
 
@@ -126,11 +138,19 @@ def _random_seed(name: str) -> int | None:
     return int(text)
 
 
-def load_circuit(name: str) -> Circuit:
-    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED``.
+def load_circuit(name: str, *, direction: str = "forward") -> Circuit:
+    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED``; ``direction="reverse"`` gives it
+    driven the other way round (:meth:`Circuit.reversed`), as an episode spec's ``direction`` asks.
 
     :class:`CircuitError` names the known ones when it does not exist, and says what is wrong with a bad file.
     """
+    if direction not in ("forward", "reverse"):
+        raise CircuitError(f"direction must be forward or reverse, got {direction!r}")
+    circuit = _load_forward(name)
+    return circuit.reversed() if direction == "reverse" else circuit
+
+
+def _load_forward(name: str) -> Circuit:
     builtin = _data_dir() / f"{name}.yaml"
     if PLAIN_NAME.fullmatch(name) and builtin.is_file():
         return circuit_from_file(builtin)

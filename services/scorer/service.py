@@ -133,7 +133,7 @@ class ScorerService:
 
     def _begin(self, number: int, spec: EpisodeSpec) -> None:
         try:
-            circuit = load_circuit(spec.circuit)
+            circuit = load_circuit(spec.circuit, direction=spec.direction)
         except CircuitError as error:
             log.warning("cannot score episode %d: %s", number, error)
             return

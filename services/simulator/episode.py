@@ -65,7 +65,7 @@ class EpisodeSim:
 
     def __init__(self, spec: EpisodeSpec, *, scenes: SceneCache, circuit: Circuit | None = None):
         self.spec = spec
-        self.circuit = circuit or load_circuit(spec.circuit)
+        self.circuit = circuit or load_circuit(spec.circuit, direction=spec.direction)
         self._scene = scenes.get(self.circuit, spec.world)
         x_m, y_m, yaw_rad = self.circuit.start_pose()
         self.car = CarState(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad)

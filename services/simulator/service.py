@@ -165,7 +165,7 @@ class SimulatorService:
         if self._state != "idle" or not self._requests.empty():
             return codec.encode(ControlReply(ok=False, detail=f"busy ({self._state})", state=self._state))
         try:
-            circuit = load_circuit(request.spec.circuit)  # checked here so a bad name is refused, not run
+            circuit = load_circuit(request.spec.circuit, direction=request.spec.direction)  # checked here so a bad name is refused, not run
         except CircuitError as error:
             return codec.encode(ControlReply(ok=False, detail=str(error)))
         if not self._brain_alive(request.spec.active_brain):
