@@ -17,7 +17,7 @@ Checkpoint format ``drivebench.checkpoint.v1`` (``torch.save`` of plain types an
     normalisation  image_mean, image_std (ImageNet, on pixels / 255), labels ("zscore" | "paper"),
                    label_mean, label_std: physical [v m/s, w rad/s] = network output * label_std + label_mean
     dataset        path, manifest_sha256, samples_train, samples_val
-    metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised (val is None without a val
+    metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised, mae_paper, mse_paper (val is None without a val
                    split); best_epoch, epochs_run, curve (one dict per epoch), monitor, stopped_early, notes
     training       seed, lr, batch_size, epochs, device, wall_s, samples_per_s, torch (+ the other options)
 
@@ -377,21 +377,29 @@ def _sha256(path: Path) -> str:
 def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: LabelNorm) -> dict[str, float]:
     """The paper's internal metrics on ``positions`` of ``split``, without augmentation, in eval mode.
 
-    mae_speed_mps, mae_yaw_rate_radps: mean |error| in physical units; mse_normalised: MSE of normalised outputs.
+    mae_speed_mps, mae_yaw_rate_radps: mean |error| in physical units; mse_normalised: MSE of normalised outputs
+    (in the checkpoint's own label normalisation); mae_paper / mse_paper: MAE and MSE of both outputs in the paper's
+    fixed normalisation (v / 17.5, w / 14.2), the figures of its Table 1, whatever normalisation trained the model.
     """
     was_training = model.training
     model.eval()
     abs_sum = torch.zeros(2, dtype=torch.float64)
+    phys_sq_sum = torch.zeros(2, dtype=torch.float64)
     sq_sum = 0.0
     for start in range(0, len(positions), EVAL_BATCH):
         x, y_n = split.batch(positions[start:start + EVAL_BATCH], norm)
         out = model(x)
         sq_sum += float(((out - y_n) ** 2).sum(dtype=torch.float64))
-        abs_sum += (norm.denormalise(out) - norm.denormalise(y_n)).abs().sum(0, dtype=torch.float64).cpu()
+        error = norm.denormalise(out) - norm.denormalise(y_n)
+        abs_sum += error.abs().sum(0, dtype=torch.float64).cpu()
+        phys_sq_sum += (error.double() ** 2).sum(0).cpu()
     model.train(was_training)
     n = max(len(positions), 1)
+    paper_scale = torch.tensor([V_SCALE, W_SCALE], dtype=torch.float64)
     return {"mae_speed_mps": float(abs_sum[0]) / n, "mae_yaw_rate_radps": float(abs_sum[1]) / n,
-            "mse_normalised": sq_sum / (2 * n)}
+            "mse_normalised": sq_sum / (2 * n),
+            "mae_paper": float((abs_sum / paper_scale).sum()) / (2 * n),
+            "mse_paper": float((phys_sq_sum / paper_scale ** 2).sum()) / (2 * n)}
 
 
 # -- checkpoints -----------------------------------------------------------------------------------------------------
