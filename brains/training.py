@@ -17,8 +17,8 @@ Checkpoint format ``drivebench.checkpoint.v1`` (``torch.save`` of plain types an
     normalisation  image_mean, image_std (ImageNet, on pixels / 255), labels ("zscore" | "paper"),
                    label_mean, label_std: physical [v m/s, w rad/s] = network output * label_std + label_mean
     dataset        path, manifest_sha256, samples_train, samples_val
-    metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised, mae_paper, mse_paper (val is None without a val
-                   split); best_epoch, epochs_run, curve (one dict per epoch), monitor, stopped_early, notes
+    metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised, mae_paper, mse_paper (val is
+                   None without a val split); best_epoch, epochs_run, curve (one dict per epoch), monitor, stopped_early, notes
     training       seed, lr, batch_size, epochs, device, wall_s, samples_per_s, torch (+ the other options)
 
 Pipeline: one gather per batch from the memory-mapped uint8 frames, then everything on torch tensors on the
