@@ -120,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_matrix_command(commands)
     add_report_command(commands)
+    from orchestrator.paper import add_paper_command
+
+    add_paper_command(commands)
     from orchestrator.health import add_health_command
     from services.viz.cli import add_view_command
 
@@ -378,6 +381,10 @@ def main(argv: list[str] | None = None) -> int:
             from orchestrator.matrix_cli import run_matrix_command
 
             return run_matrix_command(args)
+        if args.command == "paper":
+            from orchestrator.paper import run_paper_command
+
+            return run_paper_command(args)
         if args.command == "view":
             from services.viz.cli import run_view_command
 

@@ -44,8 +44,7 @@ def add_matrix_command(commands) -> None:
 
 def run_matrix_command(args: argparse.Namespace) -> int:
     from orchestrator.matrix import MatrixError, load_matrix
-    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
-    from orchestrator.results import ResultsError
+    from orchestrator.matrix_runner import plan_table
 
     try:
         matrix = load_matrix(args.file)
@@ -54,22 +53,37 @@ def run_matrix_command(args: argparse.Namespace) -> int:
     if args.plan:
         print(plan_table(matrix))
         return 0
-    if args.workers < 1:
-        raise MatrixUsageError(f"--workers must be >= 1, got {args.workers}")
     if args.resume and args.out is None:
         raise MatrixUsageError("--resume needs -o DIR, the folder of the matrix run to resume")
-    if args.retry_failed and not args.resume:
-        raise MatrixUsageError("--retry-failed goes with --resume")
     out_dir = args.out or Path("runs") / f"matrix-{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if not args.resume and (out_dir / "results.sqlite").exists():
+    return run_loaded_matrix(matrix, out_dir=out_dir, workers=args.workers, record=args.record,
+                             record_images=args.record_images, resume=args.resume, retry_failed=args.retry_failed,
+                             report=not args.no_report, command=f"drivebench matrix {args.file} -o {out_dir}")
+
+
+def run_loaded_matrix(matrix, *, out_dir: Path, workers: int, record: bool, record_images: str, resume: bool,
+                      retry_failed: bool, report: bool = True, facts: dict | None = None, command: str) -> int:
+    """Run a parsed matrix into ``out_dir`` with progress on stderr, then write its report; the exit code.
+
+    facts: extra results-database facts (``drivebench paper`` marks its runs). command: how to run it again, for
+    the line printed after an interruption.
+    """
+    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, summary_line
+    from orchestrator.results import ResultsError
+
+    if workers < 1:
+        raise MatrixUsageError(f"--workers must be >= 1, got {workers}")
+    if retry_failed and not resume:
+        raise MatrixUsageError("--retry-failed goes with --resume")
+    if not resume and (out_dir / "results.sqlite").exists():
         raise MatrixUsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
                                f"choose another -o folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(filename=out_dir / "matrix.log", level=logging.INFO,
                         format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
-    options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
-                         resume=args.resume, retry_failed=args.retry_failed)
-    print(f"drivebench: matrix {matrix.name}: {len(matrix.episodes)} episode(s), {args.workers} worker(s); "
+    options = RunOptions(workers=workers, record=record, record_images=record_images, resume=resume,
+                         retry_failed=retry_failed, facts=dict(facts or {}))
+    print(f"drivebench: matrix {matrix.name}: {len(matrix.episodes)} episode(s), {workers} worker(s); "
           f"output {out_dir}", file=sys.stderr)
     display = ProgressDisplay()
     runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
@@ -80,12 +94,12 @@ def run_matrix_command(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         display.close()
         print(f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
-              f"`drivebench matrix {args.file} -o {out_dir} --resume` runs the rest", file=sys.stderr)
+              f"`{command} --resume` runs the rest", file=sys.stderr)
         return 130
     finally:
         display.close()
     print(summary_line(progress, out_dir), file=sys.stderr)
-    if not args.no_report:
+    if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else 0
 

@@ -64,6 +64,7 @@ MAX_PROGRESS_CIRCUITS = 12  # circuits (subplots) in the progress figure
 COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns become one table
 MAX_EARLY_ROWS = 200  # rows of the "ended early" list
 FAIL_MARK = "✗"
+PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
 STALE_PLOTS = ("trajectories_*.png", "boxplots.png", "progress.png")  # what the report writes into plots/
 
 # Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').
@@ -366,6 +367,7 @@ class _Report:
             self.source_text = store.fact("source_text")
             self.variation_keys = store.fact("variation_keys") or []
             self.created_at = store.fact("created_at")
+            self.is_paper = bool(store.fact("paper"))
         finally:
             store.close()
         if not self.results:
@@ -411,6 +413,14 @@ class _Report:
                                     "perturbation): every episode is pooled.")
 
     # -- sections --
+
+    def paper_sections(self) -> list[Section]:
+        """The paper's six tables, ours beside its figures, when ``drivebench paper`` ran this folder."""
+        if not self.is_paper:
+            return []
+        from orchestrator.paper import paper_sections
+
+        return paper_sections(self.results, self.folder)
 
     def header(self) -> Section:
         done = sum(r.status == "done" for r in self.results)
@@ -918,7 +928,7 @@ class _Report:
     # -- assembling --
 
     def sections(self) -> list[Section]:
-        sections = [self.header(), self.main_table(), self.generalisation(), self.robustness()]
+        sections = [self.header(), *self.paper_sections(), self.main_table(), self.generalisation(), self.robustness()]
         for optional in (self.internal_metrics(), self.switches()):
             if optional is not None:
                 sections.append(optional)
@@ -1140,6 +1150,8 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     rows = episode_rows(report.results)
     _write_csv(rows, csv_path)
     parquet = _write_parquet(rows, output / PARQUET_FILE)
+    if report.is_paper:
+        (output / PAPER_MARKDOWN).write_text(render_markdown(report.paper_sections(), output), encoding="utf-8")
     return ReportFiles(html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots),
                        parquet=parquet)
 

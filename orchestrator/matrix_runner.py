@@ -58,6 +58,7 @@ class RunOptions:
     record_images: "raw" (lossless) or "jpeg" camera images in recordings.
     resume: skip episodes the results database already holds (``retry_failed``: except failed ones).
     startup_timeout_s: per stack, how long its processes may take to come up.
+    facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
     """
 
     workers: int = 1
@@ -66,6 +67,7 @@ class RunOptions:
     resume: bool = False
     retry_failed: bool = False
     startup_timeout_s: float = 90.0
+    facts: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -158,6 +160,8 @@ class MatrixRunner:
         store.set_fact("source_text", self.matrix.text)
         store.set_fact("variation_keys", list(self.matrix.variation_keys))
         store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
+        for key, value in self.options.facts.items():
+            store.set_fact(key, value)
         if store.fact("created_at") is None:
             store.set_fact("created_at", time.time())
         (self.out_dir / "matrix.yaml").write_text(self.matrix.text)
