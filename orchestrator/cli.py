@@ -4,7 +4,7 @@
     drivebench swap BRAIN [--weights CKPT] [--name NAME] [--run RUN_ID] [--router EP] [--keep-old]
     drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR
     drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
-    drivebench recorder info|repair, replay, dataset build|collect, train, export, circuits list|show|import
+    drivebench recorder info|repair, replay, dataset build|collect, train, export, pack, circuits list|show|import
 
 ``run`` starts a local stack (embedded router, simulator, brain, scorer: one process each), drives one episode,
 prints its metrics (or one JSON object with ``--json``) and leaves a run folder with the resolved config, the score
@@ -110,11 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     recording_cli.add_commands(commands)
     recording_cli.add_dataset_commands(commands, parse_camera)
-    from brains.neural.export import add_export_command
+    from brains.neural.export import add_export_command, add_pack_command
     from brains.train_cli import add_train_command
 
     add_train_command(commands)
     add_export_command(commands)
+    add_pack_command(commands)
     from orchestrator.matrix_cli import add_matrix_command
     from orchestrator.matrix_report import add_report_command
 
@@ -377,6 +378,10 @@ def main(argv: list[str] | None = None) -> int:
             from brains.neural.export import run_export
 
             return run_export(args)
+        if args.command == "pack":
+            from brains.neural.export import run_pack
+
+            return run_pack(args)
         if args.command == "matrix":
             from orchestrator.matrix_cli import run_matrix_command
 

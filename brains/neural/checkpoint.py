@@ -11,6 +11,19 @@ A checkpoint is a ``torch.save`` dict, loadable with ``torch.load(path, weights_
      "dataset": {...}, "metrics": {...}, "training": {...}}
 
 The training code writes these; this module reads them for serving (and writes them for tests and smoke runs).
+
+Packed form (:func:`pack_checkpoint`, ``drivebench pack``): small enough for git (PilotNet's 68 MB of float32
+weights become ~34 MB of float16 in files of at most 9 MiB each). ``model.ckpt`` is the same dict without
+resume-only state and with an empty ``state_dict``, plus::
+
+    "state_dict_shards": {"files": ["model.ckpt.shard0", ...],  # beside model.ckpt, joined in this order
+                          "sha256": hex of the joined bytes, "file_sha256": [hex per file],
+                          "dtype": "float16" | "float32", "bytes": total}
+
+The joined shard bytes are a ``torch.save`` of the state dict (floating tensors in ``dtype``; integer buffers as
+they were). :func:`read_checkpoint` joins and verifies them and casts floating tensors back to float32, so
+everything downstream (serving, export, the paper's tables) sees an ordinary checkpoint.
+
 The same description (model, hyper, input, normalisation) travels in an exported ONNX file's metadata, so an ONNX
 file is self-describing: :func:`to_metadata` / :func:`from_metadata`.
 """
@@ -18,8 +31,11 @@ file is self-describing: :func:`to_metadata` / :func:`from_metadata`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import io
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +53,12 @@ REQUIRED_KEYS = {
               "step_s"),
     "normalisation": ("image_mean", "image_std", "labels", "label_mean", "label_std"),
 }
+
+
+# What a packed checkpoint keeps: enough to serve, export and report; optimizer, rng and resume state are dropped.
+PACKED_KEYS = ("format", "model", "hyper", "input", "normalisation", "dataset", "metrics", "training")
+SHARDS_KEY = "state_dict_shards"
+LFS_POINTER_PREFIX = b"version https://git-lfs"
 
 
 class CheckpointError(BrainOptionsError):
@@ -111,7 +133,9 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint as the plain dict ``torch.save`` wrote (training resumes from it), after the same checks as
-    :func:`load_checkpoint` except the typed parsing of input and normalisation."""
+    :func:`load_checkpoint` except the typed parsing of input and normalisation. A packed checkpoint comes back with
+    its shards joined, verified and cast to float32 in ``state_dict`` (CheckpointError, one line naming the shard
+    file, for a missing or changed shard)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -122,7 +146,46 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
         raise CheckpointError(f"{path}: not a torch checkpoint ({_first_line(error)})") from None
     _check_keys(raw, path)
+    if isinstance(raw, dict) and SHARDS_KEY in raw:
+        raw["state_dict"] = _read_shards(raw[SHARDS_KEY], path)
     return raw
+
+
+def _read_shards(shards: Any, path: Path) -> dict[str, Any]:
+    """The state dict of a packed checkpoint: its shard files joined, verified, loaded and cast to float32."""
+    import torch
+
+    try:
+        names = [str(name) for name in shards["files"]]
+        expected = str(shards["sha256"])
+        per_file = shards.get("file_sha256")
+    except (AttributeError, KeyError, TypeError) as error:
+        raise CheckpointError(f"{path}: malformed {SHARDS_KEY} entry ({_first_line(error)})") from None
+    if not names or any(Path(name).name != name or name in (".", "..") for name in names):
+        raise CheckpointError(f"{path}: {SHARDS_KEY} must name shard files beside it, got {names}")
+    blocks = []
+    for i, name in enumerate(names):
+        shard = path.parent / name
+        if not shard.is_file():
+            raise CheckpointError(f"{path}: shard file {shard} is missing")
+        block = shard.read_bytes()
+        if block.startswith(LFS_POINTER_PREFIX):
+            raise CheckpointError(f"{path}: shard file {shard} is a git LFS pointer, not the data (git lfs pull?)")
+        if per_file is not None and i < len(per_file) and hashlib.sha256(block).hexdigest() != per_file[i]:
+            raise CheckpointError(f"{path}: shard file {shard} does not match its sha256 (a truncated or changed "
+                                  f"copy?)")
+        blocks.append(block)
+    data = b"".join(blocks)
+    if hashlib.sha256(data).hexdigest() != expected:
+        raise CheckpointError(f"{path}: its shards {', '.join(names)} do not match the recorded sha256 (a git LFS "
+                              f"pointer, a truncated copy or a shard of another pack?)")
+    try:
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as error:
+        raise CheckpointError(f"{path}: its shards hold no torch state dict ({_first_line(error)})") from None
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise CheckpointError(f"{path}: its shards hold no torch state dict")
+    return {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
 
 
 def _check_keys(raw: Any, path: Path) -> None:
@@ -260,6 +323,65 @@ def from_metadata(meta: dict[str, str], path: str | Path) -> Checkpoint:
         raise CheckpointError(f"{path}: bad drivebench metadata ({_first_line(error)})") from None
     _check_keys(raw, path)
     return _parse(raw, path)
+
+
+# -- packing (git-friendly form) -------------------------------------------------------------------------------------
+
+
+def shard_names(dst: str | Path, count: int) -> list[Path]:
+    """``dst.shard0`` ... ``dst.shard{count-1}``, beside ``dst``."""
+    dst = Path(dst)
+    return [dst.with_name(f"{dst.name}.shard{i}") for i in range(count)]
+
+
+def pack_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
+                    shard_bytes: int = 9 * 2**20) -> list[Path]:
+    """Write checkpoint ``src`` in the packed form (module docstring) at ``dst``; returns the files written, shards
+    first, ``dst`` last.
+
+    half: floating tensors of the state dict as float16 (integer buffers such as BatchNorm's num_batches_tracked
+    stay as they are); else float32. shard_bytes: the most bytes per shard file (at least one shard is written).
+    Only :data:`PACKED_KEYS` are kept (no optimizer, rng or resume state). Every file is written under a temporary
+    name and renamed, shards before ``dst``; shards left over from an earlier, larger pack at ``dst`` are removed.
+    """
+    import torch
+
+    if shard_bytes < 1:
+        raise ValueError(f"shard_bytes must be >= 1, got {shard_bytes}")
+    src, dst = Path(src), Path(dst)
+    raw = read_checkpoint(src)
+    dtype = torch.float16 if half else torch.float32
+    state = {k: v.detach().cpu().to(dtype) if v.is_floating_point() else v.detach().cpu()
+             for k, v in raw["state_dict"].items()}
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    data = buffer.getvalue()
+    blocks = [data[i:i + shard_bytes] for i in range(0, len(data), shard_bytes)] or [b""]
+    shards = shard_names(dst, len(blocks))
+    packed = {key: raw[key] for key in PACKED_KEYS if key in raw}
+    packed["state_dict"] = {}
+    packed[SHARDS_KEY] = {"files": [shard.name for shard in shards], "sha256": hashlib.sha256(data).hexdigest(),
+                          "file_sha256": [hashlib.sha256(block).hexdigest() for block in blocks],
+                          "dtype": "float16" if half else "float32", "bytes": len(data)}
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    for shard, block in zip(shards, blocks):
+        _write_atomically(shard, lambda file, block=block: file.write(block))
+    _write_atomically(dst, lambda file: torch.save(packed, file))
+    stale = len(shards)
+    while (old := shard_names(dst, stale + 1)[-1]).is_file():
+        old.unlink()
+        stale += 1
+    return [*shards, dst]
+
+
+def _write_atomically(path: Path, write) -> None:
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with open(temporary, "wb") as file:
+            write(file)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 # -- writing (tests, benchmarks, smoke runs) -------------------------------------------------------------------------

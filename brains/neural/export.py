@@ -1,4 +1,6 @@
-"""ONNX export of a checkpoint (``drivebench export CKPT -o model.onnx``) and its parity check against PyTorch.
+"""ONNX export of a checkpoint (``drivebench export CKPT -o model.onnx``) and its parity check against PyTorch;
+``drivebench pack CKPT -o model.ckpt`` writes the git-friendly packed form (float16 shards of at most 9 MiB,
+:func:`brains.neural.checkpoint.pack_checkpoint`) and checks it against the original the same way.
 
 The file has one input ``frames`` (float32 (B, 3, H, W), or (B, T, 3, H, W) oldest first; B is dynamic) and one
 output ``command`` ((B, 2) normalised (v_n, w_n)). Its ``metadata_props`` carry the checkpoint's model, hyper,
@@ -20,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from brains.neural.checkpoint import Checkpoint, CheckpointError, build_model, input_shape, load_checkpoint, to_metadata
+from brains.neural.checkpoint import (Checkpoint, CheckpointError, build_model, input_shape, load_checkpoint,
+                                      pack_checkpoint, to_metadata)
 
 INPUT_NAME, OUTPUT_NAME = "frames", "command"
 SOURCE_SHA256_KEY = "drivebench.source_sha256"
@@ -82,6 +85,17 @@ def check_parity(ckpt_path: str | Path, onnx_path: str | Path, *, batch: int = 4
     return float(np.max(np.abs(expected - got)))
 
 
+def pack_difference(original: str | Path, packed: str | Path, *, batch: int = 4, seed: int = 0) -> float:
+    """Max |original - packed| over the (batch, 2) normalised outputs for seeded N(0, 1) inputs."""
+    import torch
+
+    ckpt_a, ckpt_b = load_checkpoint(original), load_checkpoint(packed)
+    x = torch.from_numpy(np.random.default_rng(seed).standard_normal(input_shape(ckpt_a, batch=batch))
+                         .astype(np.float32))
+    with torch.inference_mode():
+        return float((build_model(ckpt_a)(x) - build_model(ckpt_b)(x)).abs().max())
+
+
 # -- command line ----------------------------------------------------------------------------------------------------
 
 
@@ -109,6 +123,53 @@ def run_export(args: argparse.Namespace) -> int:
     size_mb = out.stat().st_size / 1e6
     print(f"wrote {out} ({size_mb:.1f} MB, opset {args.opset}); "
           f"max |onnxruntime - torch| = {parity:.2e} over {args.parity_batch} random inputs")
+    return 0
+
+
+def add_pack_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``pack CKPT -o OUT.ckpt [--float32] [--shard-mb 9] [--parity-batch 4]``; dispatch it to
+    :func:`run_pack`."""
+    pack = subparsers.add_parser("pack", help="write a checkpoint in the packed, git-friendly form (float16 shards)")
+    pack.add_argument("checkpoint", type=Path, help="drivebench.checkpoint.v1 file (packed or not)")
+    pack.add_argument("-o", "--output", type=Path, required=True,
+                      help="packed checkpoint to write (its shards OUT.shard0, OUT.shard1, ... go beside it)")
+    pack.add_argument("--float32", action="store_true", help="keep float32 weights (default: float16, half the size)")
+    pack.add_argument("--shard-mb", type=float, default=9.0, metavar="MIB",
+                      help="most MiB per shard file (default 9: every file stays under 10 MB)")
+    pack.add_argument("--parity-batch", type=int, default=4, help="batch of random inputs for the output check")
+    return pack
+
+
+def run_pack(args: argparse.Namespace) -> int:
+    """Pack, then print the files, their sizes and the measured output difference. 0 on success, 2 (one line on
+    stderr) for a bad checkpoint or option."""
+    shard_bytes = int(args.shard_mb * 2**20)
+    if shard_bytes < 1:
+        print(f"drivebench: error: --shard-mb must be > 0, got {args.shard_mb}", file=sys.stderr)
+        return 2
+    if args.output.resolve() == args.checkpoint.resolve():
+        print(f"drivebench: error: {args.output}: write the packed form to another file than the original",
+              file=sys.stderr)
+        return 2
+    try:
+        written = pack_checkpoint(args.checkpoint, args.output, half=not args.float32, shard_bytes=shard_bytes)
+        difference = pack_difference(args.checkpoint, args.output, batch=args.parity_batch)
+    except ImportError as error:
+        print(f"drivebench: error: pack needs torch ({error})", file=sys.stderr)
+        return 2
+    except CheckpointError as error:
+        print(f"drivebench: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"drivebench: error: cannot write {args.output}: {error.strerror or error}", file=sys.stderr)
+        return 2
+    for path in written:
+        size = path.stat().st_size
+        print(f"wrote {path} ({size / 1e6:.2f} MB)" if size >= 10_000 else f"wrote {path} ({size} bytes)")
+    total = sum(path.stat().st_size for path in written)
+    print(f"{len(written)} files, {total / 1e6:.1f} MB in all (original {args.checkpoint.stat().st_size / 1e6:.1f} MB, "
+          f"{'float32' if args.float32 else 'float16'}); max |packed - original| = {difference:.2e} over "
+          f"{args.parity_batch} random inputs")
     return 0
 
 
