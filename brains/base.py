@@ -14,17 +14,35 @@ import numpy as np
 
 
 @dataclass(frozen=True)
+class GroundTruth:
+    """Privileged facts about the car when a frame was taken, for brains that declare ``needs_ground_truth``
+    (experts that label data; never a vision brain under test).
+
+    x_m, y_m, yaw_rad: world_from_car, metres and radians (yaw anticlockwise from world x).
+    circuit: the episode's circuit name; direction: "forward" or "reverse" (``EpisodeSpec.direction``).
+    """
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    circuit: str
+    direction: str = "forward"
+
+
+@dataclass(frozen=True)
 class Observation:
     """What a brain sees at one control step.
 
     image_rgb: H x W x 3 uint8, RGB, row 0 at the top (the car's front camera, possibly perturbed).
     stamp_ns: simulated time of the frame in ns since the episode start.
     seq: frame number within the episode (0, 1, 2, ...).
+    ground_truth: the car's true pose, only for a brain whose class sets ``needs_ground_truth = True``.
     """
 
     image_rgb: np.ndarray
     stamp_ns: int
     seq: int
+    ground_truth: GroundTruth | None = None
 
 
 @dataclass(frozen=True)
@@ -41,7 +59,11 @@ class Action:
 
 @runtime_checkable
 class Brain(Protocol):
-    """Implemented by every brain. ``reset`` is called before the first frame of every episode."""
+    """Implemented by every brain. ``reset`` is called before the first frame of every episode.
+
+    A brain may also set ``needs_ground_truth = True`` (class attribute): its host then waits for the simulator's
+    pose of every frame and passes it as ``Observation.ground_truth``.
+    """
 
     def reset(self, *, seed: int) -> None:
         """Forget everything from the previous episode; seed any randomness from ``seed``."""

@@ -24,18 +24,20 @@ import time
 from typing import Any
 
 import msgspec
-from brains.base import Brain, Observation
+from brains.base import Brain, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, make_brain
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
-from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, Header
+from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header, Pose
 
 log = logging.getLogger("drivebench.brain")
 
 FRAME_BACKLOG = 64  # lock-step: frames kept for a brain that lags (a shadow); older ones are skipped
 STOP_LINGER_S = 0.2  # after a stop request: time for the reply to leave before the session closes
+GROUND_TRUTH_WAIT_S = 2.0  # a privileged brain: how long a frame waits for its pose (published just after it)
+POSES_KEPT = 256  # a privileged brain: poses kept, by (episode, seq), for frames still to come
 
 
 class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -81,6 +83,11 @@ class BrainHost:
         self._seq = 0
         self._reader = FrameReader(log)
         self._stop = threading.Event()
+        self._spec: EpisodeSpec | None = None
+        # A privileged brain (the expert) gets the simulator's ground-truth pose of every frame.
+        self._poses = (bus.subscribe(keys.pose(run), Pose) if getattr(brain, "needs_ground_truth", False)
+                       else None)
+        self._pose_by_frame: dict[tuple[int, int], Pose] = {}
         bus.serve(keys.brain_control(run, self.name), self._on_control)
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
@@ -113,6 +120,7 @@ class BrainHost:
     def _seed_for(self, episode: int) -> int:
         """The episode's seed (and mode) from its START event, or from the simulator's status for a late joiner."""
         spec = self._starts.spec(episode) or running_spec(self.bus, self.config.run_id, episode)
+        self._spec = spec
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
@@ -136,8 +144,10 @@ class BrainHost:
             yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0
             inference_ns = 0
         else:
+            truth = self._ground_truth(h.episode, h.seq) if self._poses is not None else None
             started = time.perf_counter_ns()
-            action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq))
+            action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq,
+                                                ground_truth=truth))
             inference_ns = time.perf_counter_ns() - started
             speed_mps, yaw_rate_radps = float(action.speed_mps), float(action.yaw_rate_radps)
         command = Command(
@@ -147,6 +157,24 @@ class BrainHost:
         self._seq += 1
         self._commands.publish(command)
         self._last = command
+
+
+    def _ground_truth(self, episode: int, seq: int) -> GroundTruth | None:
+        """The pose of frame (episode, seq), waiting up to GROUND_TRUTH_WAIT_S for it; None (logged) without it."""
+        deadline = time.monotonic() + GROUND_TRUTH_WAIT_S
+        while (episode, seq) not in self._pose_by_frame:
+            received = self._poses.recv(timeout_s=max(0.0, deadline - time.monotonic()))
+            if received is None:
+                log.warning("no ground-truth pose for frame %d of episode %d", seq, episode)
+                return None
+            pose = received.message
+            self._pose_by_frame[(pose.header.episode, pose.header.seq)] = pose
+            while len(self._pose_by_frame) > POSES_KEPT:
+                self._pose_by_frame.pop(next(iter(self._pose_by_frame)))
+        pose = self._pose_by_frame[(episode, seq)]
+        spec = self._spec or EpisodeSpec()
+        return GroundTruth(x_m=pose.x_m, y_m=pose.y_m, yaw_rad=pose.yaw_rad, circuit=spec.circuit,
+                           direction=spec.direction)
 
 
 def main(argv: list[str] | None = None) -> int:

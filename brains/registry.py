@@ -12,6 +12,7 @@ _REGISTRY: dict[str, str] = {
     "explicit": "brains.explicit.brain:ExplicitBrain",
     "constant": "brains.constant.brain:ConstantBrain",
     "noisy": "brains.noisy.brain:NoisyBrain",
+    "expert": "brains.expert.brain:ExpertBrain",  # privileged: pure pursuit on the ground-truth pose
     # The paper's networks, served from a checkpoint (``--weights CKPT``); each checks the checkpoint's model.
     "pilotnet": "brains.neural.brain:pilotnet",
     "deepest_lstm_tiny_pilotnet": "brains.neural.brain:deepest_lstm_tiny_pilotnet",

@@ -15,9 +15,12 @@ import sys
 import uuid
 from pathlib import Path
 
+import msgspec
+import numpy as np
+
 from orchestrator.launcher import BrainLaunch, LocalStack
 from protocol.messages import CameraSpec, EpisodeSpec
-from protocol.variations import apply_variation
+from protocol.variations import apply_variation, noise_stage
 from services.circuits import CircuitError, load_circuit
 
 
@@ -54,10 +57,35 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                                    direction=direction)
                 for variation in args.variation:
                     spec = apply_variation(spec, variation)
+                if getattr(args, "randomise", False):
+                    spec = randomised(spec)
             except (CircuitError, ValueError) as error:
                 raise CollectError(str(error)) from None
             specs.append(spec)
     return specs
+
+
+def randomised(spec: EpisodeSpec) -> EpisodeSpec:
+    """The spec in a world, camera mount and camera noise drawn from its seed: domain randomisation.
+
+    Every world variation is equally likely (line red / white / none, road grey / white, walls on / off, lighting sun
+    / no sun); the camera moves up to 0.3 m sideways and pitches -0.05..0.3 rad down (the paper's camera tests move it
+    0.2 m and 0.2 rad); half the episodes see a clean camera, the others one of salt and pepper (up to 0.7), Gaussian
+    noise, blur, brightness or occlusion. The direction stays what the caller chose.
+    """
+    rng = np.random.default_rng([spec.seed, 0x5EED])
+    world = {"line": rng.choice(["red", "white", "none"]), "road": rng.choice(["grey", "white"]),
+             "walls": bool(rng.integers(2)), "lighting": rng.choice(["sun", "no_sun"]),
+             "camera_offset_m": round(float(rng.uniform(-0.3, 0.3)), 3),
+             "camera_pitch_rad": round(float(rng.uniform(-0.05, 0.3)), 3)}
+    noises = [None, None, None, None, None,
+              f"salt_pepper={rng.uniform(0.05, 0.7):.2f}", f"salt_pepper={rng.uniform(0.3, 0.7):.2f}",
+              f"gaussian={rng.uniform(5, 30):.0f}", f"blur={int(rng.choice([3, 5, 7]))}",
+              f"brightness={rng.uniform(-0.4, 0.4):.2f}", "occlusion:patches=2,size_fraction=0.25"]
+    noise = noises[int(rng.integers(len(noises)))]
+    spec = apply_variation(spec, {key: str(value) if isinstance(value, np.str_) else value
+                                  for key, value in world.items()})
+    return msgspec.structs.replace(spec, noise=[noise_stage(noise)] if noise else [])
 
 
 def _episode_name(spec: EpisodeSpec) -> str:

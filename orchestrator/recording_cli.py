@@ -63,6 +63,10 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
                          help="simulator camera (default 320x240); --size sets the dataset's image size")
     collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                          help="world variation for every circuit, as in drivebench run")
+    collect.add_argument("--randomise", action="store_true",
+                         help="domain randomisation: each episode draws its own line, road, walls, lighting, camera "
+                              "mount and camera noise from its seed (use with a brain that does not look, e.g. "
+                              "--brain expert, which drives on ground truth)")
     collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
     collect.add_argument("--recovery-noise", type=float, default=0.0, metavar="RADPS",
                          help="drive with bursts of extra yaw rate up to RADPS (the noisy brain) while --brain, "

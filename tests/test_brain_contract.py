@@ -84,5 +84,5 @@ def test_brain_does_not_modify_its_input(name, frames, brain_options):
 
 def test_unknown_brain_names_the_known_ones():
     with pytest.raises(UnknownBrainError, match=r"unknown brain 'hal' \(known: constant, deepest_lstm_tiny_pilotnet, "
-                                                r"explicit, memdccp, neural, noisy, pilotnet, pilotnet_x3"):
+                                                r"expert, explicit, memdccp, neural, noisy, pilotnet, pilotnet_x3"):
         make_brain("hal")

@@ -37,6 +37,11 @@ class NoisyBrain:
         self.burst_steps = (int(burst_steps[0]), int(burst_steps[1]))
         self.reset(seed=0)
 
+    @property
+    def needs_ground_truth(self) -> bool:
+        """A privileged base (the expert) needs the pose through this wrapper too."""
+        return bool(getattr(self.base, "needs_ground_truth", False))
+
     def reset(self, *, seed: int) -> None:
         self.base.reset(seed=seed)
         self._rng = np.random.default_rng(seed)
