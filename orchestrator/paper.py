@@ -102,6 +102,7 @@ TABLE6: dict[str, tuple[Any, ...]] = {
     "memdccp": (155, 158, FAIL),
 }
 PARTS = {"montmelo": 3, "generalisation": 4, "camera": 5, "noise": 6}
+CIRCUITS_PART = "circuits"  # beyond the paper: one lap of many circuits (experiments/randomised.yaml)
 
 # --smoke: a few seconds of two brains in the first cells of every part, small camera.
 SMOKE_BRAINS = ("explicit", "deepest_lstm_tiny_pilotnet")
@@ -362,10 +363,23 @@ def paper_sections(results: Sequence[EpisodeResult], folder: Path) -> list[Secti
     for part, number in PARTS.items():
         episodes = _in_part(results, part)
         if not episodes:
-            section.blocks.append(f"Table {number}: part `{part}` has no finished episode yet.")
+            section.blocks.append(f"Table {number}: no episode of part `{part}` in this run (yet).")
             continue
         section.blocks.append({3: table3, 4: table4, 5: table5, 6: table6}[number](episodes))
+    if episodes := _in_part(results, CIRCUITS_PART):
+        section.blocks.append(circuits_table(episodes))
     return [section]
+
+
+def circuits_table(results: Sequence[EpisodeResult]) -> Table:
+    """Beyond the paper: one lap of each circuit, per direction; lap time or how it failed."""
+    cells = list(dict.fromkeys((r.circuit, r.spec.direction) for r in results))
+    rows = [[_name(brain), *(our_lap_cell([r for r in results if r.brain == brain
+                                           and (r.circuit, r.spec.direction) == c]) for c in cells)]
+            for brain in _brains(results)]
+    titles = [circuit + (" (reverse)" if direction == "reverse" else "") for circuit, direction in cells]
+    return Table(["Brain", *titles], rows, numeric=[False] + [True] * len(cells),
+                 caption="Every circuit, one lap each way: lap time or ✗ (beyond the paper)")
 
 
 # -- smoke form ------------------------------------------------------------------------------------------------------
