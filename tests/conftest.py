@@ -1,13 +1,28 @@
-"""Shared fixtures: local stacks of real processes over real Zenoh on loopback."""
+"""Shared fixtures: local stacks of real processes over real Zenoh on loopback; a real rendered camera frame."""
 
 from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
 from orchestrator.launcher import BrainLaunch, LocalStack
+
+
+@pytest.fixture(scope="session")
+def road_frame() -> np.ndarray:
+    """A real 320x240 camera frame: the simulator's view on the top straight of the simple circuit."""
+    from protocol.messages import EpisodeSpec
+    from services.circuits import load_circuit
+    from services.simulator.car import CarState
+    from services.simulator.scene import Scene
+
+    circuit, spec = load_circuit("simple"), EpisodeSpec()
+    x, y, yaw = circuit.centreline.pose_at(20.0)
+    with Scene.for_world(circuit, spec.world) as scene:
+        return scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), spec.camera)
 
 
 @pytest.fixture

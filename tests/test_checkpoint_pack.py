@@ -31,19 +31,6 @@ def pilotnet(tmp_path_factory) -> tuple[Path, list[Path]]:
     return original, pack_checkpoint(original, folder / "packed" / "model.ckpt", shard_bytes=SHARD_BYTES)
 
 
-def road_frame() -> np.ndarray:
-    """A real 320x240 camera frame: the simulator's view on the top straight of the simple circuit."""
-    from protocol.messages import EpisodeSpec
-    from services.circuits import load_circuit
-    from services.simulator.car import CarState
-    from services.simulator.scene import Scene
-
-    circuit, spec = load_circuit("simple"), EpisodeSpec()
-    x, y, yaw = circuit.centreline.pose_at(20.0)
-    with Scene.for_world(circuit, spec.world) as scene:
-        return scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), spec.camera)
-
-
 def copy_pack(written: list[Path], folder: Path) -> Path:
     """The packed files copied into ``folder``; returns the copy of the checkpoint (the last file)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -63,13 +50,13 @@ def test_pack_writes_small_shards_beside_a_small_checkpoint(pilotnet):
     assert meta["bytes"] == sum(path.stat().st_size for path in shards)
 
 
-def test_packed_pilotnet_serves_like_the_original_on_a_camera_frame(pilotnet):
+def test_packed_pilotnet_serves_like_the_original_on_a_camera_frame(pilotnet, road_frame):
     original, written = pilotnet
     a, b = load_checkpoint(original), load_checkpoint(written[-1])
     assert b.model == "pilotnet" and b.input == a.input and b.normalisation == a.normalisation
     assert a.state_dict.keys() == b.state_dict.keys()
     assert all(b.state_dict[k].dtype == v.dtype for k, v in a.state_dict.items())  # float32 again; int64 untouched
-    x = torch.from_numpy(Preprocessor(a.input, a.normalisation)(road_frame()))[None]
+    x = torch.from_numpy(Preprocessor(a.input, a.normalisation)(road_frame))[None]
     with torch.inference_mode():
         expected, got = build_model(a)(x), build_model(b)(x)
     assert expected.abs().min() > 0.05  # outputs of O(1): the relative comparison means something
@@ -77,9 +64,9 @@ def test_packed_pilotnet_serves_like_the_original_on_a_camera_frame(pilotnet):
     assert not torch.equal(got, expected)  # float16 did round
 
 
-def test_packed_checkpoint_drives_a_neural_brain(pilotnet):
+def test_packed_checkpoint_drives_a_neural_brain(pilotnet, road_frame):
     original, written = pilotnet
-    frame = road_frame()
+    frame = road_frame
 
     def act(weights: Path):
         action = NeuralBrain(weights=str(weights), backend="torch").act(Observation(image_rgb=frame, stamp_ns=0, seq=0))
