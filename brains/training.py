@@ -67,7 +67,7 @@ BALANCE_CAP = 50.0
 EVAL_BATCH = 256
 # Options a resumed run must share with the run that wrote last.ckpt; epochs, patience, device, threads may change.
 RESUME_FIXED = ("model", "data", "hyper", "seed", "lr", "batch_size", "labels", "max_samples_per_epoch", "augment",
-                "balance", "eval_train_samples", "limit_train_samples")
+                "augment_noise", "balance", "eval_train_samples", "limit_train_samples")
 
 
 class TrainError(RuntimeError):
@@ -93,6 +93,8 @@ class TrainOptions:
     labels: "zscore" (train-split mean/std) or "paper" (DLS's fixed ranges).
     hyper: make_model keyword arguments (int, float, bool or str values). threads: torch intra-op threads.
     augment: mirror/colour-jitter/blur training batches. balance: sample ∝ 1/frequency of the |w| bin.
+    augment_noise: with augment, salt and pepper noise of density up to this on half the training samples (as the
+        camera's noise looks after the network's resize: see ``salt_pepper_resized``); 0 = off.
     resume: continue from output/last.ckpt. overwrite: replace an existing run in output.
     eval_train_samples: size of the fixed training subset evaluated each epoch (no augmentation).
     limit_train_samples: draw from a fixed random subset of this many training samples only (overfitting sanity
@@ -113,6 +115,7 @@ class TrainOptions:
     threads: int | None = None
     max_samples_per_epoch: int | None = None
     augment: bool = True
+    augment_noise: float = 0.0
     balance: bool = True
     resume: bool = False
     overwrite: bool = False
@@ -126,6 +129,8 @@ class TrainOptions:
         for name in ("threads", "max_samples_per_epoch", "limit_train_samples"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise TrainError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.augment_noise <= 1.0:
+            raise TrainError(f"augment_noise must be within 0..1, got {self.augment_noise}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise TrainError(f"lr must be a positive number, got {self.lr}")
         if self.labels not in LABEL_KINDS:
@@ -224,14 +229,15 @@ def to_unit_float(frames: torch.Tensor) -> torch.Tensor:
 
 
 def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, *, mirror_p: float = 0.5,
-                  jitter: float = 0.2, blur_p: float = 0.2) -> tuple[torch.Tensor, torch.Tensor]:
+                  jitter: float = 0.2, blur_p: float = 0.2, noise_max: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Random training augmentation, one parameter set per sample shared by all its frames.
 
     frames: uint8 (B, T, H, W, 3) RGB; labels: (B, 2) physical [v m/s, w rad/s]. Returns float32 (B, T, 3, H, W)
     in [0, 1] and the labels. Mirror left-right with w -> -w (probability mirror_p); brightness, contrast and
     saturation factors uniform in [1 - jitter, 1 + jitter]; Gaussian blur (probability blur_p, sigma 0.5..1.5 px,
-    one sigma per batch). The same random numbers are drawn whatever the data, so the generator advances
-    identically every batch (resume stays exact).
+    one sigma per batch); with ``noise_max`` > 0, salt and pepper of density uniform in [0, noise_max] on half the
+    samples (:func:`salt_pepper_resized`). The same random numbers are drawn whatever the data, so the generator
+    advances identically every batch (resume stays exact).
     """
     draws = torch.rand(5, frames.shape[0], generator=generator).to(frames.device)
     sigma = 0.5 + float(torch.rand(1, generator=generator))
@@ -240,7 +246,32 @@ def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.G
     blurred = (draws[4] < blur_p).nonzero().squeeze(1)
     if len(blurred):  # x is a fresh tensor here (colour_jitter), so writing into it is safe
         x[blurred] = gaussian_blur(x[blurred], sigma)
+    if noise_max > 0:  # drawn only when asked for, so runs without it keep their random sequence
+        density = torch.rand(frames.shape[0], generator=generator) * noise_max
+        density = torch.where(torch.rand(frames.shape[0], generator=generator) < 0.5, density, 0.0)
+        x = salt_pepper_resized(x, density.to(x.device), generator)
     return x, labels
+
+
+# Camera pixels averaged into one network pixel: 320x240 cropped to its lower half and resized to 100x50 averages
+# 3.2 x 2.4; the noise injector's salt and pepper is per camera pixel, so the network sees it averaged that way.
+NOISE_SUBPIXELS = 8
+
+
+def salt_pepper_resized(x: torch.Tensor, density: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Salt and pepper noise as it looks after an area resize: of each pixel's ``NOISE_SUBPIXELS`` camera pixels,
+    Binomial(n, density) are replaced, half of them (binomially) by white and the rest by black; independent per
+    frame and pixel, the same across a pixel's channels (the injector replaces whole pixels).
+
+    x: (B, T, 3, H, W) in [0, 1]; density: (B,) per sample, 0 = untouched.
+    """
+    b, t, _, h, w = x.shape
+    n = float(NOISE_SUBPIXELS)
+    counts = torch.full((b, t, 1, h, w), n)
+    replaced = torch.binomial(counts, density.view(-1, 1, 1, 1, 1).expand(b, t, 1, h, w).cpu(), generator=generator)
+    white = torch.binomial(replaced, torch.full_like(replaced, 0.5), generator=generator)
+    replaced, white = replaced.to(x.device), white.to(x.device)
+    return (x * (n - replaced) + white) / n
 
 
 def mirror(frames: torch.Tensor, labels: torch.Tensor, flip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -288,8 +319,8 @@ def gaussian_blur(x: torch.Tensor, sigma: float, radius: int = 2) -> torch.Tenso
 class _Split:
     """One split of the dataset as model-ready tensors on the training device."""
 
-    def __init__(self, dataset: DrivingDataset, frames: int, device: torch.device):
-        self.dataset, self.frames, self.device = dataset, frames, device
+    def __init__(self, dataset: DrivingDataset, frames: int, device: torch.device, *, noise_max: float = 0.0):
+        self.dataset, self.frames, self.device, self.noise_max = dataset, frames, device, noise_max
         self._mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 1, 3, 1, 1)
         self._std = torch.tensor(IMAGENET_STD, device=device).view(1, 1, 3, 1, 1)
 
@@ -307,7 +338,7 @@ class _Split:
         frames = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
         y = torch.from_numpy(labels).to(self.device)
         if generator is not None:
-            x, y = augment_batch(frames, y, generator)
+            x, y = augment_batch(frames, y, generator, noise_max=self.noise_max)
         else:
             x = to_unit_float(frames)
         x = (x - self._mean) / self._std
@@ -582,7 +613,7 @@ class _Trainer:
         self.device = _resolve_device(options.device)
         self.output = Path(options.output)
         train, val = _open_dataset(options, self.info)
-        self.train_split = _Split(train, self.info.frames, self.device)
+        self.train_split = _Split(train, self.info.frames, self.device, noise_max=options.augment_noise)
         self.val_split = _Split(val, self.info.frames, self.device) if val is not None else None
         labels = self.train_split.labels()
         self.norm = label_norm(options.labels, labels, mirrored=options.augment)
@@ -782,7 +813,7 @@ class _Trainer:
                          "epochs": options.epochs, "device": str(self.device), "wall_s": self._wall_s(),
                          "samples_per_s": self._samples_per_s(), "torch": str(torch.__version__),
                          "patience": options.patience, "labels": options.labels, "augment": options.augment,
-                         "balance": options.balance, "max_samples_per_epoch": options.max_samples_per_epoch,
+                         "augment_noise": options.augment_noise, "balance": options.balance, "max_samples_per_epoch": options.max_samples_per_epoch,
                          "limit_train_samples": options.limit_train_samples,
                          "threads": torch.get_num_threads()},
         }

@@ -332,3 +332,23 @@ def test_hyper_values_are_typed():
         "clean": True, "lstm_units": 16, "dropout": 0.1, "name": "x"}
     with pytest.raises(train_cli.HyperError):
         train_cli.parse_hyper(["=3"])
+
+
+def test_salt_and_pepper_augmentation_looks_like_the_injectors_noise_after_the_resize():
+    from brains.training import augment_batch, salt_pepper_resized
+
+    generator = torch.Generator().manual_seed(0)
+    x = torch.full((2, 3, 3, 50, 100), 0.3)
+    noisy = salt_pepper_resized(x, torch.tensor([0.0, 0.6]), generator)
+    assert torch.equal(noisy[0], x[0])  # density 0: untouched
+    # each pixel mixes its kept share of the image with replaced pixels, half of them white
+    assert float(noisy[1].mean()) == pytest.approx(0.3 * 0.4 + 0.6 * 0.5, abs=0.01)
+    assert torch.equal(noisy[1, :, 0], noisy[1, :, 2])  # whole pixels replaced: the same in every channel
+    assert float(noisy[1].std()) > 0.1  # speckled, not a uniform shift
+    frames = torch.randint(0, 256, (4, 3, 50, 100, 3), dtype=torch.uint8)
+    labels = torch.zeros(4, 2)
+    plain = augment_batch(frames, labels, torch.Generator().manual_seed(1))
+    zero = augment_batch(frames, labels, torch.Generator().manual_seed(1), noise_max=0.0)
+    assert torch.equal(plain[0], zero[0])  # off: the same batch, the same random sequence as before
+    with_noise = augment_batch(frames, labels, torch.Generator().manual_seed(1), noise_max=0.7)
+    assert not torch.equal(plain[0], with_noise[0])
