@@ -28,37 +28,60 @@ def add_matrix_command(commands) -> None:
         description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
                     "as each episode ends, then write DIR/report.html and report.md.")
     matrix.add_argument("file", type=Path, help="matrix file (YAML)")
-    matrix.add_argument("-o", "--out", type=Path, help="output folder (default: runs/matrix-<name>-<time>)")
-    matrix.add_argument("--workers", type=int, default=1, metavar="N",
-                        help="episodes run at the same time, each on its own stack (default: 1; about a core each)")
-    matrix.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
-    matrix.add_argument("--record-images", choices=("raw", "jpeg"), default="jpeg",
-                        help="camera images in recordings (default: jpeg, ~10x smaller than raw)")
-    matrix.add_argument("--resume", action="store_true",
-                        help="run only the episodes DIR's results do not hold yet (after a crash or Ctrl-C)")
-    matrix.add_argument("--retry-failed", action="store_true",
-                        help="with --resume: also run again the episodes the stack failed")
-    matrix.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+    add_run_options(matrix, default_out="runs/matrix-<name>-<time>", default_workers=1)
     matrix.add_argument("--no-report", action="store_true", help="do not write the report at the end")
 
 
-def run_matrix_command(args: argparse.Namespace) -> int:
+def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, default_workers: int) -> None:
+    """The options every command that runs a matrix file takes (drivebench matrix, drivebench paper)."""
+    parser.add_argument("-o", "--out", type=Path, help=f"output folder (default: {default_out})")
+    parser.add_argument("--workers", type=int, default=default_workers, metavar="N",
+                        help=f"episodes run at the same time, each on its own stack (default: {default_workers}; "
+                             "about a core each)")
+    parser.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
+    parser.add_argument("--record-images", choices=("raw", "jpeg"), default="jpeg",
+                        help="camera images in recordings (default: jpeg, ~10x smaller than raw)")
+    parser.add_argument("--resume", action="store_true",
+                        help="run only the episodes DIR's results do not hold yet (after a crash or Ctrl-C)")
+    parser.add_argument("--retry-failed", action="store_true",
+                        help="with --resume: also run again the episodes the stack failed")
+    parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+
+
+def load_matrix_file(path: Path):
+    """The parsed matrix file; its mistakes as a usage error (one line)."""
     from orchestrator.matrix import MatrixError, load_matrix
-    from orchestrator.matrix_runner import plan_table
 
     try:
-        matrix = load_matrix(args.file)
+        return load_matrix(path)
     except MatrixError as error:
         raise MatrixUsageError(str(error)) from None
+
+
+def run_matrix_command(args: argparse.Namespace) -> int:
+    matrix = load_matrix_file(args.file)
+    return run_matrix_args(matrix, args, what="matrix", default_folder=f"matrix-{matrix.name}",
+                           command=f"drivebench matrix {args.file}", report=not args.no_report)
+
+
+def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
+                    report: bool = True, facts: dict | None = None) -> int:
+    """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say; the exit code.
+
+    what: the kind of run in messages ("matrix", "paper"); default_folder: ``runs/<default_folder>-<time>`` without
+    ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption).
+    """
+    from orchestrator.matrix_runner import plan_table
+
     if args.plan:
         print(plan_table(matrix))
         return 0
     if args.resume and args.out is None:
-        raise MatrixUsageError("--resume needs -o DIR, the folder of the matrix run to resume")
-    out_dir = args.out or Path("runs") / f"matrix-{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+        raise MatrixUsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
+    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     return run_loaded_matrix(matrix, out_dir=out_dir, workers=args.workers, record=args.record,
                              record_images=args.record_images, resume=args.resume, retry_failed=args.retry_failed,
-                             report=not args.no_report, command=f"drivebench matrix {args.file} -o {out_dir}")
+                             report=report, facts=facts, command=f"{command} -o {out_dir}")
 
 
 def run_loaded_matrix(matrix, *, out_dir: Path, workers: int, record: bool, record_images: str, resume: bool,

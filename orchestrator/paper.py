@@ -410,6 +410,8 @@ def smoke_matrix(matrix):
 
 
 def add_paper_command(commands) -> None:
+    from orchestrator.matrix_cli import add_run_options
+
     paper = commands.add_parser(
         "paper", help="regenerate the paper's six tables (ours beside the paper's figures)",
         description="Run experiments/paper.yaml (every brain, circuit, world and perturbation the paper's closed-loop "
@@ -417,42 +419,28 @@ def add_paper_command(commands) -> None:
                     "figure beside ours in every cell. Add your own brain to the file to get its row.")
     paper.add_argument("--file", type=Path, default=PAPER_FILE, help="the paper's matrix file "
                                                                       "(default: experiments/paper.yaml)")
-    paper.add_argument("-o", "--out", type=Path, help="output folder (default: runs/paper-<time>)")
-    paper.add_argument("--workers", type=int, default=2, metavar="N",
-                       help="episodes at the same time, each on its own stack (default: 2, about a core each)")
-    paper.add_argument("--resume", action="store_true", help="run only what DIR does not hold yet")
-    paper.add_argument("--retry-failed", action="store_true", help="with --resume: also the episodes the stack failed")
+    add_run_options(paper, default_out="runs/paper-<time>", default_workers=2)
     paper.add_argument("--smoke", action="store_true",
                        help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)}, the first {SMOKE_CELLS_PER_PART} "
                             f"cells of every table, {SMOKE_SIM_SECONDS:g} s each (what CI runs)")
-    paper.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
-    paper.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
 
 
 def run_paper_command(args: argparse.Namespace) -> int:
-    from orchestrator.matrix import MatrixError, load_matrix
-    from orchestrator.matrix_cli import MatrixUsageError, run_loaded_matrix
-    from orchestrator.matrix_runner import plan_table
+    from orchestrator.matrix_cli import MatrixUsageError, load_matrix_file, run_matrix_args
 
-    try:
-        matrix = load_matrix(args.file)
-    except MatrixError as error:
-        raise MatrixUsageError(str(error)) from None
+    matrix = load_matrix_file(args.file)
     if not set(PARTS) & set(matrix.parts):
         raise MatrixUsageError(f"{args.file}: no part named {', '.join(PARTS)}: not a paper matrix")
     if args.smoke:
         matrix = smoke_matrix(matrix)
         if not matrix.episodes:
             raise MatrixUsageError(f"{args.file}: --smoke needs the brains {', '.join(SMOKE_BRAINS)}")
-    if args.plan:
-        print(plan_table(matrix))
-        return 0
-    if args.resume and args.out is None:
-        raise MatrixUsageError("--resume needs -o DIR, the folder of the paper run to resume")
-    out_dir = args.out or Path("runs") / f"{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    code = run_loaded_matrix(matrix, out_dir=out_dir, workers=args.workers, record=args.record,
-                             record_images="jpeg", resume=args.resume, retry_failed=args.retry_failed,
-                             facts={PAPER_FACT: True}, command=f"drivebench paper -o {out_dir}")
-    if code in (0, 3):
-        print(f"paper tables: {out_dir / PAPER_MARKDOWN}", file=sys.stderr)
+    command = "drivebench paper" + (f" --file {args.file}" if args.file != PAPER_FILE else "") + \
+        (" --smoke" if args.smoke else "")
+    if args.out is None and not args.resume:
+        args.out = Path("runs") / f"{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    code = run_matrix_args(matrix, args, what="paper", default_folder=matrix.name, command=command,
+                           facts={PAPER_FACT: True})
+    if code in (0, 3) and not args.plan:
+        print(f"paper tables: {args.out / PAPER_MARKDOWN}", file=sys.stderr)
     return code

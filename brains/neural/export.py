@@ -111,19 +111,30 @@ def add_export_command(subparsers: argparse._SubParsersAction) -> argparse.Argum
 
 def run_export(args: argparse.Namespace) -> int:
     """Export, then print the measured parity. 0 on success, 2 (one line on stderr) for a bad checkpoint."""
-    try:
-        out = export_onnx(args.checkpoint, args.output, opset=args.opset)
-        parity = check_parity(args.checkpoint, out, batch=args.parity_batch)
-    except ImportError as error:
-        print(f"drivebench: error: export needs torch, onnx and onnxruntime ({error})", file=sys.stderr)
-        return 2
-    except CheckpointError as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return 2
+    return _reporting_errors("export needs torch, onnx and onnxruntime", args.output, lambda: _export(args))
+
+
+def _export(args: argparse.Namespace) -> int:
+    out = export_onnx(args.checkpoint, args.output, opset=args.opset)
+    parity = check_parity(args.checkpoint, out, batch=args.parity_batch)
     size_mb = out.stat().st_size / 1e6
     print(f"wrote {out} ({size_mb:.1f} MB, opset {args.opset}); "
           f"max |onnxruntime - torch| = {parity:.2e} over {args.parity_batch} random inputs")
     return 0
+
+
+def _reporting_errors(needs: str, output: Path, action) -> int:
+    """``action()``, with a missing library, a bad checkpoint or an unwritable output as one line and exit code 2."""
+    try:
+        return action()
+    except ImportError as error:
+        message = f"{needs} ({error})"
+    except CheckpointError as error:
+        message = str(error)
+    except OSError as error:
+        message = f"cannot write {output}: {error.strerror or error}"
+    print(f"drivebench: error: {message}", file=sys.stderr)
+    return 2
 
 
 def add_pack_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -151,18 +162,12 @@ def run_pack(args: argparse.Namespace) -> int:
         print(f"drivebench: error: {args.output}: write the packed form to another file than the original",
               file=sys.stderr)
         return 2
-    try:
-        written = pack_checkpoint(args.checkpoint, args.output, half=not args.float32, shard_bytes=shard_bytes)
-        difference = pack_difference(args.checkpoint, args.output, batch=args.parity_batch)
-    except ImportError as error:
-        print(f"drivebench: error: pack needs torch ({error})", file=sys.stderr)
-        return 2
-    except CheckpointError as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:
-        print(f"drivebench: error: cannot write {args.output}: {error.strerror or error}", file=sys.stderr)
-        return 2
+    return _reporting_errors("pack needs torch", args.output, lambda: _pack(args, shard_bytes))
+
+
+def _pack(args: argparse.Namespace, shard_bytes: int) -> int:
+    written = pack_checkpoint(args.checkpoint, args.output, half=not args.float32, shard_bytes=shard_bytes)
+    difference = pack_difference(args.checkpoint, args.output, batch=args.parity_batch)
     for path in written:
         size = path.stat().st_size
         print(f"wrote {path} ({size / 1e6:.2f} MB)" if size >= 10_000 else f"wrote {path} ({size} bytes)")
