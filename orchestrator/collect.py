@@ -69,15 +69,19 @@ def randomised(spec: EpisodeSpec) -> EpisodeSpec:
     """The spec in a world, camera mount and camera noise drawn from its seed: domain randomisation.
 
     Every world variation is equally likely (line red / white / none, road grey / white, walls on / off, lighting sun
-    / no sun); the camera moves up to 0.3 m sideways and pitches -0.05..0.3 rad down (the paper's camera tests move it
-    0.2 m and 0.2 rad); half the episodes see a clean camera, the others one of salt and pepper (up to 0.7), Gaussian
+    / no sun); the camera mount jitters up to 0.08 m sideways and pitches -0.03..0.22 rad down (the paper's rotated
+    camera is 0.2 rad); half the episodes see a clean camera, the others one of salt and pepper (up to 0.7), Gaussian
     noise, blur, brightness or occlusion. The direction stays what the caller chose.
+
+    The sideways jitter stays small on purpose: an expert labels from the car's true offset, and a camera moved
+    sideways looks exactly like the car moved sideways, so a large random mount turns recovery labels into noise
+    (measured: with up to 0.3 m, networks learned nothing from these data).
     """
     rng = np.random.default_rng([spec.seed, 0x5EED])
     world = {"line": rng.choice(["red", "white", "none"]), "road": rng.choice(["grey", "white"]),
              "walls": bool(rng.integers(2)), "lighting": rng.choice(["sun", "no_sun"]),
-             "camera_offset_m": round(float(rng.uniform(-0.3, 0.3)), 3),
-             "camera_pitch_rad": round(float(rng.uniform(-0.05, 0.3)), 3)}
+             "camera_offset_m": round(float(rng.uniform(-0.08, 0.08)), 3),
+             "camera_pitch_rad": round(float(rng.uniform(-0.03, 0.22)), 3)}
     noises = [None, None, None, None, None,
               f"salt_pepper={rng.uniform(0.05, 0.7):.2f}", f"salt_pepper={rng.uniform(0.3, 0.7):.2f}",
               f"gaussian={rng.uniform(5, 30):.0f}", f"blur={int(rng.choice([3, 5, 7]))}",
