@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from brains.base import Observation
+from brains.registry import make_brain
 from orchestrator.launcher import BrainLaunch
 from protocol.messages import EndReason, EpisodeSpec
+from protocol.variations import apply_variation
 
 pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
@@ -40,3 +45,33 @@ def test_export_of_the_trained_network_matches_torch(tmp_path):
     assert (tmp_path / "tiny.onnx").stat().st_size > 100_000
     difference = float((result.stdout + result.stderr).split("=")[-1].split()[0])
     assert difference < 1e-4
+
+
+SHIPPED = sorted(path for path in (ROOT / "brains" / "weights").glob("*.ckpt"))
+
+
+def test_drivebench_ships_every_network_of_the_paper():
+    assert {path.stem for path in SHIPPED} >= {"pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp"}
+    for path in (ROOT / "brains" / "weights").iterdir():
+        assert path.stat().st_size < 10 * 2**20, f"{path.name}: git files stay under 10 MB"
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda path: path.stem)
+def test_every_shipped_checkpoint_loads_and_answers_a_real_frame(path, road_frame):
+    brain = make_brain("neural", weights=str(path))
+    brain.reset(seed=0)
+    actions = [brain.act(Observation(image_rgb=road_frame, stamp_ns=seq * 50_000_000, seq=seq)) for seq in range(12)]
+    for action in actions:
+        assert math.isfinite(action.speed_mps) and math.isfinite(action.yaw_rate_radps)
+        assert 2.0 < action.speed_mps < 25.0 and abs(action.yaw_rate_radps) < 1.5  # a straight road ahead
+
+
+@pytest.mark.slow
+def test_the_shipped_memdccp_laps_simple_with_no_line(make_stack):
+    """The paper's memory network, trained on the red line only, drives the held-out circuit with the line gone."""
+    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / 'memdccp.ckpt'))}"
+    stack = make_stack(BrainLaunch("memdccp", options=(weights,)))
+    spec = apply_variation(EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="memdccp"), "line=none")
+    score = stack.run_episode(spec)
+    assert score.reason == EndReason.LAPS_COMPLETED, score
+    assert score.metrics.off_track_events == 0 and score.metrics.cross_track_max_m < 0.5
