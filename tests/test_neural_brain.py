@@ -219,8 +219,8 @@ def test_bad_weights_give_one_line_naming_the_file(case, message, tmp_path, ckpt
 def test_named_brain_refuses_another_network_and_needs_weights(ckpts):
     with pytest.raises(CheckpointError, match="holds a deepest_lstm_tiny_pilotnet network, not memdccp"):
         make_brain("memdccp", weights=ckpts["deepest_lstm_tiny_pilotnet"])
-    with pytest.raises(BrainOptionsError, match=r"^brain 'memdccp' needs --weights CKPT"):
-        make_brain("memdccp")
+    with pytest.raises(BrainOptionsError, match=r"^brain 'neural' needs --weights CKPT"):
+        make_brain("neural")  # the named networks serve their shipped weights without --weights
     with pytest.raises(BrainOptionsError, match="backend must be one of onnx, torch"):
         make_brain("neural", weights=ckpts["memdccp"], backend="tensorrt")
 
@@ -242,11 +242,11 @@ def test_device_option_runs_on_the_cpu_and_names_what_is_missing(ckpts):
 
 
 @pytest.mark.parametrize("argv, line", [
-    ([], "brain: error: brain 'memdccp' needs --weights CKPT (or --set options.weights=CKPT)"),
+    ([], "brain: error: brain 'neural' needs --weights CKPT (or --set options.weights=CKPT)"),
     (["--weights", "/nowhere/m.pt"], "brain: error: /nowhere/m.pt: no such checkpoint file"),
 ])
 def test_brain_host_reports_missing_or_bad_weights_in_one_line(argv, line):
-    done = subprocess.run([sys.executable, "-m", "brains", "--brain", "memdccp", *argv], capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "brains", "--brain", "neural", *argv], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 2
     assert done.stderr.strip().splitlines()[-1] == line

@@ -313,7 +313,9 @@ def test_a_recorder_that_joins_mid_episode_writes_the_start_the_simulator_publis
     recorder.send_signal(signal.SIGTERM)
     log = recorder.communicate(timeout=30)[0]
     events = [r.message for r in read_messages(output) if r.key == keys.events(stack.run_id)]
-    assert [event.kind for event in events] == ["start", "end"], log
+    kinds = [event.kind for event in events]
+    # on an idle machine the car may finish a lap of the small camera's fast episode before the stop: LAPs between
+    assert kinds[0] == "start" and kinds[-1] == "end" and set(kinds[1:-1]) <= {"lap"}, log
     start = events[0]
     assert start.spec == msgspec.convert(msgspec.to_builtins(spec), EpisodeSpec)
     assert (start.header.episode, start.header.seq, start.header.stamp_ns) == (0, 0, 0)

@@ -131,7 +131,8 @@ def test_checkpoint_format(memdccp_run, datasets):
     assert raw["dataset"]["samples_val"] == manifest["split"]["val_samples"]
     assert len(raw["dataset"]["manifest_sha256"]) == 64
     metrics = raw["metrics"]
-    assert set(metrics["train"]) == set(metrics["val"]) == {"mae_speed_mps", "mae_yaw_rate_radps", "mse_normalised"}
+    assert set(metrics["train"]) == set(metrics["val"]) == {"mae_speed_mps", "mae_yaw_rate_radps", "mse_normalised",
+                                                                "mae_paper", "mse_paper"}
     assert metrics["best_epoch"] == metrics["epochs_run"] == 1
     assert set(metrics["curve"][0]) >= {"epoch", "train_loss", "val_loss", "val_mae_speed_mps",
                                         "val_mae_yaw_rate_radps", "wall_s"}
