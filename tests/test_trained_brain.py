@@ -50,8 +50,9 @@ def test_export_of_the_trained_network_matches_torch(tmp_path):
 SHIPPED = sorted(path for path in (ROOT / "brains" / "weights").glob("*.ckpt"))
 
 
-def test_drivebench_ships_every_network_of_the_paper():
-    assert {path.stem for path in SHIPPED} >= {"pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp"}
+def test_drivebench_ships_every_network_of_the_paper_and_the_randomised_one():
+    assert {path.stem for path in SHIPPED} >= {"pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp",
+                                               "deepest_lstm_tiny_pilotnet_dr"}
     for path in (ROOT / "brains" / "weights").iterdir():
         assert path.stat().st_size < 10 * 2**20, f"{path.name}: git files stay under 10 MB"
 
@@ -75,3 +76,15 @@ def test_the_shipped_memdccp_laps_simple_with_no_line(make_stack):
     score = stack.run_episode(spec)
     assert score.reason == EndReason.LAPS_COMPLETED, score
     assert score.metrics.off_track_events == 0 and score.metrics.cross_track_max_m < 0.5
+
+
+@pytest.mark.slow
+def test_the_randomised_tiny_network_laps_a_white_road_with_no_line(make_stack):
+    """Trained on random circuits in random worlds, it laps a world no paper-recipe network laps."""
+    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / 'deepest_lstm_tiny_pilotnet_dr.ckpt'))}"
+    stack = make_stack(BrainLaunch("deepest_lstm_tiny_pilotnet", name="tiny_dr", options=(weights,)))
+    spec = apply_variation(EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="tiny_dr"),
+                           "line=none,road=white")
+    score = stack.run_episode(spec)
+    assert score.reason == EndReason.LAPS_COMPLETED, score
+    assert score.metrics.off_track_events == 0
