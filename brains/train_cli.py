@@ -57,7 +57,7 @@ def add_train_command(subparsers: argparse._SubParsersAction) -> argparse.Argume
                         help="no mirror / colour jitter / blur on training batches")
     parser.add_argument("--augment-noise", type=float, default=0.0, metavar="DENSITY",
                         help="also salt and pepper noise of density up to DENSITY on half the training samples "
-                             "(default 0: off; the randomised recipe uses 0.7)")
+                             "(default 0: off)")
     parser.add_argument("--no-balance", dest="balance", action="store_false",
                         help="uniform sampling instead of 1/frequency of the |yaw rate| bin")
     restart = parser.add_mutually_exclusive_group()
@@ -100,7 +100,8 @@ def run_train(args: argparse.Namespace) -> int:
             lr=args.lr, device=args.device, seed=args.seed, patience=args.patience, labels=args.labels,
             hyper=parse_hyper(args.hyper), threads=args.threads, max_samples_per_epoch=args.max_samples_per_epoch,
             limit_train_samples=args.limit_train_samples,
-            augment=args.augment, augment_noise=args.augment_noise, balance=args.balance, resume=args.resume, overwrite=args.overwrite)
+            augment=args.augment, augment_noise=args.augment_noise, balance=args.balance, resume=args.resume,
+            overwrite=args.overwrite)
         result = training.train(options, progress=sys.stderr.isatty(), log=_log)
     except training.TrainInterrupted as stop:
         print(f"drivebench: interrupted in epoch {stop.epoch} after batch {stop.batch}; saved {stop.last_checkpoint}; "

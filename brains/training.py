@@ -18,7 +18,8 @@ Checkpoint format ``drivebench.checkpoint.v1`` (``torch.save`` of plain types an
                    label_mean, label_std: physical [v m/s, w rad/s] = network output * label_std + label_mean
     dataset        path, manifest_sha256, samples_train, samples_val
     metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised, mae_paper, mse_paper (val is
-                   None without a val split); best_epoch, epochs_run, curve (one dict per epoch), monitor, stopped_early, notes
+                   None without a val split); best_epoch, epochs_run, curve (one dict per epoch), monitor,
+                   stopped_early, notes
     training       seed, lr, batch_size, epochs, device, wall_s, samples_per_s, torch (+ the other options)
 
 Pipeline: one gather per batch from the memory-mapped uint8 frames, then everything on torch tensors on the
@@ -229,7 +230,8 @@ def to_unit_float(frames: torch.Tensor) -> torch.Tensor:
 
 
 def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, *, mirror_p: float = 0.5,
-                  jitter: float = 0.2, blur_p: float = 0.2, noise_max: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                  jitter: float = 0.2, blur_p: float = 0.2,
+                  noise_max: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Random training augmentation, one parameter set per sample shared by all its frames.
 
     frames: uint8 (B, T, H, W, 3) RGB; labels: (B, 2) physical [v m/s, w rad/s]. Returns float32 (B, T, 3, H, W)
@@ -813,7 +815,8 @@ class _Trainer:
                          "epochs": options.epochs, "device": str(self.device), "wall_s": self._wall_s(),
                          "samples_per_s": self._samples_per_s(), "torch": str(torch.__version__),
                          "patience": options.patience, "labels": options.labels, "augment": options.augment,
-                         "augment_noise": options.augment_noise, "balance": options.balance, "max_samples_per_epoch": options.max_samples_per_epoch,
+                         "augment_noise": options.augment_noise, "balance": options.balance,
+                         "max_samples_per_epoch": options.max_samples_per_epoch,
                          "limit_train_samples": options.limit_train_samples,
                          "threads": torch.get_num_threads()},
         }

@@ -66,47 +66,35 @@ def run_matrix_command(args: argparse.Namespace) -> int:
 
 def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
                     report: bool = True, facts: dict | None = None) -> int:
-    """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say; the exit code.
+    """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say, with progress on stderr, then
+    write its report (unless ``report`` is False); the exit code.
 
     what: the kind of run in messages ("matrix", "paper"); default_folder: ``runs/<default_folder>-<time>`` without
-    ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption).
+    ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
+    facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix_runner import plan_table
+    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
+    from orchestrator.results import ResultsError
 
     if args.plan:
         print(plan_table(matrix))
         return 0
+    if args.workers < 1:
+        raise MatrixUsageError(f"--workers must be >= 1, got {args.workers}")
     if args.resume and args.out is None:
         raise MatrixUsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
-    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
-    return run_loaded_matrix(matrix, out_dir=out_dir, workers=args.workers, record=args.record,
-                             record_images=args.record_images, resume=args.resume, retry_failed=args.retry_failed,
-                             report=report, facts=facts, command=f"{command} -o {out_dir}")
-
-
-def run_loaded_matrix(matrix, *, out_dir: Path, workers: int, record: bool, record_images: str, resume: bool,
-                      retry_failed: bool, report: bool = True, facts: dict | None = None, command: str) -> int:
-    """Run a parsed matrix into ``out_dir`` with progress on stderr, then write its report; the exit code.
-
-    facts: extra results-database facts (``drivebench paper`` marks its runs). command: how to run it again, for
-    the line printed after an interruption.
-    """
-    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, summary_line
-    from orchestrator.results import ResultsError
-
-    if workers < 1:
-        raise MatrixUsageError(f"--workers must be >= 1, got {workers}")
-    if retry_failed and not resume:
+    if args.retry_failed and not args.resume:
         raise MatrixUsageError("--retry-failed goes with --resume")
-    if not resume and (out_dir / "results.sqlite").exists():
+    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if not args.resume and (out_dir / "results.sqlite").exists():
         raise MatrixUsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
                                f"choose another -o folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(filename=out_dir / "matrix.log", level=logging.INFO,
                         format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
-    options = RunOptions(workers=workers, record=record, record_images=record_images, resume=resume,
-                         retry_failed=retry_failed, facts=dict(facts or {}))
-    print(f"drivebench: matrix {matrix.name}: {len(matrix.episodes)} episode(s), {workers} worker(s); "
+    options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
+                         resume=args.resume, retry_failed=args.retry_failed, facts=dict(facts or {}))
+    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {args.workers} worker(s); "
           f"output {out_dir}", file=sys.stderr)
     display = ProgressDisplay()
     runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
@@ -117,7 +105,7 @@ def run_loaded_matrix(matrix, *, out_dir: Path, workers: int, record: bool, reco
     except KeyboardInterrupt:
         display.close()
         print(f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
-              f"`{command} --resume` runs the rest", file=sys.stderr)
+              f"`{command} -o {out_dir} --resume` runs the rest", file=sys.stderr)
         return 130
     finally:
         display.close()
@@ -132,3 +120,5 @@ def _write_report(out_dir: Path) -> None:
 
     files = write_report(out_dir)
     print(f"report: {files.html} and {files.markdown}", file=sys.stderr)
+    if files.paper is not None:
+        print(f"paper tables: {files.paper}", file=sys.stderr)

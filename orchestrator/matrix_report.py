@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import base64
 import csv
+import functools
 import html
 import importlib.util
 import math
@@ -65,6 +66,7 @@ COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns
 MAX_EARLY_ROWS = 200  # rows of the "ended early" list
 FAIL_MARK = "✗"
 PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
+PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
 STALE_PLOTS = ("trajectories_*.png", "boxplots.png", "progress.png")  # what the report writes into plots/
 
 # Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').
@@ -84,6 +86,7 @@ class ReportFiles:
     csv: Path
     plots: tuple[Path, ...]
     parquet: Path | None = None
+    paper: Path | None = None  # paper.md, for a drivebench paper run
 
 
 # -- document model: the same blocks render to Markdown and to HTML ---------------------------------------------------
@@ -367,7 +370,7 @@ class _Report:
             self.source_text = store.fact("source_text")
             self.variation_keys = store.fact("variation_keys") or []
             self.created_at = store.fact("created_at")
-            self.is_paper = bool(store.fact("paper"))
+            self.is_paper = bool(store.fact(PAPER_FACT))
         finally:
             store.close()
         if not self.results:
@@ -414,8 +417,10 @@ class _Report:
 
     # -- sections --
 
+    @functools.cached_property
     def paper_sections(self) -> list[Section]:
-        """The paper's six tables, ours beside its figures, when ``drivebench paper`` ran this folder."""
+        """The paper's six tables, ours beside its figures, when ``drivebench paper`` ran this folder (built once:
+        they read every checkpoint)."""
         if not self.is_paper:
             return []
         from orchestrator.paper import paper_sections
@@ -928,7 +933,7 @@ class _Report:
     # -- assembling --
 
     def sections(self) -> list[Section]:
-        sections = [self.header(), *self.paper_sections(), self.main_table(), self.generalisation(), self.robustness()]
+        sections = [self.header(), *self.paper_sections, self.main_table(), self.generalisation(), self.robustness()]
         for optional in (self.internal_metrics(), self.switches()):
             if optional is not None:
                 sections.append(optional)
@@ -1150,10 +1155,11 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     rows = episode_rows(report.results)
     _write_csv(rows, csv_path)
     parquet = _write_parquet(rows, output / PARQUET_FILE)
-    if report.is_paper:
-        (output / PAPER_MARKDOWN).write_text(render_markdown(report.paper_sections(), output), encoding="utf-8")
+    paper = output / PAPER_MARKDOWN if report.is_paper else None
+    if paper is not None:
+        paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
     return ReportFiles(html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots),
-                       parquet=parquet)
+                       parquet=parquet, paper=paper)
 
 
 # -- command line -----------------------------------------------------------------------------------------------------

@@ -24,19 +24,16 @@ import argparse
 import dataclasses
 import importlib.util
 import statistics
-import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import msgspec
 
-from orchestrator.matrix_report import PAPER_MARKDOWN, FAIL_MARK, Section, Table, lap_seconds, outcome, reached_target
+from orchestrator.matrix_report import FAIL_MARK, PAPER_FACT, Section, Table, lap_seconds, outcome, reached_target
 from orchestrator.results import EpisodeResult
 
 PAPER_FILE = Path(__file__).resolve().parents[1] / "experiments" / "paper.yaml"
-PAPER_FACT = "paper"  # results-database fact: this matrix run is the paper's
 PAPER_ONLY = "–"  # no figure in the paper for this cell (a brain or a world the paper did not run)
 
 # The paper's rows, by brain label in experiments/paper.yaml, and how the paper names them.
@@ -273,16 +270,14 @@ class CheckpointFacts:
 
 def checkpoint_facts(path: Path) -> CheckpointFacts:
     """Read a checkpoint (torch) and count its network's parameters. Raises CheckpointError (one line)."""
-    from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint
+    from brains.neural.checkpoint import build_model, load_checkpoint
 
-    raw = read_checkpoint(path)
     ckpt = load_checkpoint(path)
-    model = build_model(ckpt)
-    parameters = sum(p.numel() for p in model.parameters())
-    metrics = raw.get("metrics") or {}
+    parameters = sum(p.numel() for p in build_model(ckpt).parameters())
+    metrics = ckpt.metrics or {}
     spec = ckpt.input
     return CheckpointFacts(
-        model=str(raw["model"]), parameters=parameters, input_size=f"{spec.width_px}x{spec.height_px}",
+        model=ckpt.model, parameters=parameters, input_size=f"{spec.width_px}x{spec.height_px}",
         frames=len(spec.offsets_frames), crop=f"{spec.crop_top_fraction:g}..{spec.crop_bottom_fraction:g}",
         train=_paper_metrics(metrics.get("train")), val=_paper_metrics(metrics.get("val")))
 
@@ -389,16 +384,16 @@ def smoke_matrix(matrix):
     """The paper's matrix cut to seconds: the explicit and tiny brains, the first cells of every part, one
     repetition, a few simulated seconds on a small camera; keys stay the full matrix's so every episode still lands in
     its table's cell."""
-    kept, per_part = [], {}
+    kept, conditions_by_part = [], {}
     for episode in matrix.episodes:
         if episode.brain.label not in SMOKE_BRAINS or episode.repetition != 0:
             continue
-        cells = per_part.setdefault(episode.part, [])
+        conditions = conditions_by_part.setdefault(episode.part, [])
         condition = (episode.variation, episode.perturbation)
-        if condition not in cells and len(cells) >= SMOKE_CELLS_PER_PART:
-            continue
-        if condition not in cells:
-            cells.append(condition)
+        if condition not in conditions:
+            if len(conditions) >= SMOKE_CELLS_PER_PART:
+                continue
+            conditions.append(condition)
         camera = msgspec.structs.replace(episode.spec.camera, width_px=SMOKE_CAMERA[0], height_px=SMOKE_CAMERA[1])
         spec = msgspec.structs.replace(episode.spec, max_sim_seconds=SMOKE_SIM_SECONDS, camera=camera)
         kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
@@ -437,10 +432,5 @@ def run_paper_command(args: argparse.Namespace) -> int:
             raise MatrixUsageError(f"{args.file}: --smoke needs the brains {', '.join(SMOKE_BRAINS)}")
     command = "drivebench paper" + (f" --file {args.file}" if args.file != PAPER_FILE else "") + \
         (" --smoke" if args.smoke else "")
-    if args.out is None and not args.resume:
-        args.out = Path("runs") / f"{matrix.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    code = run_matrix_args(matrix, args, what="paper", default_folder=matrix.name, command=command,
+    return run_matrix_args(matrix, args, what="paper", default_folder=matrix.name, command=command,
                            facts={PAPER_FACT: True})
-    if code in (0, 3) and not args.plan:
-        print(f"paper tables: {args.out / PAPER_MARKDOWN}", file=sys.stderr)
-    return code

@@ -367,8 +367,8 @@ def pack_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
     for shard, block in zip(shards, blocks):
         _write_atomically(shard, lambda file, block=block: file.write(block))
     _write_atomically(dst, lambda file: torch.save(packed, file))
-    stale = len(shards)
-    while (old := shard_names(dst, stale + 1)[-1]).is_file():
+    stale = len(shards)  # shards an earlier, larger pack left at dst
+    while (old := dst.with_name(f"{dst.name}.shard{stale}")).is_file():
         old.unlink()
         stale += 1
     return [*shards, dst]
