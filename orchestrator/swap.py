@@ -111,7 +111,7 @@ def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, option
     with Bus(BusConfig(connect=[router]), name=f"swap-{run_id}") as bus:
         _wait_for_simulator_token(bus, run_id, router=router)
         status = _sim_status(bus, run_id, router=router)
-        name = _pick_name(brain, name, _alive_brains(bus, run_id), run_id=run_id)
+        name = _pick_name(brain, name, _alive_brains(bus, run_id, driving=status.active_brain), run_id=run_id)
         if log_path is None:
             log_path = Path(tempfile.gettempdir()) / f"drivebench-{run_id}-brain-{name}.log"
         elif log_path.is_dir():
@@ -185,9 +185,20 @@ def _wait_for_simulator_token(bus: Bus, run_id: str, *, router: str) -> None:
     raise SwapError(f"no running simulator on run {run_id} via {router}")
 
 
-def _alive_brains(bus: Bus, run_id: str) -> set[str]:
-    tokens = (keys.parse_alive(key) for key in bus.alive_now(keys.alive_all(run_id)))
-    return {name for _, role, name in tokens if role == "brain"}
+BRAINS_QUERY_S = 3.0  # how long to ask again for the brains' tokens until the driving brain's is among them
+
+
+def _alive_brains(bus: Bus, run_id: str, *, driving: str) -> set[str]:
+    """The bus names of the run's live brains. A liveliness query from a session just opened sometimes answers
+    before its routes are up and misses tokens (a swap then picked the driving brain's own name), so it is asked
+    again until the driving brain, alive for sure, is in the answer; the driving brain's name is taken either way."""
+    deadline = time.monotonic() + BRAINS_QUERY_S
+    while True:
+        tokens = (keys.parse_alive(key) for key in bus.alive_now(keys.alive_all(run_id)))
+        names = {name for _, role, name in tokens if role == "brain"}
+        if not driving or driving in names or time.monotonic() >= deadline:
+            return names | ({driving} if driving else set())
+        time.sleep(0.1)
 
 
 def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) -> str:
