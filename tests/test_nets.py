@@ -19,7 +19,7 @@ from brains.nets.memdccp.model import keras_raw_reshape  # noqa: E402
 from brains.nets.preprocess import (IMAGENET_MEAN, IMAGENET_STD, denormalise, normalise_labels,  # noqa: E402
                                     prepare_batch, prepare_frame)
 
-NAMES = ["pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp"]
+NAMES = ["pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp", "recurrent_tiny_pilotnet"]
 
 
 def batch(info: ModelInfo, n: int = 2) -> torch.Tensor:
@@ -40,8 +40,8 @@ def models() -> dict[str, nn.Module]:
 def test_registry_names_and_inputs():
     assert sorted(MODELS) == sorted(NAMES)
     assert (MODELS["pilotnet"].input_height_px, MODELS["pilotnet"].input_width_px) == (66, 200)
-    assert [MODELS[n].frames for n in NAMES] == [1, 1, 3, 3]
-    assert [MODELS[n].crop_top_fraction for n in NAMES] == [0.0, 0.5, 0.0, 0.0]
+    assert [MODELS[n].frames for n in NAMES] == [1, 1, 3, 3, 3]
+    assert [MODELS[n].crop_top_fraction for n in NAMES] == [0.0, 0.5, 0.0, 0.0, 0.0]
     with pytest.raises(ValueError, match="unknown network"):
         make_model("resnet")
 
@@ -64,6 +64,28 @@ def test_keras_parameter_count_matches_reference(models, name):
 def test_trainable_count_excludes_bn_moving_statistics(models, name, trainable):
     # Keras counts BN moving mean/variance (2·3 numbers on the RGB input); PyTorch keeps them as buffers.
     assert sum(p.numel() for p in models[name].parameters()) == trainable
+
+
+def test_recurrent_tiny_pilotnet_uses_its_older_frames():
+    """Ours: the tiny network's layers, but its ConvLSTMs recur over the three frames, so the older frames (and the
+    recurrent kernels) change the answer; in the paper's networks they never do."""
+    model = make_model("recurrent_tiny_pilotnet").eval()
+    tiny = make_model("deepest_lstm_tiny_pilotnet")
+    assert sum(p.numel() for p in model.parameters()) == sum(p.numel() for p in tiny.parameters()) == 62_470
+    x = batch(MODELS["recurrent_tiny_pilotnet"])
+    older_changed = x.clone()
+    older_changed[:, 0] = torch.randn_like(older_changed[:, 0])
+    with torch.no_grad():
+        assert not torch.allclose(model(x), model(older_changed))
+        for layer in model.memory:
+            layer.recurrent_conv.weight.zero_()
+        assert not torch.allclose(model(x), model(older_changed))  # still: the cell state carries them too
+
+
+def test_recurrent_kernels_get_gradients_only_when_time_recurs():
+    model = make_model("recurrent_tiny_pilotnet").train()
+    nn.functional.mse_loss(model(batch(MODELS["recurrent_tiny_pilotnet"])), torch.zeros(2, 2)).backward()
+    assert all(layer.recurrent_conv.weight.grad.abs().sum() > 0 for layer in model.memory)
 
 
 def test_memdccp_clean_variant_count():

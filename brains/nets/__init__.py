@@ -34,6 +34,9 @@ MODELS: dict[str, ModelInfo] = {
                   "brains.nets.deepest_lstm_tiny_pilotnet.model:DeepestLSTMTinyPilotNet", 62_470),
         ModelInfo("pilotnet_x3", 50, 100, 3, 0.0, "brains.nets.pilotnet_x3.model:PilotNetX3", 352_958),
         ModelInfo("memdccp", 50, 100, 3, 0.0, "brains.nets.memdccp.model:MemDCCP", 910_694),
+        # Ours, not the paper's: the tiny network's layers with ConvLSTMs that recur over the three frames.
+        ModelInfo("recurrent_tiny_pilotnet", 50, 100, 3, 0.0,
+                  "brains.nets.recurrent_tiny_pilotnet.model:RecurrentTinyPilotNet", 62_470),
     )
 }
 

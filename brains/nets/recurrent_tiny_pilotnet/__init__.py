@@ -1,0 +1,1 @@
+"""RecurrentTinyPilotNet: DeepestLSTMTinyPilotNet's layers with memory that recurs over three frames (ours)."""
