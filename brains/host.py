@@ -25,7 +25,7 @@ from typing import Any
 
 import msgspec
 from brains.base import Brain, GroundTruth, Observation
-from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, make_brain
+from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, bus_name, make_brain
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.episodes import EpisodeStarts, running_spec
@@ -63,7 +63,7 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
 
     @property
     def bus_name(self) -> str:
-        return self.name or self.brain
+        return self.name or bus_name(self.brain)
 
 
 class BrainHost:

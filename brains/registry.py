@@ -1,11 +1,33 @@
-"""Brains by name, imported lazily so that torch loads only when a neural brain is asked for."""
+"""Brains by name, imported lazily so that torch loads only when a neural brain is asked for.
+
+A brain is named in one of four ways, everywhere a brain is named (``--brain``, matrix files, compose's ``BRAIN``,
+``drivebench brains check``):
+
+* a built-in name (``explicit``, ``memdccp``, ...);
+* a name an installed package declares in the ``drivebench.brains`` entry-point group, e.g. in its pyproject::
+
+      [project.entry-points."drivebench.brains"]
+      my_brain = "my_package.brain:MyBrain"
+
+* a target ``package.module:Attribute`` (a Brain class or any callable that takes keyword options and returns a
+  brain); like uvicorn, the current directory is importable, so ``my_brain:MyBrain`` finds ``./my_brain.py``;
+* a Behavior Metrics brain file, ``path/to/brain.py``, run unchanged by ``brains.behavior_metrics``.
+"""
 
 from __future__ import annotations
 
 import importlib
+import os
+import sys
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 from brains.base import Brain
+
+ENTRY_POINT_GROUP = "drivebench.brains"
+BEHAVIOR_METRICS = "behavior_metrics"
 
 # name -> "module:factory". The factory takes keyword options and returns a Brain.
 _REGISTRY: dict[str, str] = {
@@ -18,7 +40,10 @@ _REGISTRY: dict[str, str] = {
     "deepest_lstm_tiny_pilotnet": "brains.neural.brain:deepest_lstm_tiny_pilotnet",
     "pilotnet_x3": "brains.neural.brain:pilotnet_x3",
     "memdccp": "brains.neural.brain:memdccp",
+    "recurrent_tiny_pilotnet": "brains.neural.brain:recurrent_tiny_pilotnet",  # ours: memory over three frames
     "neural": "brains.neural.brain:neural",  # any network: whatever the checkpoint holds
+    # A Behavior Metrics brain file, run unchanged: --brain behavior_metrics --brain-option file=brain.py
+    BEHAVIOR_METRICS: "brains.behavior_metrics.adapter:BehaviorMetricsBrain",
 }
 
 
@@ -30,6 +55,16 @@ class BrainOptionsError(ValueError):
     """A brain's options are missing or unusable (no weights, a bad checkpoint): one line, no traceback."""
 
 
+@dataclass(frozen=True)
+class BrainSource:
+    """Where a brain name leads: ``target`` ("module:attribute") and, for people, where it comes from."""
+
+    name: str
+    target: str
+    origin: str  # "built-in", "entry point of <distribution> <version>", "module path", "Behavior Metrics file"
+    options: tuple[tuple[str, Any], ...] = ()  # options the name itself implies (a BM file's path)
+
+
 def register(name: str, target: str) -> None:
     """Register a brain factory as ``"package.module:callable"`` (imported only when the brain is made)."""
     if ":" not in target:
@@ -37,15 +72,95 @@ def register(name: str, target: str) -> None:
     _REGISTRY[name] = target
 
 
+def entry_point_brains() -> dict[str, BrainSource]:
+    """Brains that installed packages declare in the ``drivebench.brains`` entry-point group (built-ins win)."""
+    found = {}
+    for entry in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        if entry.name in _REGISTRY or entry.name in found:
+            continue
+        dist = getattr(entry, "dist", None)
+        origin = f"entry point of {dist.name} {dist.version}" if dist is not None else "entry point"
+        found[entry.name] = BrainSource(entry.name, entry.value, origin)
+    return found
+
+
+def brain_sources() -> list[BrainSource]:
+    """Every brain known by name: the built-ins, then the installed packages' ones."""
+    built_in = [BrainSource(name, target, "built-in") for name, target in sorted(_REGISTRY.items())]
+    return built_in + sorted(entry_point_brains().values(), key=lambda source: source.name)
+
+
 def brain_names() -> list[str]:
-    return sorted(_REGISTRY)
+    return sorted(source.name for source in brain_sources())
+
+
+def is_module_target(name: str) -> bool:
+    module, sep, attribute = name.partition(":")
+    parts = module.split(".") + attribute.split(".")
+    return bool(sep and module and attribute) and all(part.isidentifier() for part in parts)
+
+
+def is_brain_file(name: str) -> bool:
+    return name.endswith(".py")
+
+
+def resolve(name: str) -> BrainSource:
+    """Where brain ``name`` comes from; :class:`UnknownBrainError` (one line) when it leads nowhere."""
+    if name in _REGISTRY:
+        return BrainSource(name, _REGISTRY[name], "built-in")
+    if is_brain_file(name):
+        if not Path(name).is_file():
+            raise UnknownBrainError(f"Behavior Metrics brain file {name!r} not found")
+        return BrainSource(name, _REGISTRY[BEHAVIOR_METRICS], "Behavior Metrics file",
+                           options=(("file", str(Path(name).resolve())),))
+    if is_module_target(name):
+        return BrainSource(name, name, "module path")
+    installed = entry_point_brains()
+    if name in installed:
+        return installed[name]
+    raise UnknownBrainError(f"unknown brain {name!r} (known: {', '.join(brain_names())}; or give "
+                            f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)")
+
+
+def load_factory(source: BrainSource):
+    """The callable behind ``source``, imported now; :class:`UnknownBrainError` naming what could not be imported."""
+    module_name, _, attribute = source.target.partition(":")
+    if os.getcwd() not in sys.path:
+        sys.path.append(os.getcwd())  # my_brain:MyBrain finds ./my_brain.py, as `python -m brains` would
+    try:
+        factory: Any = importlib.import_module(module_name)
+    except ImportError as error:
+        raise UnknownBrainError(f"brain {source.name!r}: cannot import module {module_name!r} ({error})") from None
+    for part in attribute.split("."):
+        factory = getattr(factory, part, None)
+        if factory is None:
+            raise UnknownBrainError(f"brain {source.name!r}: module {module_name!r} has no {attribute!r}")
+    if not callable(factory):
+        raise UnknownBrainError(f"brain {source.name!r}: {source.target} is not a class or a callable")
+    return factory
+
+
+def check_brain(name: str) -> BrainSource:
+    """Resolve ``name`` and import what it leads to, so that a typo fails before any process starts."""
+    source = resolve(name)
+    load_factory(source)
+    return source
+
+
+def bus_name(brain: str) -> str:
+    """The name a brain goes by on the bus when nobody chose one: key chunks take letters, digits, ``_ . -``.
+
+    ``my_package.brain:MyBrain`` -> ``MyBrain``; ``path/to/brain_f1.py`` -> ``brain_f1``; other names as they are.
+    """
+    if is_brain_file(brain):
+        return Path(brain).stem
+    if is_module_target(brain):
+        return brain.partition(":")[2].replace(".", "-")
+    return brain
 
 
 def make_brain(name: str, **options: Any) -> Brain:
     """A new instance of brain ``name`` built with ``options``."""
-    target = _REGISTRY.get(name)
-    if target is None:
-        raise UnknownBrainError(f"unknown brain {name!r} (known: {', '.join(brain_names())})")
-    module_name, factory_name = target.split(":")
-    factory = getattr(importlib.import_module(module_name), factory_name)
-    return factory(**options)
+    source = resolve(name)
+    factory = load_factory(source)
+    return factory(**dict(source.options), **options)

@@ -26,7 +26,7 @@ from pathlib import Path
 import msgspec
 import yaml
 
-from brains.registry import brain_names
+from brains.registry import UnknownBrainError, bus_name, check_brain
 from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError
 from orchestrator.matrix_cli import MatrixUsageError
@@ -121,7 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_matrix_command(commands)
     add_report_command(commands)
+    from brains.cli import add_brains_command
     from orchestrator.paper import add_paper_command
+
+    add_brains_command(commands)  # drivebench brains list | check | schema
 
     add_paper_command(commands)
     from orchestrator.health import add_health_command
@@ -151,13 +154,17 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         load_circuit(args.circuit)
     except CircuitError as error:
         raise UsageError(str(error)) from None
-    if not args.attach and args.brain not in brain_names():
-        raise UsageError(f"unknown brain {args.brain!r} (known: {', '.join(brain_names())})")
+    if not args.attach:
+        try:
+            check_brain(args.brain)
+        except UnknownBrainError as error:
+            raise UsageError(str(error)) from None
     width, height = args.camera
     try:
         spec = EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
                            realtime=args.realtime, camera=CameraSpec(width_px=width, height_px=height),
-                           active_brain=args.brain, brain_timeout_s=args.brain_timeout,
+                           active_brain=args.brain if args.attach else bus_name(args.brain),
+                           brain_timeout_s=args.brain_timeout,
                            noise=[noise_stage(item) for item in args.noise], direction=args.direction)
         for variation in args.variation:
             spec = apply_variation(spec, variation)
@@ -203,7 +210,7 @@ def command_run(args: argparse.Namespace) -> int:
             raise UsageError(f"--weights: no such file {args.weights}")
         options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
     brains = [BrainLaunch(args.brain, options=options)]
-    brains += shadow_launches(args.shadow, taken={args.brain})
+    brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
     (run_dir / "config.yaml").write_text(yaml.safe_dump({
         "run_id": run_id, "episode": msgspec.to_builtins(spec),
         "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
@@ -303,15 +310,18 @@ def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]
     taken = set(taken)
     for item in shadows:
         brain, _, weights = item.partition("=")
-        if brain not in brain_names():
-            raise UsageError(f"--shadow: unknown brain {brain!r} (known: {', '.join(brain_names())})")
+        try:
+            check_brain(brain)
+        except UnknownBrainError as error:
+            raise UsageError(f"--shadow: {error}") from None
         options: tuple[str, ...] = ()
         if weights:
             if not Path(weights).is_file():
                 raise UsageError(f"--shadow {brain}: no such weights file {weights}")
             options = (f"weights={json.dumps(str(Path(weights).resolve()))}",)
-        name = brain if brain not in taken else next(f"{brain}-shadow{n}" for n in range(1, len(taken) + 2)
-                                                     if f"{brain}-shadow{n}" not in taken)
+        base = bus_name(brain)
+        name = base if base not in taken else next(f"{base}-shadow{n}" for n in range(1, len(taken) + 2)
+                                                   if f"{base}-shadow{n}" not in taken)
         taken.add(name)
         launches.append(BrainLaunch(brain, name=name, options=options))
     return launches
@@ -386,6 +396,10 @@ def main(argv: list[str] | None = None) -> int:
             from orchestrator.matrix_cli import run_matrix_command
 
             return run_matrix_command(args)
+        if args.command == "brains":
+            from brains.cli import run_brains_command
+
+            return run_brains_command(args)
         if args.command == "paper":
             from orchestrator.paper import run_paper_command
 

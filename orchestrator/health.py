@@ -22,7 +22,8 @@ CONNECT_TIMEOUT_S = 2.0
 def add_health_command(commands: argparse._SubParsersAction) -> None:
     health = commands.add_parser("health", help="exit 0 when a process of a running stack is up (healthchecks)")
     health.add_argument("role", choices=ROLES, help="which process")
-    health.add_argument("--name", help="its name on the bus (default: any process of that role)")
+    health.add_argument("--name", help="its name on the bus, or the brain it runs (my_pkg.brain:MyBrain is MyBrain on "
+                                       "the bus; default: any process of that role)")
     health.add_argument("--run", help=f"run id (default: ${RUN_ID_ENV})")
     health.add_argument("--router", metavar="ENDPOINT", help=f"the router (default: ${ROUTER_ENV})")
 
@@ -41,6 +42,10 @@ def check_health(role: str, *, endpoint: str, run_id: str, name: str | None = No
     except BusError as error:
         return str(error)
     names = sorted(n for _, r, n in alive if r == role)
+    if name is not None and role == "brain":
+        from brains.registry import bus_name
+
+        name = bus_name(name)  # compose passes the BRAIN it started, which may be a module path or a file
     if (name is None and names) or name in names:
         return None
     return f"no {role}{f' {name!r}' if name else ''} alive on run {run_id!r} (alive: " \

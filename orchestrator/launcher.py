@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from brains.registry import bus_name
 from protocol import codec, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
@@ -80,7 +81,7 @@ class BrainLaunch:
 
     @property
     def bus_name(self) -> str:
-        return self.name or self.brain
+        return self.name or bus_name(self.brain)
 
 
 @dataclass

@@ -46,6 +46,7 @@ Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -59,7 +60,7 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
-from brains.registry import brain_names
+from brains.registry import UnknownBrainError, bus_name, check_brain, is_brain_file
 from protocol.keys import check_name
 from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
@@ -108,8 +109,10 @@ class BrainEntry:
     """One brain of a matrix (or a shadow brain).
 
     label: unique name of the entry within the matrix; it is also the brain process's bus name and the episode's
-        ``active_brain``, so letters, digits, ``_ . -`` only. Default: ``brain``, or ``<brain>-<weights stem>``.
-    brain: registered brain name (``brains.registry.brain_names()``).
+        ``active_brain``, so letters, digits, ``_ . -`` only. Default: the brain's bus name
+        (``brains.registry.bus_name``), or ``<that>-<weights stem>``.
+    brain: a brain name as ``brains.registry.resolve`` takes it: built-in, installed (entry point),
+        ``package.module:Class``, or a Behavior Metrics brain file (absolute once read).
     weights: absolute path of the checkpoint (resolved from the matrix file's folder), or None.
     options: the brain's constructor options, in written order, as (key, JSON-able value) pairs.
     """
@@ -408,8 +411,12 @@ def _brain_entry(reader: _Reader, node: yaml.Node, *, what: str, base_dir: Path)
         raise reader.error(node, f"a {what} entry needs a name (keys: {', '.join(BRAIN_KEYS)})")
     name_node = fields["name"][1]
     name = reader.text(name_node, what="a brain name")
-    if name not in brain_names():
-        raise reader.error(name_node, f"unknown brain {name!r} (known: {', '.join(brain_names())})")
+    if is_brain_file(name):  # a Behavior Metrics brain file, next to the matrix file unless absolute
+        name = str((base_dir / Path(name).expanduser()).resolve())
+    try:
+        check_brain(name)
+    except UnknownBrainError as error:
+        raise reader.error(name_node, str(error)) from None
     weights = _weights(reader, fields["weights"][1], base_dir=base_dir) if "weights" in fields else None
     options = _options(reader, fields["options"][1]) if "options" in fields else ()
     label = _label(reader, fields.get("label", (node, None))[1], name=name, weights=weights, entry=node)
@@ -454,7 +461,7 @@ def _label(reader: _Reader, node: yaml.Node | None, *, name: str, weights: Path 
         where = node
     else:
         # "-" and not "@": the label is the brain's bus name, and key chunks allow letters, digits, _ . - only.
-        label = name if weights is None else f"{name}-{weights.stem}"
+        label = bus_name(name) if weights is None else f"{bus_name(name)}-{weights.stem}"
         where = entry
     try:
         return check_name(label, what="brain label")
@@ -933,3 +940,27 @@ def _yaml_json(value: Any) -> str:
     if isinstance(value, dict):
         return "{" + ", ".join(f"{json.dumps(str(key))}: {_yaml_json(item)}" for key, item in value.items()) + "}"
     return json.dumps(value)
+
+
+def smoke_form(matrix: Matrix, *, brains: Iterable[str] | None = None, cells_per_part: int = 2,
+               sim_seconds: float = 4.0, camera_wh: tuple[int, int] = (160, 120)) -> Matrix:
+    """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
+    first ``cells_per_part`` conditions of every part, repetition 0, ``sim_seconds`` of simulated time on a small
+    camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
+    wanted = None if brains is None else set(brains)
+    kept: list[PlannedEpisode] = []
+    conditions_by_part: dict[str, list] = {}
+    for episode in matrix.episodes:
+        if (wanted is not None and episode.brain.label not in wanted) or episode.repetition != 0:
+            continue
+        conditions = conditions_by_part.setdefault(episode.part, [])
+        condition = (episode.variation, episode.perturbation)
+        if condition not in conditions:
+            if len(conditions) >= cells_per_part:
+                continue
+            conditions.append(condition)
+        camera = msgspec.structs.replace(episode.spec.camera, width_px=camera_wh[0], height_px=camera_wh[1])
+        spec = msgspec.structs.replace(episode.spec, max_sim_seconds=sim_seconds, camera=camera)
+        kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
+    return dataclasses.replace(matrix, name=f"{matrix.name}-smoke", episodes=tuple(kept),
+                               brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted))

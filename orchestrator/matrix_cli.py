@@ -30,6 +30,9 @@ def add_matrix_command(commands) -> None:
     matrix.add_argument("file", type=Path, help="matrix file (YAML)")
     add_run_options(matrix, default_out="runs/matrix-<name>-<time>", default_workers=1)
     matrix.add_argument("--no-report", action="store_true", help="do not write the report at the end")
+    matrix.add_argument("--smoke", action="store_true",
+                        help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
+                             "4 s of simulated time each on a 160x120 camera (what CI runs)")
 
 
 def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, default_workers: int) -> None:
@@ -59,9 +62,14 @@ def load_matrix_file(path: Path):
 
 
 def run_matrix_command(args: argparse.Namespace) -> int:
+    from orchestrator.matrix import smoke_form
+
     matrix = load_matrix_file(args.file)
+    if args.smoke:
+        matrix = smoke_form(matrix)
     return run_matrix_args(matrix, args, what="matrix", default_folder=f"matrix-{matrix.name}",
-                           command=f"drivebench matrix {args.file}", report=not args.no_report)
+                           command=f"drivebench matrix {args.file}" + (" --smoke" if args.smoke else ""),
+                           report=not args.no_report)
 
 
 def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,

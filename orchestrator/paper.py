@@ -384,21 +384,10 @@ def smoke_matrix(matrix):
     """The paper's matrix cut to seconds: the explicit and tiny brains, the first cells of every part, one
     repetition, a few simulated seconds on a small camera; keys stay the full matrix's so every episode still lands in
     its table's cell."""
-    kept, conditions_by_part = [], {}
-    for episode in matrix.episodes:
-        if episode.brain.label not in SMOKE_BRAINS or episode.repetition != 0:
-            continue
-        conditions = conditions_by_part.setdefault(episode.part, [])
-        condition = (episode.variation, episode.perturbation)
-        if condition not in conditions:
-            if len(conditions) >= SMOKE_CELLS_PER_PART:
-                continue
-            conditions.append(condition)
-        camera = msgspec.structs.replace(episode.spec.camera, width_px=SMOKE_CAMERA[0], height_px=SMOKE_CAMERA[1])
-        spec = msgspec.structs.replace(episode.spec, max_sim_seconds=SMOKE_SIM_SECONDS, camera=camera)
-        kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
-    return dataclasses.replace(matrix, name=f"{matrix.name}-smoke", episodes=tuple(kept),
-                               brains=tuple(b for b in matrix.brains if b.label in SMOKE_BRAINS))
+    from orchestrator.matrix import smoke_form
+
+    return smoke_form(matrix, brains=SMOKE_BRAINS, cells_per_part=SMOKE_CELLS_PER_PART,
+                      sim_seconds=SMOKE_SIM_SECONDS, camera_wh=SMOKE_CAMERA)
 
 
 # -- command line ----------------------------------------------------------------------------------------------------

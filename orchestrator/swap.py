@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from brains.registry import brain_names
+from brains.registry import UnknownBrainError, brain_names, bus_name, check_brain
 from orchestrator.launcher import STACK_FILE
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, BusError
@@ -104,8 +104,7 @@ def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, option
     old brain running (it goes on as a shadow).
     Raises :class:`SwapUsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
     """
-    if brain not in brain_names():
-        raise SwapUsageError(f"unknown brain {brain!r} (known: {', '.join(brain_names())})")
+    _check_brain(brain)
     _check_name(run_id, what="run id")
     # The mode comes from the environment: a peer on a plain stack, a client of a secure router (DRIVEBENCH_TLS_*).
     with Bus(BusConfig(connect=[router]), name=f"swap-{run_id}") as bus:
@@ -208,7 +207,8 @@ def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) ->
         if name in alive:
             raise SwapUsageError(f"a brain named {name!r} is already alive on run {run_id}")
         return name
-    candidates = (brain if n == 1 else f"{brain}-{n}" for n in range(1, len(alive) + 2))
+    base = bus_name(brain)
+    candidates = (base if n == 1 else f"{base}-{n}" for n in range(1, len(alive) + 2))
     return next(candidate for candidate in candidates if candidate not in alive)
 
 
@@ -374,11 +374,17 @@ def brain_options(brain_option: list[str], weights: Path | None) -> tuple[str, .
     return options
 
 
+def _check_brain(brain: str) -> None:
+    try:
+        check_brain(brain)
+    except UnknownBrainError as error:
+        raise SwapUsageError(str(error)) from None
+
+
 def run_swap_command(args: argparse.Namespace) -> int:
     """``drivebench swap``: one line on stdout when done, one line on stderr when not (exit 2 usage, 1 stack)."""
     try:
-        if args.brain not in brain_names():
-            raise SwapUsageError(f"unknown brain {args.brain!r} (known: {', '.join(brain_names())})")
+        _check_brain(args.brain)
         options = brain_options(args.brain_option, args.weights)
         stack = locate_stack(runs_dir=args.runs_dir, run_id=args.swap_run, router=args.swap_router)
         logs = stack.run_dir / "logs" if stack.run_dir is not None else None

@@ -18,6 +18,9 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   .venv/bin/python -m pip install --quiet --disable-pip-version-check "torch==${DRIVEBENCH_TORCH_VERSION:-2.13.0}"
 fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[test,ml]"
+# The out-of-tree brain example (its own package, found through the drivebench.brains entry point); its tests and
+# CI's smoke run of examples/my_brain/compare.yaml need it installed, as a user's package would be.
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -e examples/my_brain
 # The independent MCAP validator (official TypeScript reader) used by the recording tests; they skip without it.
 if command -v npm >/dev/null 2>&1; then
   if [ ! -d tools/mcap-validate/node_modules ] ||

@@ -1,32 +1,36 @@
-"""Every registered brain honours the brain protocol (the contract test, run over the whole registry)."""
+"""Every registered brain meets the brain contract: ``brains.checker`` (what ``drivebench brains check`` runs), over
+the whole registry, on real rendered frames; and the checker names the fix for brains that break it."""
 
 from __future__ import annotations
 
-import math
+import sys
 
 import numpy as np
 import pytest
 
-from brains import Action, Brain, Observation, brain_names, make_brain
+from brains import Observation, brain_names, make_brain
+from brains.checker import CHECK_WORLDS, check_brain, passed, render_frames
 from brains.registry import UnknownBrainError
+from protocol.messages import CameraSpec
 from services.circuits import load_circuit
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
-from protocol.messages import CameraSpec
-
-SIZES = [(320, 240), (200, 66), (100, 50)]
 
 # Neural brains need weights: each gets an untrained checkpoint of its network ("neural" takes any network).
 NEURAL = {"pilotnet": "pilotnet", "deepest_lstm_tiny_pilotnet": "deepest_lstm_tiny_pilotnet",
-          "pilotnet_x3": "pilotnet_x3", "memdccp": "memdccp", "neural": "deepest_lstm_tiny_pilotnet"}
+          "pilotnet_x3": "pilotnet_x3", "memdccp": "memdccp", "recurrent_tiny_pilotnet": "recurrent_tiny_pilotnet",
+          "neural": "deepest_lstm_tiny_pilotnet"}
+BM_EXAMPLE = "examples/behavior_metrics/brain_f1_follow_line.py"
 
 
 @pytest.fixture(scope="module")
 def brain_options(tmp_path_factory):
-    """``brain_options(name)``: the constructor options the contract test needs for brain ``name``."""
+    """``brain_options(name)``: the constructor options the contract needs for brain ``name``."""
     made: dict[str, str] = {}
 
     def options(name: str) -> dict:
+        if name == "behavior_metrics":
+            return {"file": BM_EXAMPLE}
         if name not in NEURAL:
             return {}
         pytest.importorskip("torch")
@@ -42,47 +46,128 @@ def brain_options(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def frames() -> dict[tuple[int, int], list[np.ndarray]]:
-    """Real rendered frames along the start of the simple circuit, per camera size."""
+def frames():
+    """The checker's own frames: consecutive views along simple in four worlds, read-only as the host gives them."""
+    return render_frames()
+
+
+@pytest.mark.parametrize("name", brain_names())
+def test_every_registered_brain_meets_the_contract(name, frames, brain_options):
+    results = check_brain(name, options=brain_options(name), frames=frames, memory_steps=120)
+    assert [r.name for r in results] == ["make", "protocol", "act", "read-only", "units", "answer time",
+                                         "determinism", "memory"]
+    assert passed(results), "\n".join(r.line() for r in results)
+
+
+def test_the_checker_frames_are_real_renders_of_every_world(frames):
+    assert len(frames) == 12 * len(CHECK_WORLDS)
+    assert all(f.image_rgb.shape == (240, 320, 3) and not f.image_rgb.flags.writeable for f in frames)
+    red = [(f.image_rgb[..., 0] > 2 * f.image_rgb[..., 1].astype(int)).sum() for f in frames]
+    assert min(red[:12]) > 100 and max(red[24:36]) == 0  # the red line in the default world, none without a line
+
+
+@pytest.mark.parametrize("size", [(200, 66), (100, 50)], ids=lambda s: f"{s[0]}x{s[1]}")
+@pytest.mark.parametrize("name", ["explicit", "deepest_lstm_tiny_pilotnet", "memdccp"])
+def test_brains_answer_any_camera_size(name, size, brain_options):
     circuit = load_circuit("simple")
     with Scene(circuit) as scene:
-        poses = [circuit.centreline.pose_at(s) for s in np.arange(0.0, 60.0, 4.0)]
-        return {(w, h): [scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), CameraSpec(width_px=w, height_px=h))
-                         for x, y, yaw in poses] for w, h in SIZES}
-
-
-def drive(brain: Brain, images: list[np.ndarray], *, seed: int) -> list[Action]:
-    brain.reset(seed=seed)
-    return [brain.act(Observation(image_rgb=image, stamp_ns=i * 50_000_000, seq=i)) for i, image in enumerate(images)]
-
-
-@pytest.mark.parametrize("name", brain_names())
-@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
-def test_brain_contract(name, size, frames, brain_options):
-    options = brain_options(name)
-    brain = make_brain(name, **options)
-    assert isinstance(brain, Brain)
-    images = frames[size]
-    first = drive(brain, images, seed=1)
-    assert all(isinstance(a, Action) and math.isfinite(a.speed_mps) and math.isfinite(a.yaw_rate_radps)
-               for a in first)
-    # reset forgets everything: the same frames after other frames give the same actions as a fresh brain.
-    drive(brain, images[::-1], seed=2)
-    assert drive(brain, images, seed=1) == first
-    assert drive(make_brain(name, **options), images, seed=1) == first
-
-
-@pytest.mark.parametrize("name", brain_names())
-def test_brain_does_not_modify_its_input(name, frames, brain_options):
-    image = frames[(320, 240)][0].copy()
-    before = image.copy()
+        images = [scene.render(CarState(*circuit.centreline.pose_at(s)), CameraSpec(width_px=size[0],
+                                                                                   height_px=size[1]))
+                  for s in np.arange(0.0, 12.0, 4.0)]
     brain = make_brain(name, **brain_options(name))
     brain.reset(seed=0)
-    brain.act(Observation(image_rgb=image, stamp_ns=0, seq=0))
-    assert np.array_equal(image, before)
+    actions = [brain.act(Observation(image_rgb=image, stamp_ns=i * 50_000_000, seq=i))
+               for i, image in enumerate(images)]
+    assert all(np.isfinite([a.speed_mps, a.yaw_rate_radps]).all() for a in actions)
 
 
-def test_unknown_brain_names_the_known_ones():
-    with pytest.raises(UnknownBrainError, match=r"unknown brain 'hal' \(known: constant, deepest_lstm_tiny_pilotnet, "
-                                                r"expert, explicit, memdccp, neural, noisy, pilotnet, pilotnet_x3"):
+BROKEN = '''
+import random
+from brains.base import Action
+
+
+class Hoarder:
+    """Keeps every frame, answers in km/h and draws random numbers without a seed."""
+    def __init__(self):
+        self.seen = []
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        self.seen.append(observation.image_rgb.copy())
+        return Action(speed_mps=100 + random.random(), yaw_rate_radps=0.0)
+
+
+class Tuple:
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        return (1.0, 0.0)
+
+
+class Scribbler:
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        observation.image_rgb[0, 0] = 0
+        return Action(speed_mps=1.0, yaw_rate_radps=0.0)
+
+
+class PositionalSeed:
+    def reset(self, seed_value):
+        pass
+    def act(self, observation):
+        return Action(speed_mps=1.0, yaw_rate_radps=0.0)
+
+
+class Degrees:
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        return Action(speed_mps=5.0, yaw_rate_radps=45.0)
+
+
+class NeedsOption:
+    def __init__(self, *, gain):
+        self.gain = gain
+'''
+
+
+@pytest.fixture
+def broken_brains(tmp_path, monkeypatch):
+    (tmp_path / "broken_brains.py").write_text(BROKEN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield
+    sys.modules.pop("broken_brains", None)
+
+
+def failures(results) -> dict[str, str]:
+    return {r.name: f"{r.detail} | fix: {r.fix}" for r in results if r.status == "fail"}
+
+
+def test_checker_names_the_fix_for_each_broken_rule(broken_brains, frames):
+    hoarder = failures(check_brain("broken_brains:Hoarder", frames=frames))
+    assert set(hoarder) == {"units", "determinism", "memory"}
+    assert "km/h" in hoarder["units"] and "seed every random generator" in hoarder["determinism"]
+    assert "deque" in hoarder["memory"] and "MiB" in hoarder["memory"]
+    assert "not brains.base.Action" in failures(check_brain("broken_brains:Tuple", frames=frames))["act"]
+    assert "copy the image" in failures(check_brain("broken_brains:Scribbler", frames=frames))["read-only"]
+    assert "def reset(self, *, seed: int)" in failures(check_brain("broken_brains:PositionalSeed",
+                                                                   frames=frames))["protocol"]
+    assert "radians per second" in failures(check_brain("broken_brains:Degrees", frames=frames))["units"]
+    assert "gain" in failures(check_brain("broken_brains:NeedsOption", frames=frames))["make"]
+    assert passed(check_brain("broken_brains:NeedsOption", options={"gain": 1}, frames=frames)) is False  # no act
+
+
+def test_checker_stops_at_a_name_that_leads_nowhere(broken_brains):
+    for name, expected in (("hal", "unknown brain 'hal'"), ("broken_brains:Nope", "has no 'Nope'"),
+                           ("no_such_module:Brain", "cannot import module 'no_such_module'"),
+                           ("missing_brain.py", "not found")):
+        results = check_brain(name)
+        assert [(r.name, r.status) for r in results] == [("make", "fail")] and expected in results[0].detail
+
+
+def test_unknown_brain_names_the_known_ones_and_the_other_forms():
+    with pytest.raises(UnknownBrainError, match=r"unknown brain 'hal' \(known: behavior_metrics, constant, "
+                                                r"deepest_lstm_tiny_pilotnet, expert, explicit, memdccp, .*; or give "
+                                                r"package.module:Class, or a Behavior Metrics brain file"):
         make_brain("hal")

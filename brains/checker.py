@@ -1,0 +1,284 @@
+"""The brain checker: does a brain meet the contract the brain host relies on? (``drivebench brains check``)
+
+Like Gymnasium's ``check_env``, it runs the brain outside any stack, on real rendered frames, and says per check
+what passed and, for what did not, how to fix it. The checks, in order (a failed ``make`` stops the rest):
+
+make          the name resolves and the brain is built with the given options
+protocol      ``reset(*, seed)`` and ``act(observation)`` exist
+act           ``act`` answers real frames of several worlds with an ``Action`` of two finite floats
+units         speeds look like m/s and yaw rates like rad/s (not km/h, not degrees)
+read-only     ``act`` does not write into the image (the host hands it a read-only view of the message)
+answer time   time per frame: under 50 ms keeps real-time runs at 20 Hz; over the lock-step timeout ends episodes
+determinism   the same frames after ``reset(seed=1)`` give the same actions, after other frames and in a new brain
+memory        memory does not grow over a few hundred frames (a brain must not keep every frame)
+
+The contract tests in ``tests/test_brain_contract.py`` run this over every registered brain.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import time
+import tracemalloc
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from brains.base import Action, GroundTruth, Observation
+from brains.registry import BrainOptionsError, UnknownBrainError, make_brain, resolve
+
+REALTIME_BUDGET_S = 0.05  # one frame at 20 Hz (Behavior Metrics' control period)
+LOCKSTEP_TIMEOUT_S = 10.0  # EpisodeSpec.brain_timeout_s's default: slower answers end lock-step episodes
+MAX_SPEED_MPS = 40.0  # F1 cars here drive up to ~24 m/s; far beyond that it is km/h or a bug
+MAX_YAW_RATE_RADPS = 2 * math.pi  # a turn a second; beyond it it is degrees per second or a bug
+MEMORY_GROWTH_LIMIT_BYTES = 20 * 2**20  # ~90 raw 320x240 frames: what keeping every frame costs in 300 steps
+STEP_NS = 50_000_000
+
+# Worlds the frames are rendered in: the paper's default, its white line, no line on a white road, and no sun.
+CHECK_WORLDS: tuple[dict[str, Any], ...] = (
+    {}, {"line": "white"}, {"line": "none", "road": "white"}, {"lighting": "no_sun"})
+
+
+@dataclass(frozen=True)
+class Check:
+    """One check's outcome. status: "pass", "warn" (works, with a caveat) or "fail" (the host will misbehave)."""
+
+    name: str
+    status: str
+    detail: str
+    fix: str = ""
+
+    def line(self) -> str:
+        text = f"{self.status.upper():4}  {self.name:<12} {self.detail}"
+        return text + (f"\n      fix: {self.fix}" if self.fix else "")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A rendered camera frame (H x W x 3 uint8 RGB) and the pose it was taken from."""
+
+    image_rgb: np.ndarray
+    truth: GroundTruth
+
+
+def render_frames(*, circuit: str = "simple", worlds: Iterable[dict[str, Any]] = CHECK_WORLDS,
+                  frames_per_world: int = 12, spacing_m: float = 0.4, camera_wh: tuple[int, int] = (320, 240)
+                  ) -> list[Frame]:
+    """Consecutive frames along ``circuit``'s centreline (0.4 m apart: 8 m/s at 20 Hz) in each world, rendered."""
+    from protocol.messages import CameraSpec, WorldVariation
+    from services.circuits import load_circuit
+    from services.simulator.car import CarState
+    from services.simulator.scene import Scene
+
+    track = load_circuit(circuit)
+    camera = CameraSpec(width_px=camera_wh[0], height_px=camera_wh[1])
+    frames = []
+    for world in worlds:
+        with Scene.for_world(track, WorldVariation(**world)) as scene:
+            for step in range(frames_per_world):
+                x, y, yaw = track.centreline.pose_at(10.0 + spacing_m * step)
+                image = scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), camera)
+                image.flags.writeable = False  # as the host hands it over: a view of the message's bytes
+                frames.append(Frame(image, GroundTruth(x_m=x, y_m=y, yaw_rad=yaw, circuit=circuit)))
+    return frames
+
+
+def check_brain(name: str, *, options: dict[str, Any] | None = None, frames: list[Frame] | None = None,
+                memory_steps: int = 300) -> list[Check]:
+    """Run every check on brain ``name`` built with ``options``; one :class:`Check` per check, in order."""
+    options = dict(options or {})
+    try:
+        origin = resolve(name).origin
+        brain = make_brain(name, **options)
+    except (UnknownBrainError, BrainOptionsError) as error:
+        return [Check("make", "fail", str(error), "check the name (drivebench brains list) and its options")]
+    except Exception as error:  # the user's constructor: whatever it raises, report it as one line
+        return [Check("make", "fail", f"building it raised {type(error).__name__}: {error}",
+                      "the constructor must accept the options given (keyword arguments) and load what it needs")]
+    results = [Check("make", "pass", f"{type(brain).__name__} from {name} ({origin})")]
+    results.append(_check_protocol(brain))
+    if results[-1].status == "fail":
+        return results
+    frames = frames if frames is not None else render_frames()
+    stage = _check_act(brain, frames)
+    results += stage.checks
+    if stage.actions is None:
+        return results
+    results.append(_check_units(stage.actions))
+    results.append(_check_answer_time(stage.seconds))
+    results.append(_check_determinism(brain, lambda: make_brain(name, **options), frames, stage.actions))
+    results.append(_check_memory(brain, frames, steps=memory_steps))
+    return results
+
+
+def passed(results: list[Check]) -> bool:
+    return all(result.status != "fail" for result in results)
+
+
+# -- the checks ------------------------------------------------------------------------------------------------------
+
+
+def _check_protocol(brain: Any) -> Check:
+    missing = [method for method in ("reset", "act") if not callable(getattr(brain, method, None))]
+    if missing:
+        return Check("protocol", "fail", f"no {' and no '.join(missing)} method",
+                     "implement reset(self, *, seed: int) and act(self, observation) -> Action (brains.base.Brain)")
+    try:
+        brain.reset(seed=0)
+    except TypeError as error:
+        return Check("protocol", "fail", f"reset(seed=0) raised TypeError: {error}",
+                     "reset takes the seed as a keyword argument: def reset(self, *, seed: int) -> None")
+    except Exception as error:
+        return Check("protocol", "fail", f"reset(seed=0) raised {type(error).__name__}: {error}",
+                     "reset must put the brain back to its start state without failing")
+    return Check("protocol", "pass", "reset(seed=...) and act(observation)")
+
+
+@dataclass
+class _ActStage:
+    checks: list[Check]
+    actions: list[tuple[float, float]] | None = None
+    seconds: list[float] | None = None
+
+
+def _drive(brain: Any, frames: list[Frame], *, seed: int) -> tuple[list[tuple[float, float]], list[float]]:
+    """Reset with ``seed`` and act on every frame in order: (speed, yaw rate) per frame and the seconds each took."""
+    brain.reset(seed=seed)
+    truth = getattr(brain, "needs_ground_truth", False)
+    actions, seconds = [], []
+    for seq, frame in enumerate(frames):
+        observation = Observation(image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq,
+                                  ground_truth=frame.truth if truth else None)
+        started = time.perf_counter()
+        action = brain.act(observation)
+        seconds.append(time.perf_counter() - started)
+        actions.append(_as_pair(action))
+    return actions, seconds
+
+
+class _BadAction(Exception):
+    pass
+
+
+def _as_pair(action: Any) -> tuple[float, float]:
+    if not isinstance(action, Action):
+        raise _BadAction(f"act returned {type(action).__name__}, not brains.base.Action")
+    try:
+        pair = (float(action.speed_mps), float(action.yaw_rate_radps))
+    except (TypeError, ValueError) as error:
+        raise _BadAction(f"Action fields are not numbers ({error})") from None
+    if not all(math.isfinite(value) for value in pair):
+        raise _BadAction(f"act returned a non-finite command {pair}")
+    return pair
+
+
+def _check_act(brain: Any, frames: list[Frame]) -> _ActStage:
+    try:
+        actions, seconds = _drive(brain, frames, seed=1)
+    except _BadAction as error:
+        return _ActStage([Check("act", "fail", str(error),
+                                "return Action(speed_mps=float, yaw_rate_radps=float), both finite")])
+    except ValueError as error:
+        if "read-only" in str(error) or "not writeable" in str(error):
+            return _ActStage([Check("act", "pass", "answered frames until it wrote into one"),
+                              Check("read-only", "fail", f"act wrote into the camera image ({error})",
+                                    "copy the image before drawing on it: image = observation.image_rgb.copy()")])
+        return _ActStage([_raised("act", error)])
+    except Exception as error:
+        return _ActStage([_raised("act", error)])
+    sizes = sorted({f"{f.image_rgb.shape[1]}x{f.image_rgb.shape[0]}" for f in frames})
+    return _ActStage([Check("act", "pass", f"{len(frames)} frames of {len(CHECK_WORLDS)} worlds ({', '.join(sizes)}) "
+                                           f"answered with finite Actions"),
+                      Check("read-only", "pass", "the camera image was left untouched")], actions, seconds)
+
+
+def _raised(name: str, error: Exception) -> Check:
+    return Check(name, "fail", f"act raised {type(error).__name__}: {error}",
+                 "act must answer any 320x240 RGB frame (uint8, H x W x 3) without raising")
+
+
+def _check_units(actions: list[tuple[float, float]]) -> Check:
+    speeds = [abs(speed) for speed, _ in actions]
+    yaw_rates = [abs(yaw_rate) for _, yaw_rate in actions]
+    detail = f"speed up to {max(speeds):.2f} m/s, |yaw rate| up to {max(yaw_rates):.2f} rad/s"
+    if max(speeds) > MAX_SPEED_MPS:
+        return Check("units", "fail", detail, "speed_mps is metres per second (km/h / 3.6)")
+    if max(yaw_rates) > MAX_YAW_RATE_RADPS:
+        return Check("units", "fail", detail, "yaw_rate_radps is radians per second (degrees * pi / 180), "
+                                              "positive turning left")
+    if max(speed for speed, _ in actions) <= 0.0:
+        return Check("units", "warn", detail + "; it never drives forward on the road", "")
+    return Check("units", "pass", detail)
+
+
+def _check_answer_time(seconds: list[float]) -> Check:
+    p50, p95 = statistics.median(seconds), float(np.percentile(seconds, 95))
+    detail = f"p50 {1e3 * p50:.2f} ms, p95 {1e3 * p95:.2f} ms per frame"
+    if p95 > LOCKSTEP_TIMEOUT_S:
+        return Check("answer time", "fail", detail + f" (lock-step episodes end after {LOCKSTEP_TIMEOUT_S:.0f} s)",
+                     "answer faster, or raise the episode's brain_timeout_s (run --brain-timeout)")
+    if p50 > REALTIME_BUDGET_S:
+        return Check("answer time", "warn", detail + " (lock-step is fine; real-time runs at 20 Hz will skip frames)",
+                     "")
+    return Check("answer time", "pass", detail)
+
+
+def _check_determinism(brain: Any, make_new: Callable[[], Any], frames: list[Frame],
+                       first: list[tuple[float, float]]) -> Check:
+    fix = "seed every random generator from reset(seed=...) and clear everything the brain remembers in reset"
+    try:
+        _drive(brain, frames[::-1], seed=2)
+        again, _ = _drive(brain, frames, seed=1)
+        fresh, _ = _drive(make_new(), frames, seed=1)
+    except Exception as error:
+        return Check("determinism", "fail", f"a second run raised {type(error).__name__}: {error}", fix)
+    if again != first:
+        return Check("determinism", "fail", f"after other frames, reset(seed=1) gave other actions from frame "
+                                            f"{_first_difference(first, again)}", fix)
+    if fresh != first:
+        return Check("determinism", "fail", f"a new brain with seed 1 gave other actions from frame "
+                                            f"{_first_difference(first, fresh)}", fix)
+    return Check("determinism", "pass", "same seed, same frames: same actions (after other frames, and fresh)")
+
+
+def _first_difference(a: list, b: list) -> int:
+    return next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+
+
+def _check_memory(brain: Any, frames: list[Frame], *, steps: int) -> Check:
+    """Python/NumPy heap (tracemalloc) and resident memory growth between step 30 and step ``steps``."""
+    long_run = [frames[i % len(frames)] for i in range(steps)]
+    warm = min(30, steps // 2)
+    tracemalloc.start()
+    try:
+        _drive(brain, long_run[:warm], seed=3)
+        heap_before, rss_before = tracemalloc.get_traced_memory()[0], _rss_bytes()
+        brain.reset(seed=3)  # _drive resets; run the rest without a reset in between, as one long episode does
+        for seq, frame in enumerate(long_run):
+            truth = frame.truth if getattr(brain, "needs_ground_truth", False) else None
+            brain.act(Observation(image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq, ground_truth=truth))
+        heap_growth = tracemalloc.get_traced_memory()[0] - heap_before
+        rss_growth = _rss_bytes() - rss_before
+    except Exception as error:
+        return Check("memory", "fail", f"act raised {type(error).__name__} on frame {steps} frames long: {error}",
+                     "act must keep answering through a long episode")
+    finally:
+        tracemalloc.stop()
+    growth = max(heap_growth, rss_growth)
+    detail = f"{steps} frames: heap {heap_growth / 2**20:+.1f} MiB, resident {rss_growth / 2**20:+.1f} MiB"
+    if growth > MEMORY_GROWTH_LIMIT_BYTES:
+        return Check("memory", "fail", detail, "keep a bounded history (collections.deque(maxlen=...)), not every "
+                                               "frame; release what the previous frames needed")
+    return Check("memory", "pass", detail)
+
+
+def _rss_bytes() -> int:
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:  # not Linux: the heap figure alone decides
+        return 0
