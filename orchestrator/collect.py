@@ -55,10 +55,10 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                                    camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
                                    active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
                                    direction=direction)
-                for variation in args.variation:
-                    spec = apply_variation(spec, variation)
                 if getattr(args, "randomise", False):
                     spec = randomised(spec)
+                for variation in args.variation:  # after the draw: what is pinned stays pinned
+                    spec = apply_variation(spec, variation)
             except (CircuitError, ValueError) as error:
                 raise CollectError(str(error)) from None
             specs.append(spec)

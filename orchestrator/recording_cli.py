@@ -62,7 +62,8 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
     collect.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
                          help="simulator camera (default 320x240); --size sets the dataset's image size")
     collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
-                         help="world variation for every circuit, as in drivebench run")
+                         help="world variation for every circuit, as in drivebench run (with --randomise: pins "
+                              "what it names, e.g. line=none,walls=off, and the rest is still drawn)")
     collect.add_argument("--randomise", action="store_true",
                          help="domain randomisation: each episode draws its own line, road, walls, lighting, camera "
                               "mount and camera noise from its seed (use with a brain that does not look, e.g. "

@@ -72,6 +72,10 @@ def test_randomised_collection_draws_every_world_from_the_seed():
     assert len({s.camera.lateral_offset_m for s in specs}) > 20  # drawn per episode (rounded to mm)
     assert all(abs(s.camera.lateral_offset_m) <= 0.08 and -0.03 <= s.camera.pitch_down_rad <= 0.22 for s in specs)
     assert 4 <= sum(bool(s.noise) for s in specs) <= 20
+    # --variation pins what it names and leaves the rest drawn: more data of one hard world.
+    pinned = collection_specs(argparse.Namespace(**{**vars(args), "variation": ["line=none,walls=off"]}))
+    assert {(s.world.line, s.world.walls) for s in pinned} == {("none", False)}
+    assert [(s.camera, s.noise, s.world.road) for s in pinned] == [(s.camera, s.noise, s.world.road) for s in specs]
 
 
 @pytest.mark.slow
