@@ -36,7 +36,8 @@ def metrics_table(score: EpisodeScore) -> str:
         ("BM suddenness", _fmt(m.suddenness_distance, "", 4)),
         ("BM mean inference time", _fmt(m.mean_inference_time_s * 1e3, " ms")),
         ("command rate", _fmt(m.command_rate_hz, " Hz", 1)),
-        ("frame-to-command latency p50 / p95", f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms"),
+        ("frame-to-command latency p50 / p95", "not measured" if m.command_latency_p50_ms is None
+         else f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms"),
         ("sim time / wall time", f"{m.sim_time_s:.2f} s / {m.wall_time_s:.2f} s (RTF {m.real_time_factor:.2f}x)"),
     ]
     rows += switch_rows(score) + shadow_rows(score)

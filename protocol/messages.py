@@ -276,7 +276,8 @@ class Pose(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Pose.v1", 
     """Ground-truth pose of the car (world_from_car) when frame ``header.seq`` was taken.
 
     speed_mps / yaw_rate_radps: the command applied over the step that *led* to this pose (0 at seq 0).
-    command_latency_ns: wall time from publishing the previous frame to receiving the command that answered it
+    command_latency_ns: wall time from publishing a frame to receiving the driving brain's command that answered it
+        (lock-step: the previous frame; real time: the newest command that arrived since the previous pose), 0 = none
         (lock-step), 0 when not measured.
     """
 
@@ -347,6 +348,8 @@ class EpisodeMetrics(msgspec.Struct, frozen=True, kw_only=True):
     ``suddenness_distance``, ``mean_inference_time_s``.
     Beyond BM: true cross-track error in metres, every lap timed at full time resolution, arc-length progress,
     off-track events, command rate and latency, real-time factor.
+    ``command_latency_*_ms``: wall time from a frame going out to the arrival of the driving brain's command that
+    answers it (both modes; in real time only commands that name their frame count); None when none was measured.
     """
 
     sim_time_s: float
@@ -371,8 +374,8 @@ class EpisodeMetrics(msgspec.Struct, frozen=True, kw_only=True):
     cross_track_p95_m: float
     off_track_events: int
     command_rate_hz: float
-    command_latency_p50_ms: float
-    command_latency_p95_ms: float
+    command_latency_p50_ms: float | None  # None: not measured (no command matched to its frame)
+    command_latency_p95_ms: float | None
     inference_p50_ms: float
     inference_p95_ms: float
 

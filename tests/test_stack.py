@@ -169,6 +169,9 @@ def test_realtime_mode_runs_at_wall_clock_rate(make_stack):
     assert score.reason == EndReason.TIME_LIMIT
     assert score.metrics.real_time_factor == pytest.approx(1.0, abs=0.1)
     assert score.metrics.progress_m > 5  # the explicit brain drove with its latest commands
+    # Latency is measured in real time too (command arrival against the frame it names), never a 0 that reads as one.
+    p50, p95 = score.metrics.command_latency_p50_ms, score.metrics.command_latency_p95_ms
+    assert p50 is not None and 0 < p50 <= p95 < 1000
 
 
 @pytest.mark.slow

@@ -421,7 +421,8 @@ class EpisodeScorer:
             command_rate = in_episode / sim_time
         else:
             command_rate = 0.0
-        latency_p50, latency_p95 = percentiles_ms([v for v in self._latency_ns if v > 0])
+        measured_latency = [v for v in self._latency_ns if v > 0]
+        latency_p50, latency_p95 = percentiles_ms(measured_latency) if measured_latency else (None, None)
         measured_inference = [v for v in self._cmd_inference_ns if v > 0]
         inference_p50, inference_p95 = percentiles_ms(trimmed_inference_times(measured_inference))
 

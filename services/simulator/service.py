@@ -35,6 +35,7 @@ log = logging.getLogger("drivebench.simulator")
 # subscription was not yet known to this session when the frame went out; brain hosts answer a repeated frame
 # with the command they already computed.
 RESEND_AFTER_S = 1.0
+REALTIME_LATENCY_FRAMES = 200  # real time: frames remembered for matching late commands (10 s at 20 Hz)
 
 
 class SimulatorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -320,18 +321,24 @@ class SimulatorService:
         answer; the timeout counts from its latest command or from the switch, whichever is later.
         """
         spec = sim.spec
-        speed, yaw_rate = 0.0, 0.0
+        speed, yaw_rate, latency_ns = 0.0, 0.0, 0
         latest: dict[str, Received] = {}
+        sent_ns: dict[int, int] = {}  # frame seq -> when it went out, for the latency of the command answering it
         active_since_ns = time.monotonic_ns()
         next_tick = time.monotonic()
         while True:
-            self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=0)
+            sent_ns[sim.seq] = self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate,
+                                                         latency_ns=latency_ns)
+            sent_ns.pop(sim.seq - REALTIME_LATENCY_FRAMES, None)
+            latency_ns = 0
             next_tick += spec.step_s
             if (delay := next_tick - time.monotonic()) > 0:
                 time.sleep(delay)
             for received in self._commands.drain():
                 if received.message.header.episode == self._episode and self._on_own_key(received):
                     latest[received.message.brain] = received
+                    if received.message.brain == self._active() and received.message.frame_seq in sent_ns:
+                        latency_ns = received.arrival_ns - sent_ns.pop(received.message.frame_seq)
             if self._announce_switches(sim, header):
                 active_since_ns = time.monotonic_ns()
             last_command_ns = active_since_ns
