@@ -17,6 +17,7 @@ A brain is named in one of four ways, everywhere a brain is named (``--brain``, 
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import sys
 from dataclasses import dataclass
@@ -145,6 +146,32 @@ def check_brain(name: str) -> BrainSource:
     source = resolve(name)
     load_factory(source)
     return source
+
+
+def preflight(name: str, options: dict[str, Any]) -> None:
+    """Everything about brain ``name`` with ``options`` that can be known before any process starts, so a mistake is
+    one line at once instead of a brain host dying after the stack came up: the name resolves and imports, the
+    factory takes these options (``--weights`` on a brain without weights is refused), and a factory's own
+    ``preflight`` passes (neural brains: the checkpoint loads and holds the right network).
+    Raises :class:`UnknownBrainError` or :class:`BrainOptionsError`."""
+    source = resolve(name)
+    factory = load_factory(source)
+    options = {**dict(source.options), **options}
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):  # a builtin or C callable: nothing to check up front
+        signature = None
+    if signature is not None:
+        try:
+            signature.bind(**options)
+        except TypeError as error:
+            unknown = [key for key in options if key not in signature.parameters]
+            if unknown == ["weights"]:
+                raise BrainOptionsError(f"brain {name!r} takes no weights (--weights is for neural brains)") from None
+            raise BrainOptionsError(f"bad options for brain {name!r}: {error}") from None
+    check = getattr(factory, "preflight", None)
+    if callable(check):
+        check(**options)
 
 
 def bus_name(brain: str) -> str:

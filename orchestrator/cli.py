@@ -28,7 +28,7 @@ import yaml
 
 from brains.registry import UnknownBrainError, bus_name, check_brain
 from orchestrator import recording_cli
-from orchestrator.launcher import BrainLaunch, LocalStack, StackError
+from orchestrator.launcher import BrainLaunch, LocalStack, StackError, preflight_launches
 from orchestrator.matrix_cli import MatrixUsageError
 from orchestrator.report import metrics_table
 from protocol import codec
@@ -199,11 +199,6 @@ def command_run(args: argparse.Namespace) -> int:
         raise UsageError("--router needs --attach (without it, drivebench run starts its own router)")
     args.brain = args.brain or "explicit"
     spec = episode_spec(args)
-    run_id = args.run_id or uuid.uuid4().hex[:8]
-    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(filename=run_dir / "launcher.log", level=logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
     options = tuple(args.brain_option)
     if args.weights is not None:
         if not args.weights.is_file():
@@ -211,6 +206,15 @@ def command_run(args: argparse.Namespace) -> int:
         options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
     brains = [BrainLaunch(args.brain, options=options)]
     brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
+    try:
+        preflight_launches(brains)  # bad weights or options: one line now, not a dead brain after start-up
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    run_id = args.run_id or uuid.uuid4().hex[:8]
+    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(filename=run_dir / "launcher.log", level=logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
     (run_dir / "config.yaml").write_text(yaml.safe_dump({
         "run_id": run_id, "episode": msgspec.to_builtins(spec),
         "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],

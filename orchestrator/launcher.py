@@ -84,6 +84,20 @@ class BrainLaunch:
         return self.name or bus_name(self.brain)
 
 
+def preflight_launches(launches: list[BrainLaunch]) -> None:
+    """Check every brain launch before anything starts (``brains.registry.preflight``): UnknownBrainError or
+    BrainOptionsError, one line, naming the brain and what is wrong."""
+    from brains.registry import preflight
+    from protocol.config import ConfigError, apply_overrides
+
+    for launch in launches:
+        try:
+            options = apply_overrides({}, launch.options)
+        except ConfigError as error:
+            raise ConfigError(f"brain {launch.brain!r}: {error}") from None
+        preflight(launch.brain, options)
+
+
 @dataclass
 class Child:
     role: str

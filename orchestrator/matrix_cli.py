@@ -72,6 +72,18 @@ def run_matrix_command(args: argparse.Namespace) -> int:
                            report=not args.no_report)
 
 
+def _preflight(matrix) -> None:
+    """Every brain of the matrix checked before the first episode (weights load and fit, options are taken)."""
+    from orchestrator.launcher import preflight_launches
+    from orchestrator.matrix_runner import brain_launch
+
+    for entry in matrix.brains + matrix.shadows:
+        try:
+            preflight_launches([brain_launch(entry)])
+        except ValueError as error:
+            raise MatrixUsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
+
+
 def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
                     report: bool = True, facts: dict | None = None) -> int:
     """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say, with progress on stderr, then
@@ -93,6 +105,7 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
         raise MatrixUsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
     if args.retry_failed and not args.resume:
         raise MatrixUsageError("--retry-failed goes with --resume")
+    _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():
         raise MatrixUsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "

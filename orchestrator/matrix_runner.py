@@ -246,7 +246,7 @@ class MatrixRunner:
         return folder
 
     def _launches(self, episode: PlannedEpisode) -> list[BrainLaunch]:
-        return [_launch(episode.brain), *(_launch(shadow) for shadow in self.matrix.shadows)]
+        return [brain_launch(episode.brain), *(brain_launch(shadow) for shadow in self.matrix.shadows)]
 
     def _write_config(self, folder: Path, episode: PlannedEpisode, run_id: str) -> None:
         (folder / "config.yaml").write_text(yaml.safe_dump({
@@ -264,7 +264,8 @@ class MatrixRunner:
         return str(path.relative_to(self.out_dir))
 
 
-def _launch(entry: BrainEntry) -> BrainLaunch:
+def brain_launch(entry: BrainEntry) -> BrainLaunch:
+    """The brain host launch of one matrix brain entry (its label is its bus name)."""
     return BrainLaunch(entry.brain, name=entry.label, options=entry.launch_options())
 
 

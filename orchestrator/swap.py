@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from brains.registry import UnknownBrainError, brain_names, bus_name, check_brain
-from orchestrator.launcher import STACK_FILE
+from orchestrator.launcher import STACK_FILE, BrainLaunch, preflight_launches
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, BusError
 from protocol.messages import Command, ControlReply, ControlRequest
@@ -386,6 +386,10 @@ def run_swap_command(args: argparse.Namespace) -> int:
     try:
         _check_brain(args.brain)
         options = brain_options(args.brain_option, args.weights)
+        try:
+            preflight_launches([BrainLaunch(args.brain, options=options)])
+        except ValueError as error:
+            raise SwapUsageError(str(error)) from None
         stack = locate_stack(runs_dir=args.runs_dir, run_id=args.swap_run, router=args.swap_router)
         logs = stack.run_dir / "logs" if stack.run_dir is not None else None
         result = swap_brain(router=stack.router, run_id=stack.run_id, brain=args.brain, name=args.name or None,

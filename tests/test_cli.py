@@ -63,12 +63,35 @@ def test_bad_camera_size_is_a_usage_error(tmp_path):
     assert result.returncode == 2 and "camera size must look like 320x240" in result.stderr
 
 
-def test_bad_brain_option_stops_the_stack_with_a_reason(tmp_path):
+def test_bad_brain_option_is_refused_before_anything_starts(tmp_path):
     result = drivebench("run", "--brain", "constant", "--brain-option", "warp=9", "--out", str(tmp_path / "r"),
                         timeout=90)
-    assert result.returncode == 1
-    assert "bad options for brain 'constant'" in result.stderr
-    assert "Traceback" not in result.stderr
+    assert result.returncode == 2  # a usage mistake, found before the stack starts: no run folder
+    assert "bad options for brain 'constant'" in result.stderr and "warp" in result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--brain", "explicit", "--weights", "{good}"], "brain 'explicit' takes no weights"),
+    (["--brain", "pilotnet", "--weights", "{good}"], "holds a memdccp network, not pilotnet"),
+    (["--brain", "memdccp", "--weights", "{random}"], "not a torch checkpoint"),
+    (["--brain", "memdccp", "--weights", "{pickle}"], "not a torch checkpoint of tensors"),
+    (["--shadow", "memdccp={random}"], "not a torch checkpoint"),
+], ids=["no-weights-brain", "wrong-network", "random-bytes", "pickled-object", "shadow"])
+def test_bad_weights_are_refused_before_anything_starts(tmp_path, args, expected):
+    pytest.importorskip("torch")
+    import torch
+
+    (tmp_path / "random.ckpt").write_bytes(bytes(range(256)) * 8)
+    torch.save({"model": print}, tmp_path / "pickle.ckpt")  # loading it would need unpickling a function
+    paths = {"good": str(Path(__file__).resolve().parent.parent / "brains" / "weights" / "memdccp.ckpt"), "random": str(tmp_path / "random.ckpt"),
+             "pickle": str(tmp_path / "pickle.ckpt")}
+    started = time.monotonic()
+    result = drivebench("run", *[arg.format(**paths) for arg in args], "--out", str(tmp_path / "r"), timeout=60)
+    assert result.returncode == 2 and expected in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+    assert "weights_only" not in result.stderr and "arbitrary code" not in result.stderr  # no unsafe advice
+    assert not (tmp_path / "r").exists() and time.monotonic() - started < 30
 
 
 @pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])

@@ -274,6 +274,15 @@ def _factory(brain: str, model: str | None):
             options["model"] = model
         return NeuralBrain(weights=weights, **options)
 
+    def preflight(*, weights: str | None = None, **options: Any) -> None:
+        """Check the weights before any process starts: loadable, the right network (CheckpointError, one line)."""
+        if weights:
+            path = Path(weights)
+            ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else \
+                load_checkpoint(path)
+            _check_model(ckpt, model)
+
+    make.preflight = preflight
     make.__name__ = make.__qualname__ = brain
     make.__doc__ = f"Brain {brain!r}: NeuralBrain(weights=..., ...)" + (f" serving a {model} checkpoint." if model
                                                                          else " serving any network.")

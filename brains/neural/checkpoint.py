@@ -144,6 +144,10 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
+        # Never pass on torch's advice to load with weights_only=False: that runs whatever the file contains.
+        if "Weights only load failed" in str(error):
+            raise CheckpointError(f"{path}: not a torch checkpoint of tensors and plain data (the only kind "
+                                  f"drivebench loads)") from None
         raise CheckpointError(f"{path}: not a torch checkpoint ({_first_line(error)})") from None
     _check_keys(raw, path)
     if isinstance(raw, dict) and SHARDS_KEY in raw:
