@@ -15,6 +15,7 @@ the stack could not run, with a one-line reason on stderr.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -28,7 +29,7 @@ import yaml
 
 from brains.registry import UnknownBrainError, bus_name, check_brain
 from orchestrator import recording_cli
-from orchestrator.launcher import BrainLaunch, LocalStack, StackError, preflight_launches
+from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
 from orchestrator.matrix_cli import MatrixUsageError
 from orchestrator.report import metrics_table
 from protocol import codec
@@ -229,14 +230,33 @@ def command_run(args: argparse.Namespace) -> int:
         with LocalStack(run_id=run_id, run_dir=run_dir, brains=brains, record=args.record,
                         record_options=(f"image_format={args.record_images}",)) as stack:
             stack.write_stack_file()  # drivebench swap finds the running stack through it
-            score = stack.run_episode(spec, on_live=progress.update)
+            with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
+                score = stack.run_episode(spec, on_live=progress.update)
     finally:
         progress.close()
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
     report(score, run_dir, as_json=args.json)
-    if args.record is not None:
+    if stack.recording_failure is not None:
+        (run_dir / "recording_failure.json").write_text(json.dumps(stack.recording_failure.record(run_id=run_id),
+                                                                   indent=2) + "\n")
+        print(f"drivebench: the recording is incomplete: {stack.recording_failure}", file=sys.stderr)
+    elif args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def recorded_failure(run_dir: Path, *, run_id: str, as_json: bool):
+    """A failed episode leaves a machine-readable record: ``failure.json`` in the run folder and, with ``--json``,
+    the same object on stdout (the one-line message still goes to stderr)."""
+    try:
+        yield
+    except StackFailure as failure:
+        record = failure.record(run_id=run_id)
+        (run_dir / "failure.json").write_text(json.dumps(record, indent=2) + "\n")
+        if as_json:
+            print(json.dumps(record))
+        raise
 
 
 def command_run_attached(args: argparse.Namespace) -> int:
@@ -268,7 +288,8 @@ def command_run_attached(args: argparse.Namespace) -> int:
               f"{spec.laps} lap(s); run folder {run_dir}", file=sys.stderr)
         progress = Progress(spec.laps, enabled=sys.stderr.isatty())
         try:
-            score = stack.run_episode(spec, on_live=progress.update)
+            with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
+                score = stack.run_episode(spec, on_live=progress.update)
         finally:
             progress.close()
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
@@ -425,7 +446,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"drivebench: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except (StackError, BusError) as error:
-        print(f"drivebench: the stack could not run: {error}", file=sys.stderr)
+        kind = f" ({error.kind})" if isinstance(error, StackFailure) else ""
+        print(f"drivebench: the stack could not run{kind}: {error}", file=sys.stderr)
         return EXIT_STACK
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)

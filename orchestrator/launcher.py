@@ -20,9 +20,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
+
 from brains.registry import bus_name
 from protocol import codec, keys
-from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox
+from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
 
 log = logging.getLogger("drivebench.launcher")
@@ -48,6 +50,23 @@ class StackFailure(StackError):
         super().__init__(detail)
         self.kind = kind
         self.score = score
+        self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
+
+    def record(self, *, run_id: str, episode: int | None = None) -> dict:
+        """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
+        return {"run_id": run_id, "episode": episode, "failure": self.kind, "detail": str(self),
+                "detected_at_s": round(self.detected_at_s, 3),
+                "score": None if self.score is None else msgspec.to_builtins(self.score)}
+
+
+def describe_exit(code: int) -> str:
+    """``exited with code 3`` or, for a process a signal ended, ``killed by SIGKILL``."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
 
 
 class EpisodeAborted(StackError):
@@ -58,7 +77,8 @@ LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions r
 
 # Which failure a dead or vanished process of each role means for its episode.
 FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
-                   "noise": "scorer_died", "recorder": "scorer_died", "router": "simulator_died"}
+                   "noise": "noise_died", "recorder": "recorder_died", "router": "router_died"}
+LOG_LINE_CHARS = 200  # a dead process's last log line, quoted in its failure (a simulator's may hold a whole spec)
 # How long a start refused because the simulator has not yet seen the brain's token is retried.
 START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
@@ -132,6 +152,8 @@ class LocalStack:
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.bus: Bus | None = None
         self._watch = None
+        self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
+        self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
         # the simulator itself ends the episode with brain_lost when the active brain's token goes)
 
@@ -229,9 +251,12 @@ class LocalStack:
             code = child.process.poll()
             if code == 0 and child.role == "brain":
                 continue  # stopped on request (a live swap retired it): not a failure
-            if code is not None:
+            if code is not None and (child.role, child.name) not in self._tolerated:
                 detail = child.last_log_line()
-                return f"{child.role} {child.name!r} exited with code {code}" + (f": {detail}" if detail else "")
+                if len(detail) > LOG_LINE_CHARS:
+                    detail = detail[:LOG_LINE_CHARS - 3] + "..."
+                return f"{child.role} {child.name!r} {describe_exit(code)}" + (f"; its last log line: {detail}"
+                                                                             if detail else "")
         return None
 
     def dead_child_reason(self) -> str | None:
@@ -244,9 +269,21 @@ class LocalStack:
             role = dead.split(" ", 1)[0]
             return StackFailure(FAILURE_OF_ROLE.get(role, "error"), dead)
         if self._watch is not None and (gone := self._required - self._watch.alive()):
+            if self._router_gone():
+                return StackFailure("router_died", f"the router at {self.endpoint} stopped answering (every "
+                                                   f"process lost its link: {len(gone)} liveliness token(s) gone)")
             _, role, name = keys.parse_alive(sorted(gone)[0])
             return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
         return None
+
+    def _router_gone(self) -> bool:
+        """Whether the router no longer takes connections (a vanished token then means the router, not its
+        process)."""
+        try:
+            probe_router(self.endpoint.split(",")[0], timeout_s=0.5)
+            return False
+        except (BusError, ValueError):
+            return True
 
     def child(self, role: str, name: str) -> Child:
         for child in self.children:
@@ -347,6 +384,10 @@ class LocalStack:
         failure_deadline = 0.0
         while True:
             if failure is None and (failure := self._failure()) is not None:
+                if failure.kind == "recorder_died":  # the driving is fine: score the episode, flag the recording
+                    self._tolerate_recorder(failure)
+                    failure = None
+                    continue
                 if failure.kind != "brain_died":
                     raise failure
                 failure_deadline = time.monotonic() + SCORE_AFTER_DEATH_S
@@ -368,6 +409,12 @@ class LocalStack:
                 return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
             if on_live is not None:
                 on_live(message)
+
+    def _tolerate_recorder(self, failure: StackFailure) -> None:
+        log.warning("the recorder died; the episode goes on: %s", failure)
+        self.recording_failure = failure
+        self._tolerated |= {(c.role, c.name) for c in self.children if c.role == "recorder"}
+        self._required = {key for key in self._required if keys.parse_alive(key)[1] != "recorder"}
 
     def _start(self, spec: EpisodeSpec) -> ControlReply:
         """Ask the simulator to start ``spec``. A refusal because the brain is not alive is retried for a moment:
@@ -412,6 +459,8 @@ class AttachedStack(LocalStack):
         self.bus = None
         self._watch = None
         self._required = set()
+        self._tolerated = set()
+        self.recording_failure = None
 
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)

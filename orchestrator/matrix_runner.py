@@ -17,6 +17,7 @@ Folder layout of a matrix run::
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import shutil
@@ -222,6 +223,9 @@ class MatrixRunner:
             outcome.update(status="failed", failure=f"error: {type(error).__name__}: {error}")
         finally:
             stack.close()
+        if stack.recording_failure is not None:  # scored all the same; the recording beside it is incomplete
+            (folder / "recording_failure.json").write_text(
+                json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n")
         if self._stopping.is_set() and outcome["status"] == "failed":
             return None  # its processes were stopped under it: run it again on resume
         score: EpisodeScore | None = outcome["score"]

@@ -27,7 +27,10 @@ DATABASE_NAME = "results.sqlite"
 FAILURE_KINDS = (
     "brain_died",  # a brain process exited or lost its liveliness token during the episode
     "simulator_died",  # the simulator process exited or lost its token
-    "scorer_died",  # the scorer (or the noise injector, or the recorder) exited or lost its token
+    "scorer_died",  # the scorer exited or lost its token
+    "noise_died",  # the noise injector exited or lost its token
+    "recorder_died",  # the recorder exited (the episode goes on and is scored; only its recording is incomplete)
+    "router_died",  # the router went away: every process lost its link at once
     "start_failed",  # the stack did not come up, or the simulator refused the episode
     "wall_timeout",  # no score within the wall-clock guard (a hung episode)
     "error",  # anything else, with its message

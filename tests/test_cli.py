@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -138,3 +139,27 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"
+
+
+def test_a_failed_run_leaves_a_failure_record_and_prints_it_with_json(tmp_path):
+    """A hard failure (the scorer killed) is typed, in failure.json and on stdout with --json: not only prose."""
+    out = tmp_path / "run"
+    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--brain", "constant", "--brain-option",
+                            "speed_mps=0", "--max-sim-seconds", "600", "--camera", "64x48", "--run-id", "failjson",
+                            "--json", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "logs" / "scorer.log").is_file() or "ready" not in (out / "logs" / "scorer.log").read_text():
+            assert time.monotonic() < deadline and run.poll() is None
+            time.sleep(0.2)
+        time.sleep(1.0)
+        scorer = subprocess.run(["pgrep", "-f", "services.scorer.*failjson"], capture_output=True, text=True)
+        os.kill(int(scorer.stdout.split()[0]), signal.SIGKILL)
+        stdout, stderr = run.communicate(timeout=30)
+    finally:
+        run.kill()
+    assert run.returncode == 1 and "(scorer_died)" in stderr and "killed by SIGKILL" in stderr
+    record = json.loads(stdout)
+    assert record["failure"] == "scorer_died" and record["run_id"] == "failjson"
+    assert json.loads((out / "failure.json").read_text()) == record
+

@@ -188,7 +188,7 @@ camera: 96x72
     with ResultStore(tmp_path / "out", create=False) as store:
         first, second = store.results()
     assert first.status == "failed" and first.failure_kind == "brain_died", first.failure
-    assert "exited with code -9" in first.failure
+    assert "killed by SIGKILL" in first.failure
     assert first.reason == "brain_lost" and first.score is not None  # scored up to the moment it died
     assert second.status == "done" and second.reason == "time_limit"  # a fresh brain drove the next one
 

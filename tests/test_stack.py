@@ -11,7 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from orchestrator.launcher import BrainLaunch
+from orchestrator.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
 from protocol.bus import BusError, Inbox, Traffic
 from protocol.messages import (
@@ -85,6 +85,31 @@ def test_killing_the_brain_ends_the_episode_as_brain_lost_within_2_s(make_stack)
     assert score.reason == EndReason.BRAIN_LOST
     assert scored_at - killed_at[0] < 2.0
     assert stack.child("simulator", "sim").process.poll() is None  # the simulator lives on
+
+
+@pytest.mark.parametrize("role, name, kind", [("simulator", "sim", "simulator_died"), ("noise", "noise", "noise_died"),
+                                              ("scorer", "scorer", "scorer_died")])
+def test_a_killed_service_fails_the_episode_typed_by_its_role_within_2_s(make_stack, role, name, kind):
+    stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
+    victim = stack.child(role, name)
+    threading.Timer(2.0, os.kill, (victim.process.pid, signal.SIGKILL)).start()
+    started = time.monotonic()
+    with pytest.raises(StackFailure) as failure:
+        stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=600,
+                                      camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=60)
+    assert failure.value.kind == kind and f"{role} '{name}' killed by SIGKILL" in str(failure.value)
+    assert time.monotonic() - started < 2.0 + 2.0
+    record = failure.value.record(run_id=stack.run_id)
+    assert record["failure"] == kind and record["detail"] == str(failure.value) and record["score"] is None
+
+
+def test_a_killed_recorder_leaves_the_episode_running_and_scored(make_stack, tmp_path):
+    stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)), record=tmp_path / "r.mcap")
+    threading.Timer(1.0, os.kill, (stack.child("recorder", "recorder").process.pid, signal.SIGKILL)).start()
+    score = stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=200.0,
+                                          camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=60)
+    assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 4000
+    assert stack.recording_failure is not None and stack.recording_failure.kind == "recorder_died"
 
 
 def test_a_brain_that_answers_too_late_ends_the_episode_as_brain_timeout(make_stack):
