@@ -15,7 +15,7 @@ from protocol import keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.runtime import RUN_ID_ENV
 
-ROLES = ("router", "simulator", "noise", "brain", "scorer", "recorder", "viz")
+ROLES = ("router", "simulator", "noise", "brain", "scorer", "recorder", "viz", "driver")
 CONNECT_TIMEOUT_S = 2.0
 
 

@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,6 +153,8 @@ class LocalStack:
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.bus: Bus | None = None
         self._watch = None
+        self._driver_name = ""  # our driver liveliness token (declared at the first start)
+        self.busy_wait_s = 0.0  # how long a start waits for a simulator busy with another episode
         self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
         self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
@@ -417,15 +420,28 @@ class LocalStack:
         self._required = {key for key in self._required if keys.parse_alive(key)[1] != "recorder"}
 
     def _start(self, spec: EpisodeSpec) -> ControlReply:
-        """Ask the simulator to start ``spec``. A refusal because the brain is not alive is retried for a moment:
-        the brain's liveliness token reaches the simulator on its own route, which may be slower than ours (a
-        brain on another machine, seen here through the router)."""
-        deadline = time.monotonic() + START_RETRY_S
+        """Ask the simulator to start ``spec``, as this stack's driver (the simulator ends the episode when our
+        driver token goes: nobody would collect its score). A refusal because the brain is not alive is retried
+        for a moment: the brain's liveliness token reaches the simulator on its own route, which may be slower than
+        ours (a brain on another machine, seen here through the router). A busy simulator (someone else's
+        episode) is waited for up to ``busy_wait_s``."""
+        started = time.monotonic()
+        request = ControlRequest(action="start", spec=spec, driver=self._driver_token())
         while True:
-            reply = self._control(ControlRequest(action="start", spec=spec))
-            if reply.ok or "is not alive" not in reply.detail or time.monotonic() > deadline:
+            reply = self._control(request)
+            waited = time.monotonic() - started
+            retry = ("is not alive" in reply.detail and waited < START_RETRY_S) or \
+                (reply.detail.startswith("busy") and waited < self.busy_wait_s)
+            if reply.ok or not retry:
                 return reply
             time.sleep(0.2)
+
+    def _driver_token(self) -> str:
+        """The name of this stack's driver liveliness token, declared on first use."""
+        if not self._driver_name:
+            self._driver_name = f"driver-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+            self.bus.declare_alive(keys.alive(self.run_id, "driver", self._driver_name))
+        return self._driver_name
 
     def _control(self, request: ControlRequest, *, attempts: int = 10) -> ControlReply:
         """A control query to the simulator; retried while its queryable is not yet reachable."""
@@ -461,6 +477,8 @@ class AttachedStack(LocalStack):
         self._required = set()
         self._tolerated = set()
         self.recording_failure = None
+        self._driver_name = ""
+        self.busy_wait_s = self.startup_timeout_s  # --attach waits for the running episode up to --wait
 
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)

@@ -44,6 +44,7 @@ class EndReason(enum.StrEnum):
     CRASH = "crash"  # touched a wall
     BRAIN_TIMEOUT = "brain_timeout"  # lock-step: the active brain did not answer a frame in time
     BRAIN_LOST = "brain_lost"  # the active brain's liveliness token vanished
+    DRIVER_LOST = "driver_lost"  # the process that started the episode (its driver) went away: nobody collects it
     STOPPED = "stopped"  # stopped by run control (user, orchestrator)
 
 
@@ -436,11 +437,16 @@ class ControlRequest(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.
 
     action, simulator: "start" (needs ``spec``), "stop", "status", or "switch" (needs ``brain``: make that alive
         brain the driving one from the next frame on). Brain host: "status" or "stop" (the host exits cleanly).
+    driver: with "start": the name of the starting process's liveliness token (``keys.alive(run, "driver",
+        driver)``); when it is gone for ``DRIVER_GRACE_S`` the simulator ends the episode ``driver_lost`` (a dead
+        man's switch: an episode whose driver died would otherwise run to its time limit and block the next one).
+        Empty: no watch.
     """
 
     action: str
     spec: EpisodeSpec | None = None
     brain: str = ""
+    driver: str = ""
 
 
 class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlReply.v1", tag_field=TAG_FIELD):

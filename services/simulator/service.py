@@ -35,6 +35,7 @@ log = logging.getLogger("drivebench.simulator")
 # subscription was not yet known to this session when the frame went out; brain hosts answer a repeated frame
 # with the command they already computed.
 RESEND_AFTER_S = 1.0
+DRIVER_GRACE_S = 3.0  # an episode's driver gone this long (its token; a router restart takes ~4 s) ends it
 REALTIME_LATENCY_FRAMES = 200  # real time: frames remembered for matching late commands (10 s at 20 Hz)
 
 
@@ -65,13 +66,16 @@ class SimulatorService:
         self._commands = Inbox()
         bus.subscribe(keys.commands_all(run), Command, inbox=self._commands)
         self._alive_brains: set[str] = set()
+        self._alive_drivers: set[str] = set()
+        self._driver = ""  # the running episode's driver (ControlRequest.driver), "" = not watched
+        self._driver_missing_since: float | None = None
         self._alive_lock = threading.Lock()  # guards the alive brains, the active brain and its switches
         self._active_brain = ""
         self._switches: list[tuple[str, str]] = []  # (from, to) accepted, not yet announced by an event
         self._spec: EpisodeSpec | None = None
         self._event_seq = 0
         bus.watch_alive(keys.alive_all(run), self._on_liveliness)
-        self._requests: queue.Queue[tuple[EpisodeSpec, Circuit]] = queue.Queue()
+        self._requests: queue.Queue[tuple[EpisodeSpec, Circuit, str]] = queue.Queue()
         self._state = "idle"
         self._episode = -1
         self._stop_requested = threading.Event()
@@ -89,10 +93,25 @@ class SimulatorService:
             _, role, name = keys.parse_alive(key)
         except ValueError:
             return
-        if role != "brain":
+        if role not in ("brain", "driver"):
             return
         with self._alive_lock:
-            (self._alive_brains.add if alive else self._alive_brains.discard)(name)
+            names = self._alive_brains if role == "brain" else self._alive_drivers
+            (names.add if alive else names.discard)(name)
+
+    def _driver_lost(self) -> bool:
+        """Whether the running episode's driver has been gone (or never seen) for ``DRIVER_GRACE_S``."""
+        if not self._driver:
+            return False
+        with self._alive_lock:
+            present = self._driver in self._alive_drivers
+        now = time.monotonic()
+        if present:
+            self._driver_missing_since = None
+            return False
+        if self._driver_missing_since is None:
+            self._driver_missing_since = now
+        return now - self._driver_missing_since > DRIVER_GRACE_S
 
     def _on_own_key(self, received: Received) -> bool:
         """Whether a command came on its own brain's key: a brain allowed to publish on its key (access control
@@ -172,7 +191,7 @@ class SimulatorService:
         if not self._brain_alive(request.spec.active_brain):
             return codec.encode(ControlReply(ok=False, detail=f"brain {request.spec.active_brain!r} is not alive"))
         self._state = "starting"
-        self._requests.put((request.spec, circuit))
+        self._requests.put((request.spec, circuit, request.driver))
         return codec.encode(ControlReply(ok=True, state="starting", episode=self._episode + 1))
 
     # -- main loop --
@@ -181,10 +200,11 @@ class SimulatorService:
         log.info("simulator ready on run %s", self.config.run_id)
         while True:
             try:
-                spec, circuit = self._requests.get(timeout=0.5)
+                spec, circuit, driver = self._requests.get(timeout=0.5)
             except queue.Empty:
                 continue
             self._episode += 1
+            self._driver, self._driver_missing_since = driver, None
             self._stop_requested.clear()
             with self._alive_lock:  # before "running": a switch accepted from now on applies to this episode
                 self._active_brain = spec.active_brain
@@ -300,6 +320,8 @@ class SimulatorService:
                 return None, EndReason.STOPPED
             if not self._active_alive():
                 return None, EndReason.BRAIN_LOST
+            if self._driver_lost():
+                return None, EndReason.DRIVER_LOST
             now = time.monotonic_ns()
             if now >= deadline:
                 return None, EndReason.BRAIN_TIMEOUT
@@ -350,6 +372,8 @@ class SimulatorService:
                 ending = EndReason.STOPPED
             elif not self._active_alive():
                 ending = EndReason.BRAIN_LOST
+            elif self._driver_lost():
+                ending = EndReason.DRIVER_LOST
             elif time.monotonic_ns() - last_command_ns > spec.brain_timeout_s * 1e9:
                 ending = EndReason.BRAIN_TIMEOUT
             if ending is not None:

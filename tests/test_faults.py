@@ -1,0 +1,78 @@
+"""Faults an operator meets: the driver of an episode dies, two drivers want the same simulator.
+
+Killed services (typed failures, a recorder death that spares the episode) are in tests/test_stack.py; bad input
+before anything starts in tests/test_cli.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from orchestrator.launcher import BrainLaunch
+from protocol import keys
+from protocol.bus import Inbox
+from protocol.messages import EndReason, EpisodeEvent, EventKind
+from services.simulator.service import DRIVER_GRACE_S
+
+pytestmark = pytest.mark.integration
+
+
+def attach(stack, out, *args: str) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--attach", "--router", stack.endpoint,
+                             "--run-id", stack.run_id, "--camera", "64x48", "--json", "--out", str(out), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True)
+
+
+def next_event(inbox: Inbox, kind: EventKind, *, timeout_s: float) -> EpisodeEvent:
+    deadline = time.monotonic() + timeout_s
+    while (received := inbox.recv(timeout_s=max(0.0, deadline - time.monotonic()))) is not None:
+        if received.message.kind == kind:
+            return received.message
+    raise AssertionError(f"no {kind} event within {timeout_s} s")
+
+
+def test_a_killed_attached_driver_ends_its_episode_driver_lost_and_the_next_attach_runs(make_stack, tmp_path):
+    stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
+    events = Inbox()
+    stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
+    driver = attach(stack, tmp_path / "first", "--max-sim-seconds", "600", "--realtime")
+    try:
+        next_event(events, EventKind.START, timeout_s=60)
+        time.sleep(1.0)
+        os.killpg(driver.pid, signal.SIGKILL)  # the driver, and nothing else, is gone
+        killed_at = time.monotonic()
+        end = next_event(events, EventKind.END, timeout_s=DRIVER_GRACE_S + 10)
+        assert end.reason == EndReason.DRIVER_LOST
+        assert time.monotonic() - killed_at < DRIVER_GRACE_S + 2.0
+    finally:
+        driver.kill()
+        driver.communicate()
+    second = attach(stack, tmp_path / "second", "--max-sim-seconds", "3")
+    stdout, stderr = second.communicate(timeout=120)
+    assert second.returncode == 0, stderr
+    assert json.loads(stdout)["reason"] == EndReason.TIME_LIMIT  # the same services, no restart
+
+
+def test_attach_waits_for_a_busy_simulator_instead_of_failing(make_stack, tmp_path):
+    stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
+    events = Inbox()
+    stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
+    first = attach(stack, tmp_path / "first", "--max-sim-seconds", "4", "--realtime")
+    try:
+        next_event(events, EventKind.START, timeout_s=60)
+        second = attach(stack, tmp_path / "second", "--max-sim-seconds", "1", "--wait", "60")
+        out_second, err_second = second.communicate(timeout=120)
+        out_first, err_first = first.communicate(timeout=60)
+    finally:
+        first.kill()
+    assert first.returncode == 0 and second.returncode == 0, err_first + err_second
+    assert json.loads(out_first)["header"]["episode"] + 1 == json.loads(out_second)["header"]["episode"]
