@@ -118,6 +118,8 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         if name not in ("run", "orchestrator"):  # one-shot jobs; everything long-running says when it is ready
             assert service["healthcheck"]["test"][:3] == ["CMD", "drivebench", "health"], name
     assert "networks" not in resolved() or not resolved()["networks"]
+    # Safe by default: the router answers on loopback only unless DRIVEBENCH_LISTEN asks for more.
+    assert services["router"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:7447"]
 
 
 def test_profiles_gpu_reservation_and_ordering():
