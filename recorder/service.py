@@ -43,7 +43,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
         (``foxglove.CompressedImage``, ~10x smaller, lossy).
     jpeg_quality: 1-100, for image_format "jpeg".
     views: also write the Foxglove car pose, transform and track channels (for the 3D panel).
-    flush_interval_s: the most a SIGKILL can lose.
+    flush_interval_s: the most a SIGKILL can lose, in wall time and in simulated time (of what was written).
     attach: text files (e.g. the run's resolved config) stored in the file's metadata, one entry each.
     """
 

@@ -3,8 +3,9 @@
 * The file is written as ``<name>.mcap.part`` and renamed to ``<name>.mcap`` only once complete (summary, indexes,
   footer, fsync), so a ``.mcap`` file is always whole and a ``.part`` file always means "needs repair".
 * Zstd chunks of 1 MiB, chunk and data-section CRCs on.
-* ``flush_if_due`` closes the open chunk every ~1 s, so a recorder killed with SIGKILL loses at most the last
-  second; ``recorder.repair`` rebuilds a complete file from what was flushed.
+* ``flush_if_due`` closes the open chunk every ~1 s of wall time *or* of simulated time, whichever comes first, so
+  a recorder killed with SIGKILL loses at most the last second of either (lock-step runs several times faster
+  than real time); ``recorder.repair`` rebuilds a complete file from what was flushed.
 * Log time is the simulated time of each message on one clock for the whole file: episode n's stamps are offset
   to start one second after the last message of episode n-1, so episodes follow each other on the timeline.
 """
@@ -97,6 +98,9 @@ class RecordingWriter:
         self._views: dict[str, ViewMaker] = {}
         self._with_views = views
         self._last_flush = time.monotonic()
+        # Simulated time too: in lock-step at 4x real time a wall-clock second alone held 4 s of the episode.
+        self._newest_log_ns = 0  # log time of the newest message written
+        self._flushed_log_ns = 0  # log time of the newest message at the last flush
         self._closed = False
 
     # -- writing --
@@ -113,6 +117,7 @@ class RecordingWriter:
         publish_time, sequence = record_stamps(message)
         data = to_record(message, image_format=self.image_format, jpeg_quality=self.jpeg_quality)
         self._writer.add_message(channel, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
+        self._newest_log_ns = max(self._newest_log_ns, log_time)
         self.counts[key] += 1
         self._check_sequence(key, header)
         if self._with_views:
@@ -156,12 +161,17 @@ class RecordingWriter:
     # -- durability --
 
     def flush_if_due(self) -> bool:
-        """Close the open chunk and hand it to the kernel when ``flush_interval_s`` has passed since the last."""
+        """Close the open chunk and hand it to the kernel when ``flush_interval_s`` has passed since the last, in
+        wall time or in the recording's (simulated) time, whichever comes first: a SIGKILL loses at most that much
+        of either."""
         now = time.monotonic()
-        if now - self._last_flush < self.flush_interval_s:
+        wall_due = now - self._last_flush >= self.flush_interval_s
+        sim_due = self._newest_log_ns - self._flushed_log_ns >= self.flush_interval_s * 1e9
+        if not (wall_due or sim_due):
             return False
         self._writer.flush()
         self._last_flush = now
+        self._flushed_log_ns = self._newest_log_ns
         return True
 
     def close(self) -> Path:

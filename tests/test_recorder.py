@@ -84,6 +84,23 @@ def test_a_recording_reads_back_message_for_message(tmp_path):
     assert_valid_mcap(path)
 
 
+def test_flushes_come_every_second_of_simulated_time_even_when_wall_time_flies(tmp_path):
+    """Lock-step runs several times faster than real time: a wall-clock bound alone let a SIGKILL lose seconds of
+    the episode. 30 frames 50 ms apart are 1.5 s of simulated time written in far less than a wall second."""
+    writer = RecordingWriter(tmp_path / "a.mcap", flush_interval_s=1.0)
+    flushed_at = []
+    started = time.monotonic()
+    for seq in range(30):
+        writer.write(keys.pose("r1"), Pose(header=header(seq), x_m=0.0, y_m=0.0, yaw_rad=0.0))
+        if writer.flush_if_due():
+            flushed_at.append(seq)
+    assert time.monotonic() - started < 0.5
+    assert flushed_at == [20]  # 1.0 s after the first message's 0.0 s: what a SIGKILL now loses is <= 1 s of either
+    size_after_flush = part_path(tmp_path / "a.mcap").stat().st_size
+    assert size_after_flush > 0  # handed to the kernel, not held in a buffer
+    writer.close()
+
+
 def test_info_lists_bus_and_view_channels(tmp_path):
     info = recording_info(write_recording(tmp_path / "a.mcap", two_episodes()))
     bus = {c.topic: c.messages for c in info.channels if c.bus_key}
