@@ -48,6 +48,8 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     options: keyword options for the brain's constructor (e.g. ``{speed_mps: 2.0}`` for ``constant``).
     camera: which stream to drive from: ``perturbed`` (after the noise injector, the default) or ``raw`` (straight
         from the simulator, for a stack without a noise injector).
+    orphan_timeout_s: exit (code 0) when the run has had no simulator for this long: nothing a stack or a swap
+        starts outlives its stack. 0 (default): wait for a simulator forever (services started by hand, compose).
     """
 
     bus: BusConfig = BusConfig()
@@ -56,8 +58,11 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     name: str = ""
     options: dict[str, Any] = {}
     camera: str = "perturbed"
+    orphan_timeout_s: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.orphan_timeout_s < 0:
+            raise ValueError(f"orphan_timeout_s must be >= 0, got {self.orphan_timeout_s}")
         if self.camera not in ("raw", "perturbed"):
             raise ValueError(f"camera must be raw or perturbed, got {self.camera!r}")
 
@@ -89,20 +94,38 @@ class BrainHost:
                        else None)
         self._pose_by_frame: dict[tuple[int, int], Pose] = {}
         bus.serve(keys.brain_control(run, self.name), self._on_control)
+        self._simulators = bus.watch_alive(keys.alive_role(run, "simulator")) if config.orphan_timeout_s else None
+        self._simulator_seen = time.monotonic()
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
     def serve_forever(self) -> None:
-        """Answer frames until a "stop" request; then return (the process exits with code 0)."""
+        """Answer frames until a "stop" request (or, with ``orphan_timeout_s``, until the run has lost its simulator);
+        then return (the process exits with code 0)."""
         log.info("brain %s (%s) ready on run %s", self.name, self.config.brain, self.config.run_id)
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not self._orphaned():
             received = self._frames.recv(timeout_s=0.1)
             if received is not None and self._realtime and (newer := self._frames.inbox.drain()):
                 received = newer[-1]
             if received is not None and not self._stop.is_set():
                 self.answer(received.message)
         time.sleep(STOP_LINGER_S)
-        log.info("brain %s stopped on request", self.name)
+        if self._stop.is_set():
+            log.info("brain %s stopped on request", self.name)
+
+    def _orphaned(self) -> bool:
+        """Whether the run has had no simulator for ``orphan_timeout_s`` (only when that watch is on)."""
+        if self._simulators is None:
+            return False
+        now = time.monotonic()
+        if self._simulators.alive():
+            self._simulator_seen = now
+            return False
+        if now - self._simulator_seen < self.config.orphan_timeout_s:
+            return False
+        log.info("no simulator on run %s for %.0f s: its stack is gone, exiting", self.config.run_id,
+                 self.config.orphan_timeout_s)
+        return True
 
     def _on_control(self, payload: bytes) -> bytes:
         """The control queryable (Zenoh's callback thread: never block)."""

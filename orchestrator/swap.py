@@ -37,6 +37,7 @@ EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
 DEFAULT_TIMEOUT_S = 60.0
 STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
 STOP_WAIT_S = 5.0  # how long to wait for the old brain's token to go after it accepted "stop"
+ORPHAN_TIMEOUT_S = 10.0  # a swapped-in brain exits when the run has had no simulator this long (its stack is gone)
 
 
 class SwapError(RuntimeError):
@@ -216,7 +217,8 @@ def _start_brain(*, router: str, run_id: str, brain: str, name: str, options: tu
                  log_path: Path) -> subprocess.Popen:
     """The brain host, detached: its own session, and no parent watch (DRIVEBENCH_PARENT_PID), so that it lives on
     after this command; the stack stops it (over its control key) when the stack closes."""
-    argv = [sys.executable, "-m", "brains", "--router", router, "--run-id", run_id, "--brain", brain, "--name", name]
+    argv = [sys.executable, "-m", "brains", "--router", router, "--run-id", run_id, "--brain", brain, "--name", name,
+            "--set", f"orphan_timeout_s={ORPHAN_TIMEOUT_S}"]  # it watches no parent: it ends when its stack does
     for option in options:
         argv += ["--set", f"options.{option}"]
     env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_PARENT_PID"}

@@ -117,6 +117,11 @@ def alive(run_id: str, role: str, name: str) -> str:
     return f"{ROOT}/alive/{check_name(run_id, what='run id')}/{check_name(role, what='role')}/{check_name(name, what='name')}"
 
 
+def alive_role(run_id: str, role: str) -> str:
+    """Every liveliness token of one role in one run (e.g. its simulators)."""
+    return f"{ROOT}/alive/{check_name(run_id, what='run id')}/{check_name(role, what='role')}/*"
+
+
 def alive_all(run_id: str) -> str:
     return f"{ROOT}/alive/{check_name(run_id, what='run id')}/**"
 

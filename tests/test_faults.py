@@ -76,3 +76,26 @@ def test_attach_waits_for_a_busy_simulator_instead_of_failing(make_stack, tmp_pa
         first.kill()
     assert first.returncode == 0 and second.returncode == 0, err_first + err_second
     assert json.loads(out_first)["header"]["episode"] + 1 == json.loads(out_second)["header"]["episode"]
+
+
+def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_stack, tmp_path):
+    """What drivebench swap starts watches no parent (it must outlive the swap command); it ends with its stack."""
+    stack = make_stack(BrainLaunch("explicit"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    with open(tmp_path / "extra.log", "wb") as log:
+        extra = subprocess.Popen([sys.executable, "-m", "brains", "--router", stack.endpoint, "--run-id",
+                                  stack.run_id, "--brain", "constant", "--name", "extra", "--set",
+                                  "orphan_timeout_s=2"], stdout=log, stderr=subprocess.STDOUT, env=env,
+                                 start_new_session=True)
+    try:
+        token = keys.alive(stack.run_id, "brain", "extra")
+        deadline = time.monotonic() + 30
+        while token not in stack.bus.alive_now(token):
+            assert time.monotonic() < deadline and extra.poll() is None, (tmp_path / "extra.log").read_text()
+        time.sleep(3.0)
+        assert extra.poll() is None  # a simulator is there: it stays
+        stack.child("simulator", "sim").process.kill()
+        assert extra.wait(timeout=15) == 0
+        assert "its stack is gone" in (tmp_path / "extra.log").read_text()
+    finally:
+        extra.kill()
