@@ -35,7 +35,7 @@ log = logging.getLogger("drivebench.simulator")
 # subscription was not yet known to this session when the frame went out; brain hosts answer a repeated frame
 # with the command they already computed.
 RESEND_AFTER_S = 1.0
-DRIVER_GRACE_S = 3.0  # an episode's driver gone this long (its token; a router restart takes ~4 s) ends it
+DRIVER_GRACE_S = 1.5  # an episode's driver gone this long ends it (slack for its token to reach us at the start)
 REALTIME_LATENCY_FRAMES = 200  # real time: frames remembered for matching late commands (10 s at 20 Hz)
 
 
