@@ -144,9 +144,10 @@ def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 
 def test_the_swap_command_finds_a_running_stack_by_its_stack_file(tmp_path):
     out = tmp_path / "run"
-    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--camera",
-                            "96x72", "--out", str(out), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
+    # 50 laps: one lap of simple at 96x72 takes only ~4 s of wall time, less than a swap on a loaded machine.
+    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--laps",
+                            "50", "--camera", "96x72", "--out", str(out), "--json"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
     try:
         wait_for(lambda: (out / "stack.json").is_file() and "started" in _read(out / "logs" / "simulator.log"),
                  timeout_s=60, what="the run to start its episode")
