@@ -107,7 +107,10 @@ else
     say "starting $DOCKERD_BIN ($("$DOCKERD_BIN" --version)): host networking only, data in $CACHE/data-root"
     mkdir -p "$CACHE/data-root" "$CACHE/exec-root"
     # setsid: its own process group, so a Ctrl-C here reaches it only through stop_engine.
+    # --userland-proxy=false: host networking publishes no ports; an unpacked engine has no docker-proxy on PATH and
+    # otherwise fails at once ("userland-proxy is enabled, but userland-proxy-path is not set").
     setsid "$DOCKERD_BIN" --iptables=false --ip6tables=false --bridge=none --ip-forward=false --ip-masq=false \
+      --userland-proxy=false \
       --data-root "$CACHE/data-root" --exec-root "$CACHE/exec-root" --pidfile "$CACHE/dockerd.pid" \
       --init-path "$(command -v tini-static)" -H "$DOCKER_HOST" >"$CACHE/dockerd.log" 2>&1 </dev/null &
     STARTED_DOCKERD=$!
