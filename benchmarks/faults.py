@@ -59,9 +59,11 @@ def standing_still() -> BrainLaunch:
     return BrainLaunch("constant", options=("speed_mps=0.0",))  # never ends by itself before the time limit
 
 
-def kill_child(role: str, name: str, folder: Path) -> Row:
+def kill_child(role: str, name: str, folder: Path, *, fault: str | None = None) -> Row:
+    """SIGKILL one process of a stack (the router too: then it runs as a child process) mid-episode."""
     run_id = f"f{uuid.uuid4().hex[:6]}"
-    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()])
+    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()],
+                       embed_router=role != "router")
     killed_at: list[float] = []
     with stack:
         victim = stack.child(role, name)
@@ -78,7 +80,7 @@ def kill_child(role: str, name: str, folder: Path) -> Row:
         except StackFailure as failure:
             outcome, reason = "failed, typed", failure.kind
         detected = time.monotonic() - killed_at[0]
-    return Row(f"kill -9 {role}", outcome, reason, detected, orphans(run_id))
+    return Row(fault or f"kill -9 {role}", outcome, reason, detected, orphans(run_id))
 
 
 def kill_recorder(folder: Path) -> Row:
@@ -135,28 +137,6 @@ def kill_driver(folder: Path) -> Row:
                 break
         driver.wait()
     return Row("kill -9 attached driver", "ended by the simulator", reason, detected, orphans(run_id))
-
-
-def kill_router(folder: Path) -> Row:
-    run_id = f"f{uuid.uuid4().hex[:6]}"
-    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()], embed_router=False)
-    with stack:
-        router = stack.child("router", "router")
-        killed_at: list[float] = []
-
-        def kill() -> None:
-            killed_at.append(time.monotonic())
-            os.kill(router.process.pid, signal.SIGKILL)
-
-        threading.Timer(KILL_AFTER_S, kill).start()
-        try:
-            score = stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=SMALL_CAMERA),
-                                      wall_timeout_s=60)
-            outcome, reason = "scored", str(score.reason)
-        except StackFailure as failure:
-            outcome, reason = "failed, typed", failure.kind
-        detected = time.monotonic() - killed_at[0]
-    return Row("kill -9 router (separate process)", outcome, reason, detected, orphans(run_id))
 
 
 def flood(folder: Path, seconds: float) -> Row:
@@ -232,7 +212,8 @@ def main() -> int:
         "simulator": lambda f: kill_child("simulator", "sim", f),
         "noise": lambda f: kill_child("noise", "noise", f),
         "scorer": lambda f: kill_child("scorer", "scorer", f),
-        "recorder": kill_recorder, "driver": kill_driver, "router": kill_router,
+        "recorder": kill_recorder, "driver": kill_driver,
+        "router": lambda f: kill_child("router", "router", f, fault="kill -9 router (separate process)"),
         "flood": lambda f: flood(f, args.flood_seconds), "input": bad_inputs,
     }
     chosen = args.only.split(",") if args.only else list(faults)

@@ -40,10 +40,16 @@ def next_event(inbox: Inbox, kind: EventKind, *, timeout_s: float) -> EpisodeEve
     raise AssertionError(f"no {kind} event within {timeout_s} s")
 
 
-def test_a_killed_attached_driver_ends_its_episode_driver_lost_and_the_next_attach_runs(make_stack, tmp_path):
+def still_stack_with_events(make_stack):
+    """A stack whose brain stands still (episodes end only at their limit), and an inbox of its episode events."""
     stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
     events = Inbox()
     stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
+    return stack, events
+
+
+def test_a_killed_attached_driver_ends_its_episode_driver_lost_and_the_next_attach_runs(make_stack, tmp_path):
+    stack, events = still_stack_with_events(make_stack)
     driver = attach(stack, tmp_path / "first", "--max-sim-seconds", "600", "--realtime")
     try:
         next_event(events, EventKind.START, timeout_s=60)
@@ -63,9 +69,7 @@ def test_a_killed_attached_driver_ends_its_episode_driver_lost_and_the_next_atta
 
 
 def test_attach_waits_for_a_busy_simulator_instead_of_failing(make_stack, tmp_path):
-    stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
-    events = Inbox()
-    stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
+    stack, events = still_stack_with_events(make_stack)
     first = attach(stack, tmp_path / "first", "--max-sim-seconds", "4", "--realtime")
     try:
         next_event(events, EventKind.START, timeout_s=60)

@@ -20,18 +20,8 @@ class DeepestLSTMTinyPilotNet(nn.Module):
 
     def __init__(self, dropout: float = 0.2, filters: int = 8):
         super().__init__()
-        self.features = nn.Sequential(
-            nn.Conv2d(3, filters, 3, stride=2), nn.ReLU(),
-            nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
-            nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
-            nn.Dropout(dropout),
-        )
-        # Keras return_sequences: True, True, False; with T = 1 all three are equivalent.
-        self.memory = nn.Sequential(
-            ConvLSTM2d(filters, 8, 5, return_sequences=True),
-            ConvLSTM2d(8, 8, 5, return_sequences=True),
-            ConvLSTM2d(8, 8, 5, return_sequences=False),
-        )
+        self.features = tiny_convs(filters, dropout)
+        self.memory = tiny_conv_lstms(filters)  # with T = 1 Keras' return_sequences True, True, False are equivalent
         self.head = dense_head(8 * 5 * 11, [50, 10, 2])
         keras_init_(self)
 
@@ -39,3 +29,24 @@ class DeepestLSTMTinyPilotNet(nn.Module):
         """x: (B, 3, 50, 100) float32, ImageNet-normalised RGB of rows 240:480 -> (B, 2) = (v_n, w_n), linear."""
         seq = self.features(x).unsqueeze(1)  # (B, T=1, 8, 5, 11): Keras Reshape((1, 5, 11, 8))
         return self.head(torch.flatten(self.memory(seq), 1))
+
+
+def tiny_convs(filters: int, dropout: float) -> nn.Sequential:
+    """Three 3x3 stride-2 valid ReLU convs (50x100 -> 24x49 -> 11x24 -> 5x11) and Dropout."""
+    return nn.Sequential(
+        nn.Conv2d(3, filters, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
+        nn.Dropout(dropout),
+    )
+
+
+def tiny_conv_lstms(filters: int) -> nn.Sequential:
+    """Three 8-filter 5x5 ConvLSTMs; the first two return every step, the last only the final one (Keras'
+    return_sequences True, True, False)."""
+    return nn.Sequential(
+        ConvLSTM2d(filters, 8, 5, return_sequences=True),
+        ConvLSTM2d(8, 8, 5, return_sequences=True),
+        ConvLSTM2d(8, 8, 5, return_sequences=False),
+    )
+

@@ -14,7 +14,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from brains.nets.layers import ConvLSTM2d, dense_head, keras_init_
+from brains.nets.deepest_lstm_tiny_pilotnet.model import tiny_conv_lstms, tiny_convs
+from brains.nets.layers import dense_head, keras_init_
 
 
 class RecurrentTinyPilotNet(nn.Module):
@@ -28,17 +29,8 @@ class RecurrentTinyPilotNet(nn.Module):
 
     def __init__(self, dropout: float = 0.2, filters: int = 8):
         super().__init__()
-        self.features = nn.Sequential(
-            nn.Conv2d(3, filters, 3, stride=2), nn.ReLU(),
-            nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
-            nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
-            nn.Dropout(dropout),
-        )
-        self.memory = nn.Sequential(
-            ConvLSTM2d(filters, 8, 5, return_sequences=True),
-            ConvLSTM2d(8, 8, 5, return_sequences=True),
-            ConvLSTM2d(8, 8, 5, return_sequences=False),
-        )
+        self.features = tiny_convs(filters, dropout)  # the tiny network's own layers, shared over the frames
+        self.memory = tiny_conv_lstms(filters)  # now over a real three-step sequence
         self.head = dense_head(8 * 5 * 11, [50, 10, 2])
         keras_init_(self)
 
