@@ -52,7 +52,7 @@ SHIPPED = sorted(path for path in (ROOT / "brains" / "weights").glob("*.ckpt"))
 
 def test_drivebench_ships_every_network_of_the_paper_and_the_randomised_one():
     assert {path.stem for path in SHIPPED} >= {"pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp",
-                                               "deepest_lstm_tiny_pilotnet_dr"}
+                                               "deepest_lstm_tiny_pilotnet_dr", "recurrent_tiny_pilotnet_dr"}
     for path in (ROOT / "brains" / "weights").iterdir():
         assert path.stat().st_size < 10 * 2**20, f"{path.name}: git files stay under 10 MB"
 
@@ -88,3 +88,16 @@ def test_the_randomised_tiny_network_laps_a_white_road_with_no_line(make_stack):
     score = stack.run_episode(spec)
     assert score.reason == EndReason.LAPS_COMPLETED, score
     assert score.metrics.off_track_events == 0
+
+
+@pytest.mark.slow
+def test_the_randomised_memory_network_laps_simple_with_no_line_and_no_walls(make_stack):
+    """The world the paper's memDCCP fails: only the road's edge against the grass, a few pixels at the horizon."""
+    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / 'recurrent_tiny_pilotnet_dr.ckpt'))}"
+    stack = make_stack(BrainLaunch("recurrent_tiny_pilotnet", name="rtiny_dr", options=(weights,)))
+    spec = apply_variation(EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="rtiny_dr"),
+                           "line=none,walls=off")
+    score = stack.run_episode(spec)
+    assert score.reason == EndReason.LAPS_COMPLETED, score
+    assert score.metrics.off_track_events == 0
+
