@@ -78,26 +78,22 @@ def test_the_shipped_memdccp_laps_simple_with_no_line(make_stack):
     assert score.metrics.off_track_events == 0 and score.metrics.cross_track_max_m < 0.5
 
 
-@pytest.mark.slow
-def test_the_randomised_tiny_network_laps_a_white_road_with_no_line(make_stack):
-    """Trained on random circuits in random worlds, it laps a world no paper-recipe network laps."""
-    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / 'deepest_lstm_tiny_pilotnet_dr.ckpt'))}"
-    stack = make_stack(BrainLaunch("deepest_lstm_tiny_pilotnet", name="tiny_dr", options=(weights,)))
-    spec = apply_variation(EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="tiny_dr"),
-                           "line=none,road=white")
-    score = stack.run_episode(spec)
-    assert score.reason == EndReason.LAPS_COMPLETED, score
-    assert score.metrics.off_track_events == 0
+def lap_of_simple(make_stack, *, brain: str, weights_file: str, variation: str):
+    """The score of one lap of simple in ``variation`` by ``brain`` serving the shipped ``weights_file``."""
+    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / weights_file))}"
+    stack = make_stack(BrainLaunch(brain, name="shipped", options=(weights,)))
+    spec = EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="shipped")
+    return stack.run_episode(apply_variation(spec, variation))
 
 
 @pytest.mark.slow
-def test_the_randomised_memory_network_laps_simple_with_no_line_and_no_walls(make_stack):
-    """The world the paper's memDCCP fails: only the road's edge against the grass, a few pixels at the horizon."""
-    weights = f"weights={json.dumps(str(ROOT / 'brains' / 'weights' / 'recurrent_tiny_pilotnet_dr.ckpt'))}"
-    stack = make_stack(BrainLaunch("recurrent_tiny_pilotnet", name="rtiny_dr", options=(weights,)))
-    spec = apply_variation(EpisodeSpec(circuit="simple", max_sim_seconds=120.0, active_brain="rtiny_dr"),
-                           "line=none,walls=off")
-    score = stack.run_episode(spec)
+@pytest.mark.parametrize("brain, weights_file, variation", [
+    # Trained on random circuits in random worlds, it laps a world no paper-recipe network laps.
+    ("deepest_lstm_tiny_pilotnet", "deepest_lstm_tiny_pilotnet_dr.ckpt", "line=none,road=white"),
+    # The world the paper's memDCCP fails: only the road's edge against the grass, a few pixels at the horizon.
+    ("recurrent_tiny_pilotnet", "recurrent_tiny_pilotnet_dr.ckpt", "line=none,walls=off"),
+], ids=["tiny_dr-no-line-white-road", "rtiny_dr-no-line-no-walls"])
+def test_the_randomised_networks_lap_worlds_the_paper_recipe_fails(make_stack, brain, weights_file, variation):
+    score = lap_of_simple(make_stack, brain=brain, weights_file=weights_file, variation=variation)
     assert score.reason == EndReason.LAPS_COMPLETED, score
     assert score.metrics.off_track_events == 0
-
