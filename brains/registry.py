@@ -141,7 +141,7 @@ def load_factory(source: BrainSource):
     return factory
 
 
-def check_brain(name: str) -> BrainSource:
+def require_brain(name: str) -> BrainSource:
     """Resolve ``name`` and import what it leads to, so that a typo fails before any process starts."""
     source = resolve(name)
     load_factory(source)

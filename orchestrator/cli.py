@@ -27,7 +27,7 @@ from pathlib import Path
 import msgspec
 import yaml
 
-from brains.registry import UnknownBrainError, bus_name, check_brain
+from brains.registry import UnknownBrainError, bus_name, require_brain
 from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
 from orchestrator.matrix_cli import MatrixUsageError
@@ -155,11 +155,6 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         load_circuit(args.circuit)
     except CircuitError as error:
         raise UsageError(str(error)) from None
-    if not args.attach:
-        try:
-            check_brain(args.brain)
-        except UnknownBrainError as error:
-            raise UsageError(str(error)) from None
     width, height = args.camera
     try:
         spec = EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
@@ -336,7 +331,7 @@ def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]
     for item in shadows:
         brain, _, weights = item.partition("=")
         try:
-            check_brain(brain)
+            require_brain(brain)
         except UnknownBrainError as error:
             raise UsageError(f"--shadow: {error}") from None
         options: tuple[str, ...] = ()

@@ -151,10 +151,14 @@ class LocalStack:
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        self._init_state(busy_wait_s=0.0)
+
+    def _init_state(self, *, busy_wait_s: float) -> None:
+        """What a stack knows about itself before it starts (shared with :class:`AttachedStack`)."""
         self.bus: Bus | None = None
         self._watch = None
         self._driver_name = ""  # our driver liveliness token (declared at the first start)
-        self.busy_wait_s = 0.0  # how long a start waits for a simulator busy with another episode
+        self.busy_wait_s = busy_wait_s  # how long a start waits for a simulator busy with another episode
         self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
         self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
@@ -472,13 +476,7 @@ class AttachedStack(LocalStack):
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or os.environ.get("DRIVEBENCH_ROUTER", "")
-        self.bus = None
-        self._watch = None
-        self._required = set()
-        self._tolerated = set()
-        self.recording_failure = None
-        self._driver_name = ""
-        self.busy_wait_s = self.startup_timeout_s  # --attach waits for the running episode up to --wait
+        self._init_state(busy_wait_s=self.startup_timeout_s)  # --attach waits for a running episode up to --wait
 
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)

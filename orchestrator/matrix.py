@@ -60,7 +60,7 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
-from brains.registry import UnknownBrainError, bus_name, check_brain, is_brain_file
+from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain
 from protocol.keys import check_name
 from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
@@ -414,7 +414,7 @@ def _brain_entry(reader: _Reader, node: yaml.Node, *, what: str, base_dir: Path)
     if is_brain_file(name):  # a Behavior Metrics brain file, next to the matrix file unless absolute
         name = str((base_dir / Path(name).expanduser()).resolve())
     try:
-        check_brain(name)
+        require_brain(name)
     except UnknownBrainError as error:
         raise reader.error(name_node, str(error)) from None
     weights = _weights(reader, fields["weights"][1], base_dir=base_dir) if "weights" in fields else None

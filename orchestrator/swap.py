@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from brains.registry import UnknownBrainError, brain_names, bus_name, check_brain
+from brains.registry import UnknownBrainError, brain_names, bus_name, require_brain
 from orchestrator.launcher import STACK_FILE, BrainLaunch, preflight_launches
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, BusError
@@ -378,7 +378,7 @@ def brain_options(brain_option: list[str], weights: Path | None) -> tuple[str, .
 
 def _check_brain(brain: str) -> None:
     try:
-        check_brain(brain)
+        require_brain(brain)
     except UnknownBrainError as error:
         raise SwapUsageError(str(error)) from None
 
@@ -386,7 +386,6 @@ def _check_brain(brain: str) -> None:
 def run_swap_command(args: argparse.Namespace) -> int:
     """``drivebench swap``: one line on stdout when done, one line on stderr when not (exit 2 usage, 1 stack)."""
     try:
-        _check_brain(args.brain)
         options = brain_options(args.brain_option, args.weights)
         try:
             preflight_launches([BrainLaunch(args.brain, options=options)])
