@@ -25,6 +25,7 @@ import pytest
 from orchestrator.launcher import free_loopback_port
 from protocol.messages import EventKind
 from recorder.reading import read_messages
+from needs import missing
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE_FILE = ROOT / "compose.yaml"
@@ -322,7 +323,7 @@ def test_secure_compose_services_drive_an_episode_and_refuse_a_viewer_driver(tmp
     """compose.yaml + compose.secure.yaml with certificates made by scripts/make-certs.sh in the test: mutual TLS
     and access control; the `run` service with the orchestrator's certificate drives, with a viewer's it cannot."""
     if shutil.which("openssl") is None:
-        pytest.skip("scripts/make-certs.sh needs openssl, which is not installed")
+        missing("scripts/make-certs.sh needs openssl, which is not installed")
     certs, results, logs = tmp_path / "certs", tmp_path / "results", tmp_path / "logs"
     made = subprocess.run(["bash", str(ROOT / "scripts" / "make-certs.sh"), str(certs)], capture_output=True,
                           text=True, timeout=120)

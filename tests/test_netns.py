@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
+from needs import missing
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -71,16 +72,16 @@ class Namespaces:
 
 def namespaces_or_skip() -> Namespaces:
     if shutil.which("ip") is None:
-        pytest.skip("iproute2's `ip` is not installed: cannot make network namespaces")
+        missing("iproute2's `ip` is not installed: cannot make network namespaces")
     if os.geteuid() != 0:
-        pytest.skip("network namespaces need root (CI runs as root)")
+        missing("network namespaces need root (CI runs as root)")
     tag = f"{os.getpid() % 100000:05d}"
     namespaces = Namespaces(tag, subnet=200 + os.getpid() % 50)
     try:
         namespaces.create()
     except RuntimeError as error:
         namespaces.delete()
-        pytest.skip(f"this kernel or sandbox does not allow network namespaces with veth pairs: {error}")
+        missing(f"this kernel or sandbox does not allow network namespaces with veth pairs: {error}")
     return namespaces
 
 
