@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
     circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
     show = circuit_commands.add_parser("show", help="a top-down picture of a circuit (start point and direction)")
-    show.add_argument("name", help="circuit name (also random:SEED)")
+    show.add_argument("name", help="circuit name (also random:SEED, twisty:SEED)")
     show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
     show.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
     importer = circuit_commands.add_parser(
@@ -358,7 +358,8 @@ def command_circuits(args: argparse.Namespace) -> int:
                     rows.append((name, "-", "-", f"cannot load: {error}"))
                     continue
                 rows.append((name, f"{circuit.length_m:.1f}", f"{2 * circuit.road_half_width_m:.1f}", circuit.source))
-            rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed"))
+            rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed: a spline, gentle bends"))
+            rows.append(("twisty:SEED", "400-1500", "3.0", "generated from the seed: straights and 8.5-12 m hairpins"))
             widths = [max(len(row[i]) for row in rows) for i in range(3)]
             for row in rows:
                 print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")

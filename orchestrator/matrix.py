@@ -5,7 +5,7 @@ A matrix file::
 
     name: generalization                      # default: the file's stem
     brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
-    circuits: [simple, montmelo, montreal]    # built-in, user or random:SEED circuits
+    circuits: [simple, montmelo, montreal]    # built-in, user, random:SEED or twisty:SEED circuits
     variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
     # or, instead of the product, the worlds one by one:
     #   worlds: [{line: red}, {line: none, walls: off}, {line: red, direction: reverse}]
@@ -67,7 +67,7 @@ from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
 from protocol.variations import CAMERA_KEYS, ROUTE_KEYS, WORLD_KEYS
 from protocol.variations import VariationError, apply_variation, noise_stage, parse_pairs
 from services.circuits import circuit_names
-from services.circuits.library import is_circuit_name
+from services.circuits.library import GENERATED_NAMES, is_circuit_name
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
                   "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")
@@ -485,8 +485,8 @@ def _check_unique_labels(reader: _Reader, entries: list[tuple[BrainEntry, yaml.N
 def _circuit(reader: _Reader, node: yaml.Node) -> str:
     name = reader.text(node, what="a circuit")
     if not is_circuit_name(name):
-        raise reader.error(node, f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or random:SEED; "
-                                 f"see `drivebench circuits list`)")
+        raise reader.error(node, f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
+                                 f"or {GENERATED_NAMES}; see `drivebench circuits list`)")
     return name
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from services.circuits import Centreline, Circuit, CircuitError, circuit_names, load_circuit
-from services.circuits.generator import random_circuit
+from services.circuits.generator import random_circuit, twisty_circuit
 from services.circuits.library import (
     builtin_circuit_names,
     check_track,
@@ -209,12 +209,14 @@ def test_check_track_rejects_malformed_points():
 
 # -- random circuits --------------------------------------------------------------------------------------------------
 
+GENERATED_SEEDS = [("random:", seed) for seed in range(20)] + [("twisty:", seed) for seed in range(10)]
 
-@pytest.mark.parametrize("seed", range(20))
-def test_random_circuits_are_valid_and_deterministic(seed):
-    circuit = random_circuit(seed)
-    again = load_circuit(f"random:{seed}")
-    assert circuit.name == again.name == f"random:{seed}"
+
+@pytest.mark.parametrize("prefix, seed", GENERATED_SEEDS)
+def test_generated_circuits_are_valid_and_deterministic(prefix, seed):
+    circuit = (random_circuit if prefix == "random:" else twisty_circuit)(seed)
+    again = load_circuit(f"{prefix}{seed}")
+    assert circuit.name == again.name == f"{prefix}{seed}"
     np.testing.assert_array_equal(circuit.centreline.points_m, again.centreline.points_m)
     points = circuit.centreline.points_m
     steps = np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)
@@ -228,17 +230,32 @@ def test_random_circuits_are_valid_and_deterministic(seed):
 
 def test_random_circuits_differ_by_seed():
     assert random_circuit(1).length_m != random_circuit(2).length_m
+    assert twisty_circuit(1).length_m != twisty_circuit(2).length_m
 
 
-@pytest.mark.parametrize("name", ["random:", "random:-1", "random:x", "random:1.5"])
-def test_bad_random_names_are_refused(name):
-    with pytest.raises(CircuitError, match="random:SEED"):
+def _tight_fraction(circuit) -> float:
+    return float(np.mean(turn_radii_m(circuit.centreline.points_m) < 15.0))
+
+
+def test_twisty_circuits_turn_tight_as_montmelo_does():
+    """What twisty:SEED is for: hairpins. Over seeds 0-9 its laps turn tighter than 15 m about as often as
+    Montmelo's (a fifth of the lap) and far more often than the spline circuits'."""
+    twisty = np.mean([_tight_fraction(twisty_circuit(seed)) for seed in range(10)])
+    spline = np.mean([_tight_fraction(random_circuit(seed)) for seed in range(10)])
+    assert twisty > 0.5 * _tight_fraction(load_circuit("montmelo"))
+    assert twisty > 5 * spline
+
+
+@pytest.mark.parametrize("name", ["random:", "random:-1", "random:x", "random:1.5", "twisty:", "twisty:x"])
+def test_bad_generated_names_are_refused(name):
+    with pytest.raises(CircuitError, match=f"{name.split(':')[0]}:SEED"):
         load_circuit(name)
 
 
-def test_random_circuit_wants_a_non_negative_integer():
+@pytest.mark.parametrize("generator", [random_circuit, twisty_circuit])
+def test_generated_circuit_wants_a_non_negative_integer(generator):
     with pytest.raises(CircuitError, match="non-negative integer"):
-        random_circuit(-1)
+        generator(-1)
 
 
 # -- user circuits --------------------------------------------------------------------------------------------------

@@ -1,5 +1,7 @@
-"""Procedural circuits: ``random_circuit(seed)``, loaded by name as ``random:SEED``.
+"""Procedural circuits: ``random_circuit(seed)`` and ``twisty_circuit(seed)``, loaded by name as ``random:SEED`` and
+``twisty:SEED``.
 
+**random:SEED.** 
 A candidate is a periodic cubic spline through 7-14 control points scattered around a circle: the points are
 taken in clockwise order at evenly spaced angles with a random jitter, at random distances from the centre (so the
 circle becomes bays, bulges, S-bends and the odd hairpin). A candidate is kept when
@@ -13,6 +15,13 @@ otherwise the next candidate is drawn from a seed derived from ``(seed, attempt)
 NumPy's PCG64 generator seeded by ``[seed, attempt]``, so a seed always gives the same circuit. The start is moved
 to the straightest stretch of the lap (the point whose surroundings, :data:`START_WINDOW_M` either way, bend least).
 Road, line and walls are at Behavior Metrics' scale (3 m, 0.10 m, 0.5 m).
+
+**twisty:SEED.** The spline circuits bend gently: at most 2 % of their lap turns tighter than 10 m (seeds 300-700),
+against 12 % of Montmelo's. A twisty circuit is built the way real circuits are drawn, straights and arcs: a
+polygon of 7-11 corners scattered around a circle (deeper bays than the spline's), each corner rounded by an arc of
+radius 8.5-12 m tangent to both sides (rejected when two arcs do not fit on one side with a 4 m straight between).
+A typical one turns tighter than 15 m over a sixth of its lap (Montmelo: a fifth). The same checks and start
+rule as random:SEED apply.
 """
 
 from __future__ import annotations
@@ -26,11 +35,13 @@ from services.circuits.centreline import Centreline
 from services.circuits.library import (
     RANDOM_PREFIX,
     RESAMPLE_STEP_M,
+    TWISTY_PREFIX,
     Circuit,
     CircuitError,
     check_track,
     closed_spline,
     min_turn_radius_m,
+    resample_closed_polyline,
     signed_area_m2,
     turn_radii_m,
 )
@@ -44,41 +55,100 @@ MIN_RADIUS_M = 8.0
 MIN_GAP_M = 8.0
 START_WINDOW_M = 15.0
 MAX_ATTEMPTS = 200
+TWISTY_FILLET_RADII_M = (8.5, 12.0)
+TWISTY_MIN_STRAIGHT_M = 4.0
+ARC_STEP_M = 0.05
 
 
 def random_circuit(seed: int) -> Circuit:
-    """The procedural circuit of ``seed`` (a non-negative integer), named ``random:SEED``; see the module doc."""
+    """The procedural spline circuit of ``seed`` (a non-negative integer), named ``random:SEED``; see the module doc."""
+    return _generate(seed, prefix=RANDOM_PREFIX, candidate=_candidate, kind="procedural circuit")
+
+
+def twisty_circuit(seed: int) -> Circuit:
+    """The procedural straights-and-arcs circuit of ``seed``, named ``twisty:SEED``; see the module doc."""
+    return _generate(seed, prefix=TWISTY_PREFIX, candidate=_twisty_candidate, kind="twisty procedural circuit")
+
+
+def _generate(seed: int, *, prefix: str, candidate, kind: str) -> Circuit:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise CircuitError(f"a random circuit's seed must be a non-negative integer, got {seed!r}")
+        raise CircuitError(f"a {prefix[:-1]} circuit's seed must be a non-negative integer, got {seed!r}")
     seed = int(seed)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, attempt])
-        points = _candidate(rng)
+        points = candidate(rng)
         if points is not None:
             return Circuit(
-                name=f"{RANDOM_PREFIX}{seed}",
-                description=f"procedural circuit of seed {seed} (candidate {attempt})",
+                name=f"{prefix}{seed}",
+                description=f"{kind} of seed {seed} (candidate {attempt})",
                 source="drivebench procedural generator (services.circuits.generator)",
                 centreline=Centreline(points),
                 road_half_width_m=ROAD_WIDTH_M / 2,
                 line_width_m=LINE_WIDTH_M,
                 wall_height_m=WALL_HEIGHT_M,
             )
-    raise CircuitError(f"no valid random circuit for seed {seed} in {MAX_ATTEMPTS} attempts")  # pragma: no cover
+    raise CircuitError(f"no valid {prefix[:-1]} circuit for seed {seed} in {MAX_ATTEMPTS} attempts")  # pragma: no cover
 
 
 def _candidate(rng: np.random.Generator) -> np.ndarray | None:
-    """A clockwise centreline resampled every RESAMPLE_STEP_M, starting on its straightest stretch; None if the
-    draw fails a test."""
+    """A clockwise spline centreline resampled every RESAMPLE_STEP_M, starting on its straightest stretch; None if
+    the draw fails a test."""
     count = int(rng.integers(7, 15))
     target_length = rng.uniform(450.0, 1350.0)
     # Scattered radii make the lap longer than the circle's circumference; 1.15 is the typical ratio.
     mean_radius = target_length / (2 * math.pi * 1.15)
+    control = _scattered_polygon(rng, count=count, mean_radius_m=mean_radius, scatter=(0.55, 1.25))
+    return _checked_and_started(closed_spline(control, step_m=RESAMPLE_STEP_M))
+
+
+def _twisty_candidate(rng: np.random.Generator) -> np.ndarray | None:
+    """A clockwise straights-and-arcs centreline (a scattered polygon with rounded corners), like _candidate's."""
+    count = int(rng.integers(7, 12))
+    target_length = rng.uniform(450.0, 1100.0)
+    corners = _scattered_polygon(rng, count=count, mean_radius_m=target_length / (2 * math.pi * 1.2),
+                                 scatter=(0.3, 1.3))
+    dense = _rounded_polygon(corners, fillet_radii_m=rng.uniform(*TWISTY_FILLET_RADII_M, count))
+    if dense is None:
+        return None
+    return _checked_and_started(resample_closed_polyline(dense, step_m=RESAMPLE_STEP_M))
+
+
+def _scattered_polygon(rng: np.random.Generator, *, count: int, mean_radius_m: float,
+                       scatter: tuple[float, float]) -> np.ndarray:
+    """``count`` points in clockwise order at evenly spaced, jittered angles, at scattered distances from the centre."""
     spacing = 2 * math.pi / count
     angles = -spacing * np.arange(count) + rng.uniform(-0.3, 0.3, count) * spacing  # clockwise
-    radii = mean_radius * rng.uniform(0.55, 1.25, count)
-    control = np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
-    points = closed_spline(control, step_m=RESAMPLE_STEP_M)
+    radii = mean_radius_m * rng.uniform(*scatter, count)
+    return np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
+
+
+def _rounded_polygon(corners_m: np.ndarray, *, fillet_radii_m: np.ndarray) -> np.ndarray | None:
+    """The closed polygon with each corner replaced by an arc of its radius tangent to both sides, sampled every
+    ARC_STEP_M along the arcs (the straights are the gaps between arcs); None where two arcs do not fit on one side
+    with TWISTY_MIN_STRAIGHT_M between them."""
+    sides = np.roll(corners_m, -1, axis=0) - corners_m  # side i runs from corner i to corner i + 1
+    side_lengths = np.hypot(*sides.T)
+    heading_out = sides / side_lengths[:, None]
+    heading_in = np.roll(heading_out, 1, axis=0)
+    cross = heading_in[:, 0] * heading_out[:, 1] - heading_in[:, 1] * heading_out[:, 0]
+    turn_rad = np.arctan2(cross, np.sum(heading_in * heading_out, axis=1))  # > 0: a left turn
+    tangent_m = fillet_radii_m * np.tan(np.abs(turn_rad) / 2)  # corner to where the arc meets each side
+    if np.any(tangent_m + np.roll(tangent_m, -1) + TWISTY_MIN_STRAIGHT_M > side_lengths):
+        return None
+    arcs = []
+    for corner, heading, turn, radius, tangent in zip(corners_m, heading_in, turn_rad, fillet_radii_m, tangent_m):
+        arc_start = corner - heading * tangent
+        left_normal = np.array([-heading[1], heading[0]])
+        centre = arc_start + math.copysign(radius, turn) * left_normal
+        start_angle = math.atan2(arc_start[1] - centre[1], arc_start[0] - centre[0])
+        count = max(2, int(abs(turn) * radius / ARC_STEP_M))
+        angles = start_angle + turn * np.arange(count + 1) / count
+        arcs.append(centre + radius * np.column_stack([np.cos(angles), np.sin(angles)]))
+    return np.vstack(arcs)
+
+
+def _checked_and_started(points: np.ndarray) -> np.ndarray | None:
+    """``points`` rolled to start on their straightest stretch, or None if the lap fails a test of the module doc."""
     length = float(np.sum(np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)))
     if not MIN_LENGTH_M <= length <= MAX_LENGTH_M or signed_area_m2(points) >= 0:
         return None

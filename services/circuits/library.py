@@ -7,6 +7,8 @@ Three kinds of names:
   ``~/.local/share/drivebench/circuits``), e.g. written by :func:`services.circuits.importer.import_racetrack_csv`.
   They are checked with :func:`check_track` when loaded. A built-in of the same name wins;
 * ``random:SEED``: a procedural circuit from :func:`services.circuits.generator.random_circuit`.
+* ``twisty:SEED``: a procedural circuit of straights and hairpins from
+  :func:`services.circuits.generator.twisty_circuit`.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from services.circuits.centreline import Centreline
 
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
+TWISTY_PREFIX = "twisty:"
+GENERATED_NAMES = "random:SEED or twisty:SEED"
 USER_CIRCUITS_ENV = "DRIVEBENCH_CIRCUITS_DIR"
 # A circuit name a user may give: letters, digits, '_', '-' and '.', starting with a letter or digit (so no path,
 # no hidden file, no "random:" prefix).
@@ -120,26 +124,34 @@ def user_circuit_names() -> list[str]:
 
 
 def circuit_names() -> list[str]:
-    """Every loadable circuit name but the ``random:SEED`` ones: built-ins and user circuits, sorted."""
+    """Every loadable circuit name but the generated ones (``random:SEED``, ``twisty:SEED``): built-ins and user
+    circuits, sorted."""
     return sorted(set(builtin_circuit_names()) | set(user_circuit_names()))
 
 
 def is_circuit_name(name: str) -> bool:
-    """Whether :func:`load_circuit` knows ``name`` (without loading it): a built-in, a user circuit or random:SEED."""
-    return _random_seed(name) is not None or name in circuit_names()
+    """Whether :func:`load_circuit` knows ``name`` (without loading it): a built-in, a user circuit, random:SEED or
+    twisty:SEED."""
+    return _generated_seed(name) is not None or name in circuit_names()
 
 
-def _random_seed(name: str) -> int | None:
-    if not name.startswith(RANDOM_PREFIX):
+def _generated_prefix(name: str) -> str | None:
+    return next((prefix for prefix in (RANDOM_PREFIX, TWISTY_PREFIX) if name.startswith(prefix)), None)
+
+
+def _generated_seed(name: str) -> int | None:
+    prefix = _generated_prefix(name)
+    if prefix is None:
         return None
-    text = name[len(RANDOM_PREFIX):]
+    text = name[len(prefix):]
     if not re.fullmatch(r"\d{1,18}", text):
         return None
     return int(text)
 
 
 def load_circuit(name: str, *, direction: str = "forward") -> Circuit:
-    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED``; ``direction="reverse"`` gives it
+    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED`` or ``twisty:SEED``;
+    ``direction="reverse"`` gives it
     driven the other way round (:meth:`Circuit.reversed`), as an episode spec's ``direction`` asks.
 
     :class:`CircuitError` names the known ones when it does not exist, and says what is wrong with a bad file.
@@ -158,14 +170,16 @@ def _load_forward(name: str) -> Circuit:
         user = user_circuits_dir() / f"{name}.yaml"
         if user.is_file():
             return circuit_from_file(user, check=True)
-    if name.startswith(RANDOM_PREFIX):
-        seed = _random_seed(name)
+    prefix = _generated_prefix(name)
+    if prefix is not None:
+        seed = _generated_seed(name)
         if seed is None:
-            raise CircuitError(f"bad random circuit name {name!r}: want random:SEED with SEED a non-negative integer")
-        from services.circuits.generator import random_circuit  # the generator imports this module
+            raise CircuitError(f"bad generated circuit name {name!r}: "
+                               f"want {prefix}SEED with SEED a non-negative integer")
+        from services.circuits.generator import random_circuit, twisty_circuit  # the generator imports this module
 
-        return random_circuit(seed)
-    raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or random:SEED)")
+        return (random_circuit if prefix == RANDOM_PREFIX else twisty_circuit)(seed)
+    raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")
 
 
 def circuit_from_file(path: Path, *, check: bool = False) -> Circuit:
