@@ -3,8 +3,9 @@
 For each fault: what happened to the episode (outcome), the typed reason it was given, how long after the fault
 that reason was known, how many processes of that stack were still running two seconds after it closed (orphans),
 and what data was lost. Faults: kill -9 of each process mid-episode (brain, simulator, noise injector, scorer,
-recorder, an attached driver, a separate router), a flood of garbage on the command and camera keys, and bad input
-on the command line. Not a timed test: detection times are measured, not asserted; run it to see the table.
+recorder, an attached driver, a separate router), the router killed and started again under an attached run on
+long-lived services (the compose deployment), a flood of garbage on the command and camera keys (with each
+process's peak memory), and bad input on the command line. Not a timed test: detection times are measured, not asserted; run it to see the table.
 
     .venv/bin/python benchmarks/faults.py [--flood-seconds 5] [--only brain,recorder,...]
 """
@@ -12,6 +13,7 @@ on the command line. Not a timed test: detection times are measured, not asserte
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import subprocess
@@ -25,9 +27,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from orchestrator.launcher import BrainLaunch, LocalStack, StackFailure
+from orchestrator.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
 from protocol import keys
-from protocol.bus import Inbox, Traffic
+from protocol.bus import BusError, Inbox, Traffic, probe_router
 from protocol.messages import CameraSpec, EpisodeEvent, EpisodeSpec, EventKind, Pose
 from recorder.reading import read_messages
 from recorder.repair import repair
@@ -112,6 +114,84 @@ def kill_recorder(folder: Path) -> Row:
                f"{max(lost_s, 0.0):.2f} s of simulated time")
 
 
+def clean_env(**variables: str) -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")} | variables
+
+
+def drivebench(*args: str, env: dict[str, str], log: Path) -> subprocess.Popen:
+    with open(log, "ab") as out:
+        return subprocess.Popen([sys.executable, "-m", *args], stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT,
+                                start_new_session=True)
+
+
+def wait_for(condition, *, timeout_s: float) -> float | None:
+    """Seconds until ``condition()`` held, polled every 50 ms; None if it never did within ``timeout_s``."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout_s:
+        if condition():
+            return time.monotonic() - start
+        time.sleep(0.05)
+    return None
+
+
+COMPOSE_SERVICES = {"simulator": ["services.simulator"], "noise": ["services.noise"], "scorer": ["services.scorer"],
+                    "brain": ["brains", "--brain", "constant", "--set", "options.speed_mps=0.0"]}
+
+
+def restart_router(folder: Path) -> Row:
+    """compose's deployment: a router and services that outlive episodes. The router is killed (kill -9) under an
+    attached run and started again on the same port: the driver must fail typed, the simulator must end the episode,
+    and the next attach must run on the same services."""
+    run_id = f"f{uuid.uuid4().hex[:6]}"
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    env = clean_env(DRIVEBENCH_ROUTER=endpoint, DRIVEBENCH_RUN_ID=run_id)
+    logs = folder / run_id
+    logs.mkdir()
+    router_argv = ("services.router", "--listen", endpoint)
+    processes = {"router": drivebench(*router_argv, env=env, log=logs / "router.log")}
+    try:
+        wait_for(lambda: _answers(endpoint), timeout_s=30)
+        processes |= {name: drivebench(*argv, env=env, log=logs / f"{name}.log")
+                      for name, argv in COMPOSE_SERVICES.items()}
+        attach = ("orchestrator.cli", "run", "--attach", "--brain", "constant", "--runs-dir", str(logs / "runs"),
+                  "--camera", "64x48")
+        driver = drivebench(*attach, "--max-sim-seconds", "600", env=env, log=logs / "driver.log")
+        simulator_log = logs / "simulator.log"
+        wait_for(lambda: "episode 0 started" in simulator_log.read_text(errors="replace"), timeout_s=90)
+        time.sleep(KILL_AFTER_S)
+        os.killpg(processes["router"].pid, signal.SIGKILL)
+        processes["router"].wait()
+        killed_at = time.monotonic()
+        processes["router"] = drivebench(*router_argv, env=env, log=logs / "router.log")
+        driver.wait(timeout=60)
+        driver_failed_s = time.monotonic() - killed_at
+        ended_s = wait_for(lambda: "episode 0 ended: driver_lost" in simulator_log.read_text(errors="replace"),
+                           timeout_s=30)
+        failure = json.loads(next((logs / "runs").glob("*/failure.json")).read_text())["failure"]
+        again = drivebench(*attach, "--max-sim-seconds", "4", env=env, log=logs / "driver.log").wait(timeout=120)
+        services_kept = all(processes[name].poll() is None for name in COMPOSE_SERVICES)
+    finally:
+        for process in processes.values():
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGTERM)
+        for process in processes.values():
+            process.wait(timeout=30)
+    next_run = "next attach scored" if again == 0 else f"next attach exited {again}"
+    ended = "episode ended driver_lost" if ended_s is not None else "EPISODE STILL RUNNING"
+    kept = "services kept" if services_kept else "A SERVICE DIED"
+    return Row("router kill -9 + restart under an attached run (compose services)",
+               f"driver failed typed; {ended}; {next_run}; {kept}", f"{failure} + driver_lost", driver_failed_s,
+               sum(process.poll() is None for process in processes.values()))
+
+
+def _answers(endpoint: str) -> bool:
+    try:
+        probe_router(endpoint, timeout_s=0.5)
+        return True
+    except BusError:
+        return False
+
+
 def kill_driver(folder: Path) -> Row:
     run_id = f"f{uuid.uuid4().hex[:6]}"
     with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()]) as stack:
@@ -162,12 +242,28 @@ def flood(folder: Path, seconds: float) -> Row:
                 thread.start()
             score = stack.run_episode(EpisodeSpec(max_sim_seconds=20, camera=CameraSpec()), wall_timeout_s=120)
             stop.set()
-            results.append((score, sent[0], run_id))
-    (clean, _, _), (noisy, count, run_id) = results
+            peaks = {f"{child.role}/{child.name}": peak_rss_mb(child.process.pid) for child in stack.children}
+            results.append((score, sent[0], run_id, peaks))
+    (clean, _, _, clean_peaks), (noisy, count, run_id, noisy_peaks) = results
     same = (clean.metrics.progress_m, clean.metrics.cross_track_mean_m) == \
         (noisy.metrics.progress_m, noisy.metrics.cross_track_mean_m)
-    return Row(f"flood: {count:,} garbage messages in {seconds:g} s", "scored" if same else "scored, DIFFERENT",
-               str(noisy.reason), None, orphans(run_id), "none (identical trajectory)" if same else "trajectory changed")
+    growth = {name: noisy_peaks[name] - clean_peaks[name] for name in noisy_peaks if name in clean_peaks}
+    worst = max(growth, key=growth.get)
+    outcome = "scored" if same else "scored, DIFFERENT"
+    return Row(f"flood: {count:,} garbage messages in {seconds:g} s",
+               f"{outcome}; peak memory +{max(growth[worst], 0):.0f} MB at most ({worst}, "
+               f"{noisy_peaks[worst]:.0f} MB)", str(noisy.reason), None, orphans(run_id),
+               "none (identical trajectory)" if same else "trajectory changed")
+
+
+def peak_rss_mb(pid: int) -> float:
+    """The process's peak resident memory (VmHWM), in MB; 0 if it is gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0.0
+    line = next((line for line in status.splitlines() if line.startswith("VmHWM:")), "VmHWM: 0 kB")
+    return int(line.split()[1]) / 1024
 
 
 BAD_INPUTS = [
@@ -205,7 +301,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flood-seconds", type=float, default=5.0, help="how long the flood lasts (default 5)")
     parser.add_argument("--only", help="comma-separated faults: brain, simulator, noise, scorer, recorder, driver, "
-                                       "router, flood, input (default: all)")
+                                       "router, router_restart, flood, input (default: all)")
     args = parser.parse_args()
     faults = {
         "brain": lambda f: kill_child("brain", "constant", f),
@@ -214,6 +310,7 @@ def main() -> int:
         "scorer": lambda f: kill_child("scorer", "scorer", f),
         "recorder": kill_recorder, "driver": kill_driver,
         "router": lambda f: kill_child("router", "router", f, fault="kill -9 router (separate process)"),
+        "router_restart": restart_router,
         "flood": lambda f: flood(f, args.flood_seconds), "input": bad_inputs,
     }
     chosen = args.only.split(",") if args.only else list(faults)

@@ -279,6 +279,11 @@ class LocalStack:
             if self._router_gone():
                 return StackFailure("router_died", f"the router at {self.endpoint} stopped answering (every "
                                                    f"process lost its link: {len(gone)} liveliness token(s) gone)")
+            if len(gone) > 1 and gone == self._required:
+                # A router killed and started again at once answers the probe, but every link through it broke.
+                return StackFailure("router_died", f"every process lost its liveliness token at once ({len(gone)} "
+                                                   f"tokens): the link through the router at {self.endpoint} broke "
+                                                   f"(the router restarted?)")
             _, role, name = keys.parse_alive(sorted(gone)[0])
             return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
         return None

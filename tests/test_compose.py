@@ -284,6 +284,51 @@ def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path
         "explicit", "deepest_lstm_tiny_pilotnet"]
 
 
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_needs_no_restart(tmp_path):
+    """kill -9 of the router mid-episode, started again at once: the driver fails typed (router_died), the simulator
+    ends the episode (driver_lost) instead of driving on over its peer links, and the services, never restarted,
+    run the next attached episode."""
+    port = free_loopback_port()
+    env = {"DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}", "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
+           "MAX_SIM_SECONDS": "600", "DRIVEBENCH_RUN_ID": f"restart{port}"}
+    results, logs = tmp_path / "results", tmp_path / "logs"
+    results.mkdir()
+    logs.mkdir()
+    stack = ComposeEmulation(resolved(env=env, profiles=()), results, logs)
+    try:
+        for name in ("router", "simulator", "noise", "scorer", "brain"):
+            stack.up(name)
+        driver = stack.start("run")
+        deadline = time.monotonic() + 60
+        while "episode 0 started" not in stack.log("simulator"):
+            assert time.monotonic() < deadline and driver.poll() is None, stack.log("run")
+            time.sleep(0.2)
+        time.sleep(2.0)
+        router = stack.processes.pop("router")
+        os.killpg(router.pid, signal.SIGKILL)
+        router.wait()
+        stack.start("router")
+        assert driver.wait(timeout=30) == 1, stack.log("run")
+        deadline = time.monotonic() + 20
+        while "episode 0 ended: driver_lost" not in stack.log("simulator"):
+            assert time.monotonic() < deadline, stack.log("simulator")
+            time.sleep(0.2)
+        stack.processes.pop("run")
+        assert all(stack.processes[name].poll() is None for name in ("simulator", "noise", "scorer", "brain"))
+        short = ComposeEmulation(resolved(env=env | {"MAX_SIM_SECONDS": "3"}, profiles=()), results, logs)
+        short.processes = stack.processes
+        assert short.start("run").wait(timeout=120) == 0, short.log("run")
+        stack.processes.pop("run")
+    finally:
+        stack.close()
+    failures = list((results / "runs").glob("*/failure.json"))
+    scores = list((results / "runs").glob("*/score.json"))
+    assert len(failures) == 1 and json.loads(failures[0].read_text())["failure"] == "router_died"
+    assert len(scores) == 1 and json.loads(scores[0].read_text())["reason"] == "time_limit"
+
+
 def test_every_service_command_names_a_real_module_or_drivebench_command():
     from orchestrator.cli import build_parser
 
