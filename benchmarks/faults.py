@@ -5,7 +5,8 @@ that reason was known, how many processes of that stack were still running two s
 and what data was lost. Faults: kill -9 of each process mid-episode (brain, simulator, noise injector, scorer,
 recorder, an attached driver, a separate router), the router killed and started again under an attached run on
 long-lived services (the compose deployment), a flood of garbage on the command and camera keys (with each
-process's peak memory), and bad input on the command line. Not a timed test: detection times are measured, not asserted; run it to see the table.
+process's peak memory), and bad input on the command line. Not a timed test: detection times are measured, not
+asserted; run it to see the table.
 
     .venv/bin/python benchmarks/faults.py [--flood-seconds 5] [--only brain,recorder,...]
 """
