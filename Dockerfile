@@ -36,8 +36,15 @@ ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \
 WORKDIR /app
 COPY experiments experiments
 COPY deploy deploy
+# Not root: a process reachable over the bus must not own the machine. compose runs every service as
+# DRIVEBENCH_UID:DRIVEBENCH_GID (default 1000:1000, the usual first user) so that what lands in the bind-mounted
+# ./results belongs to you; alone, the image runs as its own user `drivebench` (uid 1000). HOME is /tmp: an
+# arbitrary uid has no home, and matplotlib and torch want a writable cache.
+RUN useradd --uid 1000 --user-group --no-create-home --home-dir /tmp --shell /usr/sbin/nologin drivebench \
+    && mkdir -p /results && chown drivebench:drivebench /results
+ENV HOME=/tmp MPLCONFIGDIR=/tmp/matplotlib
+USER drivebench
 # Results, recordings and matrices go to /results (a mounted folder in compose.yaml).
-RUN mkdir -p /results
 VOLUME /results
 # Every service's command overrides this; alone, the image drives one episode on a local stack.
 CMD ["drivebench", "run", "--runs-dir", "/results/runs"]

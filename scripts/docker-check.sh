@@ -18,7 +18,8 @@
 #    that the project's reader and, where node is installed, the independent validator accept; then
 #    `docker compose down`.
 # Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
-# under $CACHE/results), EXTRAS (empty), PORT (7447, or a free one when taken), DOCKERD (a dockerd to use).
+# under $CACHE/results), EXTRAS (empty), PORT (7447, or a free one when taken), DOCKERD (a dockerd to use),
+# DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own every result file).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -28,7 +29,10 @@ COMPOSE_BIN=${COMPOSE_BIN:-$ROOT/.venv/lib/python3.11/site-packages/compose/dock
 export EXTRAS=${EXTRAS-}
 export RESULTS_DIR=${RESULTS_DIR:-$CACHE/results/$(date -u +%Y%m%dT%H%M%SZ)}
 PYTHON=$ROOT/.venv/bin/python
+# The services run as this uid:gid (compose's default, never root): the results folder must be theirs.
+export DRIVEBENCH_UID=${DRIVEBENCH_UID:-1000} DRIVEBENCH_GID=${DRIVEBENCH_GID:-1000}
 mkdir -p "$CACHE" "$RESULTS_DIR"
+chown "$DRIVEBENCH_UID:$DRIVEBENCH_GID" "$RESULTS_DIR"
 LOG=$RESULTS_DIR/docker-check.log
 T0=$(date +%s)
 
@@ -228,6 +232,9 @@ recordings=("$RESULTS_DIR"/recordings/*.mcap) parts=("$RESULTS_DIR"/recordings/*
 [ ${#recordings[@]} = 1 ] || die "expected one finished recordings/*.mcap, found: ${recordings[*]:-none}"
 [ ${#parts[@]} = 0 ] || die "an unfinished recording was left: ${parts[*]}"
 say "score: ${scores[0]}"
+not_theirs=$(find "$RESULTS_DIR/runs" "$RESULTS_DIR/recordings" ! -user "$DRIVEBENCH_UID" | head -3)
+[ -z "$not_theirs" ] || die "results not written as uid $DRIVEBENCH_UID (the services ran as someone else): $not_theirs"
+say "every result file belongs to uid $DRIVEBENCH_UID: no service ran as root"
 "$PYTHON" - "${scores[0]}" <<'EOF' | tee -a "$LOG"
 import json, sys
 score = json.load(open(sys.argv[1]))

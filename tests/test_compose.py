@@ -112,6 +112,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
         assert "networks" not in service, name
         assert service["init"] is True, name
+        assert service["user"] == "1000:1000", f"{name}: never root by default"
         assert service["stop_signal"] == "SIGTERM", name
         assert service["environment"]["DRIVEBENCH_ROUTER"] == "tcp/127.0.0.1:7447", name
         assert service["environment"]["DRIVEBENCH_RUN_ID"] == "compose", name
@@ -119,6 +120,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         if name not in ("run", "orchestrator"):  # one-shot jobs; everything long-running says when it is ready
             assert service["healthcheck"]["test"][:3] == ["CMD", "drivebench", "health"], name
     assert "networks" not in resolved() or not resolved()["networks"]
+    assert resolved(env={"DRIVEBENCH_UID": "1234", "DRIVEBENCH_GID": "99"})["services"]["run"]["user"] == "1234:99"
     # Safe by default: the router answers on loopback only unless DRIVEBENCH_LISTEN asks for more.
     assert services["router"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:7447"]
 
@@ -160,6 +162,7 @@ def test_dockerfile_copies_every_package_the_project_installs():
     assert 'if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi' in dockerfile
     assert "ARG EXTRAS=ml" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
     assert "TORCH_INDEX_URL" in dockerfile
+    assert re.findall(r"^USER (\S+)", dockerfile, flags=re.M)[-1] not in ("root", "0"), "the image must not run as root"
     assert (ROOT / ".dockerignore").read_text().count(".venv") == 1
 
 
