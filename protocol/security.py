@@ -88,8 +88,10 @@ ROLES: dict[str, tuple[Grant, ...]] = {
     # A brain host: publish commands, declare its liveliness token, serve its own control key (status, stop).
     "brain": (_publishes(_wild(keys.command(_RUN, _NAME))) + _alive_as("brain")
               + _serves(_wild(keys.brain_control(_RUN, _NAME)))),
-    # The only one that may start, stop and switch episodes, and stop brain hosts.
-    "orchestrator": (("ingress", ("query",), (_wild(keys.sim_control(_RUN)), _wild(keys.brain_control(_RUN, _NAME)))),),
+    # The only one that may start, stop and switch episodes, and stop brain hosts; as an episode's driver it declares
+    # the token the simulator's dead man's switch watches (without it every episode would end driver_lost).
+    "orchestrator": ((("ingress", ("query",), (_wild(keys.sim_control(_RUN)), _wild(keys.brain_control(_RUN, _NAME)))),)
+                     + _alive_as("driver")),
     # The services, each its own keys; "service" is all of them (one certificate for a machine running several).
     "simulator": _SIMULATOR,
     "noise": _NOISE,
