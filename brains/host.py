@@ -31,6 +31,7 @@ from protocol.bus import Bus, BusConfig, Traffic
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
 from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header, Pose
+from protocol.runtime import stop_requested
 
 log = logging.getLogger("drivebench.brain")
 
@@ -103,7 +104,7 @@ class BrainHost:
         """Answer frames until a "stop" request (or, with ``orphan_timeout_s``, until the run has lost its simulator);
         then return (the process exits with code 0)."""
         log.info("brain %s (%s) ready on run %s", self.name, self.config.brain, self.config.run_id)
-        while not self._stop.is_set() and not self._orphaned():
+        while not self._stop.is_set() and not self._orphaned() and not stop_requested():
             received = self._frames.recv(timeout_s=0.1)
             if received is not None and self._realtime and (newer := self._frames.inbox.drain()):
                 received = newer[-1]

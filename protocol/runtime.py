@@ -39,12 +39,45 @@ def setup_logging(name: str, *, level: str | None = None) -> None:
 
 
 def exit_on_sigterm() -> None:
-    """SIGTERM raises SystemExit in the main thread, so ``with`` blocks close sessions and files."""
+    """SIGTERM raises SystemExit in the main thread, so ``with`` blocks close sessions and files.
+
+    For command-line tools (``drivebench run``: its stack stops as on Ctrl-C). Services use :func:`stop_on_signals`
+    instead: an exception raised at an arbitrary point could cut a write in half.
+    """
 
     def handler(signum, frame):  # noqa: ARG001
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, handler)
+
+
+_stop_signal: list[int] = []  # the signal that asked this service to stop, if one did
+_stopping = threading.Event()
+
+
+def stop_on_signals() -> None:
+    """SIGTERM and SIGINT only set a flag (:func:`stop_requested`): every service loop checks it at least every
+    half second, finishes what it is doing (an episode ends ``stopped``, a frame is answered, a write completes)
+    and returns, so sessions and files close in order. Outside the main thread no handler can be installed."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def handler(signum, frame):  # noqa: ARG001
+        _stop_signal.append(signum)
+        _stopping.set()
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, handler)
+
+
+def stop_requested() -> bool:
+    """Whether this process was asked to stop (SIGTERM or SIGINT, or its launcher died): loops return when true."""
+    return _stopping.is_set()
+
+
+def stop_exit_code() -> int:
+    """The exit code of a service that returned: 128 + the signal that stopped it (143, 130), else 0."""
+    return 128 + _stop_signal[0] if _stop_signal else 0
 
 
 def service_parser(description: str) -> argparse.ArgumentParser:
@@ -72,7 +105,8 @@ def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra
 
 
 def exit_with_parent() -> None:
-    """Stop (SIGTERM to ourselves) when the launcher that started us dies, even by SIGKILL: no orphans.
+    """Stop (SIGTERM to ourselves, i.e. :func:`stop_requested`) when the launcher that started us dies, even by
+    SIGKILL: no orphans.
 
     The launcher passes its pid in ``DRIVEBENCH_PARENT_PID``; a re-parented process sees another ``getppid()``.
     """
@@ -91,10 +125,10 @@ def exit_with_parent() -> None:
 def run_service(name: str, main: Callable[[], int | None]) -> int:
     """Run ``main`` with the process conventions; return the exit code."""
     setup_logging(name)
-    exit_on_sigterm()
+    stop_on_signals()
     exit_with_parent()
     try:
-        return int(main() or 0)
+        return int(main() or 0) or stop_exit_code()
     except (UserError, ConfigError, BusError) as error:
         print(f"{name}: error: {error}", file=sys.stderr)
         return 2

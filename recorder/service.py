@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
 import subprocess
-import threading
 import time
 from pathlib import Path
 from typing import Union
@@ -24,13 +22,15 @@ from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
 from protocol.episodes import running_spec, start_event
 from protocol.messages import EpisodeEvent, EventKind
 from protocol.recording import FORMAT_VERSION, RECORDED_MESSAGES, check_image_format
-from protocol.runtime import UserError
+from protocol.runtime import UserError, stop_on_signals, stop_requested
 from recorder.repair import repair_leftovers
 from recorder.writer import RecordingWriter
 
 log = logging.getLogger("drivebench.recorder")
 
 STARTED_AT = time.strftime("%Y%m%d-%H%M%S")  # the {time} of output file names: one value for the whole process
+STOP_QUIET_S = 0.2  # on a stop, record until nothing has arrived for this long ...
+STOP_DRAIN_MAX_S = 3.0  # ... but no longer than this: a publisher that never pauses must not keep it open
 RecordedMessage = Union[RECORDED_MESSAGES]  # noqa: UP007 - a runtime union of the tagged structs for msgspec
 
 
@@ -98,22 +98,22 @@ class RecorderService:
         self.writer.add_metadata(f"file:{path.name}", {"path": str(path), "text": text})
 
     def serve_forever(self) -> None:
-        """Record until SIGTERM or SIGINT, then leave as those signals do (exit 143 or 130) after the current write.
+        """Record until SIGTERM or SIGINT (:func:`~protocol.runtime.stop_requested`), then return after the current
+        write (the process exits 143 or 130).
 
-        The signals only set a flag here: raised at an arbitrary point, as the services' default handler does,
-        they could interrupt the MCAP writer in the middle of a chunk, and ``close()`` would then write the rest
-        after a half-written record (a CI run lost 8 steps to a corrupted chunk that way).
+        The signals only set a flag: raised at an arbitrary point, an exception could interrupt the MCAP writer in
+        the middle of a chunk, and ``close()`` would then write the rest after a half-written record (a CI run lost
+        8 steps to a corrupted chunk that way, which is why every service now stops on the flag).
         """
         log.info("recording run %s to %s", self.config.run_id, self.writer.path)
-        stop: list[int] = []
-        if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGTERM, signal.SIGINT):
-                signal.signal(signum, lambda received, frame: stop.append(received))  # noqa: ARG005
-        while not stop:
+        stop_on_signals()  # also when embedded in another main (a service's main installs it already)
+        while not stop_requested():
             self.record_pending(timeout_s=0.2)
-        if stop[0] == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise SystemExit(128 + stop[0])
+        # Messages still on their way when the stop came (a burst the recorder lags behind) are recorded too:
+        # until nothing has arrived for STOP_QUIET_S, for at most STOP_DRAIN_MAX_S.
+        deadline = time.monotonic() + STOP_DRAIN_MAX_S
+        while self.record_pending(timeout_s=STOP_QUIET_S) and time.monotonic() < deadline:
+            pass
 
     def record_pending(self, *, timeout_s: float) -> int:
         """Write what has arrived (waiting up to ``timeout_s`` for the first); flush when due."""

@@ -103,3 +103,20 @@ def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_s
         assert "its stack is gone" in (tmp_path / "extra.log").read_text()
     finally:
         extra.kill()
+
+
+def test_sigterm_mid_episode_ends_it_stopped_and_the_simulator_exits_143(make_stack, tmp_path):
+    """Services stop on a flag, never from inside the signal handler: SIGTERM mid-episode lets the simulator finish
+    its step, publish the episode's END (stopped) and close its session in order; the exit code says SIGTERM."""
+    stack, events = still_stack_with_events(make_stack)
+    driver = attach(stack, tmp_path / "run", "--max-sim-seconds", "600", "--realtime")
+    try:
+        next_event(events, EventKind.START, timeout_s=60)
+        time.sleep(1.0)
+        simulator = stack.child("simulator", "sim").process
+        simulator.send_signal(signal.SIGTERM)
+        assert next_event(events, EventKind.END, timeout_s=10).reason == EndReason.STOPPED
+        assert simulator.wait(timeout=20) == 128 + signal.SIGTERM
+    finally:
+        driver.kill()
+        driver.communicate()

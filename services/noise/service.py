@@ -18,6 +18,7 @@ from protocol.bus import Bus, BusConfig, Received, Traffic
 from protocol.episodes import EpisodeStarts
 from protocol.images import FrameReader, image_frame
 from protocol.messages import CameraFrame
+from protocol.runtime import stop_requested
 from services.noise.models import NoisePipeline
 
 log = logging.getLogger("drivebench.noise")
@@ -53,7 +54,7 @@ class NoiseService:
 
     def serve_forever(self) -> None:
         log.info("noise injector ready on run %s", self.config.run_id)
-        while True:
+        while not stop_requested():
             received = self._frames.recv(timeout_s=0.5)
             if received is not None:
                 self.perturb(received)

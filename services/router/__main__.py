@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
-import threading
+import time
 
 import msgspec
 
@@ -51,7 +51,7 @@ class RouterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import load_config, log_config, run_service, service_parser
+    from protocol.runtime import load_config, log_config, run_service, service_parser, stop_requested
 
     parser = service_parser("drivebench router: a Zenoh router for one stack")
     parser.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")
@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
             security = ", ".join(name for name, on in features if on)
             log.info("router listening on %s%s", ", ".join(bus.resolved.listen),
                      f" ({security})" if security else "")
-            threading.Event().wait()
+            while not stop_requested():
+                time.sleep(0.2)
         return 0
 
     return run_service("router", run)

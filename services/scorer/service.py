@@ -23,6 +23,7 @@ from protocol.messages import (
     BrainSwitch, Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
 )
 from protocol.episodes import running_spec
+from protocol.runtime import stop_requested
 from services.circuits import CircuitError, load_circuit
 from services.scorer.metrics import EpisodeScorer
 from services.scorer.shadows import CommandMatcher
@@ -78,7 +79,7 @@ class ScorerService:
 
     def serve_forever(self) -> None:
         log.info("scorer ready on run %s", self.config.run_id)
-        while True:
+        while not stop_requested():
             self.poll(timeout_s=0.1)
 
     def poll(self, *, timeout_s: float) -> None:

@@ -26,6 +26,7 @@ from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
 )
+from protocol.runtime import stop_requested
 from services.circuits import Circuit, CircuitError, load_circuit
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 
@@ -198,7 +199,7 @@ class SimulatorService:
 
     def serve_forever(self) -> None:
         log.info("simulator ready on run %s", self.config.run_id)
-        while True:
+        while not stop_requested():
             try:
                 spec, circuit, driver = self._requests.get(timeout=0.5)
             except queue.Empty:
@@ -316,7 +317,7 @@ class SimulatorService:
                 deadline = max(deadline, time.monotonic_ns() + timeout_ns)
             if (answer := answers.get(self._active())) is not None:
                 return answer, None
-            if self._stop_requested.is_set():
+            if self._stop_requested.is_set() or stop_requested():  # run control, or SIGTERM to the process
                 return None, EndReason.STOPPED
             if not self._active_alive():
                 return None, EndReason.BRAIN_LOST
@@ -368,7 +369,7 @@ class SimulatorService:
                 speed, yaw_rate = current.message.speed_mps, current.message.yaw_rate_radps
                 last_command_ns = max(last_command_ns, current.arrival_ns)
             ending = None
-            if self._stop_requested.is_set():
+            if self._stop_requested.is_set() or stop_requested():  # run control, or SIGTERM to the process
                 ending = EndReason.STOPPED
             elif not self._active_alive():
                 ending = EndReason.BRAIN_LOST

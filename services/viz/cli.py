@@ -15,13 +15,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import threading
 
 from protocol import keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.episodes import running_runs
 from protocol.runtime import RUN_ID_ENV as RUN_ENV
-from protocol.runtime import UserError, exit_on_sigterm, setup_logging
+from protocol.runtime import UserError, setup_logging, stop_on_signals
 from services.viz.service import DEFAULT_PORT, VizConfig, VizService, viewer_url
 
 EXIT_OK, EXIT_NOTHING, EXIT_USAGE = 0, 1, 2
@@ -71,8 +70,7 @@ def run_view_command(args: argparse.Namespace) -> int:
         except ValueError as error:
             raise ViewUsageError(str(error)) from None
         probe_router(router, timeout_s=ROUTER_PROBE_S)
-        if threading.current_thread() is threading.main_thread():
-            exit_on_sigterm()
+        stop_on_signals()  # Ctrl-C or SIGTERM: the view's loop returns and the session closes in order
         with Bus(bus_config, name=f"view-{os.getpid()}") as bus:
             run_id = _choose_run(bus, router, wanted)
             config = VizConfig(bus=bus.config, run_id=run_id, name=f"view-{os.getpid()}", host=args.view_host,

@@ -28,7 +28,7 @@ from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
 from protocol.episodes import running_spec, start_event
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, EventKind, LiveMetrics, Pose
-from protocol.runtime import UserError
+from protocol.runtime import UserError, stop_requested
 from services.viz.bridge import BridgeError, LiveBridge
 
 log = logging.getLogger("drivebench.viz")
@@ -151,7 +151,7 @@ class VizService:
         except (OSError, ValueError, AttributeError):  # stderr is no file (embedded, captured): no stall dumps
             rearmed = float("inf")
         try:
-            while True:
+            while not stop_requested():
                 self.poll(timeout_s=0.1)
                 if (now := time.monotonic()) - rearmed > 1.0:
                     # A stalled publishing loop (it never should) prints every thread's stack to the log, from a C
