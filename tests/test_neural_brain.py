@@ -241,6 +241,20 @@ def test_device_option_runs_on_the_cpu_and_names_what_is_missing(ckpts):
             make_brain("memdccp", weights=ckpts["memdccp"], backend="torch", device="cuda")
 
 
+@pytest.mark.gpu
+def test_on_a_cuda_device_a_neural_brain_answers_as_on_the_cpu(ckpts):
+    """compose's brain-gpu serves with backend=torch device=cuda: the same answers as the CPU's. Runs where a CUDA
+    device is (``pytest -m gpu``); CI has none."""
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device here (the gpu marker's tests run on a GPU machine: pytest -m gpu)")
+    images = noise_frames(3)
+    on_cpu = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="cpu"), images))
+    on_gpu = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="cuda"), images))
+    np.testing.assert_allclose(on_gpu, on_cpu, rtol=1e-3, atol=1e-4)
+
+
 @pytest.mark.parametrize("argv, line", [
     ([], "brain: error: brain 'neural' needs --weights CKPT (or --set options.weights=CKPT)"),
     (["--weights", "/nowhere/m.pt"], "brain: error: /nowhere/m.pt: no such checkpoint file"),
