@@ -66,6 +66,7 @@ COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns
 MAX_EARLY_ROWS = 200  # rows of the "ended early" list
 FAIL_MARK = "✗"
 PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
+BASELINE_FACT = "baseline_variation"  # results-database fact: the variation label of the matrix's first episode
 PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
 STALE_PLOTS = ("trajectories_*.png", "boxplots.png", "progress.png")  # what the report writes into plots/
 
@@ -203,66 +204,16 @@ def grid_cell(results: Sequence[EpisodeResult], *, with_completion: bool = False
     return text
 
 
-def _parse_label(label: str) -> dict[str, str] | None:
-    """``"line=white,walls=off"`` -> {"line": "white", "walls": "off"}; None when it is not such a label."""
-    pairs: dict[str, str] = {}
-    for item in (part.strip() for part in label.split(",")):
-        if not item:
-            continue
-        key, sep, value = item.partition("=")
-        if not sep:
-            return None
-        pairs[key.strip()] = _norm_value(value)
-    return pairs
-
-
-def _norm_value(value: Any) -> str:
-    text = str(value).strip().lower()
-    return {"true": "on", "false": "off", "yes": "on", "no": "off"}.get(text, text)
-
-
-def _first_variation_from_source(source_text: str | None) -> dict[str, str] | None:
-    """The first value of every variation axis, read from the matrix file when it says ``variations:`` as a mapping
-    axis -> list of values (or as a list, whose first item is the baseline). None when it cannot tell."""
-    if not source_text:
-        return None
-    try:
-        import yaml
-
-        document = yaml.safe_load(source_text)
-    except Exception:  # a report must not fail on a matrix file it cannot read
-        return None
-    candidates = [document] + ([v for v in document.values() if isinstance(v, dict)] if isinstance(document, dict)
-                               else [])
-    for node in candidates:
-        if not isinstance(node, dict) or "variations" not in node:
-            continue
-        axes = node["variations"]
-        if isinstance(axes, dict) and axes and all(isinstance(v, list) and v for v in axes.values()):
-            return {str(k): _norm_value(v[0]) for k, v in axes.items()}
-        if isinstance(axes, list) and axes:
-            first = axes[0]
-            if isinstance(first, str):
-                return _parse_label(first) or None
-            if isinstance(first, dict):
-                return {str(k): _norm_value(v) for k, v in first.items()}
-    return None
-
-
-def baseline_variation(results: Sequence[EpisodeResult], source_text: str | None = None) -> str | None:
-    """The variation label of the baseline condition: ``"default"`` when present, else the label that holds the
-    first value of every axis of the matrix file, else the variation of the first episode in matrix order."""
+def baseline_variation(results: Sequence[EpisodeResult], planned: str | None = None) -> str | None:
+    """The variation label of the baseline condition: ``"default"`` when present, else ``planned`` (the first planned
+    episode's variation, the first value of every axis, which the runner stores as the ``baseline_variation`` fact)
+    when some episode has it, else the variation of the first stored episode in matrix order."""
     labels = _ordered(r.variation for r in sorted(results, key=lambda r: r.index))
     if not labels:
         return None
     if DEFAULT_VARIATION in labels:
         return DEFAULT_VARIATION
-    first = _first_variation_from_source(source_text)
-    if first:
-        for label in labels:
-            if _parse_label(label) == first:
-                return label
-    return labels[0]
+    return planned if planned in labels else labels[0]
 
 
 # -- trajectories and circuits ----------------------------------------------------------------------------------------
@@ -368,6 +319,7 @@ class _Report:
             self.results = store.results()
             self.name = store.fact("name") or folder.resolve().name
             self.source_text = store.fact("source_text")
+            self.planned_baseline = store.fact(BASELINE_FACT)
             self.variation_keys = store.fact("variation_keys") or []
             self.created_at = store.fact("created_at")
             self.is_paper = bool(store.fact(PAPER_FACT))
@@ -381,7 +333,7 @@ class _Report:
         perturbations = _ordered(r.perturbation for r in self.results)
         self.perturbations = ([NO_PERTURBATION] if NO_PERTURBATION in perturbations else []) + [
             p for p in perturbations if p != NO_PERTURBATION]
-        self.baseline_variation = baseline_variation(self.results, self.source_text)
+        self.baseline_variation = baseline_variation(self.results, self.planned_baseline)
         self.notes: list[str] = []  # problems met while drawing (missing trajectories, unknown circuits)
         self._tracks: dict[str, _Track | None] = {}
         self._trajectories: dict[str, dict[str, np.ndarray] | None] = {}

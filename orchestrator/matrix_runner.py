@@ -37,6 +37,7 @@ from orchestrator.launcher import (
     BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure, free_loopback_port,
 )
 from orchestrator.matrix import BrainEntry, Matrix, PlannedEpisode
+from orchestrator.matrix_report import BASELINE_FACT
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
@@ -160,6 +161,8 @@ class MatrixRunner:
         store.set_fact("name", self.matrix.name)
         store.set_fact("source_text", self.matrix.text)
         store.set_fact("variation_keys", list(self.matrix.variation_keys))
+        # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
+        store.set_fact(BASELINE_FACT, self.matrix.episodes[0].variation if self.matrix.episodes else None)
         store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
         for key, value in self.options.facts.items():
             store.set_fact(key, value)

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from orchestrator.matrix import parse_matrix
 from orchestrator.matrix_report import (
+    BASELINE_FACT,
     ReportError,
     add_report_command,
     baseline_variation,
@@ -31,11 +33,12 @@ STEP_S = 0.05
 SPEED_MPS = {"explicit": 12.0, "pilotnet": 10.0}
 BRAINS = ("explicit", "pilotnet")
 CIRCUITS = ("simple", "nurburgring")
-VARIATIONS = ("default", "line=white,walls=off")
+BASELINE = "line=red,walls=on"  # the first value of every axis of MATRIX_SOURCE: what a real matrix labels it
+VARIATIONS = (BASELINE, "line=white,walls=off")
 CRASH = ("pilotnet", "simple", "line=white,walls=off", 1)  # stops at 40 % of the lap: a crash
 FAILED = ("explicit", "nurburgring", "line=white,walls=off", 1)  # the brain process died: no score
 MATRIX_SOURCE = """name: demo
-brains: [{brain: explicit}, {brain: pilotnet, weights: missing/model.ckpt}]
+brains: [{name: explicit}, {name: pilotnet, weights: missing/model.ckpt}]
 circuits: [simple, nurburgring]
 variations: {line: [red, white], walls: [on, off]}
 repetitions: 2
@@ -76,16 +79,17 @@ def make_results(folder: Path) -> dict:
     episodes; returns the metrics by (brain, circuit, variation, perturbation, repetition)."""
     scores = {}
     plan = [(b, c, v, "none", rep) for b in BRAINS for c in CIRCUITS for v in VARIATIONS for rep in range(2)]
-    plan += [("explicit", "simple", "default", "salt_pepper=0.2", rep) for rep in range(2)]
+    plan += [("explicit", "simple", BASELINE, "salt_pepper=0.2", rep) for rep in range(2)]
     (folder / "trajectories").mkdir(parents=True)
     with ResultStore(folder) as store:
         store.set_fact("name", "demo")
         store.set_fact("source_text", MATRIX_SOURCE)
         store.set_fact("variation_keys", ["line", "walls"])
+        store.set_fact(BASELINE_FACT, BASELINE)
         store.set_fact("created_at", 1_700_000_000.0)
         for index, (brain, circuit, variation, perturbation, rep) in enumerate(plan):
             key = f"{brain}/{circuit}/{variation}/{perturbation}/r{rep}"
-            world = WorldVariation(line="white", walls=False) if variation != "default" else WorldVariation()
+            world = WorldVariation(line="white", walls=False) if variation != BASELINE else WorldVariation()
             spec = EpisodeSpec(circuit=circuit, laps=1, seed=1000 + index, active_brain=brain, world=world)
             entry = {"label": brain, "brain": brain, "weights": "missing/model.ckpt" if brain == "pilotnet" else None,
                      "options": []}
@@ -138,7 +142,7 @@ def test_main_table_holds_mean_and_std_of_the_repetitions(report):
     assert "| Brain | Circuit | Episodes | Lap (s) | Position deviation (BM) | Cross-track mean (m) |" in text
     main = text.split("## Main table")[1].split("## ")[0]
     row = next(line for line in main.splitlines() if line.startswith("| explicit | simple |"))
-    runs = [scores[("explicit", "simple", "default", "none", rep)] for rep in range(2)]
+    runs = [scores[("explicit", "simple", BASELINE, "none", rep)] for rep in range(2)]
     laps = [m.bm_lap_seconds for m in runs]
     assert all(lap is not None for lap in laps)
     cells = [cell.strip() for cell in row.strip("|").split("|")]
@@ -149,7 +153,7 @@ def test_main_table_holds_mean_and_std_of_the_repetitions(report):
     mean_xte = [m.cross_track_mean_m for m in runs]
     assert cells[5] == f"{statistics.fmean(mean_xte):.3f} ± {statistics.stdev(mean_xte):.3f}"
     assert cells[9] == "2/2" and cells[10] == "–"
-    # Only baseline episodes (default variation, no perturbation) are in the main table: 2 per brain and circuit.
+    # Only baseline episodes (the baseline variation, no perturbation) are in the main table: 2 per brain and circuit.
     assert "| pilotnet | nurburgring | 2 |" in main
 
 
@@ -160,7 +164,7 @@ def test_grids_mark_failures_with_reason_and_count(report):
     assert "✗ crash 1/2" in grid
     assert "✗ brain_died 1/2" in grid
     pilot_row = next(line for line in grid.splitlines() if line.startswith("| pilotnet |"))
-    laps = [scores[("pilotnet", "nurburgring", "default", "none", rep)].bm_lap_seconds for rep in range(2)]
+    laps = [scores[("pilotnet", "nurburgring", BASELINE, "none", rep)].bm_lap_seconds for rep in range(2)]
     assert f"{statistics.fmean(laps):.1f} s" in pilot_row
     robustness = text.split("## Robustness")[1].split("## ")[0]
     assert "salt_pepper=0.2" in robustness and "%" in robustness
@@ -177,8 +181,8 @@ def test_csv_has_one_row_per_episode(report):
         rows = list(csv.DictReader(file))
     assert len(rows) == 18
     by_key = {row["key"]: row for row in rows}
-    row = by_key["pilotnet/simple/default/none/r1"]
-    metrics = scores[("pilotnet", "simple", "default", "none", 1)]
+    row = by_key[f"pilotnet/simple/{BASELINE}/none/r1"]
+    metrics = scores[("pilotnet", "simple", BASELINE, "none", 1)]
     assert row["status"] == "done" and row["reason"] == "laps_completed" and row["repetition"] == "1"
     assert float(row["bm_lap_seconds"]) == pytest.approx(metrics.bm_lap_seconds)
     assert float(row["position_deviation_mae"]) == pytest.approx(metrics.position_deviation_mae)
@@ -224,12 +228,33 @@ def test_errors_are_one_line(tmp_path, capsys):
         write_report(tmp_path / "absent")
 
 
+def test_the_fixture_is_labelled_as_the_matrix_parser_plans_it(tmp_path):
+    """The fixture's labels and baseline fact are the real parser's for MATRIX_SOURCE, so the report is tested on
+    the path every matrix with ``variations:`` takes (no "default" label; the baseline from the runner's fact)."""
+    (tmp_path / "missing").mkdir()
+    (tmp_path / "missing" / "model.ckpt").write_bytes(b"")  # the parser checks the file exists, not its content
+    matrix = parse_matrix(MATRIX_SOURCE, base_dir=tmp_path)
+    assert set(VARIATIONS) <= {episode.variation for episode in matrix.episodes}
+    assert matrix.episodes[0].variation == BASELINE
+
+
+def test_the_stored_baseline_wins_over_the_first_stored_episode(report):
+    """A partial run (its first planned episodes not stored yet) still compares against the planned baseline."""
+    folder, _, _ = report
+    with ResultStore(folder, create=False) as store:
+        results, planned = store.results(), store.fact(BASELINE_FACT)
+    late = [r for r in results if r.variation != BASELINE] + [r for r in results if r.variation == BASELINE][-1:]
+    assert min(late, key=lambda r: r.index).variation != BASELINE
+    assert baseline_variation(late, planned) == BASELINE
+    assert baseline_variation(late, None) != BASELINE  # what the fact is for
+
+
 def test_cell_and_number_rules():
     assert mean_std([]) == "–"
     assert mean_std([2.0]) == "2.00"
     assert mean_std([1.0, 3.0], 1) == f"2.0 ± {statistics.stdev([1.0, 3.0]):.1f}"
     assert grid_cell([]) == "–"
-    assert baseline_variation([], MATRIX_SOURCE) is None
+    assert baseline_variation([], "line=red,walls=on") is None
 
 
 def test_damaged_database_is_one_line(tmp_path, capsys):
