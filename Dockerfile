@@ -25,6 +25,13 @@ COPY recorder recorder
 COPY orchestrator orchestrator
 # EXTRAS="" installs plain "." (pip rejects ".[]" as an invalid requirement).
 RUN if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi
+# Smaller by ~290 MB: pybullet's wheel carries 126 MB of debug symbols and ~170 MB of example robots, meshes and
+# environments (pybullet_data, _envs, _examples, _robots, _utils) that drivebench never loads: it builds its own scene.
+RUN site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") \
+    && rm -rf "$site"/pybullet_data "$site"/pybullet_envs "$site"/pybullet_examples "$site"/pybullet_robots \
+       "$site"/pybullet_utils \
+    && strip --strip-unneeded "$site"/pybullet*.so \
+    && python -c "import pybullet; pybullet.connect(pybullet.DIRECT); pybullet.disconnect()"
 
 FROM ${BASE_IMAGE}
 # libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed.
