@@ -243,48 +243,23 @@ def load_trajectory(folder: Path, relative: str | None) -> dict[str, np.ndarray]
 
 
 class _Track:
-    """A circuit's drawing and a vectorised projection onto its centreline (for cross-track colours)."""
+    """A circuit's drawing: its points, road edges and extent (cross-track colours come from its centreline)."""
 
     def __init__(self, circuit):
-        from scipy.spatial import cKDTree
-
         self.circuit = circuit
-        centreline = circuit.centreline
-        self.points = centreline.points_m
-        self.next = np.roll(self.points, -1, axis=0)
-        self.vectors = self.next - self.points
-        self.lengths_sq = np.sum(self.vectors ** 2, axis=1)
-        normals = centreline.left_normals()
+        self.points = circuit.centreline.points_m
+        normals = circuit.centreline.left_normals()
         half = circuit.road_half_width_m
         self.left_edge = self.points + half * normals
         self.right_edge = self.points - half * normals
         self.half_width_m = half
-        self._tree = cKDTree(self.points)
         margin = half + 3.0
         self.extent = (float(self.points[:, 0].min() - margin), float(self.points[:, 0].max() + margin),
                        float(self.points[:, 1].min() - margin), float(self.points[:, 1].max() + margin))
 
     def lateral_m(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
-        """Signed distance (+ left) of each point to the centreline: nearest vertex, then the closer of its two
-        adjacent segments. Good for colouring a plot; the scorer's figures come from its tracked projection."""
-        xy = np.column_stack([x_m, y_m])
-        if len(xy) == 0:
-            return np.zeros(0)
-        _, nearest = self._tree.query(xy)
-        count = len(self.points)
-        best_d = np.full(len(xy), np.inf)
-        best_signed = np.zeros(len(xy))
-        for segment in (nearest, (nearest - 1) % count):
-            start, vec = self.points[segment], self.vectors[segment]
-            rel = xy - start
-            t = np.clip(np.sum(rel * vec, axis=1) / self.lengths_sq[segment], 0.0, 1.0)
-            diff = rel - t[:, None] * vec
-            d = np.hypot(diff[:, 0], diff[:, 1])
-            cross = vec[:, 0] * rel[:, 1] - vec[:, 1] * rel[:, 0]
-            closer = d < best_d
-            best_d = np.where(closer, d, best_d)
-            best_signed = np.where(closer, np.copysign(d, cross), best_signed)
-        return best_signed
+        """Signed distance (+ left) of each point to the centreline, for colouring a plot."""
+        return self.circuit.centreline.lateral_offsets_m(x_m, y_m)
 
 
 def _speeds(trajectory: dict[str, np.ndarray]) -> np.ndarray:

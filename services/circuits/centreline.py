@@ -96,6 +96,26 @@ class Centreline:
             return self._project_global(x_m, y_m)
         return self._projection(int(segments[best]), t, distance, cross)
 
+    def lateral_offsets_m(self, x_m: np.ndarray, y_m: np.ndarray, *, k: int = 4) -> np.ndarray:
+        """Signed distance (+ left) of many points to the centreline at once, each by the global search (the
+        segments next to its ``k`` nearest vertices): for drawing and statistics over whole trajectories. A moving
+        car's figures come from :meth:`project` with ``near_s_m``, which cannot jump between close branches."""
+        xy = np.column_stack([np.asarray(x_m, dtype=float), np.asarray(y_m, dtype=float)])
+        if len(xy) == 0:
+            return np.zeros(0)
+        _, vertex_ids = self._tree.query(xy, k=min(k, len(self.points_m)))
+        vertex_ids = vertex_ids.reshape(len(xy), -1)
+        segments = np.concatenate([vertex_ids, (vertex_ids - 1) % len(self.points_m)], axis=1)  # (N, 2k)
+        starts, vectors = self.points_m[segments], self._segment_vectors[segments]
+        rel = xy[:, None, :] - starts
+        t = np.clip(np.sum(rel * vectors, axis=2) / self._segment_lengths[segments] ** 2, 0.0, 1.0)
+        gap = rel - t[..., None] * vectors
+        distance = np.hypot(gap[..., 0], gap[..., 1])
+        best = np.argmin(distance, axis=1)
+        rows = np.arange(len(xy))
+        cross = vectors[rows, best, 0] * rel[rows, best, 1] - vectors[rows, best, 1] * rel[rows, best, 0]
+        return np.where(cross != 0, np.copysign(distance[rows, best], cross), 0.0)
+
     def _project_global(self, x_m: float, y_m: float, k: int = 8) -> Projection:
         _, vertex_ids = self._tree.query((x_m, y_m), k=min(k, len(self.points_m)))
         vertex_ids = np.atleast_1d(vertex_ids)
