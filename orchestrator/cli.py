@@ -31,11 +31,12 @@ from brains.registry import UnknownBrainError, bus_name, require_brain
 from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
 from orchestrator.matrix_cli import MatrixUsageError
+from orchestrator.progress import EpisodeProgress
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
 from protocol.runtime import exit_on_sigterm
-from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec, LiveMetrics
+from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
 from services.circuits import CircuitError, circuit_names, load_circuit
 
@@ -169,25 +170,6 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         raise UsageError(str(error)) from None
 
 
-class Progress:
-    """Lap progress, sim time and real-time factor on stderr while an episode runs."""
-
-    def __init__(self, laps: int, *, enabled: bool):
-        from tqdm import tqdm
-
-        self._bar = tqdm(total=100 * laps, unit="%", file=sys.stderr, disable=not enabled, dynamic_ncols=True,
-                         bar_format="lap progress {percentage:3.0f}%|{bar}| {desc}")
-
-    def update(self, live: LiveMetrics) -> None:
-        self._bar.n = min(self._bar.total, round(100 * live.progress_laps, 1))
-        self._bar.set_description_str(f"lap {min(live.completed_laps + 1, live.laps_target)}/{live.laps_target}  "
-                                  f"sim {live.sim_time_s:6.1f} s  RTF {live.real_time_factor:4.1f}x  "
-                                  f"|xte| {live.cross_track_m:4.2f} m", refresh=True)
-
-    def close(self) -> None:
-        self._bar.close()
-
-
 def command_run(args: argparse.Namespace) -> int:
     if args.attach:
         return command_run_attached(args)
@@ -220,7 +202,7 @@ def command_run(args: argparse.Namespace) -> int:
           f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}", file=sys.stderr)
     if args.record is not None and args.record.suffix != ".mcap":
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
-    progress = Progress(spec.laps, enabled=sys.stderr.isatty())
+    progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
     try:
         with LocalStack(run_id=run_id, run_dir=run_dir, brains=brains, record=args.record,
                         record_options=(f"image_format={args.record_images}",)) as stack:
@@ -281,7 +263,7 @@ def command_run_attached(args: argparse.Namespace) -> int:
         }, sort_keys=False))
         print(f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
               f"{spec.laps} lap(s); run folder {run_dir}", file=sys.stderr)
-        progress = Progress(spec.laps, enabled=sys.stderr.isatty())
+        progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
             with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
                 score = stack.run_episode(spec, on_live=progress.update)

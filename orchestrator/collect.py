@@ -19,6 +19,7 @@ import msgspec
 import numpy as np
 
 from orchestrator.launcher import BrainLaunch, LocalStack
+from orchestrator.progress import EpisodeProgress
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
 from services.circuits import CircuitError, load_circuit
@@ -98,7 +99,6 @@ def _episode_name(spec: EpisodeSpec) -> str:
 
 
 def collect(args: argparse.Namespace, options) -> int:
-    from orchestrator.cli import Progress
     from orchestrator.recording_cli import build_from_recordings
 
     specs = collection_specs(args)
@@ -115,7 +115,7 @@ def collect(args: argparse.Namespace, options) -> int:
         recording.unlink(missing_ok=True)
         print(f"collect: {spec.active_brain} on {spec.circuit} ({spec.direction}), {spec.laps} lap(s) -> {recording}",
               file=sys.stderr)
-        progress = Progress(spec.laps, enabled=sys.stderr.isatty())
+        progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
             with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args),
                             record=recording) as stack:
