@@ -19,6 +19,7 @@ RUN case ",${EXTRAS}," in *,ml,*) pip install --index-url "${TORCH_INDEX_URL}" t
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY protocol protocol
+COPY circuits circuits
 COPY services services
 COPY brains brains
 COPY recorder recorder

@@ -71,7 +71,7 @@ def render_frames(*, circuit: str = "simple", worlds: Iterable[dict[str, Any]] =
                   ) -> list[Frame]:
     """Consecutive frames along ``circuit``'s centreline (0.4 m apart: 8 m/s at 20 Hz) in each world, rendered."""
     from protocol.messages import CameraSpec, WorldVariation
-    from services.circuits import load_circuit
+    from circuits import load_circuit
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

@@ -38,7 +38,7 @@ from protocol.bus import BusError
 from protocol.runtime import exit_on_sigterm
 from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
-from services.circuits import CircuitError, circuit_names, load_circuit
+from circuits import CircuitError, circuit_names, load_circuit
 
 EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
 
@@ -346,13 +346,13 @@ def command_circuits(args: argparse.Namespace) -> int:
             for row in rows:
                 print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")
         elif args.circuits_command == "show":
-            from services.circuits.picture import save_circuit_picture
+            from circuits.picture import save_circuit_picture
 
             circuit = load_circuit(args.name)
             save_circuit_picture(circuit, args.output, width_px=args.width)
             print(f"{circuit.name}: {circuit.length_m:.1f} m -> {args.output}", file=sys.stderr)
         elif args.circuits_command == "import":
-            from services.circuits.importer import import_racetrack_csv
+            from circuits.importer import import_racetrack_csv
 
             path = import_racetrack_csv(args.file, name=args.name, scale=args.scale, overwrite=args.overwrite)
             circuit = load_circuit(args.name)

@@ -22,7 +22,7 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 from orchestrator.progress import EpisodeProgress
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
-from services.circuits import CircuitError, load_circuit
+from circuits import CircuitError, load_circuit
 
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data

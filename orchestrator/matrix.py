@@ -66,8 +66,8 @@ from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
 from protocol.variations import CAMERA_KEYS, ROUTE_KEYS, WORLD_KEYS
 from protocol.variations import VariationError, apply_variation, noise_stage, parse_pairs
-from services.circuits import circuit_names
-from services.circuits.library import GENERATED_NAMES, is_circuit_name
+from circuits import circuit_names
+from circuits.library import GENERATED_NAMES, is_circuit_name
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
                   "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")

@@ -318,7 +318,7 @@ class _Report:
 
     def track(self, circuit: str) -> _Track | None:
         if circuit not in self._tracks:
-            from services.circuits import CircuitError, load_circuit
+            from circuits import CircuitError, load_circuit
 
             try:
                 self._tracks[circuit] = _Track(load_circuit(circuit))

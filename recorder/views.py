@@ -110,7 +110,7 @@ def _track_scene(spec: EpisodeSpec):
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-    from services.circuits.library import CircuitError, load_circuit
+    from circuits.library import CircuitError, load_circuit
 
     update = SceneUpdate()
     try:

@@ -15,7 +15,7 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 def road_frame() -> np.ndarray:
     """A real 320x240 camera frame: the simulator's view on the top straight of the simple circuit."""
     from protocol.messages import EpisodeSpec
-    from services.circuits import load_circuit
+    from circuits import load_circuit
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

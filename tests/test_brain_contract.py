@@ -13,7 +13,7 @@ from brains.checker import CHECK_WORLDS, check_brain, passed, render_frames
 from brains.nets import MODELS
 from brains.registry import UnknownBrainError
 from protocol.messages import CameraSpec
-from services.circuits import load_circuit
+from circuits import load_circuit
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

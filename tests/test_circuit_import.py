@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from services.circuits import CircuitError, circuit_names, load_circuit
-from services.circuits.importer import import_racetrack_csv, main
-from services.circuits.library import check_track, min_turn_radius_m
+from circuits import CircuitError, circuit_names, load_circuit
+from circuits.importer import import_racetrack_csv, main
+from circuits.library import check_track, min_turn_radius_m
 
 HEADER = "# x_m,y_m,w_tr_right_m,w_tr_left_m\n"
 

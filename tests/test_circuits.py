@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from services.circuits import Centreline, Circuit, CircuitError, circuit_names, load_circuit
-from services.circuits.generator import random_circuit, twisty_circuit
-from services.circuits.library import (
+from circuits import Centreline, Circuit, CircuitError, circuit_names, load_circuit
+from circuits.generator import random_circuit, twisty_circuit
+from circuits.library import (
     builtin_circuit_names,
     check_track,
     min_turn_radius_m,
@@ -19,7 +19,7 @@ from services.circuits.library import (
     turn_radii_m,
     user_circuits_dir,
 )
-from services.circuits.picture import ROAD_RGB, circuit_picture, save_circuit_picture
+from circuits.picture import ROAD_RGB, circuit_picture, save_circuit_picture
 
 # name: (lap length range m, bounding box (x, y) m or None); sizes after Behavior Metrics' circuits.
 BUILTIN_SIZES = {

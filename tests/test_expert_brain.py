@@ -14,7 +14,7 @@ from orchestrator.collect import collection_specs
 from orchestrator.launcher import BrainLaunch
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 from protocol.variations import apply_variation
-from services.circuits import load_circuit
+from circuits import load_circuit
 
 BLANK = np.zeros((8, 8, 3), np.uint8)
 

@@ -14,7 +14,7 @@ import pytest
 from brains.base import Observation
 from brains.explicit.brain import ExplicitBrain
 from protocol.messages import CameraSpec
-from services.circuits import Circuit, load_circuit
+from circuits import Circuit, load_circuit
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
 

@@ -26,7 +26,7 @@ from orchestrator.matrix_report import (
 )
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
-from services.circuits import load_circuit
+from circuits import load_circuit
 from services.scorer.metrics import EpisodeScorer
 
 STEP_S = 0.05

@@ -11,7 +11,7 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import fmin
 
 from protocol.messages import EpisodeMetrics
-from services.circuits import Centreline, Circuit, load_circuit
+from circuits import Centreline, Circuit, load_circuit
 from services.scorer.metrics import (
     EpisodeScorer,
     average_speed_mps,

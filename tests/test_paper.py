@@ -17,7 +17,7 @@ from orchestrator.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, SaltPepper
 from protocol.variations import apply_variation
-from services.circuits import load_circuit
+from circuits import load_circuit
 from services.scorer.metrics import EpisodeScorer
 
 ROOT = Path(__file__).resolve().parents[1]

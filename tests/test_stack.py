@@ -209,7 +209,7 @@ def test_explicit_brain_laps_simple_in_reverse_and_the_scorer_follows_the_direct
     assert score.reason == EndReason.LAPS_COMPLETED, score
     assert score.metrics.completed_laps == 1 and score.metrics.percentage_completed > 100
     poses = next(iter(poses_by_episode(inbox).values()))
-    from services.circuits import load_circuit
+    from circuits import load_circuit
 
     forward_yaw = load_circuit("simple").start_pose()[2]
     heading_change = np.angle(np.exp(1j * (poses[1, 3] - forward_yaw)))

@@ -7,7 +7,7 @@ import pytest
 
 from protocol.messages import Drop, EpisodeSpec, Jpeg, Occlusion, SaltPepper, WorldVariation
 from protocol.variations import CAMERA_PRESETS, VariationError, apply_variation, noise_stage
-from services.circuits import load_circuit
+from circuits import load_circuit
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

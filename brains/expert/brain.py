@@ -29,7 +29,7 @@ CURVATURE_WINDOW_M = 4.0  # curvature is smoothed over this much centre line (it
 @lru_cache(maxsize=8)
 def _route(circuit: str, direction: str):
     """The circuit in the driven direction and its smoothed curvature (1/m) at each centre-line point."""
-    from services.circuits import load_circuit
+    from circuits import load_circuit
 
     track = load_circuit(circuit, direction=direction)
     centreline = track.centreline

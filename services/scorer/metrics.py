@@ -28,7 +28,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from protocol.messages import EpisodeMetrics
-from services.circuits import Circuit
+from circuits import Circuit
 
 # --- Behavior Metrics constants (reference §3, §8) -------------------------------------------------------------
 BM_CHECKPOINT_RADIUS_M = 5.0  # a checkpoint counts as reached within this distance (strict <)

@@ -24,7 +24,7 @@ from protocol.messages import (
 )
 from protocol.episodes import running_spec
 from protocol.runtime import stop_requested
-from services.circuits import CircuitError, load_circuit
+from circuits import CircuitError, load_circuit
 from services.scorer.metrics import EpisodeScorer
 from services.scorer.shadows import CommandMatcher
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.messages import EndReason, EpisodeSpec, WorldVariation
-from services.circuits import Circuit, load_circuit
+from circuits import Circuit, load_circuit
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
 

@@ -30,7 +30,7 @@ import numpy as np
 import pybullet
 
 from protocol.messages import CameraSpec, WorldVariation
-from services.circuits import Circuit
+from circuits import Circuit
 from services.simulator.car import CarState
 
 MAX_TRIANGLES_PER_CHUNK = 200

@@ -27,7 +27,7 @@ from protocol.messages import (
     CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
 )
 from protocol.runtime import stop_requested
-from services.circuits import Circuit, CircuitError, load_circuit
+from circuits import Circuit, CircuitError, load_circuit
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 
 log = logging.getLogger("drivebench.simulator")

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.circuits.library import Circuit
+from circuits.library import Circuit
 
 GRASS_RGB = (96, 140, 84)
 ROAD_RGB = (90, 90, 90)

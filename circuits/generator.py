@@ -8,7 +8,7 @@ circle becomes bays, bulges, S-bends and the odd hairpin). A candidate is kept w
 
 * its lap is 400-1500 m,
 * it never turns tighter than :data:`MIN_RADIUS_M`,
-* :func:`~services.circuits.library.check_track` passes with a :data:`MIN_GAP_M` centre-to-centre clearance (no
+* :func:`~circuits.library.check_track` passes with a :data:`MIN_GAP_M` centre-to-centre clearance (no
   crossing, and the walls of two parts of the track never come close),
 
 otherwise the next candidate is drawn from a seed derived from ``(seed, attempt)``. Everything is drawn from
@@ -31,8 +31,8 @@ import math
 import numpy as np
 from scipy.ndimage import maximum_filter1d
 
-from services.circuits.centreline import Centreline
-from services.circuits.library import (
+from circuits.centreline import Centreline
+from circuits.library import (
     RANDOM_PREFIX,
     RESAMPLE_STEP_M,
     TWISTY_PREFIX,
@@ -81,7 +81,7 @@ def _generate(seed: int, *, prefix: str, candidate, kind: str) -> Circuit:
             return Circuit(
                 name=f"{prefix}{seed}",
                 description=f"{kind} of seed {seed} (candidate {attempt})",
-                source="drivebench procedural generator (services.circuits.generator)",
+                source="drivebench procedural generator (circuits.generator)",
                 centreline=Centreline(points),
                 road_half_width_m=ROAD_WIDTH_M / 2,
                 line_width_m=LINE_WIDTH_M,

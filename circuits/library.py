@@ -2,13 +2,13 @@
 
 Three kinds of names:
 
-* **built-in** circuits: ``services/circuits/data/NAME.yaml``, authored for drivebench at Behavior Metrics' scale;
+* **built-in** circuits: ``circuits/data/NAME.yaml``, authored for drivebench at Behavior Metrics' scale;
 * **user** circuits: ``NAME.yaml`` files in :func:`user_circuits_dir` (``$DRIVEBENCH_CIRCUITS_DIR``, else
-  ``~/.local/share/drivebench/circuits``), e.g. written by :func:`services.circuits.importer.import_racetrack_csv`.
+  ``~/.local/share/drivebench/circuits``), e.g. written by :func:`circuits.importer.import_racetrack_csv`.
   They are checked with :func:`check_track` when loaded. A built-in of the same name wins;
-* ``random:SEED``: a procedural circuit from :func:`services.circuits.generator.random_circuit`.
+* ``random:SEED``: a procedural circuit from :func:`circuits.generator.random_circuit`.
 * ``twisty:SEED``: a procedural circuit of straights and hairpins from
-  :func:`services.circuits.generator.twisty_circuit`.
+  :func:`circuits.generator.twisty_circuit`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import yaml
 from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
-from services.circuits.centreline import Centreline
+from circuits.centreline import Centreline
 
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
@@ -49,7 +49,7 @@ class CircuitError(ValueError):
 
 
 class CircuitFile(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
-    """The YAML format of a circuit file (see ``services/circuits/data/simple.yaml``)."""
+    """The YAML format of a circuit file (see ``circuits/data/simple.yaml``)."""
 
     name: str
     description: str = ""
@@ -100,7 +100,7 @@ class Circuit:
 
 
 def _data_dir() -> Path:
-    return Path(str(resources.files("services.circuits") / "data"))
+    return Path(str(resources.files("circuits") / "data"))
 
 
 def user_circuits_dir() -> Path:
@@ -176,7 +176,7 @@ def _load_forward(name: str) -> Circuit:
         if seed is None:
             raise CircuitError(f"bad generated circuit name {name!r}: "
                                f"want {prefix}SEED with SEED a non-negative integer")
-        from services.circuits.generator import random_circuit, twisty_circuit  # the generator imports this module
+        from circuits.generator import random_circuit, twisty_circuit  # the generator imports this module
 
         return (random_circuit if prefix == RANDOM_PREFIX else twisty_circuit)(seed)
     raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")

@@ -7,7 +7,7 @@ track edges), in driving order, about 5 m apart. The loop is implicitly closed: 
 first (a file that does repeat it is accepted too). drivebench bundles none of that data; a user downloads a file
 and imports it::
 
-    python -m services.circuits.importer Catalunya.csv --name catalunya [--scale 1.0]
+    python -m circuits.importer Catalunya.csv --name catalunya [--scale 1.0]
 
 :func:`import_racetrack_csv` then
 
@@ -22,9 +22,9 @@ and imports it::
 4. resamples that spline at the data's own median point spacing (scaled) as the circuit's control points, which
    the loader turns back into a centreline with the usual interpolating periodic spline (the two agree to
    millimetres);
-5. checks the result with :func:`~services.circuits.library.check_track` (no crossing, the walls of two parts of
+5. checks the result with :func:`~circuits.library.check_track` (no crossing, the walls of two parts of
    the track at least 0.5 m apart, no bend tighter than the half-width);
-6. writes ``NAME.yaml`` (the usual circuit format, see ``services/circuits/data/simple.yaml``) into the user
+6. writes ``NAME.yaml`` (the usual circuit format, see ``circuits/data/simple.yaml``) into the user
    circuits folder, ``$DRIVEBENCH_CIRCUITS_DIR`` or ``~/.local/share/drivebench/circuits``, with
    road_width_m = the median of (w_tr_right_m + w_tr_left_m), scaled, and a ``source`` that carries the data's
    licence and attribution along.
@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import splev, splprep
 
-from services.circuits.library import (
+from circuits.library import (
     PLAIN_NAME,
     RESAMPLE_STEP_M,
     CircuitError,
@@ -196,7 +196,7 @@ def smooth_centreline(points_m: np.ndarray, *, road_width_m: float) -> np.ndarra
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m services.circuits.importer",
+        prog="python -m circuits.importer",
         description="Import a TUM racetrack-database centreline CSV as a drivebench user circuit.",
     )
     parser.add_argument("csv", type=Path, help="tracks/NAME.csv from the racetrack-database")
