@@ -33,6 +33,7 @@ from scipy.ndimage import maximum_filter1d
 
 from circuits.centreline import Centreline
 from circuits.library import (
+    GENERATORS,
     RANDOM_PREFIX,
     RESAMPLE_STEP_M,
     TWISTY_PREFIX,
@@ -163,3 +164,6 @@ def _checked_and_started(points: np.ndarray) -> np.ndarray | None:
     worst_nearby = maximum_filter1d(curvature, size=window, mode="wrap")
     start = int(np.argmin(worst_nearby))
     return np.roll(points, -start, axis=0)
+
+
+GENERATORS.update({RANDOM_PREFIX: random_circuit, TWISTY_PREFIX: twisty_circuit})

@@ -17,6 +17,7 @@ import dataclasses
 import math
 import os
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -33,6 +34,9 @@ RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
 TWISTY_PREFIX = "twisty:"
 GENERATED_NAMES = "random:SEED or twisty:SEED"
+# The generated families by name prefix, filled in by circuits.generator when the package is imported: the generator
+# builds on this module's geometry, so this module must not import it (no import cycle).
+GENERATORS: dict[str, Callable[[int], Circuit]] = {}
 USER_CIRCUITS_ENV = "DRIVEBENCH_CIRCUITS_DIR"
 # A circuit name a user may give: letters, digits, '_', '-' and '.', starting with a letter or digit (so no path,
 # no hidden file, no "random:" prefix).
@@ -176,9 +180,7 @@ def _load_forward(name: str) -> Circuit:
         if seed is None:
             raise CircuitError(f"bad generated circuit name {name!r}: "
                                f"want {prefix}SEED with SEED a non-negative integer")
-        from circuits.generator import random_circuit, twisty_circuit  # the generator imports this module
-
-        return (random_circuit if prefix == RANDOM_PREFIX else twisty_circuit)(seed)
+        return GENERATORS[prefix](seed)
     raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")
 
 
