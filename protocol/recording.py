@@ -234,3 +234,24 @@ def _frame_from_jpeg(header: Header, jpeg: bytes, *, dropped: bool) -> CameraFra
     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     return CameraFrame(header=header, width_px=rgb.shape[1], height_px=rgb.shape[0], data=rgb.tobytes(),
                        dropped=dropped)
+
+
+# Episodes' stamps restart at 0: each (run, episode) gets a base log time, one gap after the latest time logged.
+EPISODE_GAP_NS = 1_000_000_000
+
+
+class EpisodeClock:
+    """Log time for messages whose stamps restart at 0 every episode (recordings and the live view share it,
+    so a viewer's clock never runs back)."""
+
+    def __init__(self) -> None:
+        self._base_ns: dict[tuple[str, int], int] = {}
+        self._latest_ns = -EPISODE_GAP_NS
+
+    def log_time_ns(self, run_id: str, episode: int, stamp_ns: int) -> int:
+        base = self._base_ns.get((run_id, episode))
+        if base is None:
+            base = self._base_ns[(run_id, episode)] = self._latest_ns + EPISODE_GAP_NS if self._base_ns else 0
+        log_time = base + max(0, stamp_ns)
+        self._latest_ns = max(self._latest_ns, log_time)
+        return log_time

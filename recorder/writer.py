@@ -23,14 +23,13 @@ from pathlib import Path
 import msgspec
 from mcap.writer import CompressionType, Writer
 
-from protocol.recording import (FORMAT_VERSION, ChannelLayout, Schema, channel_layout, check_image_format,
-                                record_stamps, to_record)
-from recorder.views import ViewMaker, ViewMessage
+from protocol.recording import (FORMAT_VERSION, ChannelLayout, EpisodeClock, Schema, channel_layout,
+                                check_image_format, record_stamps, to_record)
+from protocol.views import ViewMaker, ViewMessage
 
 log = logging.getLogger("drivebench.recorder")
 
 CHUNK_SIZE_BYTES = 1 << 20
-EPISODE_GAP_NS = 1_000_000_000
 PART_SUFFIX = ".part"
 LIBRARY = "drivebench-recorder"
 
@@ -49,22 +48,6 @@ def is_being_written(part: Path) -> bool:
             return True
         fcntl.flock(probe.fileno(), fcntl.LOCK_UN)
         return False
-
-
-class EpisodeClock:
-    """Log time for messages whose stamps restart at 0 every episode (see the module docstring)."""
-
-    def __init__(self) -> None:
-        self._base_ns: dict[tuple[str, int], int] = {}
-        self._latest_ns = -EPISODE_GAP_NS
-
-    def log_time_ns(self, run_id: str, episode: int, stamp_ns: int) -> int:
-        base = self._base_ns.get((run_id, episode))
-        if base is None:
-            base = self._base_ns[(run_id, episode)] = self._latest_ns + EPISODE_GAP_NS if self._base_ns else 0
-        log_time = base + max(0, stamp_ns)
-        self._latest_ns = max(self._latest_ns, log_time)
-        return log_time
 
 
 class RecordingWriter:

@@ -20,7 +20,7 @@ from mcap_validation import SKIP_REASON, VALIDATOR_DIR, assert_valid_mcap, valid
 mcap_writer = pytest.importorskip("mcap.writer")
 mcap_reader = pytest.importorskip("mcap.reader")
 raw_image_pb2 = pytest.importorskip("foxglove_schemas_protobuf.RawImage_pb2")
-from recorder.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
+from protocol.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
 
 pytestmark = pytest.mark.skipif(not validator_available(), reason=SKIP_REASON)
 

@@ -1,7 +1,7 @@
 """The core of the live view: bus messages in, Foxglove WebSocket channels out. Knows nothing of Zenoh.
 
 It serves a Foxglove WebSocket server (foxglove-sdk, subprotocol ``foxglove.sdk.v1``) and maps each bus message to
-the channel a recording would hold for it (``protocol.recording``, ``recorder.views``), so a layout made for a
+the channel a recording would hold for it (``protocol.recording``, ``protocol.views``), so a layout made for a
 recording of a run also works live on that run:
 
 * camera frames -> ``foxglove.CompressedImage`` (protobuf, JPEG; the recording's image schema with the run id,
@@ -13,7 +13,7 @@ recording of a run also works live on that run:
   Schema.
 
 Log times are simulated time: the first episode seen starts at 0 and each later one one second after the previous
-one's last message (``recorder.writer.EpisodeClock``, as in recordings), so a viewer's clock never runs back. The
+one's last message (``protocol.recording.EpisodeClock``, as in recordings), so a viewer's clock never runs back. The
 geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
 
 A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
@@ -35,9 +35,8 @@ from foxglove.websocket import ServerListener
 
 from protocol import keys
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
-from protocol.recording import Schema, channel_layout, to_record
-from recorder.views import ViewMaker, ViewMessage, protobuf_schema
-from recorder.writer import EpisodeClock
+from protocol.recording import EpisodeClock, Schema, channel_layout, to_record
+from protocol.views import ViewMaker, ViewMessage, protobuf_schema
 
 log = logging.getLogger("drivebench.viz")
 _SDK_LOG = logging.getLogger("foxglove")  # foxglove-sdk's Rust log records arrive under it
