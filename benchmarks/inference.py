@@ -38,7 +38,8 @@ def configurations(name: str, folder: Path) -> tuple[dict[str, Callable[[], obje
     """name -> zero-argument call to time, and the torch thread count each call needs (0: none)."""
     import torch
 
-    from brains.neural.brain import OrtRunner, Preprocessor
+    from brains.neural.brain import Preprocessor
+    from brains.neural.runners import OrtRunner
     from brains.neural.checkpoint import build_model, input_shape, load_checkpoint, make_random_checkpoint
     from brains.neural.export import export_onnx
 

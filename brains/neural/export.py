@@ -24,6 +24,7 @@ import numpy as np
 
 from brains.neural.checkpoint import (Checkpoint, CheckpointError, build_model, input_shape, load_checkpoint,
                                       pack_checkpoint, to_metadata)
+from brains.neural.runners import OrtRunner
 
 INPUT_NAME, OUTPUT_NAME = "frames", "command"
 SOURCE_SHA256_KEY = "drivebench.source_sha256"
@@ -73,8 +74,6 @@ def check_parity(ckpt_path: str | Path, onnx_path: str | Path, *, batch: int = 4
     """Max |torch eager - onnxruntime| over the (batch, 2) normalised outputs for seeded N(0, 1) inputs (which is
     what ImageNet-normalised pixels look like)."""
     import torch
-
-    from brains.neural.brain import OrtRunner
 
     ckpt = load_checkpoint(ckpt_path)
     model = build_model(ckpt)
