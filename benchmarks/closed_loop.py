@@ -64,7 +64,8 @@ def main() -> int:
     scenes = SceneCache()
     rows = []
     with tempfile.TemporaryDirectory() as tmp, \
-            LocalStack(run_id=f"bench{uuid.uuid4().hex[:6]}", run_dir=Path(tmp), brains=[BrainLaunch("explicit")]) as stack:
+            LocalStack(run_id=f"bench{uuid.uuid4().hex[:6]}", run_dir=Path(tmp),
+                       brains=[BrainLaunch("explicit")]) as stack:
         progress = tqdm(total=len(sizes) * args.repeats * 2, desc="closed loop", file=sys.stderr, unit="run")
         for width, height in sizes:
             spec = EpisodeSpec(circuit="simple", max_sim_seconds=args.sim_seconds,

@@ -1,7 +1,7 @@
 """Procedural circuits: ``random_circuit(seed)`` and ``twisty_circuit(seed)``, loaded by name as ``random:SEED`` and
 ``twisty:SEED``.
 
-**random:SEED.** 
+**random:SEED.**
 A candidate is a periodic cubic spline through 7-14 control points scattered around a circle: the points are
 taken in clockwise order at evenly spaced angles with a random jitter, at random distances from the centre (so the
 circle becomes bays, bulges, S-bends and the odd hairpin). A candidate is kept when

@@ -2,7 +2,8 @@
 
 ``LocalStack`` embeds the Zenoh router in the calling process (on a free loopback port), starts the simulator,
 the noise injector, the brain host(s) and the scorer as child processes with a log file each, waits for their
-liveliness tokens, runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM, then SIGKILL).
+liveliness tokens, runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM,
+then SIGKILL).
 Children also stop by themselves when this process dies (they watch their parent), so nothing is orphaned.
 """
 
@@ -211,7 +212,8 @@ class LocalStack:
             raise StackError(dead)
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
-            raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})")
+            raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} "
+                             f"(logs in {self.run_dir / 'logs'})")
         self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
@@ -239,13 +241,13 @@ class LocalStack:
         raise StackError(f"the router did not listen on {self.endpoint} within {self.startup_timeout_s:.0f} s")
 
     def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
-        log_path = self.run_dir / "logs" / f"{role}-{name}.log" if role == "brain" else self.run_dir / "logs" / f"{role}.log"
+        log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
         env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
         env |= {"PYTHONUNBUFFERED": "1", "DRIVEBENCH_PARENT_PID": str(os.getpid())}
+        joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
         with open(log_path, "ab") as log_file:
             process = subprocess.Popen(
-                [sys.executable, "-m", module, *(["--router", self.endpoint, "--run-id", self.run_id] if connect else []),
-                 *argv],
+                [sys.executable, "-m", module, *joins, *argv],
                 stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                 start_new_session=True,  # Ctrl-C reaches only us; we stop the children in order
             )

@@ -114,7 +114,8 @@ def score(run_id: str) -> str:
 
 def alive(run_id: str, role: str, name: str) -> str:
     """Liveliness token of one process of one run."""
-    return f"{ROOT}/alive/{check_name(run_id, what='run id')}/{check_name(role, what='role')}/{check_name(name, what='name')}"
+    run, role_name = check_name(run_id, what="run id"), check_name(role, what="role")
+    return f"{ROOT}/alive/{run}/{role_name}/{check_name(name, what='name')}"
 
 
 def alive_role(run_id: str, role: str) -> str:

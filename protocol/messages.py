@@ -132,7 +132,8 @@ class Brightness(_Noise, tag="brightness"):
 
     def __post_init__(self) -> None:
         if not (-1.0 <= self.brightness <= 1.0 and 0 <= self.contrast < float("inf")):
-            raise ValueError(f"brightness must be within -1..1 and contrast >= 0, got {self.brightness}, {self.contrast}")
+            raise ValueError(f"brightness must be within -1..1 and contrast >= 0, "
+                             f"got {self.brightness}, {self.contrast}")
 
 
 class Occlusion(_Noise, tag="occlusion"):

@@ -52,8 +52,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
     with _open(path) as stream:
         reader = _indexed_reader(stream, path)
         summary = reader.get_summary()
-        topics = [c.topic for c in summary.channels.values()
-                  if is_bus_channel(dict(c.metadata)) and (keys_glob is None or fnmatch.fnmatchcase(c.topic, keys_glob))]
+        topics = [c.topic for c in summary.channels.values() if is_bus_channel(dict(c.metadata))
+                  and (keys_glob is None or fnmatch.fnmatchcase(c.topic, keys_glob))]
         if not topics:
             return
         try:
@@ -62,7 +62,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
                                message=_decode(record.data, schema, channel, path, record.sequence),
                                log_time_ns=record.log_time)
         except MCAP_ERRORS as error:
-            raise RecordingError(f"{path}: corrupted ({describe_error(error)}); try `drivebench recorder repair {path}`") from None
+            raise RecordingError(f"{path}: corrupted ({describe_error(error)}); "
+                                 f"try `drivebench recorder repair {path}`") from None
 
 
 @dataclass(frozen=True)

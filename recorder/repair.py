@@ -60,7 +60,8 @@ def repair(source: Path, *, output: Path | None = None, overwrite: bool = False)
     os.replace(temporary, output)
     if source.name.endswith(PART_SUFFIX):
         source.unlink()
-    log.info("repaired %s -> %s: %d messages%s", source, output, messages, f" (stopped at {stopped_at})" if stopped_at else "")
+    log.info("repaired %s -> %s: %d messages%s", source, output, messages,
+             f" (stopped at {stopped_at})" if stopped_at else "")
     return RepairReport(source=source, output=output, messages=messages, stopped_at=stopped_at)
 
 

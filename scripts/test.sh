@@ -6,4 +6,6 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 # Where Node is, the MCAP validator must have been installed: its checks fail instead of skipping.
 if command -v node >/dev/null 2>&1; then export DRIVEBENCH_REQUIRE_MCAP_VALIDATOR=1; fi
+# Lint first: a minute of tests is not worth spending on a file that does not pass it.
+.venv/bin/ruff check --quiet . || { echo "scripts/test.sh: ruff found the problems above" >&2; exit 1; }
 exec .venv/bin/python -m pytest "$@"

@@ -49,7 +49,7 @@ def write_csv(path, points, right_m=5.0, left_m=5.0, *, noise_m=0.0, header=HEAD
     points = points + rng.normal(0.0, noise_m, points.shape) if noise_m else points
     right = np.broadcast_to(right_m, len(points))
     left = np.broadcast_to(left_m, len(points))
-    body = "".join(f"{x:.4f},{y:.4f},{r:.3f},{l:.3f}\n" for (x, y), r, l in zip(points, right, left, strict=True))
+    body = "".join(f"{x:.4f},{y:.4f},{r:.3f},{lw:.3f}\n" for (x, y), r, lw in zip(points, right, left, strict=True))
     path.write_text(header + body)
     return path
 

@@ -85,8 +85,8 @@ def test_bad_weights_are_refused_before_anything_starts(tmp_path, args, expected
 
     (tmp_path / "random.ckpt").write_bytes(bytes(range(256)) * 8)
     torch.save({"model": print}, tmp_path / "pickle.ckpt")  # loading it would need unpickling a function
-    paths = {"good": str(Path(__file__).resolve().parent.parent / "brains" / "weights" / "memdccp.ckpt"), "random": str(tmp_path / "random.ckpt"),
-             "pickle": str(tmp_path / "pickle.ckpt")}
+    paths = {"good": str(Path(__file__).resolve().parent.parent / "brains" / "weights" / "memdccp.ckpt"),
+             "random": str(tmp_path / "random.ckpt"), "pickle": str(tmp_path / "pickle.ckpt")}
     started = time.monotonic()
     result = drivebench("run", *[arg.format(**paths) for arg in args], "--out", str(tmp_path / "r"), timeout=60)
     assert result.returncode == 2 and expected in result.stderr, result.stderr

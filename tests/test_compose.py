@@ -277,7 +277,8 @@ def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path
     scores = sorted((results / "runs").glob(f"*-compose{port}/score.json"))
     assert len(scores) == 2, list((results / "runs").iterdir())
     first, second = (json.loads(path.read_text()) for path in scores)
-    assert first["spec"]["active_brain"] == "explicit" and second["spec"]["active_brain"] == "deepest_lstm_tiny_pilotnet"
+    assert first["spec"]["active_brain"] == "explicit"
+    assert second["spec"]["active_brain"] == "deepest_lstm_tiny_pilotnet"
     for score in (first, second):
         assert score["reason"] == "time_limit" and score["metrics"]["progress_m"] > 20, score
     recordings = list((results / "recordings").glob(f"compose{port}-*.mcap"))

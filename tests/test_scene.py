@@ -124,7 +124,8 @@ def test_culling_changes_no_pixel(walls):
     rng = np.random.default_rng(7)
     with Scene(CIRCUIT, walls=walls) as culled, Scene(CIRCUIT, walls=walls, cull_margin_m=None) as unculled:
         for _ in range(12):
-            s_m, lateral_m, heading_offset_rad = rng.uniform(0, CIRCUIT.length_m), rng.uniform(-1.4, 1.4), rng.uniform(-1, 1)
+            s_m, lateral_m = rng.uniform(0, CIRCUIT.length_m), rng.uniform(-1.4, 1.4)
+            heading_offset_rad = rng.uniform(-1, 1)
             car = pose_on_track(s_m, lateral_m, heading_offset_rad)
             for camera in (CameraSpec(width_px=160, height_px=120), CameraSpec(width_px=200, height_px=66)):
                 assert np.array_equal(culled.render(car, camera), unculled.render(car, camera))

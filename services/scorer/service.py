@@ -170,7 +170,8 @@ class ScorerService:
         shadows = current.commands.finish()  # first: it hands the last driver commands to the metrics
         metrics = current.scorer.finish(wall_time_s=wall_time_s)
         score = EpisodeScore(
-            header=Header(run_id=self.config.run_id, episode=current.number, seq=0, stamp_ns=current.end.header.stamp_ns),
+            header=Header(run_id=self.config.run_id, episode=current.number, seq=0,
+                          stamp_ns=current.end.header.stamp_ns),
             spec=current.spec, reason=current.end.reason or EndReason.STOPPED, brain=current.active_brain,
             metrics=metrics, switches=list(current.commands.switches), shadows=shadows)
         self._scores.publish(score)

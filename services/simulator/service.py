@@ -186,7 +186,8 @@ class SimulatorService:
         if self._state != "idle" or not self._requests.empty():
             return codec.encode(ControlReply(ok=False, detail=f"busy ({self._state})", state=self._state))
         try:
-            circuit = load_circuit(request.spec.circuit, direction=request.spec.direction)  # checked here so a bad name is refused, not run
+            # Loaded here, so that a bad name is refused rather than run.
+            circuit = load_circuit(request.spec.circuit, direction=request.spec.direction)
         except CircuitError as error:
             return codec.encode(ControlReply(ok=False, detail=str(error)))
         if not self._brain_alive(request.spec.active_brain):
