@@ -30,7 +30,9 @@ from typing import Any
 
 import msgspec
 
-from orchestrator.matrix_report import FAIL_MARK, PAPER_FACT, Section, Table, lap_seconds, outcome, reached_target
+from orchestrator.matrix_report import PAPER_FACT
+from orchestrator.report_cells import lap_seconds, outcome, reached_target
+from orchestrator.report_document import FAIL_MARK, Section, Table
 from orchestrator.results import EpisodeResult
 
 PAPER_FILE = Path(__file__).resolve().parents[1] / "experiments" / "paper.yaml"

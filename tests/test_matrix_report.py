@@ -14,16 +14,8 @@ import numpy as np
 import pytest
 
 from orchestrator.matrix import parse_matrix
-from orchestrator.matrix_report import (
-    BASELINE_FACT,
-    ReportError,
-    add_report_command,
-    baseline_variation,
-    grid_cell,
-    mean_std,
-    run_report,
-    write_report,
-)
+from orchestrator.matrix_report import BASELINE_FACT, ReportError, add_report_command, run_report, write_report
+from orchestrator.report_cells import baseline_variation, grid_cell, mean_std
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
 from circuits import load_circuit

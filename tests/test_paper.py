@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 
 from orchestrator.matrix import load_matrix
-from orchestrator.matrix_report import Table, write_report
+from orchestrator.matrix_report import write_report
 from orchestrator.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
+from orchestrator.report_document import Table
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, SaltPepper
 from protocol.variations import apply_variation
