@@ -96,13 +96,13 @@ class Centreline:
             return self._project_global(x_m, y_m)
         return self._projection(int(segments[best]), t, distance, cross)
 
-    def lateral_offsets_m(self, x_m: np.ndarray, y_m: np.ndarray, *, k: int = 4) -> np.ndarray:
-        """Signed distance (+ left) of many points to the centreline at once, each by the global search (the
-        segments next to its ``k`` nearest vertices): for drawing and statistics over whole trajectories. A moving
-        car's figures come from :meth:`project` with ``near_s_m``, which cannot jump between close branches."""
+    def project_many(self, x_m: np.ndarray, y_m: np.ndarray, *, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """(arc lengths s_m, signed distances lateral_m, + left) of many points at once, each by the global search
+        (the segments next to its ``k`` nearest vertices): for drawing and statistics over whole trajectories. A
+        moving car's figures come from :meth:`project` with ``near_s_m``, which cannot jump between close branches."""
         xy = np.column_stack([np.asarray(x_m, dtype=float), np.asarray(y_m, dtype=float)])
         if len(xy) == 0:
-            return np.zeros(0)
+            return np.zeros(0), np.zeros(0)
         _, vertex_ids = self._tree.query(xy, k=min(k, len(self.points_m)))
         vertex_ids = vertex_ids.reshape(len(xy), -1)
         segments = np.concatenate([vertex_ids, (vertex_ids - 1) % len(self.points_m)], axis=1)  # (N, 2k)
@@ -114,7 +114,9 @@ class Centreline:
         best = np.argmin(distance, axis=1)
         rows = np.arange(len(xy))
         cross = vectors[rows, best, 0] * rel[rows, best, 1] - vectors[rows, best, 1] * rel[rows, best, 0]
-        return np.where(cross != 0, np.copysign(distance[rows, best], cross), 0.0)
+        segment = segments[rows, best]
+        s_m = (self.s_m[segment] + t[rows, best] * self._segment_lengths[segment]) % self.length_m
+        return s_m, np.where(cross != 0, np.copysign(distance[rows, best], cross), 0.0)
 
     def _project_global(self, x_m: float, y_m: float, k: int = 8) -> Projection:
         _, vertex_ids = self._tree.query((x_m, y_m), k=min(k, len(self.points_m)))

@@ -333,9 +333,8 @@ class ReportPlots:
         stamps = t["stamp_s"]
         if track is None or len(stamps) != len(t["x_m"]) or len(stamps) < 2:
             return np.zeros(0), np.zeros(0)
-        _, nearest = track._tree.query(np.column_stack([t["x_m"], t["y_m"]]))
         centreline = track.circuit.centreline
-        s = centreline.s_m[nearest]
+        s, _ = centreline.project_many(t["x_m"], t["y_m"])
         ds = centreline.wrap_ds(np.diff(s))
         progress = np.concatenate([[0.0], np.cumsum(ds)]) / centreline.length_m
         return stamps - stamps[0], progress

@@ -55,7 +55,7 @@ class _Track:
 
     def lateral_m(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
         """Signed distance (+ left) of each point to the centreline, for colouring a plot."""
-        return self.circuit.centreline.lateral_offsets_m(x_m, y_m)
+        return self.circuit.centreline.project_many(x_m, y_m)[1]
 
 
 def _speeds(trajectory: dict[str, np.ndarray]) -> np.ndarray:

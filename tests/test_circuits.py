@@ -126,17 +126,18 @@ def test_projection_matches_brute_force_and_tracking():
 
 @pytest.mark.parametrize("name", ["simple", "montmelo", "twisty:10"])
 def test_many_points_at_once_project_as_one_at_a_time(name):
-    """lateral_offsets_m (the report's colours) is project()'s global search, vectorised: the same signed distance,
-    and the brute-force distance."""
+    """project_many (the report's colours and progress) is project()'s global search, vectorised: the same arc
+    length and signed distance, and the brute-force distance."""
     centreline = load_circuit(name).centreline
     rng = np.random.default_rng(1)
     points = np.array([centreline.pose_at(s)[:2] for s in rng.uniform(0, centreline.length_m, 300)])
     points += rng.normal(0.0, 1.0, points.shape)
-    offsets = centreline.lateral_offsets_m(points[:, 0], points[:, 1])
-    one_at_a_time = [centreline.project(x, y).lateral_m for x, y in points]
-    np.testing.assert_allclose(offsets, one_at_a_time, atol=1e-9)
+    s_m, offsets = centreline.project_many(points[:, 0], points[:, 1])
+    one_at_a_time = [centreline.project(x, y) for x, y in points]
+    np.testing.assert_allclose(offsets, [p.lateral_m for p in one_at_a_time], atol=1e-9)
+    np.testing.assert_allclose(s_m, [p.s_m for p in one_at_a_time], atol=1e-9)
     np.testing.assert_allclose(np.abs(offsets), [brute_force(centreline, x, y)[0] for x, y in points], atol=1e-9)
-    assert centreline.lateral_offsets_m(np.zeros(0), np.zeros(0)).shape == (0,)
+    assert all(part.shape == (0,) for part in centreline.project_many(np.zeros(0), np.zeros(0)))
 
 
 def test_tracking_keeps_to_its_own_branch_where_two_run_close():

@@ -99,8 +99,11 @@ def make_results(folder: Path) -> dict:
             score = EpisodeScore(header=Header(run_id=f"r{index}", episode=0, seq=0, stamp_ns=0), spec=spec,
                                  reason=reason, brain=brain, metrics=metrics)
             trajectory = f"trajectories/{index:03d}.npz"
-            if perturbation == "none" or rep == 0:  # one perturbed episode's file is missing on disk
+            if perturbation == "none":
                 np.savez(folder / trajectory, **arrays)
+            elif rep == 0:  # a file without live samples: the progress plot takes its progress from the poses
+                np.savez(folder / trajectory, **{k: v for k, v in arrays.items() if not k.startswith("live_")})
+            # (the other perturbed episode's file is missing on disk)
             store.record(EpisodeResult(**common, status="done", ended_at=started + metrics.wall_time_s,
                                        reason=str(reason), score=score, trajectory=trajectory,
                                        recording=f"recordings/{index:03d}.mcap"))
