@@ -246,16 +246,23 @@ class ComposeEmulation:
                 process.wait()
 
 
-@pytest.mark.integration
-@pytest.mark.slow
-def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path):
+def emulated_stack(tmp_path: Path, *, run_prefix: str, max_sim_seconds: float,
+                   profiles: tuple[str, ...] = ()) -> tuple[ComposeEmulation, dict[str, str], int]:
+    """The resolved compose file on a free loopback port, as processes: (stack, its environment, the port)."""
     port = free_loopback_port()
     env = {"DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}", "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
-           "MAX_SIM_SECONDS": "6", "DRIVEBENCH_RUN_ID": f"compose{port}"}
+           "MAX_SIM_SECONDS": f"{max_sim_seconds:g}", "DRIVEBENCH_RUN_ID": f"{run_prefix}{port}"}
     results, logs = tmp_path / "results", tmp_path / "logs"
     results.mkdir()
     logs.mkdir()
-    stack = ComposeEmulation(resolved(env=env, profiles=("record",)), results, logs)
+    return ComposeEmulation(resolved(env=env, profiles=profiles), results, logs), env, port
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path):
+    stack, env, port = emulated_stack(tmp_path, run_prefix="compose", max_sim_seconds=6, profiles=("record",))
+    results, logs = stack.results, stack.logs
     try:
         for name in ("router", "recorder", "simulator", "noise", "scorer", "brain"):
             stack.up(name)
@@ -294,13 +301,8 @@ def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_n
     """kill -9 of the router mid-episode, started again at once: the driver fails typed (router_died), the simulator
     ends the episode (driver_lost) instead of driving on over its peer links, and the services, never restarted,
     run the next attached episode."""
-    port = free_loopback_port()
-    env = {"DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}", "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
-           "MAX_SIM_SECONDS": "600", "DRIVEBENCH_RUN_ID": f"restart{port}"}
-    results, logs = tmp_path / "results", tmp_path / "logs"
-    results.mkdir()
-    logs.mkdir()
-    stack = ComposeEmulation(resolved(env=env, profiles=()), results, logs)
+    stack, env, _ = emulated_stack(tmp_path, run_prefix="restart", max_sim_seconds=600)
+    results, logs = stack.results, stack.logs
     try:
         for name in ("router", "simulator", "noise", "scorer", "brain"):
             stack.up(name)
