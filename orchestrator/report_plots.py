@@ -227,9 +227,7 @@ class ReportPlots:
         circuits = [c for c in self.circuits if any(r.circuit == c for r in scored)]
         if not circuits:
             return None
-        if len(circuits) > MAX_BOX_CIRCUITS:
-            self.notes.append(f"box plots: {len(circuits) - MAX_BOX_CIRCUITS} circuit(s) left out")
-            circuits = circuits[:MAX_BOX_CIRCUITS]
+        circuits = self._at_most(circuits, MAX_BOX_CIRCUITS, what="box plots")
         colours = _brain_colours(self.brains)
         fig, axes = plt.subplots(2, len(circuits), figsize=(max(3.8, 0.75 * len(self.brains) + 1.8) * len(circuits),
                                                             7.0), squeeze=False, layout="constrained")
@@ -291,9 +289,7 @@ class ReportPlots:
         circuits = [c for c in self.circuits if c in curves]
         if not circuits:
             return None
-        if len(circuits) > MAX_PROGRESS_CIRCUITS:
-            self.notes.append(f"progress plot: {len(circuits) - MAX_PROGRESS_CIRCUITS} circuit(s) left out")
-            circuits = circuits[:MAX_PROGRESS_CIRCUITS]
+        circuits = self._at_most(circuits, MAX_PROGRESS_CIRCUITS, what="progress plot")
         colours = _brain_colours(self.brains)
         ncols = min(len(circuits), 3)
         nrows = math.ceil(len(circuits) / ncols)
@@ -326,6 +322,12 @@ class ReportPlots:
         path = self._save(fig, "progress.png")
         return Plot(path, "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
                           "target; ✕: an episode that ended before it.")
+
+    def _at_most(self, circuits: list[str], limit: int, *, what: str) -> list[str]:
+        """The first ``limit`` circuits; a note in the report says how many a figure left out."""
+        if len(circuits) > limit:
+            self.notes.append(f"{what}: {len(circuits) - limit} circuit(s) left out")
+        return circuits[:limit]
 
     def _progress_from_poses(self, r: EpisodeResult, t: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Progress from the poses when the live samples are missing: unwrapped centreline arc length."""
