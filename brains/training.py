@@ -39,7 +39,6 @@ import signal
 import sys
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -55,7 +54,7 @@ from tqdm import tqdm
 
 from brains.nets import MODELS, ModelInfo, make_model
 from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
-from brains.neural.checkpoint import CheckpointError, read_checkpoint
+from brains.neural.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
 from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS, MANIFEST_FILE, DatasetError, DrivingDataset
 
@@ -435,47 +434,6 @@ def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: Label
             "mse_paper": float((phys_sq_sum / paper_scale ** 2).sum()) / (2 * n)}
 
 
-# -- checkpoints -----------------------------------------------------------------------------------------------------
-
-
-def save_checkpoint(checkpoint: dict[str, Any], path: Path) -> None:
-    """``torch.save`` to a temporary file in the same folder, then rename: a crash never leaves half a file."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
-        with open(temporary, "wb") as file:
-            torch.save(checkpoint, file)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """A checkpoint dict loaded on the CPU with ``weights_only=True``; CheckpointError (one line) if the file is
-    missing, not a torch file, or lacks the format tag or a required key (one reader for training and serving)."""
-    return read_checkpoint(path)
-
-
-def _reason(error: BaseException) -> str:
-    """One short line out of a possibly long, multi-line torch error message."""
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()] or [type(error).__name__]
-    line = next((line for line in lines if line.startswith("WeightsUnpickler error")), lines[0])
-    return line if len(line) <= 200 else line[:197] + "..."
-
-
-def model_from_checkpoint(checkpoint: dict[str, Any]) -> nn.Module:
-    """The checkpoint's network with its weights, in eval mode, on the CPU; CheckpointError if they do not fit."""
-    try:
-        model = make_model(checkpoint["model"], **checkpoint["hyper"])
-        model.load_state_dict(checkpoint["state_dict"])
-    except (TypeError, ValueError, RuntimeError, KeyError) as error:
-        raise CheckpointError(f"checkpoint of {checkpoint.get('model')!r}: weights do not fit the model "
-                              f"({_reason(error)})") from None
-    return model.eval()
-
-
 # -- training curve --------------------------------------------------------------------------------------------------
 
 _COLOURS = {"train_loss": (200, 120, 0), "train_eval_loss": (0, 160, 0), "val_loss": (0, 0, 220),
@@ -661,7 +619,7 @@ class _Trainer:
 
     def _restore(self, path: Path) -> None:
         try:
-            last = load_checkpoint(path)
+            last = read_checkpoint(path)
             resume = last["resume"]
             if resume["options"] != self.options.fixed():
                 diff = {k: (resume["options"].get(k), v) for k, v in self.options.fixed().items()
@@ -755,7 +713,7 @@ class _Trainer:
             state.best_loss, state.best_epoch, state.bad_epochs = monitored, epoch, 0
             state.best_metrics = {"train": train_metrics, "val": val_metrics}
             self.best_state = copy.deepcopy(self.model.state_dict())
-            save_checkpoint(self._checkpoint(self.best_state), self.output / BEST_FILE)
+            write_checkpoint(self._checkpoint(self.best_state), self.output / BEST_FILE)
         else:
             state.bad_epochs += 1
         self._save_last()
@@ -775,7 +733,7 @@ class _Trainer:
         self.model.load_state_dict(self.best_state)
         checkpoint = self._checkpoint(self.best_state)
         if self.state.epoch:
-            save_checkpoint(checkpoint, self.output / BEST_FILE)
+            write_checkpoint(checkpoint, self.output / BEST_FILE)
             self._write_reports()
         return TrainResult(output=self.output, checkpoint=self.output / BEST_FILE, metrics=checkpoint["metrics"],
                            epochs_run=self.state.epoch, best_epoch=self.state.best_epoch,
@@ -831,7 +789,7 @@ class _Trainer:
             "resume": {"options": self.options.fixed(), "progress": progress,
                        "best_state_dict": {k: v.detach().cpu() for k, v in self.best_state.items()}},
         })
-        save_checkpoint(last, self.output / LAST_FILE)
+        write_checkpoint(last, self.output / LAST_FILE)
 
     def _write_reports(self) -> None:
         checkpoint = self._checkpoint(self.best_state)
@@ -860,5 +818,5 @@ def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], 
 __all__ = [
     "CHECKPOINT_FORMAT", "CheckpointError", "LabelNorm", "TrainError", "TrainInterrupted", "TrainOptions",
     "TrainResult", "augment_batch", "balance_weights", "colour_jitter", "evaluate", "gaussian_blur", "label_norm",
-    "load_checkpoint", "mirror", "model_from_checkpoint", "plot_curve", "save_checkpoint", "to_unit_float", "train",
+    "mirror", "plot_curve", "to_unit_float", "train",
 ]

@@ -19,9 +19,9 @@ import cv2  # noqa: E402
 
 from brains import train_cli, training  # noqa: E402
 from brains.nets.preprocess import prepare_batch  # noqa: E402
+from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint  # noqa: E402
 from brains.training import (CHECKPOINT_FORMAT, CheckpointError, TrainError, TrainInterrupted,  # noqa: E402
-                             TrainOptions, augment_batch, balance_weights, label_norm, load_checkpoint, mirror,
-                             model_from_checkpoint, to_unit_float, train)
+                             TrainOptions, augment_batch, balance_weights, label_norm, mirror, to_unit_float, train)
 from recorder.dataset import DrivingDataset  # noqa: E402
 
 TINY = "deepest_lstm_tiny_pilotnet"
@@ -98,8 +98,8 @@ def memdccp_run(datasets, tmp_path_factory):
 
 @pytest.mark.slow
 def test_memdccp_checkpoint_reproduces_the_trained_model_and_its_metrics(memdccp_run, datasets):
-    checkpoint = load_checkpoint(memdccp_run.checkpoint)
-    model = model_from_checkpoint(checkpoint)
+    checkpoint = read_checkpoint(memdccp_run.checkpoint)
+    model = build_model(load_checkpoint(memdccp_run.checkpoint))
     assert not model.training
     val = DrivingDataset(datasets["seq3"], split="val")
     frames, labels = val.batch(np.arange(len(val)))
@@ -162,7 +162,7 @@ def test_resume_ends_exactly_where_an_uninterrupted_run_does(straight, datasets,
     assert result.epochs_run == 4
     assert_same_tensors(state_dict(out / "last.ckpt"), state_dict(straight / "last.ckpt"))
     assert_same_tensors(state_dict(out / "model.ckpt"), state_dict(straight / "model.ckpt"))
-    assert without_wall(result.metrics["curve"]) == without_wall(load_checkpoint(straight / "model.ckpt")["metrics"]
+    assert without_wall(result.metrics["curve"]) == without_wall(read_checkpoint(straight / "model.ckpt")["metrics"]
                                                                  ["curve"])
 
 
@@ -287,18 +287,18 @@ def test_model_and_dataset_mismatches_are_one_line_errors(datasets, tmp_path):
     assert "nothing" in message
 
 
-def test_load_checkpoint_refuses_missing_garbage_and_incomplete_files(tmp_path):
-    message = one_line_error(CheckpointError, lambda: load_checkpoint(tmp_path / "absent.ckpt"))
+def test_read_checkpoint_refuses_missing_garbage_and_incomplete_files(tmp_path):
+    message = one_line_error(CheckpointError, lambda: read_checkpoint(tmp_path / "absent.ckpt"))
     assert "absent.ckpt" in message
     garbage = tmp_path / "garbage.ckpt"
     garbage.write_bytes(b"\x00not a checkpoint" * 100)
-    assert "garbage.ckpt" in one_line_error(CheckpointError, lambda: load_checkpoint(garbage))
+    assert "garbage.ckpt" in one_line_error(CheckpointError, lambda: read_checkpoint(garbage))
     other = tmp_path / "other.ckpt"
     torch.save({"weights": torch.zeros(3)}, other)
-    assert "format" in one_line_error(CheckpointError, lambda: load_checkpoint(other))
+    assert "format" in one_line_error(CheckpointError, lambda: read_checkpoint(other))
     partial = tmp_path / "partial.ckpt"
     torch.save({"format": CHECKPOINT_FORMAT, "model": "memdccp", "input": {"width_px": 100}}, partial)
-    message = one_line_error(CheckpointError, lambda: load_checkpoint(partial))
+    message = one_line_error(CheckpointError, lambda: read_checkpoint(partial))
     assert "state_dict" in message and "input.offsets_frames" in message and "partial.ckpt" in message
 
 

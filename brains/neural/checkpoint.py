@@ -388,20 +388,34 @@ def _write_atomically(path: Path, write) -> None:
         temporary.unlink(missing_ok=True)
 
 
-# -- writing (tests, benchmarks, smoke runs) -------------------------------------------------------------------------
+# -- writing ---------------------------------------------------------------------------------------------------------
+
+
+def write_checkpoint(raw: dict[str, Any], path: str | Path) -> Path:
+    """Write a checkpoint dict (as :func:`read_checkpoint` returns it) with ``torch.save``, atomically and synced: a
+    crash never leaves half a file (training writes its best and last checkpoints through it). Returns the path."""
+    import torch
+
+    path = Path(path)
+
+    def write(file) -> None:
+        torch.save(raw, file)
+        file.flush()
+        os.fsync(file.fileno())
+
+    _write_atomically(path, write)
+    return path
 
 
 def save_checkpoint(path: str | Path, *, model_name: str, module, hyper: dict[str, Any] | None = None,
                     input: dict[str, Any], normalisation: dict[str, Any], dataset: dict[str, Any] | None = None,
                     metrics: dict[str, Any] | None = None, training: dict[str, Any] | None = None) -> Path:
-    """Write ``module``'s weights as a ``drivebench.checkpoint.v1`` file; returns the path."""
-    import torch
-
-    path = Path(path)
-    torch.save({"format": FORMAT, "model": model_name, "hyper": dict(hyper or {}), "state_dict": module.state_dict(),
-                "input": input, "normalisation": normalisation, "dataset": dict(dataset or {}),
-                "metrics": dict(metrics or {}), "training": dict(training or {})}, path)
-    return path
+    """Write ``module``'s weights as a ``drivebench.checkpoint.v1`` file (tests, benchmarks, smoke runs); returns the
+    path."""
+    return write_checkpoint({"format": FORMAT, "model": model_name, "hyper": dict(hyper or {}),
+                             "state_dict": module.state_dict(), "input": input, "normalisation": normalisation,
+                             "dataset": dict(dataset or {}), "metrics": dict(metrics or {}),
+                             "training": dict(training or {})}, path)
 
 
 def default_input(model_name: str, *, offsets_frames: tuple[int, ...] = (-9, -5, 0),
