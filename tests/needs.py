@@ -6,6 +6,7 @@ by skipping one.
 
 from __future__ import annotations
 
+import importlib
 import os
 
 import pytest
@@ -20,3 +21,15 @@ def missing(reason: str) -> None:
     if in_ci():
         pytest.fail(f"CI needs this test to run, but: {reason}")
     pytest.skip(reason)
+
+
+def require(name: str):
+    """``import name`` for a test that needs the module: skipped where it is not installed, a failure in CI (what
+    ``pytest.importorskip`` would silently skip). Works at module level too."""
+    try:
+        return importlib.import_module(name)
+    except ImportError as error:
+        reason = f"{name} is not installed ({error})"
+        if in_ci():
+            pytest.fail(f"CI needs this test to run, but: {reason}", pytrace=False)
+        pytest.skip(reason, allow_module_level=True)

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from needs import require
 
 from brains import Observation, brain_names, make_brain
 from brains.checker import CHECK_WORLDS, check_brain, passed, render_frames
@@ -33,8 +34,8 @@ def brain_options(tmp_path_factory):
             return {"file": BM_EXAMPLE}
         if name not in NEURAL:
             return {}
-        pytest.importorskip("torch")
-        pytest.importorskip("onnxruntime")
+        require("torch")
+        require("onnxruntime")
         from brains.neural.checkpoint import make_random_checkpoint
 
         model = NEURAL[name]

@@ -10,6 +10,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from needs import require
 
 from brains.base import Observation
 from brains.behavior_metrics.adapter import BehaviorMetricsBrain
@@ -147,7 +148,7 @@ def as_json_value(value):
 
 
 def test_real_messages_on_the_wire_validate_against_their_schema():
-    jsonschema = pytest.importorskip("jsonschema")
+    jsonschema = require("jsonschema")
     header = Header(run_id="r", episode=0, seq=3, stamp_ns=150_000_000)
     frame = CameraFrame(header=header, width_px=2, height_px=1, data=bytes(6))
     command = Command(header=header, brain="mine", frame_seq=3, speed_mps=5.0, yaw_rate_radps=-0.2)

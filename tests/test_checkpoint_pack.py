@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from needs import require
 
-torch = pytest.importorskip("torch")
+torch = require("torch")
 
 from brains import Observation  # noqa: E402
 from brains.neural.brain import NeuralBrain, Preprocessor  # noqa: E402

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from needs import require
 
 pytestmark = pytest.mark.integration
 
@@ -80,7 +81,7 @@ def test_bad_brain_option_is_refused_before_anything_starts(tmp_path):
     (["--shadow", "memdccp={random}"], "not a torch checkpoint"),
 ], ids=["no-weights-brain", "wrong-network", "random-bytes", "pickled-object", "shadow"])
 def test_bad_weights_are_refused_before_anything_starts(tmp_path, args, expected):
-    pytest.importorskip("torch")
+    require("torch")
     import torch
 
     (tmp_path / "random.ckpt").write_bytes(bytes(range(256)) * 8)

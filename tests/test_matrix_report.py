@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from needs import require
 
 from orchestrator.matrix import parse_matrix
 from orchestrator.matrix_report import BASELINE_FACT, ReportError, add_report_command, run_report, write_report
@@ -260,7 +261,7 @@ def test_damaged_database_is_one_line(tmp_path, capsys):
 
 
 def test_internal_metrics_come_from_the_checkpoint(tmp_path):
-    pytest.importorskip("torch")
+    require("torch")
     from brains.nets import make_model
     from brains.neural.checkpoint import default_input, save_checkpoint
 

@@ -15,11 +15,12 @@ import zlib
 from pathlib import Path
 
 import pytest
+from needs import require
 from mcap_validation import SKIP_REASON, VALIDATOR_DIR, assert_valid_mcap, validate_mcap, validator_available
 
-mcap_writer = pytest.importorskip("mcap.writer")
-mcap_reader = pytest.importorskip("mcap.reader")
-raw_image_pb2 = pytest.importorskip("foxglove_schemas_protobuf.RawImage_pb2")
+mcap_writer = require("mcap.writer")
+mcap_reader = require("mcap.reader")
+raw_image_pb2 = require("foxglove_schemas_protobuf.RawImage_pb2")
 from protocol.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
 
 pytestmark = pytest.mark.skipif(not validator_available(), reason=SKIP_REASON)

@@ -7,8 +7,9 @@ import sys
 
 import numpy as np
 import pytest
+from needs import require
 
-torch = pytest.importorskip("torch")
+torch = require("torch")
 
 from torch import nn  # noqa: E402
 

@@ -12,10 +12,11 @@ import textwrap
 
 import numpy as np
 import pytest
+from needs import require
 
-torch = pytest.importorskip("torch")
-pytest.importorskip("onnxruntime")
-onnx = pytest.importorskip("onnx")
+torch = require("torch")
+require("onnxruntime")
+onnx = require("onnx")
 
 from brains import Observation, make_brain  # noqa: E402
 from brains.neural.brain import NeuralBrain  # noqa: E402

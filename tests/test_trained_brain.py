@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from needs import require
 
 from brains.base import Observation
 from brains.registry import make_brain
@@ -16,8 +17,8 @@ from orchestrator.launcher import BrainLaunch
 from protocol.messages import EndReason, EpisodeSpec
 from protocol.variations import apply_variation
 
-pytest.importorskip("torch")
-pytest.importorskip("onnxruntime")
+require("torch")
+require("onnxruntime")
 pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from needs import require
 
-torch = pytest.importorskip("torch")
+torch = require("torch")
 
 import cv2  # noqa: E402
 
