@@ -39,9 +39,9 @@ def configurations(name: str, folder: Path) -> tuple[dict[str, Callable[[], obje
     import torch
 
     from brains.neural.brain import Preprocessor
-    from brains.neural.runners import OrtRunner
     from brains.neural.checkpoint import build_model, input_shape, load_checkpoint, make_random_checkpoint
     from brains.neural.export import export_onnx
+    from brains.neural.runners import OrtRunner
 
     ckpt = load_checkpoint(make_random_checkpoint(folder / f"{name}.pt", name))
     onnx_file = export_onnx(ckpt.path, folder / f"{name}.onnx", ckpt=ckpt)

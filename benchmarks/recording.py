@@ -32,8 +32,17 @@ from orchestrator.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.images import image_frame
-from protocol.messages import CameraFrame, CameraSpec, Command, EpisodeEvent, EpisodeSpec, EventKind, Header
-from protocol.messages import LiveMetrics, Pose
+from protocol.messages import (
+    CameraFrame,
+    CameraSpec,
+    Command,
+    EpisodeEvent,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    LiveMetrics,
+    Pose,
+)
 from recorder.reading import read_messages
 
 ROOT = Path(__file__).resolve().parents[1]

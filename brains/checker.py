@@ -70,8 +70,8 @@ def render_frames(*, circuit: str = "simple", worlds: Iterable[dict[str, Any]] =
                   frames_per_world: int = 12, spacing_m: float = 0.4, camera_wh: tuple[int, int] = (320, 240)
                   ) -> list[Frame]:
     """Consecutive frames along ``circuit``'s centreline (0.4 m apart: 8 m/s at 20 Hz) in each world, rendered."""
-    from protocol.messages import CameraSpec, WorldVariation
     from circuits import load_circuit
+    from protocol.messages import CameraSpec, WorldVariation
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

@@ -24,6 +24,7 @@ import time
 from typing import Any
 
 import msgspec
+
 from brains.base import Brain, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, bus_name, make_brain
 from protocol import codec, keys

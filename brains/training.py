@@ -53,9 +53,9 @@ from torch import nn
 from tqdm import tqdm
 
 from brains.nets import MODELS, ModelInfo, make_model
+from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
 from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from brains.neural.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
 from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS, MANIFEST_FILE, DatasetError, DrivingDataset
 
 BEST_FILE, LAST_FILE, METRICS_FILE, CURVE_FILE = "model.ckpt", "last.ckpt", "metrics.json", "curve.png"

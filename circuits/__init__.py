@@ -1,10 +1,10 @@
 """Circuits: centreline geometry and the built-in circuit library (pure, no bus)."""
 
 from circuits.centreline import Centreline, Projection
-from circuits.library import Circuit, CircuitError, circuit_names, load_circuit
 
 # Importing the generator registers random:SEED and twisty:SEED with the library (which must not import it).
 from circuits.generator import random_circuit, twisty_circuit
+from circuits.library import Circuit, CircuitError, circuit_names, load_circuit
 
 __all__ = ["Centreline", "Circuit", "CircuitError", "Projection", "circuit_names", "load_circuit", "random_circuit",
            "twisty_circuit"]

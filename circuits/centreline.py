@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-
 # Half-width of the arc-length window searched around a moving point's previous projection: wider than any
 # distance a car covers in one step, narrower than the gap between two branches of a track along its length.
 TRACKING_WINDOW_M = 8.0

@@ -28,6 +28,7 @@ import msgspec
 import yaml
 
 from brains.registry import UnknownBrainError, bus_name, require_brain
+from circuits import CircuitError, circuit_names, load_circuit
 from orchestrator import recording_cli
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
 from orchestrator.matrix_cli import MatrixUsageError
@@ -35,10 +36,9 @@ from orchestrator.progress import EpisodeProgress
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
-from protocol.runtime import exit_on_sigterm
 from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec
+from protocol.runtime import exit_on_sigterm
 from protocol.variations import apply_variation, noise_stage
-from circuits import CircuitError, circuit_names, load_circuit
 
 EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
 
@@ -290,8 +290,8 @@ def wait_for_router(endpoint: str, *, wait_s: float) -> None:
 
 def only_running_run(router: str | None, *, wait_s: float) -> str:
     """The run id of the only run with a simulator alive on the router (waiting up to ``wait_s`` for one)."""
-    from protocol.episodes import running_runs
     from protocol.bus import Bus, BusConfig
+    from protocol.episodes import running_runs
 
     endpoint = router or os.environ.get("DRIVEBENCH_ROUTER", "")
     if not endpoint:

@@ -18,12 +18,11 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from circuits import CircuitError, load_circuit
 from orchestrator.launcher import BrainLaunch, LocalStack
 from orchestrator.progress import EpisodeProgress
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
-from circuits import CircuitError, load_circuit
-
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
 

@@ -61,13 +61,21 @@ import yaml
 from yaml.constructor import SafeConstructor
 
 from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain
-from protocol.keys import check_name
-from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
-# The protocol's own lists of world and camera variation keys (it has no public name for them).
-from protocol.variations import CAMERA_KEYS, ROUTE_KEYS, WORLD_KEYS
-from protocol.variations import VariationError, apply_variation, noise_stage, parse_pairs
 from circuits import circuit_names
 from circuits.library import GENERATED_NAMES, is_circuit_name
+from protocol.keys import check_name
+from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
+
+# The protocol's own lists of world and camera variation keys (it has no public name for them).
+from protocol.variations import (
+    CAMERA_KEYS,
+    ROUTE_KEYS,
+    WORLD_KEYS,
+    VariationError,
+    apply_variation,
+    noise_stage,
+    parse_pairs,
+)
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
                   "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")

@@ -34,7 +34,12 @@ import numpy as np
 import yaml
 
 from orchestrator.launcher import (
-    BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure, free_loopback_port,
+    BrainLaunch,
+    EpisodeAborted,
+    LocalStack,
+    StackError,
+    StackFailure,
+    free_loopback_port,
 )
 from orchestrator.matrix import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix_report import BASELINE_FACT

@@ -14,7 +14,7 @@ from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
 from protocol import keys
-from protocol.messages import EpisodeEvent, EventKind, EpisodeSpec, Pose
+from protocol.messages import EpisodeEvent, EpisodeSpec, EventKind, Pose
 from protocol.recording import Schema
 
 WORLD_FRAME = "world"

@@ -23,8 +23,16 @@ from pathlib import Path
 import msgspec
 from mcap.writer import CompressionType, Writer
 
-from protocol.recording import (FORMAT_VERSION, ChannelLayout, EpisodeClock, Schema, channel_layout,
-                                check_image_format, record_stamps, to_record)
+from protocol.recording import (
+    FORMAT_VERSION,
+    ChannelLayout,
+    EpisodeClock,
+    Schema,
+    channel_layout,
+    check_image_format,
+    record_stamps,
+    to_record,
+)
 from protocol.views import ViewMaker, ViewMessage
 
 log = logging.getLogger("drivebench.recorder")

@@ -14,8 +14,8 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 @pytest.fixture(scope="session")
 def road_frame() -> np.ndarray:
     """A real 320x240 camera frame: the simulator's view on the top straight of the simple circuit."""
-    from protocol.messages import EpisodeSpec
     from circuits import load_circuit
+    from protocol.messages import EpisodeSpec
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

@@ -12,8 +12,8 @@ import sys
 
 import pytest
 
-from protocol.bus import router_address
 from orchestrator.launcher import free_loopback_port
+from protocol.bus import router_address
 
 
 def drivebench(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> subprocess.CompletedProcess:

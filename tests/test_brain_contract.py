@@ -13,8 +13,8 @@ from brains import Observation, brain_names, make_brain
 from brains.checker import CHECK_WORLDS, check_brain, passed, render_frames
 from brains.nets import MODELS
 from brains.registry import UnknownBrainError
-from protocol.messages import CameraSpec
 from circuits import load_circuit
+from protocol.messages import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

@@ -12,7 +12,12 @@ import msgspec
 import pytest
 
 from protocol.bus import (
-    OBSERVER_BUS, BusConfig, BusError, resolve_bus, zenoh_config, zenoh_settings,
+    OBSERVER_BUS,
+    BusConfig,
+    BusError,
+    resolve_bus,
+    zenoh_config,
+    zenoh_settings,
 )
 from protocol.config import ConfigError, load_config
 

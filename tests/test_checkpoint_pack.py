@@ -17,8 +17,15 @@ torch = require("torch")
 
 from brains import Observation  # noqa: E402
 from brains.neural.brain import NeuralBrain, Preprocessor  # noqa: E402
-from brains.neural.checkpoint import (SHARDS_KEY, CheckpointError, build_model, load_checkpoint,  # noqa: E402
-                                      make_random_checkpoint, pack_checkpoint, read_checkpoint)
+from brains.neural.checkpoint import (  # noqa: E402
+    SHARDS_KEY,
+    CheckpointError,
+    build_model,
+    load_checkpoint,
+    make_random_checkpoint,
+    pack_checkpoint,
+    read_checkpoint,
+)
 from brains.neural.export import add_pack_command, run_pack  # noqa: E402
 
 SHARD_BYTES = 4 * 2**20  # PilotNet's ~34 MB of float16 -> 9 shards

@@ -21,11 +21,11 @@ import time
 from pathlib import Path
 
 import pytest
+from needs import missing
 
 from orchestrator.launcher import free_loopback_port
 from protocol.messages import EventKind
 from recorder.reading import read_messages
-from needs import missing
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE_FILE = ROOT / "compose.yaml"

@@ -19,10 +19,26 @@ import pytest
 
 from protocol import keys
 from protocol.images import image_frame
-from protocol.messages import (CameraFrame, CameraSpec, Command, EndReason, EpisodeEvent, EpisodeSpec,
-                               EventKind, Gaussian, Header, Pose)
-from recorder.dataset import (DatasetError, DatasetOptions, DrivingDataset, build_dataset, samples_per_second,
-                              valid_windows)
+from protocol.messages import (
+    CameraFrame,
+    CameraSpec,
+    Command,
+    EndReason,
+    EpisodeEvent,
+    EpisodeSpec,
+    EventKind,
+    Gaussian,
+    Header,
+    Pose,
+)
+from recorder.dataset import (
+    DatasetError,
+    DatasetOptions,
+    DrivingDataset,
+    build_dataset,
+    samples_per_second,
+    valid_windows,
+)
 from recorder.reading import Recorded
 
 WIDTH, HEIGHT = 40, 20

@@ -10,11 +10,11 @@ import pytest
 
 from brains.base import GroundTruth, Observation
 from brains.registry import make_brain
+from circuits import load_circuit
 from orchestrator.collect import collection_specs
 from orchestrator.launcher import BrainLaunch
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 from protocol.variations import apply_variation
-from circuits import load_circuit
 
 BLANK = np.zeros((8, 8, 3), np.uint8)
 

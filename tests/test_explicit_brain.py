@@ -10,8 +10,8 @@ import pytest
 from brains.base import Action, Brain, Observation
 from brains.explicit.brain import ExplicitBrain
 from brains.registry import make_brain
-from protocol.messages import CameraSpec
 from circuits import Centreline, Circuit, load_circuit
+from protocol.messages import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

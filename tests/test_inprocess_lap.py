@@ -13,8 +13,8 @@ import pytest
 
 from brains.base import Observation
 from brains.explicit.brain import ExplicitBrain
-from protocol.messages import CameraSpec
 from circuits import Circuit, load_circuit
+from protocol.messages import CameraSpec
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
 

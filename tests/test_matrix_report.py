@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from needs import require
 
+from circuits import load_circuit
 from orchestrator.matrix import parse_matrix
 from orchestrator.matrix_report import BASELINE_FACT, ReportError, add_report_command, run_report, write_report
 from orchestrator.report_cells import baseline_variation, grid_cell, mean_std
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
-from circuits import load_circuit
 from services.scorer.metrics import EpisodeScorer
 
 STEP_S = 0.05

@@ -15,8 +15,8 @@ import zlib
 from pathlib import Path
 
 import pytest
-from needs import require
 from mcap_validation import SKIP_REASON, VALIDATOR_DIR, assert_valid_mcap, validate_mcap, validator_available
+from needs import require
 
 mcap_writer = require("mcap.writer")
 mcap_reader = require("mcap.reader")

@@ -10,8 +10,8 @@ import pytest
 from scipy.interpolate import CubicSpline
 from scipy.optimize import fmin
 
-from protocol.messages import EpisodeMetrics
 from circuits import Centreline, Circuit, load_circuit
+from protocol.messages import EpisodeMetrics
 from services.scorer.metrics import (
     EpisodeScorer,
     average_speed_mps,

@@ -14,11 +14,25 @@ torch = require("torch")
 from torch import nn  # noqa: E402
 
 from brains.nets import MODELS, ModelInfo, make_model  # noqa: E402
-from brains.nets.layers import (ConvLSTM2d, KerasLSTM, KerasSameConv2d, KerasSameConv3d,  # noqa: E402
-                                keras_hard_sigmoid, keras_param_count, keras_same_pad, keras_same_padding)
+from brains.nets.layers import (  # noqa: E402
+    ConvLSTM2d,
+    KerasLSTM,
+    KerasSameConv2d,
+    KerasSameConv3d,
+    keras_hard_sigmoid,
+    keras_param_count,
+    keras_same_pad,
+    keras_same_padding,
+)
 from brains.nets.memdccp.model import keras_raw_reshape  # noqa: E402
-from brains.nets.preprocess import (IMAGENET_MEAN, IMAGENET_STD, denormalise, normalise_labels,  # noqa: E402
-                                    prepare_batch, prepare_frame)
+from brains.nets.preprocess import (  # noqa: E402
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    denormalise,
+    normalise_labels,
+    prepare_batch,
+    prepare_frame,
+)
 
 NAMES = ["pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp", "recurrent_tiny_pilotnet"]
 

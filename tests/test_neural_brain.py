@@ -19,11 +19,17 @@ require("onnxruntime")
 onnx = require("onnx")
 
 from brains import Observation, make_brain  # noqa: E402
-from brains.neural.brain import NeuralBrain  # noqa: E402
-from brains.neural.checkpoint import (FORMAT, CheckpointError, default_input, load_checkpoint,  # noqa: E402
-                                      make_random_checkpoint, save_checkpoint)
-from brains.neural.export import add_export_command, check_parity, export_onnx, run_export  # noqa: E402
 from brains.nets import make_model  # noqa: E402
+from brains.neural.brain import NeuralBrain  # noqa: E402
+from brains.neural.checkpoint import (  # noqa: E402
+    FORMAT,
+    CheckpointError,
+    default_input,
+    load_checkpoint,
+    make_random_checkpoint,
+    save_checkpoint,
+)
+from brains.neural.export import add_export_command, check_parity, export_onnx, run_export  # noqa: E402
 from brains.registry import BrainOptionsError  # noqa: E402
 
 NAMES = ["pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp"]
@@ -240,20 +246,6 @@ def test_device_option_runs_on_the_cpu_and_names_what_is_missing(ckpts):
     if not torch.cuda.is_available():
         with pytest.raises(BrainOptionsError, match="no CUDA device here"):
             make_brain("memdccp", weights=ckpts["memdccp"], backend="torch", device="cuda")
-
-
-@pytest.mark.gpu
-def test_on_a_cuda_device_a_neural_brain_answers_as_on_the_cpu(ckpts):
-    """compose's brain-gpu serves with backend=torch device=cuda: the same answers as the CPU's. Runs where a CUDA
-    device is (``pytest -m gpu``); CI has none."""
-    import torch
-
-    if not torch.cuda.is_available():
-        pytest.skip("no CUDA device here (the gpu marker's tests run on a GPU machine: pytest -m gpu)")
-    images = noise_frames(3)
-    on_cpu = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="cpu"), images))
-    on_gpu = as_array(drive(NeuralBrain(weights=ckpts["memdccp"], backend="torch", device="cuda"), images))
-    np.testing.assert_allclose(on_gpu, on_cpu, rtol=1e-3, atol=1e-4)
 
 
 @pytest.mark.parametrize("argv, line", [

@@ -9,7 +9,16 @@ import numpy as np
 import pytest
 
 from protocol.messages import (
-    NOISE_MODELS, Blur, Brightness, Delay, Drop, Gaussian, Jpeg, NoiseStage, Occlusion, SaltPepper,
+    NOISE_MODELS,
+    Blur,
+    Brightness,
+    Delay,
+    Drop,
+    Gaussian,
+    Jpeg,
+    NoiseStage,
+    Occlusion,
+    SaltPepper,
 )
 from services.noise.models import DelayModel, NoiseModel, NoisePipeline, make_model
 

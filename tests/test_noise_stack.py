@@ -10,7 +10,15 @@ from protocol import keys
 from protocol.bus import Inbox
 from protocol.images import frame_image
 from protocol.messages import (
-    CameraFrame, CameraSpec, Delay, Drop, EndReason, EpisodeSpec, Pose, SaltPepper, WorldVariation,
+    CameraFrame,
+    CameraSpec,
+    Delay,
+    Drop,
+    EndReason,
+    EpisodeSpec,
+    Pose,
+    SaltPepper,
+    WorldVariation,
 )
 
 pytestmark = pytest.mark.integration

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from circuits import load_circuit
 from orchestrator.matrix import load_matrix
 from orchestrator.matrix_report import write_report
 from orchestrator.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
@@ -18,7 +19,6 @@ from orchestrator.report_document import Table
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, SaltPepper
 from protocol.variations import apply_variation
-from circuits import load_circuit
 from services.scorer.metrics import EpisodeScorer
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,8 +9,21 @@ import pytest
 from protocol import codec, keys
 from protocol.config import ConfigError, load_config
 from protocol.messages import (
-    BUS_MESSAGES, CameraFrame, CameraSpec, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent,
-    EpisodeMetrics, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
+    BUS_MESSAGES,
+    CameraFrame,
+    CameraSpec,
+    Command,
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeEvent,
+    EpisodeMetrics,
+    EpisodeScore,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    LiveMetrics,
+    Pose,
 )
 
 HEADER = Header(run_id="r1", episode=2, seq=7, stamp_ns=350_000_000)

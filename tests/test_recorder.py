@@ -15,13 +15,20 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
-
 from mcap_validation import assert_valid_mcap
+
 from orchestrator.launcher import free_loopback_port
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.messages import (
-    CameraFrame, CameraSpec, Command, ControlRequest, EndReason, EpisodeSpec, Header, Pose,
+    CameraFrame,
+    CameraSpec,
+    Command,
+    ControlRequest,
+    EndReason,
+    EpisodeSpec,
+    Header,
+    Pose,
 )
 from recorder.reading import RecordingError, read_messages, recording_info
 from recorder.repair import repair

@@ -9,11 +9,30 @@ import pytest
 
 from protocol import codec
 from protocol.messages import (
-    CameraFrame, CameraSpec, Command, EndReason, EpisodeEvent, EpisodeMetrics, EpisodeScore, EpisodeSpec,
-    EventKind, Gaussian, Header, LiveMetrics, Pose, SaltPepper, WorldVariation,
+    CameraFrame,
+    CameraSpec,
+    Command,
+    EndReason,
+    EpisodeEvent,
+    EpisodeMetrics,
+    EpisodeScore,
+    EpisodeSpec,
+    EventKind,
+    Gaussian,
+    Header,
+    LiveMetrics,
+    Pose,
+    SaltPepper,
+    WorldVariation,
 )
 from protocol.recording import (
-    RECORDED_MESSAGES, RecordFormatError, channel_layout, from_record, is_bus_channel, record_stamps, to_record,
+    RECORDED_MESSAGES,
+    RecordFormatError,
+    channel_layout,
+    from_record,
+    is_bus_channel,
+    record_stamps,
+    to_record,
 )
 
 HEADER = Header(run_id="r-1", episode=3, seq=41, stamp_ns=2_050_000_001)

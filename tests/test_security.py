@@ -27,7 +27,16 @@ from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, BusError, Inbox, Received, Traffic
 from protocol.config import ConfigError
 from protocol.messages import (
-    CameraFrame, CameraSpec, Command, ControlReply, ControlRequest, EndReason, EpisodeScore, EpisodeSpec, Header, Pose,
+    CameraFrame,
+    CameraSpec,
+    Command,
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeScore,
+    EpisodeSpec,
+    Header,
+    Pose,
 )
 from protocol.security import ROLES, Identity, build_access_control, check_users_file, router_settings
 

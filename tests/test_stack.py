@@ -15,7 +15,13 @@ from orchestrator.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
 from protocol.bus import BusError, Inbox, Traffic
 from protocol.messages import (
-    CameraFrame, CameraSpec, ControlRequest, EndReason, EpisodeSpec, Header, Pose,
+    CameraFrame,
+    CameraSpec,
+    ControlRequest,
+    EndReason,
+    EpisodeSpec,
+    Header,
+    Pose,
 )
 
 pytestmark = pytest.mark.integration

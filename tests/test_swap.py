@@ -9,16 +9,23 @@ import threading
 import time
 
 import pytest
-
 from mcap_validation import assert_valid_mcap
+
 from orchestrator.launcher import BrainLaunch
 from orchestrator.swap import SwapError, swap_brain
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
-from recorder.reading import read_messages
 from protocol.messages import (
-    CameraSpec, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Pose,
+    CameraSpec,
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeEvent,
+    EpisodeSpec,
+    EventKind,
+    Pose,
 )
+from recorder.reading import read_messages
 
 pytestmark = pytest.mark.integration
 

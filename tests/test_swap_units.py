@@ -7,19 +7,26 @@ import os
 
 import msgpack
 import pytest
+from test_protocol import METRICS  # one set of example metrics for the message tests
 
 from orchestrator.cli import UsageError, shadow_launches
 from orchestrator.launcher import BrainLaunch
 from orchestrator.report import metrics_table
-from orchestrator.swap import SwapError, SwapUsageError, StackInfo, _pick_name, brain_options, locate_stack
+from orchestrator.swap import StackInfo, SwapError, SwapUsageError, _pick_name, brain_options, locate_stack
 from protocol import codec, keys
 from protocol.messages import (
-    BrainSwitch, Command, ControlReply, ControlRequest, EndReason, EpisodeScore, EpisodeSpec, Header,
+    BrainSwitch,
+    Command,
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeScore,
+    EpisodeSpec,
+    Header,
     ShadowDistance,
 )
 from protocol.recording import channel_layout, from_record, to_record
 from services.scorer.shadows import CommandMatcher
-from test_protocol import METRICS  # one set of example metrics for the message tests
 
 HEADER = Header(run_id="r1", episode=0, seq=0, stamp_ns=1_000_000_000)
 SCORE = EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit-2",

@@ -21,8 +21,19 @@ import cv2  # noqa: E402
 from brains import train_cli, training  # noqa: E402
 from brains.nets.preprocess import prepare_batch  # noqa: E402
 from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint  # noqa: E402
-from brains.training import (CHECKPOINT_FORMAT, CheckpointError, TrainError, TrainInterrupted,  # noqa: E402
-                             TrainOptions, augment_batch, balance_weights, label_norm, mirror, to_unit_float, train)
+from brains.training import (  # noqa: E402
+    CHECKPOINT_FORMAT,
+    CheckpointError,
+    TrainError,
+    TrainInterrupted,
+    TrainOptions,
+    augment_batch,
+    balance_weights,
+    label_norm,
+    mirror,
+    to_unit_float,
+    train,
+)
 from recorder.dataset import DrivingDataset  # noqa: E402
 
 TINY = "deepest_lstm_tiny_pilotnet"

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from circuits import load_circuit
 from protocol.messages import Drop, EpisodeSpec, Jpeg, Occlusion, SaltPepper, WorldVariation
 from protocol.variations import CAMERA_PRESETS, VariationError, apply_variation, noise_stage
-from circuits import load_circuit
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

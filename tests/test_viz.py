@@ -35,7 +35,14 @@ from orchestrator.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox
 from protocol.messages import (
-    CameraFrame, CameraSpec, Command, ControlRequest, EndReason, EpisodeSpec, Header, SaltPepper,
+    CameraFrame,
+    CameraSpec,
+    Command,
+    ControlRequest,
+    EndReason,
+    EpisodeSpec,
+    Header,
+    SaltPepper,
 )
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -32,8 +32,14 @@ import cv2
 import numpy as np
 
 from brains.base import Action, Observation
-from brains.neural.checkpoint import (Checkpoint, CheckpointError, InputSpec, Normalisation, from_metadata,
-                                      load_checkpoint)
+from brains.neural.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    InputSpec,
+    Normalisation,
+    from_metadata,
+    load_checkpoint,
+)
 from brains.neural.export import SOURCE_SHA256_KEY, export_onnx, file_sha256
 from brains.neural.runners import OrtRunner, TorchRunner
 from brains.registry import BrainOptionsError

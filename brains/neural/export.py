@@ -22,8 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from brains.neural.checkpoint import (Checkpoint, CheckpointError, build_model, input_shape, load_checkpoint,
-                                      pack_checkpoint, to_metadata)
+from brains.neural.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    build_model,
+    input_shape,
+    load_checkpoint,
+    pack_checkpoint,
+    to_metadata,
+)
 from brains.neural.runners import OrtRunner
 
 INPUT_NAME, OUTPUT_NAME = "frames", "command"

@@ -37,7 +37,15 @@ import cv2
 import numpy as np
 
 from protocol.messages import (
-    Blur, Brightness, Delay, Drop, Gaussian, Jpeg, NoiseStage, Occlusion, SaltPepper,
+    Blur,
+    Brightness,
+    Delay,
+    Drop,
+    Gaussian,
+    Jpeg,
+    NoiseStage,
+    Occlusion,
+    SaltPepper,
 )
 
 __all__ = [

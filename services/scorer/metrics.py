@@ -27,8 +27,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from protocol.messages import EpisodeMetrics
 from circuits import Circuit
+from protocol.messages import EpisodeMetrics
 
 # --- Behavior Metrics constants (reference §3, §8) -------------------------------------------------------------
 BM_CHECKPOINT_RADIUS_M = 5.0  # a checkpoint counts as reached within this distance (strict <)

@@ -17,14 +17,23 @@ from dataclasses import dataclass, field
 
 import msgspec
 
+from circuits import CircuitError, load_circuit
 from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Traffic
-from protocol.messages import (
-    BrainSwitch, Command, EndReason, EpisodeEvent, EpisodeScore, EpisodeSpec, EventKind, Header, LiveMetrics, Pose,
-)
 from protocol.episodes import running_spec
+from protocol.messages import (
+    BrainSwitch,
+    Command,
+    EndReason,
+    EpisodeEvent,
+    EpisodeScore,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    LiveMetrics,
+    Pose,
+)
 from protocol.runtime import stop_requested
-from circuits import CircuitError, load_circuit
 from services.scorer.metrics import EpisodeScorer
 from services.scorer.shadows import CommandMatcher
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import EndReason, EpisodeSpec, WorldVariation
 from circuits import Circuit, load_circuit
+from protocol.messages import EndReason, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
 

@@ -29,8 +29,8 @@ from typing import Literal
 import numpy as np
 import pybullet
 
-from protocol.messages import CameraSpec, WorldVariation
 from circuits import Circuit
+from protocol.messages import CameraSpec, WorldVariation
 from services.simulator.car import CarState
 
 MAX_TRIANGLES_PER_CHUNK = 200

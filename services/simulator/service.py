@@ -20,14 +20,23 @@ import time
 
 import msgspec
 
+from circuits import Circuit, CircuitError, load_circuit
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
 from protocol.images import image_frame
 from protocol.messages import (
-    CameraFrame, Command, ControlReply, ControlRequest, EndReason, EpisodeEvent, EpisodeSpec, EventKind, Header, Pose,
+    CameraFrame,
+    Command,
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeEvent,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    Pose,
 )
 from protocol.runtime import stop_requested
-from circuits import Circuit, CircuitError, load_circuit
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 
 log = logging.getLogger("drivebench.simulator")
@@ -198,6 +207,10 @@ class SimulatorService:
 
     # -- main loop --
 
+    def _stopping(self) -> bool:
+        """Whether the running episode must end ``stopped``: run control asked, or the process got SIGTERM."""
+        return self._stop_requested.is_set() or stop_requested()
+
     def serve_forever(self) -> None:
         log.info("simulator ready on run %s", self.config.run_id)
         while not stop_requested():
@@ -318,7 +331,7 @@ class SimulatorService:
                 deadline = max(deadline, time.monotonic_ns() + timeout_ns)
             if (answer := answers.get(self._active())) is not None:
                 return answer, None
-            if self._stop_requested.is_set() or stop_requested():  # run control, or SIGTERM to the process
+            if self._stopping():
                 return None, EndReason.STOPPED
             if not self._active_alive():
                 return None, EndReason.BRAIN_LOST
@@ -370,7 +383,7 @@ class SimulatorService:
                 speed, yaw_rate = current.message.speed_mps, current.message.yaw_rate_radps
                 last_command_ns = max(last_command_ns, current.arrival_ns)
             ending = None
-            if self._stop_requested.is_set() or stop_requested():  # run control, or SIGTERM to the process
+            if self._stopping():
                 ending = EndReason.STOPPED
             elif not self._active_alive():
                 ending = EndReason.BRAIN_LOST

@@ -5,8 +5,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from brains.nets.layers import (BN_EPS, BN_MOMENTUM, KerasSameConv2d, dense_head, keras_init_, pilotnet_convs,
-                                pilotnet_feature_map)
+from brains.nets.layers import (
+    BN_EPS,
+    BN_MOMENTUM,
+    KerasSameConv2d,
+    dense_head,
+    keras_init_,
+    pilotnet_convs,
+    pilotnet_feature_map,
+)
 
 
 class PilotNet(nn.Module):
