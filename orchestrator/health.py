@@ -11,11 +11,11 @@ import argparse
 import os
 import sys
 
-from protocol import keys
+from protocol import graph, keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.runtime import RUN_ID_ENV
 
-ROLES = ("router", "simulator", "noise", "brain", "scorer", "recorder", "viz", "driver")
+ROLES = graph.health_roles()  # "driver": the orchestrator driving an episode
 CONNECT_TIMEOUT_S = 2.0
 
 

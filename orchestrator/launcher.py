@@ -25,7 +25,7 @@ from pathlib import Path
 import msgspec
 
 from brains.registry import bus_name
-from protocol import codec, keys
+from protocol import codec, graph, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
 
@@ -192,21 +192,17 @@ class LocalStack:
             self._wait_for_router()
             self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher", env=LOCAL_ENV)
         watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
-        wanted = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "scorer", "scorer"),
-                  keys.alive(self.run_id, "noise", "noise")}
+        wanted: set[str] = set()
         if self.record is not None:
             # First, so that its subscription is in place before anything is published.
-            self._spawn("recorder", "recorder", "recorder", self._recorder_argv())
-            wanted.add(keys.alive(self.run_id, "recorder", "recorder"))
-        self._spawn("simulator", "sim", "services.simulator", [])
-        self._spawn("noise", "noise", "services.noise", [])
-        self._spawn("scorer", "scorer", "services.scorer", [])
+            wanted.add(self._spawn_role(graph.role("recorder"), self._recorder_argv()))
+        for row in graph.local_stack_roles():
+            wanted.add(self._spawn_role(row, []))
         for launch in self.brains:
             argv = ["--brain", launch.brain, "--name", launch.bus_name]
             for option in launch.options:
                 argv += ["--set", f"options.{option}"]
-            self._spawn("brain", launch.bus_name, "brains", argv)
-            wanted.add(keys.alive(self.run_id, "brain", launch.bus_name))
+            wanted.add(self._spawn_role(graph.role("brain"), argv, name=launch.bus_name))
         missing = watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
         if (dead := self._dead_child_reason()) is not None:
             raise StackError(dead)
@@ -239,6 +235,11 @@ class LocalStack:
             except OSError:
                 time.sleep(0.1)
         raise StackError(f"the router did not listen on {self.endpoint} within {self.startup_timeout_s:.0f} s")
+
+    def _spawn_role(self, row: graph.Role, argv: list[str], *, name: str = "") -> str:
+        """Start one process of a graph role; the liveliness key it declares once ready."""
+        self._spawn(row.token_role, row.token or name, row.module, argv)
+        return row.token_key(self.run_id, name)
 
     def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
         log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
@@ -492,8 +493,7 @@ class AttachedStack(LocalStack):
         self.bus = Bus(BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
                        name=f"driver-{self.run_id}")
         watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
-        self._required = {keys.alive(self.run_id, "simulator", "sim"), keys.alive(self.run_id, "noise", "noise"),
-                          keys.alive(self.run_id, "scorer", "scorer")}
+        self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
         missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))

@@ -31,20 +31,9 @@ from typing import Any
 import msgspec
 import yaml
 
-from protocol import keys
+from protocol import graph, keys
 from protocol.config import ConfigError
-
-_RUN, _NAME = "__run__", "__name__"
-
-
-def _wild(key: str) -> str:
-    """A key made by a ``protocol.keys`` function from placeholders, with each placeholder chunk made ``*``."""
-    return "/".join("*" if chunk in (_RUN, _NAME) else chunk for chunk in key.split("/"))
-
-
-def _alive(role: str) -> str:
-    return _wild(keys.alive(_RUN, role, _NAME))
-
+from protocol.graph import NAME, RUN, wildcard
 
 EVERYTHING = f"{keys.ROOT}/**"
 ALL_ALIVE = f"{keys.ROOT}/alive/**"
@@ -58,52 +47,39 @@ Grant = tuple[str, tuple[str, ...], tuple[str, ...]]
 COMMON: tuple[Grant, ...] = (
     ("ingress", ("declare_subscriber",), (EVERYTHING,)),
     ("ingress", ("declare_liveliness_subscriber", "liveliness_query"), (ALL_ALIVE,)),
-    ("ingress", ("query",), (_wild(keys.sim_status(_RUN)),)),
+    ("ingress", ("query",), (wildcard(keys.sim_status(RUN)),)),
     ("egress", ("put", "declare_subscriber", "reply"), (EVERYTHING,)),
     ("egress", ("liveliness_token",), (ALL_ALIVE,)),
 )
 
 
-def _serves(*key_exprs: str) -> tuple[Grant, ...]:
-    """Declare a queryable, receive its queries, reply to them."""
-    return (("ingress", ("declare_queryable", "reply"), key_exprs), ("egress", ("query",), key_exprs))
+def grants_of(row: graph.Role) -> tuple[Grant, ...]:
+    """What one row of the process graph may do beyond :data:`COMMON`: put what it publishes, declare and answer
+    what it serves, ask what it queries, declare its own liveliness token."""
+    grants: tuple[Grant, ...] = ()
+    if row.publishes:
+        grants += (("ingress", ("put",), tuple(map(wildcard, row.publishes))),)
+    if row.serves:
+        served = tuple(map(wildcard, row.serves))
+        grants += (("ingress", ("declare_queryable", "reply"), served), ("egress", ("query",), served))
+    if row.queries:
+        grants += (("ingress", ("query",), tuple(map(wildcard, row.queries))),)
+    if row.token is not None:
+        grants += (("ingress", ("liveliness_token",), (wildcard(keys.alive(RUN, row.token_role, NAME)),)),)
+    return grants
 
 
-def _publishes(*key_exprs: str) -> tuple[Grant, ...]:
-    return (("ingress", ("put",), key_exprs),)
+def _roles_from_graph() -> dict[str, tuple[Grant, ...]]:
+    roles = {row.name: grants_of(row) for row in graph.ROLES if row.name != "router"}
+    for group in sorted({row.group for row in graph.ROLES if row.group}):
+        roles[group] = tuple(grant for row in graph.ROLES if row.group == group for grant in grants_of(row))
+    roles["observer"] = ()  # read-only: what every identity may do, and nothing more
+    return roles
 
 
-def _alive_as(role: str) -> tuple[Grant, ...]:
-    return (("ingress", ("liveliness_token",), (_alive(role),)),)
-
-
-_SIMULATOR = (_publishes(_wild(keys.camera_raw(_RUN)), _wild(keys.pose(_RUN)), _wild(keys.events(_RUN)))
-              + _serves(_wild(keys.sim_control(_RUN)), _wild(keys.sim_status(_RUN))) + _alive_as("simulator"))
-_NOISE = _publishes(_wild(keys.camera_perturbed(_RUN))) + _alive_as("noise")
-_SCORER = _publishes(_wild(keys.live_metrics(_RUN)), _wild(keys.score(_RUN))) + _alive_as("scorer")
-_RECORDER = _alive_as("recorder")
-_VIZ = _alive_as("viz")
-
-ROLES: dict[str, tuple[Grant, ...]] = {
-    # A brain host: publish commands, declare its liveliness token, serve its own control key (status, stop).
-    "brain": (_publishes(_wild(keys.command(_RUN, _NAME))) + _alive_as("brain")
-              + _serves(_wild(keys.brain_control(_RUN, _NAME)))),
-    # The only one that may start, stop and switch episodes, and stop brain hosts; as an episode's driver it declares
-    # the token the simulator's dead man's switch watches (without it every episode would end driver_lost).
-    "orchestrator": ((("ingress", ("query",), (_wild(keys.sim_control(_RUN)), _wild(keys.brain_control(_RUN, _NAME)))),)
-                     + _alive_as("driver")),
-    # The services, each its own keys; "service" is all of them (one certificate for a machine running several).
-    "simulator": _SIMULATOR,
-    "noise": _NOISE,
-    "scorer": _SCORER,
-    "recorder": _RECORDER,
-    "viz": _VIZ,
-    "service": _SIMULATOR + _NOISE + _SCORER + _RECORDER + _VIZ,
-    # Replaying a recording onto the bus puts every key of a run, commands included: only for a replay identity.
-    "replay": _publishes(f"{keys.ROOT}/run/**"),
-    # Read-only: what every identity may do, and nothing more.
-    "observer": (),
-}
+# The access-control roles: one per row of the process graph (``protocol.graph``), each group role ("service": one
+# certificate for a machine running several services) and "observer".
+ROLES: dict[str, tuple[Grant, ...]] = _roles_from_graph()
 
 
 class Identity(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -143,7 +119,7 @@ def build_access_control(roles: RoleMap) -> dict[str, Any]:
     """
     unknown = sorted(set(roles) - set(ROLES))
     if unknown:
-        raise ConfigError(f"roles: unknown role(s) {', '.join(map(repr, unknown))} (roles: {', '.join(ROLES)})")
+        raise ConfigError(f"roles: unknown role(s) {', '.join(map(repr, unknown))} (roles: {', '.join(sorted(ROLES))})")
     subjects: list[dict[str, Any]] = []
     subject_ids: dict[str, str] = {}  # canonical JSON of a subject -> its id (one subject per distinct identity)
     role_subjects: dict[str, list[str]] = {}
