@@ -43,6 +43,8 @@ class ComposeService:
     healthcheck: tuple[str, ...] | None = None  # arguments after ``drivebench health``; None: no healthcheck
     depends_on: dict[str, str] = field(default_factory=lambda: {"router": "service_healthy"})
     extra: dict[str, Any] = field(default_factory=dict)  # further compose keys, written as they are
+    secure: bool = True  # compose.secure.yaml gives it its role's certificate (False: it runs its own local stacks)
+    secure_command: tuple[str, ...] = ()  # its command in compose.secure.yaml, where that differs
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,7 +91,9 @@ ROLES: tuple[Role, ...] = (
                      "For several\nmachines set DRIVEBENCH_LISTEN=tcp/[::]:7447 on the router's host, and prefer "
                      "compose.secure.yaml (TLS).",
              command=("python", "-m", "services.router", "--listen", "${DRIVEBENCH_LISTEN:-tcp/127.0.0.1:7447}"),
-             healthcheck=("router",), depends_on={}),)),
+             healthcheck=("router",), depends_on={},
+             secure_command=("python", "-m", "services.router", "--config", "deploy/secure/router.yaml",
+                             "--listen", "tls/[::]:7447")),)),
     Role(name="simulator", summary="the world and the car", module="services.simulator",
          source="`services/simulator`", consumes="run control (queryable), the active brain's commands",
          produces="camera frames, ground-truth poses, episode events", token="sim",
@@ -159,7 +163,7 @@ ROLES: tuple[Role, ...] = (
                          "tables and report.",
                  command=("drivebench", "matrix", "${MATRIX:-experiments/smoke.yaml}", "-o", "/results/matrix",
                           "--workers", "${WORKERS:-1}", "--resume"),
-                 depends_on={}, extra={"restart": "no"}),
+                 depends_on={}, extra={"restart": "no"}, secure=False),
          )),
     Role(name="recorder", summary="recorder", module="recorder", source="`recorder/` (`python -m recorder`)",
          consumes="every key of one run", produces="an MCAP file (also: repair, replay, datasets)",
@@ -208,3 +212,17 @@ def local_stack_roles() -> tuple[Role, ...]:
 def health_roles() -> tuple[str, ...]:
     """The roles ``drivebench health`` can check: the router, and every role with a liveliness token."""
     return tuple(row.token_role for row in ROLES if row.name == "router" or row.token is not None)
+
+
+def key_matches(expression: str, key: str) -> bool:
+    """Whether a concrete key lies in a key expression of ``*`` (one chunk) and a final ``**`` (the rest)."""
+    pattern, chunks = expression.split("/"), key.split("/")
+    if pattern and pattern[-1] == "**":
+        return len(chunks) >= len(pattern) and key_matches("/".join(pattern[:-1]), "/".join(chunks[:len(pattern) - 1]))
+    return len(pattern) == len(chunks) and all(p in ("*", c) for p, c in zip(pattern, chunks))
+
+
+def publishers_of(key: str) -> tuple[Role, ...]:
+    """The roles whose rows say they publish ``key`` (replay, which republishes a whole run, is not counted)."""
+    return tuple(row for row in ROLES if row.name != "replay"
+                 and any(key_matches(wildcard(template), key) for template in row.publishes))
