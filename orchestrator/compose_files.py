@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from protocol import graph
+from protocol import graph, keys
 
 ROOT = Path(__file__).resolve().parent.parent
 LINE_CHARS = 120
@@ -180,9 +180,15 @@ def router_roles_yaml() -> str:
 
 def architecture_table() -> str:
     """The README's table of processes (between :data:`README_BEGIN` and :data:`README_END`)."""
-    rows = [f"| {row.summary} | {row.source} | {row.consumes} | {row.produces} |" for row in graph.ROLES]
-    return "\n".join([README_BEGIN, "| process | code | consumes | produces |", "|---|---|---|---|", *rows,
-                      README_END])
+    rows = [f"| {row.summary} | {row.source} | {row.consumes} | {row.produces} | {_puts(row)} |" for row in graph.ROLES]
+    return "\n".join([README_BEGIN, "| process | code | consumes | produces | puts (under `drivebench/run/<run>/`) |",
+                      "|---|---|---|---|---|", *rows, README_END])
+
+
+def _puts(row: graph.Role) -> str:
+    prefix = keys.run_prefix(graph.RUN) + "/"
+    names = [template.removeprefix(prefix).replace(graph.NAME, "<name>") for template in row.publishes]
+    return ", ".join(f"`{name}`" for name in names) or "–"
 
 
 def readme_with_table(readme: str) -> str:

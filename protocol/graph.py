@@ -81,7 +81,7 @@ class Role:
 _HEALTH = ("health",)
 
 ROLES: tuple[Role, ...] = (
-    Role(name="router", summary="a Zenoh router (discovery; peers exchange data directly)",
+    Role(name="router", summary="router",
          module="services.router", source="`services/router`", consumes="–",
          produces="a Zenoh router (discovery; peers exchange data directly)", token=None, bus_mode="router",
          identity="router",
@@ -94,7 +94,7 @@ ROLES: tuple[Role, ...] = (
              healthcheck=("router",), depends_on={},
              secure_command=("python", "-m", "services.router", "--config", "deploy/secure/router.yaml",
                              "--listen", "tls/[::]:7447")),)),
-    Role(name="simulator", summary="the world and the car", module="services.simulator",
+    Role(name="simulator", summary="simulator", module="services.simulator",
          source="`services/simulator`", consumes="run control (queryable), the active brain's commands",
          produces="camera frames, ground-truth poses, episode events", token="sim",
          publishes=(keys.camera_raw(RUN), keys.pose(RUN), keys.events(RUN)),
