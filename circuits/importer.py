@@ -7,7 +7,7 @@ track edges), in driving order, about 5 m apart. The loop is implicitly closed: 
 first (a file that does repeat it is accepted too). drivebench bundles none of that data; a user downloads a file
 and imports it::
 
-    python -m circuits.importer Catalunya.csv --name catalunya [--scale 1.0]
+    drivebench circuits import Catalunya.csv --name catalunya [--scale 1.0]
 
 :func:`import_racetrack_csv` then
 
@@ -36,11 +36,9 @@ is the file's order.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
-import sys
 import tempfile
 from pathlib import Path
 
@@ -192,26 +190,3 @@ def smooth_centreline(points_m: np.ndarray, *, road_width_m: float) -> np.ndarra
     count = max(MIN_POINTS, round(s_dense[-1] / step))
     u = np.interp(np.linspace(0.0, s_dense[-1], count, endpoint=False), s_dense, np.append(dense_u, 1.0))
     return np.stack(splev(u, tck), axis=1)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m circuits.importer",
-        description="Import a TUM racetrack-database centreline CSV as a drivebench user circuit.",
-    )
-    parser.add_argument("csv", type=Path, help="tracks/NAME.csv from the racetrack-database")
-    parser.add_argument("--name", required=True, help="circuit name to load it by (letters, digits, _ - .)")
-    parser.add_argument("--scale", type=float, default=1.0, help="multiply every length by this (default 1.0)")
-    parser.add_argument("--overwrite", action="store_true", help="replace a user circuit of the same name")
-    args = parser.parse_args(argv)
-    try:
-        written = import_racetrack_csv(args.csv, name=args.name, scale=args.scale, overwrite=args.overwrite)
-    except CircuitError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(written)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

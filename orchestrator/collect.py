@@ -98,8 +98,6 @@ def _episode_name(spec: EpisodeSpec) -> str:
 
 
 def collect(args: argparse.Namespace, options) -> int:
-    from orchestrator.recording_cli import build_from_recordings
-
     specs = collection_specs(args)
     if args.recovery_noise > 0 and options.brain is None:
         options = dataclasses.replace(options, brain=args.brain)  # the undisturbed brain's commands are the labels
@@ -124,4 +122,21 @@ def collect(args: argparse.Namespace, options) -> int:
         print(f"collect: {spec.circuit}: {score.reason}, {score.metrics.progress_laps:.2f} laps in "
               f"{score.metrics.sim_time_s:.1f} s", file=sys.stderr)
         recordings.append(recording)
-    return build_from_recordings(recordings, args, options)
+    return build_from_recordings(recordings, output=args.output, options=options, overwrite=args.overwrite)
+
+
+def build_from_recordings(recordings: list[Path], *, output: Path, options, overwrite: bool) -> int:
+    """A dataset in ``output`` from MCAP recordings (``drivebench dataset build``), with a summary line on stderr."""
+    from recorder.dataset import build_dataset
+    from recorder.reading import read_messages, recording_info
+
+    for path in recordings:
+        recording_info(path)  # a missing or broken file fails before any work
+    sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
+    manifest = build_dataset(sources, out_dir=output, options=options, progress=sys.stderr.isatty(),
+                             overwrite=overwrite)
+    split = manifest.split
+    print(f"dataset {output}: {manifest.totals.samples} samples from {len(recordings)} recording(s), "
+          f"{manifest.totals.episodes} episode(s); train {split.train_samples} samples, val {split.val_samples} "
+          f"({split.rule})", file=sys.stderr)
+    return 0

@@ -35,11 +35,9 @@ trajectory files and circuit drawings (:mod:`orchestrator.report_trajectories`) 
 
 from __future__ import annotations
 
-import argparse
 import csv
 import functools
 import importlib.util
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -66,14 +64,14 @@ from orchestrator.report_cells import (
 from orchestrator.report_document import FAIL_MARK, Section, Table, render_html, render_markdown
 from orchestrator.report_plots import ReportPlots
 from orchestrator.report_trajectories import _Track, load_trajectory
-from orchestrator.results import DATABASE_NAME, EpisodeResult, ResultsError, ResultStore
+from orchestrator.results import DATABASE_NAME, EpisodeResult, ResultStore
 from protocol.messages import EpisodeMetrics
 
 __all__ = [
     # this module's own
     "BASELINE_FACT", "CSV_FILE", "HTML_FILE", "MARKDOWN_FILE", "NO_PERTURBATION", "PAPER_FACT", "PAPER_MARKDOWN",
-    "PARQUET_FILE", "PLOTS_DIR", "ReportError", "ReportFiles", "add_report_command", "episode_rows", "main",
-    "run_report", "write_report",
+    "PARQUET_FILE", "PLOTS_DIR", "ReportError", "ReportFiles", "episode_rows",
+    "write_report",
     # re-exported from the modules they moved to, for code that imported them from here
     "FAIL_MARK", "Section", "Table", "baseline_variation", "grid_cell", "lap_seconds", "mean_std", "outcome",
     "reached_target",
@@ -470,45 +468,3 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
         paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
     return ReportFiles(html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots),
                        parquet=parquet, paper=paper)
-
-
-# -- command line -----------------------------------------------------------------------------------------------------
-
-
-def add_report_command(commands: argparse._SubParsersAction) -> None:
-    """``drivebench report DIR [-o FOLDER]``."""
-    parser = commands.add_parser(
-        "report", help="tables and plots of a matrix's results (HTML, Markdown, CSV)",
-        description="Read DIR/results.sqlite (written by `drivebench matrix`) and write report.html (self-contained), "
-                    "report.md, episodes.csv and plots/*.png: the paper's main table per brain and circuit, "
-                    "generalisation and robustness grids, internal metrics, failures, trajectories on the circuit.")
-    parser.add_argument("dir", type=Path, metavar="DIR", help="the matrix's output folder")
-    parser.add_argument("-o", "--output", type=Path, metavar="FOLDER",
-                        help="write the report here instead of into DIR")
-
-
-def run_report(args: argparse.Namespace) -> int:
-    """Run ``drivebench report``: 0 with the written paths on stderr; 2 with one error line on stderr."""
-    try:
-        files = write_report(args.dir, output=getattr(args, "output", None))
-    except (ReportError, ResultsError) as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return 2
-    written = [files.html, files.markdown, files.csv, *([files.parquet] if files.parquet else [])]
-    for path in written:
-        print(f"wrote {path}", file=sys.stderr)
-    if files.plots:
-        print(f"wrote {len(files.plots)} plot(s) in {files.plots[0].parent}", file=sys.stderr)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m orchestrator.matrix_report DIR [-o FOLDER]``: the same as ``drivebench report``."""
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_report_command(parser.add_subparsers(dest="command", required=True))
-    argv = list(sys.argv[1:] if argv is None else argv)
-    return run_report(parser.parse_args(argv if argv[:1] == ["report"] else ["report", *argv]))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

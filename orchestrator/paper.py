@@ -20,7 +20,6 @@ paper's, so ``drivebench report DIR`` writes these tables again.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import importlib.util
 import statistics
@@ -30,7 +29,6 @@ from typing import Any
 
 import msgspec
 
-from orchestrator.matrix_report import PAPER_FACT
 from orchestrator.report_cells import lap_seconds, outcome, reached_target
 from orchestrator.report_document import FAIL_MARK, Section, Table
 from orchestrator.results import EpisodeResult
@@ -393,35 +391,3 @@ def smoke_matrix(matrix):
 
 
 # -- command line ----------------------------------------------------------------------------------------------------
-
-
-def add_paper_command(commands) -> None:
-    from orchestrator.matrix_cli import add_run_options
-
-    paper = commands.add_parser(
-        "paper", help="regenerate the paper's six tables (ours beside the paper's figures)",
-        description="Run experiments/paper.yaml (every brain, circuit, world and perturbation the paper's closed-loop "
-                    "tables need) as a matrix, then write DIR/report.html, report.md and paper.md with the paper's "
-                    "figure beside ours in every cell. Add your own brain to the file to get its row.")
-    paper.add_argument("--file", type=Path, default=PAPER_FILE, help="the paper's matrix file "
-                                                                      "(default: experiments/paper.yaml)")
-    add_run_options(paper, default_out="runs/paper-<time>", default_workers=2)
-    paper.add_argument("--smoke", action="store_true",
-                       help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)}, the first {SMOKE_CELLS_PER_PART} "
-                            f"cells of every table, {SMOKE_SIM_SECONDS:g} s each (what CI runs)")
-
-
-def run_paper_command(args: argparse.Namespace) -> int:
-    from orchestrator.matrix_cli import MatrixUsageError, load_matrix_file, run_matrix_args
-
-    matrix = load_matrix_file(args.file)
-    if not set(PARTS) & set(matrix.parts):
-        raise MatrixUsageError(f"{args.file}: no part named {', '.join(PARTS)}: not a paper matrix")
-    if args.smoke:
-        matrix = smoke_matrix(matrix)
-        if not matrix.episodes:
-            raise MatrixUsageError(f"{args.file}: --smoke needs the brains {', '.join(SMOKE_BRAINS)}")
-    command = "drivebench paper" + (f" --file {args.file}" if args.file != PAPER_FILE else "") + \
-        (" --smoke" if args.smoke else "")
-    return run_matrix_args(matrix, args, what="paper", default_folder=matrix.name, command=command,
-                           facts={PAPER_FACT: True})

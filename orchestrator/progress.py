@@ -1,7 +1,6 @@
 """Progress of one episode on stderr (``drivebench run``, ``dataset collect``): lap progress, sim time, RTF.
 
-Its own module so that every command can show it without importing the CLI (``collect`` once imported
-``orchestrator.cli`` inside a function to break the cycle ``cli -> recording_cli -> collect -> cli``).
+Its own module so that library code (``orchestrator.collect``) shows it without importing the CLI.
 """
 
 from __future__ import annotations

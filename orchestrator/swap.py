@@ -17,7 +17,6 @@ gives the router and the run id; ``--router EP --run RUN_ID`` reach any stack (c
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -27,13 +26,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from brains.registry import UnknownBrainError, brain_names, bus_name, require_brain
-from orchestrator.launcher import STACK_FILE, BrainLaunch, preflight_launches
+from brains.registry import UnknownBrainError, bus_name, require_brain
+from orchestrator.launcher import STACK_FILE
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, BusError
+from protocol.bus import Bus, BusConfig
 from protocol.messages import Command, ControlReply, ControlRequest
+from protocol.runtime import UsageError
 
-EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
 DEFAULT_TIMEOUT_S = 60.0
 STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
 STOP_WAIT_S = 5.0  # how long to wait for the old brain's token to go after it accepted "stop"
@@ -42,10 +41,6 @@ ORPHAN_TIMEOUT_S = 10.0  # a swapped-in brain exits when the run has had no simu
 
 class SwapError(RuntimeError):
     """The swap could not be done (no stack, the new brain died or never answered, the switch was refused)."""
-
-
-class SwapUsageError(ValueError):
-    """A usage mistake (unknown brain, bad weights file, a name already taken)."""
 
 
 @dataclass(frozen=True)
@@ -103,7 +98,7 @@ def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, option
     log_path: the new brain host's log file, or a folder to write ``brain-<name>.log`` in (a run folder's ``logs``;
     None: the temporary folder). timeout_s: for it to come up and to answer its first frame. keep_old: leave the
     old brain running (it goes on as a shadow).
-    Raises :class:`SwapUsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
+    Raises :class:`UsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
     """
     _check_brain(brain)
     _check_name(run_id, what="run id")
@@ -149,11 +144,18 @@ def _take_over(bus: Bus, status: ControlReply, *, run_id: str, brain: str, name:
                       episode=episode, log_path=log_path, process=process)
 
 
+def _check_brain(brain: str) -> None:
+    try:
+        require_brain(brain)
+    except UnknownBrainError as error:
+        raise UsageError(str(error)) from None
+
+
 def _check_name(name: str, *, what: str) -> str:
     try:
         return keys.check_name(name, what=what)
     except ValueError as error:
-        raise SwapUsageError(str(error)) from None
+        raise UsageError(str(error)) from None
 
 
 def _request(bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = 2.0) -> ControlReply | None:
@@ -206,7 +208,7 @@ def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) ->
     if name:
         _check_name(name, what="brain name")
         if name in alive:
-            raise SwapUsageError(f"a brain named {name!r} is already alive on run {run_id}")
+            raise UsageError(f"a brain named {name!r} is already alive on run {run_id}")
         return name
     base = bus_name(brain)
     candidates = (base if n == 1 else f"{base}-{n}" for n in range(1, len(alive) + 2))
@@ -341,66 +343,3 @@ def locate_stack(*, runs_dir: Path, run_id: str | None, router: str | None) -> S
         raise SwapError(f"no running {which} found under {runs_dir} (start one with drivebench run, or pass "
                         f"--router EP --run RUN_ID)")
     return StackInfo(router=router or stacks[0].router, run_id=stacks[0].run_id, run_dir=stacks[0].run_dir)
-
-
-# -- the command -------------------------------------------------------------------------------------------------------
-
-
-def add_swap_command(commands) -> None:
-    swap = commands.add_parser("swap", help="make another brain drive a running stack, live (lock-step: no step lost)")
-    swap.add_argument("brain", help=f"brain to start ({', '.join(brain_names())})")
-    swap.add_argument("--weights", type=Path, metavar="CKPT", help="checkpoint (or .onnx) of a neural brain")
-    swap.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
-                      help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
-    swap.add_argument("--name", help="its name on the bus (default: the brain's name, or BRAIN-2, -3... if taken)")
-    swap.add_argument("--run", dest="swap_run", metavar="RUN_ID", help="run id (default: the newest running stack)")
-    swap.add_argument("--router", dest="swap_router", metavar="EP",
-                      help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: from the run's stack.json)")
-    swap.add_argument("--runs-dir", type=Path, default=Path("runs"),
-                      help="where drivebench run keeps its run folders (default: runs)")
-    swap.add_argument("--keep-old", action="store_true", help="leave the old brain running (as a shadow)")
-    swap.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
-                      help=f"for the new brain to come up and answer a frame (default: {DEFAULT_TIMEOUT_S:.0f})")
-
-
-def brain_options(brain_option: list[str], weights: Path | None) -> tuple[str, ...]:
-    """``--brain-option`` and ``--weights`` as the brain host's option overrides."""
-    for option in brain_option:
-        if "=" not in option or not option.split("=", 1)[0]:
-            raise SwapUsageError(f"--brain-option must look like KEY=VALUE, got {option!r}")
-    options = tuple(brain_option)
-    if weights is not None:
-        if not weights.is_file():
-            raise SwapUsageError(f"--weights: no such file {weights}")
-        options += (f"weights={json.dumps(str(weights.resolve()))}",)
-    return options
-
-
-def _check_brain(brain: str) -> None:
-    try:
-        require_brain(brain)
-    except UnknownBrainError as error:
-        raise SwapUsageError(str(error)) from None
-
-
-def run_swap_command(args: argparse.Namespace) -> int:
-    """``drivebench swap``: one line on stdout when done, one line on stderr when not (exit 2 usage, 1 stack)."""
-    try:
-        options = brain_options(args.brain_option, args.weights)
-        try:
-            preflight_launches([BrainLaunch(args.brain, options=options)])
-        except ValueError as error:
-            raise SwapUsageError(str(error)) from None
-        stack = locate_stack(runs_dir=args.runs_dir, run_id=args.swap_run, router=args.swap_router)
-        logs = stack.run_dir / "logs" if stack.run_dir is not None else None
-        result = swap_brain(router=stack.router, run_id=stack.run_id, brain=args.brain, name=args.name or None,
-                            options=options, log_path=logs if logs is not None and logs.is_dir() else None,
-                            timeout_s=args.timeout, keep_old=args.keep_old)
-    except SwapUsageError as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return EXIT_USAGE
-    except (SwapError, BusError) as error:
-        print(f"drivebench: swap failed: {error}", file=sys.stderr)
-        return EXIT_STACK
-    print(result.summary())
-    return EXIT_OK

@@ -32,6 +32,11 @@ class UserError(Exception):
     """A mistake the user can fix (bad name, bad file, unreachable router): one line, no traceback."""
 
 
+class UsageError(UserError):
+    """A mistake on a command line or in a file it names: one line; ``drivebench`` exits 2 (orchestrator.cli.errors).
+    Raised by the command modules and by the library functions they call with the user's values."""
+
+
 def setup_logging(name: str, *, level: str | None = None) -> None:
     level = level or os.environ.get("DRIVEBENCH_LOG", "INFO")
     logging.basicConfig(level=level.upper(), stream=sys.stderr,

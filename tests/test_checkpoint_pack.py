@@ -3,7 +3,6 @@ read_checkpoint as an ordinary checkpoint; missing or changed shards are one-lin
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import subprocess
 import sys
@@ -26,7 +25,7 @@ from brains.neural.checkpoint import (  # noqa: E402
     pack_checkpoint,
     read_checkpoint,
 )
-from brains.neural.export import add_pack_command, run_pack  # noqa: E402
+from orchestrator.cli import main  # noqa: E402
 
 SHARD_BYTES = 4 * 2**20  # PilotNet's ~34 MB of float16 -> 9 shards
 SMALL = "deepest_lstm_tiny_pilotnet"  # 0.26 MB: for the tests that do not need the big one
@@ -147,9 +146,7 @@ def test_joined_shards_are_checked_without_per_file_hashes(tmp_path):
 
 
 def test_pack_command_errors_are_one_line(tmp_path, capsys):
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_pack_command(parser.add_subparsers(dest="command", required=True))
-    assert run_pack(parser.parse_args(["pack", str(tmp_path / "none.pt"), "-o", str(tmp_path / "o.ckpt")])) == 2
+    assert main(["pack", str(tmp_path / "none.pt"), "-o", str(tmp_path / "o.ckpt")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("drivebench: error: ") and "none.pt: no such checkpoint file" in err
     assert err.count("\n") == 1 and not (tmp_path / "o.ckpt").exists()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import functools
 import math
@@ -15,8 +14,9 @@ import pytest
 from needs import require
 
 from circuits import load_circuit
+from orchestrator.cli import main
 from orchestrator.matrix import parse_matrix
-from orchestrator.matrix_report import BASELINE_FACT, ReportError, add_report_command, run_report, write_report
+from orchestrator.matrix_report import BASELINE_FACT, ReportError, write_report
 from orchestrator.report_cells import baseline_variation, grid_cell, mean_std
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
@@ -202,10 +202,7 @@ def test_html_is_self_contained(report):
 
 def test_output_folder_and_cli(report, tmp_path, capsys):
     folder, _, _ = report
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_report_command(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["report", str(folder), "-o", str(tmp_path / "elsewhere")])
-    assert run_report(args) == 0
+    assert main(["report", str(folder), "-o", str(tmp_path / "elsewhere")]) == 0
     err = capsys.readouterr().err
     assert str(tmp_path / "elsewhere" / "report.html") in err
     assert (tmp_path / "elsewhere" / "episodes.csv").is_file()
@@ -213,11 +210,11 @@ def test_output_folder_and_cli(report, tmp_path, capsys):
 
 
 def test_errors_are_one_line(tmp_path, capsys):
-    assert run_report(argparse.Namespace(dir=tmp_path, output=None)) == 2
+    assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("drivebench: error: ") and "\n" not in err and "results.sqlite" in err
     ResultStore(tmp_path).close()  # a database with no episode yet
-    assert run_report(argparse.Namespace(dir=tmp_path, output=None)) == 2
+    assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "no episodes" in err and "\n" not in err
     with pytest.raises(ReportError, match="no such folder"):
@@ -255,7 +252,7 @@ def test_cell_and_number_rules():
 
 def test_damaged_database_is_one_line(tmp_path, capsys):
     (tmp_path / "results.sqlite").write_bytes(b"not a database at all" * 100)
-    assert run_report(argparse.Namespace(dir=tmp_path, output=None)) == 2
+    assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("drivebench: error: ") and "\n" not in err and "results.sqlite" in err
 

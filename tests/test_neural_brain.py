@@ -3,7 +3,6 @@ errors, serving an ONNX file without torch, and one closed-loop run of a brain h
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import subprocess
@@ -29,8 +28,9 @@ from brains.neural.checkpoint import (  # noqa: E402
     make_random_checkpoint,
     save_checkpoint,
 )
-from brains.neural.export import add_export_command, check_parity, export_onnx, run_export  # noqa: E402
+from brains.neural.export import check_parity, export_onnx  # noqa: E402
 from brains.registry import BrainOptionsError  # noqa: E402
+from orchestrator.cli import main  # noqa: E402
 
 NAMES = ["pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp"]
 MS = 1_000_000
@@ -83,14 +83,12 @@ def test_parity_detects_a_different_network(ckpts, tmp_path):
 
 
 def test_export_command_writes_the_file_and_prints_its_parity(ckpts, tmp_path, capsys):
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_export_command(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "sub" / "m.onnx"
-    assert run_export(parser.parse_args(["export", ckpts["memdccp"], "-o", str(out)])) == 0
+    assert main(["export", ckpts["memdccp"], "-o", str(out)]) == 0
     printed = capsys.readouterr().out
     assert out.is_file() and str(out) in printed
     assert float(re.search(r"max \|onnxruntime - torch\| = (\S+)", printed).group(1)) < 1e-4
-    assert run_export(parser.parse_args(["export", str(tmp_path / "no.pt"), "-o", str(out)])) == 2
+    assert main(["export", str(tmp_path / "no.pt"), "-o", str(out)]) == 2
     assert capsys.readouterr().err == f"drivebench: error: {tmp_path / 'no.pt'}: no such checkpoint file\n"
 
 

@@ -9,10 +9,11 @@ import msgpack
 import pytest
 from test_protocol import METRICS  # one set of example metrics for the message tests
 
-from orchestrator.cli import UsageError, shadow_launches
+from orchestrator.cli.run import shadow_launches
+from orchestrator.cli.swap import brain_options
 from orchestrator.launcher import BrainLaunch
 from orchestrator.report import metrics_table
-from orchestrator.swap import StackInfo, SwapError, SwapUsageError, _pick_name, brain_options, locate_stack
+from orchestrator.swap import StackInfo, SwapError, _pick_name, locate_stack
 from protocol import codec, keys
 from protocol.messages import (
     BrainSwitch,
@@ -26,6 +27,7 @@ from protocol.messages import (
     ShadowDistance,
 )
 from protocol.recording import channel_layout, from_record, to_record
+from protocol.runtime import UsageError
 from services.scorer.shadows import CommandMatcher
 
 HEADER = Header(run_id="r1", episode=0, seq=0, stamp_ns=1_000_000_000)
@@ -148,17 +150,17 @@ def test_new_brain_names_avoid_the_alive_ones():
     assert _pick_name("explicit", None, {"constant"}, run_id="r") == "explicit"
     assert _pick_name("explicit", None, {"explicit", "explicit-2"}, run_id="r") == "explicit-3"
     assert _pick_name("explicit", "mine", {"explicit"}, run_id="r") == "mine"
-    with pytest.raises(SwapUsageError, match="already alive"):
+    with pytest.raises(UsageError, match="already alive"):
         _pick_name("explicit", "explicit", {"explicit"}, run_id="r")
-    with pytest.raises(SwapUsageError, match="may only contain"):
+    with pytest.raises(UsageError, match="may only contain"):
         _pick_name("explicit", "a b", set(), run_id="r")
 
 
 def test_swap_options_check_the_weights_file(tmp_path):
     assert brain_options(["speed_mps=2"], None) == ("speed_mps=2",)
-    with pytest.raises(SwapUsageError, match="no such file"):
+    with pytest.raises(UsageError, match="no such file"):
         brain_options([], tmp_path / "missing.ckpt")
-    with pytest.raises(SwapUsageError, match="KEY=VALUE"):
+    with pytest.raises(UsageError, match="KEY=VALUE"):
         brain_options(["speed"], None)
     weights = tmp_path / "w.ckpt"
     weights.write_bytes(b"x")

@@ -3,7 +3,6 @@ determinism, class balance, augmentation, and one-line errors."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import subprocess
@@ -18,7 +17,7 @@ torch = require("torch")
 
 import cv2  # noqa: E402
 
-from brains import train_cli, training  # noqa: E402
+from brains import training  # noqa: E402
 from brains.nets.preprocess import prepare_batch  # noqa: E402
 from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint  # noqa: E402
 from brains.training import (  # noqa: E402
@@ -34,6 +33,8 @@ from brains.training import (  # noqa: E402
     to_unit_float,
     train,
 )
+from orchestrator.cli import main  # noqa: E402
+from orchestrator.cli import train as train_cli  # noqa: E402
 from recorder.dataset import DrivingDataset  # noqa: E402
 
 TINY = "deepest_lstm_tiny_pilotnet"
@@ -314,19 +315,16 @@ def test_read_checkpoint_refuses_missing_garbage_and_incomplete_files(tmp_path):
     assert "state_dict" in message and "input.offsets_frames" in message and "partial.ckpt" in message
 
 
-def cli(*argv: str) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="drivebench")
-    train_cli.add_train_command(parser.add_subparsers(dest="command", required=True))
-    return parser.parse_args(["train", *argv])
+def cli(*argv: str) -> int:
+    """``drivebench train ARGV...``: its exit code."""
+    return main(["train", *argv])
 
 
 def test_cli_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
-    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path / "missing"), "-o",
-                                   str(tmp_path / "run"))) == 2
+    assert cli("--model", TINY, "--data", str(tmp_path / "missing"), "-o", str(tmp_path / "run")) == 2
     err = capsys.readouterr().err
     assert err.startswith("drivebench: error: ") and err.count("\n") == 1 and "missing" in err
-    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path / "run"),
-                                   "--hyper", "dropout")) == 2
+    assert cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path / "run"), "--hyper", "dropout") == 2
     assert "KEY=VALUE" in capsys.readouterr().err
 
 
@@ -335,7 +333,7 @@ def test_cli_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):
         raise TrainInterrupted(tmp_path / "last.ckpt", 3, 7)
 
     monkeypatch.setattr(training, "train", interrupted)
-    assert train_cli.run_train(cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path))) == 130
+    assert cli("--model", TINY, "--data", str(tmp_path), "-o", str(tmp_path)) == 130
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--resume" in err and "last.ckpt" in err
 

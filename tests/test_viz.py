@@ -7,7 +7,6 @@ JPEG with OpenCV, JSON with ``json``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -402,12 +401,11 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
 # -- drivebench view -----------------------------------------------------------------------------------------------
 
 
-def view_args(*argv: str) -> argparse.Namespace:
-    from services.viz.cli import add_view_command
+def view(*argv: str) -> int:
+    """``drivebench view ARGV...``: its exit code."""
+    from orchestrator.cli import main
 
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_view_command(parser.add_subparsers(dest="command", required=True))
-    return parser.parse_args(["view", *argv])
+    return main(["view", *argv])
 
 
 def one_error_line(capsys) -> str:
@@ -417,32 +415,28 @@ def one_error_line(capsys) -> str:
 
 
 def test_view_without_a_router_says_so_in_one_line(capsys, monkeypatch):
-    from services.viz.cli import run_view_command
-
     monkeypatch.delenv("DRIVEBENCH_ROUTER", raising=False)
-    assert run_view_command(view_args()) == 2
+    assert view() == 2
     assert "no router" in one_error_line(capsys)
-    assert run_view_command(view_args("--router", "tcp/127.0.0.1:7447", "--port", "70000")) == 2
+    assert view("--router", "tcp/127.0.0.1:7447", "--port", "70000") == 2
     assert "port" in one_error_line(capsys)
 
 
 @pytest.mark.integration
 def test_view_with_no_run_several_runs_or_no_router_listening_says_so_in_one_line(capsys, monkeypatch):
-    from services.viz.cli import run_view_command
-
     monkeypatch.delenv("DRIVEBENCH_RUN_ID", raising=False)
     nobody = f"tcp/127.0.0.1:{free_loopback_port()}"
-    assert run_view_command(view_args("--router", nobody)) == 1
+    assert view("--router", nobody) == 1
     assert f"router {nobody} not reachable" in one_error_line(capsys)
 
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     with Bus(BusConfig(mode="router", listen=[endpoint]), name="test-router") as bus:
         monkeypatch.setenv("DRIVEBENCH_ROUTER", endpoint)
-        assert run_view_command(view_args()) == 1
+        assert view() == 1
         assert "no run is alive" in one_error_line(capsys)
         bus.declare_alive(keys.alive("run-a", "simulator", "sim"))
         bus.declare_alive(keys.alive("run-b", "simulator", "sim"))
-        assert run_view_command(view_args()) == 1
+        assert view() == 1
         assert "2 runs are alive" in (line := one_error_line(capsys)) and "run-a, run-b" in line
 
 
@@ -458,7 +452,7 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
     time.sleep(1.0)  # its START event is long gone when the view joins
     port = free_loopback_port()
     env = {k: v for k, v in os.environ.items() if k not in ("DRIVEBENCH_RUN_ID", "DRIVEBENCH_ROUTER")}
-    view = subprocess.Popen([sys.executable, "-m", "services.viz.cli", "view", "--router", stack.endpoint,
+    view = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "view", "--router", stack.endpoint,
                              "--port", str(port)], cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
     try:
         lines = []

@@ -6,8 +6,6 @@ The router comes from ``--router`` or ``DRIVEBENCH_ROUTER``; the run from ``--ru
 only run with a process alive on that router (from the liveliness tokens). Mistakes and an unreachable router are
 one line on stderr: exit 2 for a usage mistake, 1 when there is nothing to view.
 
-``orchestrator/cli.py`` wires it with ``add_view_command(commands)`` and ``run_view_command(args)``; ``python -m
-services.viz.cli view ...`` runs it standalone.
 """
 
 from __future__ import annotations
@@ -16,6 +14,7 @@ import argparse
 import os
 import sys
 
+from orchestrator.cli.errors import EXIT_OK, CommandFailed, UsageError
 from protocol import keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.episodes import running_runs
@@ -23,16 +22,11 @@ from protocol.runtime import RUN_ID_ENV as RUN_ENV
 from protocol.runtime import UserError, setup_logging, stop_on_signals
 from services.viz.service import DEFAULT_PORT, VizConfig, VizService, viewer_url
 
-EXIT_OK, EXIT_NOTHING, EXIT_USAGE = 0, 1, 2
 ROUTER_PROBE_S = 3.0
 CONNECT_TIMEOUT_MS = 10_000
 
 
-class ViewUsageError(Exception):
-    """A mistake in the command line or environment: one line, exit 2."""
-
-
-def add_view_command(commands) -> None:
+def add(commands: argparse._SubParsersAction) -> None:
     """Add ``view`` to the ``drivebench`` subcommands (``commands`` from ``parser.add_subparsers``)."""
     view = commands.add_parser(
         "view", help="live view of a running run in Foxglove (WebSocket): camera, car on the circuit, commands, "
@@ -49,6 +43,7 @@ def add_view_command(commands) -> None:
                       help=f"TCP port to serve on (default: {DEFAULT_PORT})")
     view.add_argument("--backlog", dest="view_backlog", type=int, default=VizConfig().backlog,
                       help="messages queued per viewer before the oldest are dropped (default: %(default)s)")
+    view.set_defaults(func=run_view_command)
 
 
 def run_view_command(args: argparse.Namespace) -> int:
@@ -57,7 +52,7 @@ def run_view_command(args: argparse.Namespace) -> int:
     try:
         router = args.view_router or os.environ.get(ROUTER_ENV, "").split(",")[0].strip()
         if not router:
-            raise ViewUsageError(f"no router: give --router EP (e.g. tcp/127.0.0.1:7447) or set {ROUTER_ENV} (a "
+            raise UsageError(f"no router: give --router EP (e.g. tcp/127.0.0.1:7447) or set {ROUTER_ENV} (a "
                                  f"running `drivebench run` writes its router to <run folder>/stack.json)")
         wanted = args.view_run or os.environ.get(RUN_ENV) or None
         try:
@@ -68,7 +63,7 @@ def run_view_command(args: argparse.Namespace) -> int:
             # router that accepts TCP but never completes Zenoh's handshake ends in an error line, not a hang.
             bus_config = BusConfig(mode="client", connect=[router], connect_timeout_ms=CONNECT_TIMEOUT_MS)
         except ValueError as error:
-            raise ViewUsageError(str(error)) from None
+            raise UsageError(str(error)) from None
         probe_router(router, timeout_s=ROUTER_PROBE_S)
         stop_on_signals()  # Ctrl-C or SIGTERM: the view's loop returns and the session closes in order
         with Bus(bus_config, name=f"view-{os.getpid()}") as bus:
@@ -85,12 +80,10 @@ def run_view_command(args: argparse.Namespace) -> int:
                 pass  # Ctrl-C or SIGTERM: the normal end of a view
             finally:
                 service.close()
-    except ViewUsageError as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return EXIT_USAGE
+    except UsageError:
+        raise
     except (UserError, BusError) as error:
-        print(f"drivebench: view failed: {error}", file=sys.stderr)
-        return EXIT_NOTHING
+        raise CommandFailed(f"view failed: {error}") from None
     except (KeyboardInterrupt, SystemExit):
         pass  # stopped before it served
     return EXIT_OK
@@ -109,14 +102,3 @@ def _choose_run(bus: Bus, router: str, wanted: str | None) -> str:
     if len(runs) > 1:
         raise UserError(f"{len(runs)} runs are alive on {router}: {', '.join(sorted(runs))}; pick one with --run")
     return next(iter(runs))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m services.viz.cli view ...`` (the same as ``drivebench view ...``)."""
-    parser = argparse.ArgumentParser(prog="drivebench")
-    add_view_command(parser.add_subparsers(dest="command", required=True))
-    return run_view_command(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

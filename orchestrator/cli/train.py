@@ -18,16 +18,15 @@ from pathlib import Path
 from typing import Any
 
 from brains.nets import MODELS
-
-EXIT_OK, EXIT_USAGE, EXIT_INTERRUPTED = 0, 2, 130
+from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, UsageError
 
 
 class HyperError(ValueError):
     """A malformed --hyper item."""
 
 
-def add_train_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``train`` to the ``drivebench`` sub-commands (dispatch on ``args.command == "train"``)."""
+def add(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``train`` to the ``drivebench`` sub-commands."""
     parser = subparsers.add_parser("train", help="train a network on a dataset folder (needs torch)",
                                    description="Train one of the paper's networks on a dataset built with "
                                                "'drivebench dataset build|collect'.")
@@ -63,7 +62,7 @@ def add_train_command(subparsers: argparse._SubParsersAction) -> argparse.Argume
     restart = parser.add_mutually_exclusive_group()
     restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
     restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
-    return parser
+    parser.set_defaults(func=run_train)
 
 
 def parse_hyper(items: list[str]) -> dict[str, Any]:
@@ -93,7 +92,7 @@ def run_train(args: argparse.Namespace) -> int:
     try:
         from brains import training
     except ImportError as error:
-        return _error(f"training needs torch ({error}); install the 'ml' extra")
+        raise UsageError(f"training needs torch ({error}); install the 'ml' extra") from None
     try:
         options = training.TrainOptions(
             model=args.model, data=args.data, output=args.output, epochs=args.epochs, batch_size=args.batch_size,
@@ -112,7 +111,7 @@ def run_train(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return EXIT_INTERRUPTED
     except (training.TrainError, HyperError) as error:
-        return _error(str(error))
+        raise UsageError(str(error)) from None
     print(_summary(result))
     return EXIT_OK
 
@@ -121,11 +120,6 @@ def _log(line: str) -> None:
     from tqdm import tqdm
 
     tqdm.write(line, file=sys.stderr)  # does not break a progress bar that is on screen
-
-
-def _error(message: str) -> int:
-    print(f"drivebench: error: {message}", file=sys.stderr)
-    return EXIT_USAGE
 
 
 def _summary(result) -> str:
@@ -137,4 +131,4 @@ def _summary(result) -> str:
             f"MSE {scores['mse_normalised']:.4f} (normalised); {result.samples_per_s:.0f} training samples/s")
 
 
-__all__ = ["HyperError", "add_train_command", "parse_hyper", "run_train"]
+__all__ = ["HyperError", "add", "parse_hyper", "run_train"]

@@ -8,16 +8,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from orchestrator.cli.errors import UsageError
 from protocol.config import ConfigError, parse_override
 
-SCHEMA_DIR = Path(__file__).resolve().parent.parent / "docs" / "protocol"
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "docs" / "protocol"
 
 
-class BrainsUsageError(Exception):
-    """A mistake on the command line: one line, exit code 2."""
-
-
-def add_brains_command(commands) -> None:
+def add(commands: argparse._SubParsersAction) -> None:
     brains = commands.add_parser("brains", help="list brains, check one against the brain contract, write the wire "
                                                 "contract's JSON Schemas")
     sub = brains.add_subparsers(dest="brains_command", required=True)
@@ -33,18 +30,15 @@ def add_brains_command(commands) -> None:
     schema = sub.add_parser("schema", help="write the JSON Schema of every message a brain process exchanges")
     schema.add_argument("-o", "--output", type=Path, default=SCHEMA_DIR,
                         help=f"folder (default: {SCHEMA_DIR.relative_to(SCHEMA_DIR.parent.parent)})")
+    brains.set_defaults(func=run_brains_command)
 
 
 def run_brains_command(args: argparse.Namespace) -> int:
-    try:
-        if args.brains_command == "list":
-            return _list()
-        if args.brains_command == "check":
-            return _check(args)
-        return _schema(args.output)
-    except BrainsUsageError as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return 2
+    if args.brains_command == "list":
+        return _list()
+    if args.brains_command == "check":
+        return _check(args)
+    return _schema(args.output)
 
 
 def _list() -> int:
@@ -65,13 +59,13 @@ def brain_option_dict(items: list[str], weights: Path | None) -> dict[str, Any]:
         try:
             keys, value = parse_override(item)
         except ConfigError as error:
-            raise BrainsUsageError(f"--brain-option: {error}") from None
+            raise UsageError(f"--brain-option: {error}") from None
         if len(keys) != 1:
-            raise BrainsUsageError(f"--brain-option {item!r}: one key, no dots")
+            raise UsageError(f"--brain-option {item!r}: one key, no dots")
         options[keys[0]] = value
     if weights is not None:
         if not weights.is_file():
-            raise BrainsUsageError(f"--weights: no such file {weights}")
+            raise UsageError(f"--weights: no such file {weights}")
         options["weights"] = str(weights.resolve())
     return options
 
@@ -81,7 +75,7 @@ def _check(args: argparse.Namespace) -> int:
 
     options = brain_option_dict(args.brain_option, args.weights)
     if args.memory_steps < 2:
-        raise BrainsUsageError("--memory-steps must be at least 2")
+        raise UsageError("--memory-steps must be at least 2")
     print(f"checking brain {args.brain!r} on rendered frames of simple ...", file=sys.stderr)
     results = check_brain(args.brain, options=options, memory_steps=args.memory_steps)
     for result in results:

@@ -1,10 +1,7 @@
-"""The ``drivebench`` command.
+"""``drivebench run``: one episode.
 
     drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--record F.mcap] [--json] ...
-    drivebench swap BRAIN [--weights CKPT] [--name NAME] [--run RUN_ID] [--router EP] [--keep-old]
-    drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR
-    drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
-    drivebench recorder info|repair, replay, dataset build|collect, train, export, pack, circuits list|show|import
+    drivebench run --attach [--router EP]
 
 ``run`` starts a local stack (embedded router, simulator, brain, scorer: one process each), drives one episode,
 prints its metrics (or one JSON object with ``--json``) and leaves a run folder with the resolved config, the score
@@ -28,23 +25,15 @@ import msgspec
 import yaml
 
 from brains.registry import UnknownBrainError, bus_name, require_brain
-from circuits import CircuitError, circuit_names, load_circuit
-from orchestrator import recording_cli
+from circuits import CircuitError, load_circuit
+from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
-from orchestrator.matrix_cli import MatrixUsageError
 from orchestrator.progress import EpisodeProgress
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
 from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec
-from protocol.runtime import exit_on_sigterm
 from protocol.variations import apply_variation, noise_stage
-
-EXIT_OK, EXIT_STACK, EXIT_USAGE = 0, 1, 2
-
-
-class UsageError(Exception):
-    pass
 
 
 def parse_camera(text: str) -> tuple[int, int]:
@@ -54,11 +43,7 @@ def parse_camera(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="drivebench", description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
-                                       "them, build datasets, train and serve networks.")
-    commands = parser.add_subparsers(dest="command", required=True)
+def add(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
     run.add_argument("--direction", choices=("forward", "reverse"), default="forward",
@@ -106,49 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
     run.add_argument("--record-images", choices=("raw", "jpeg"), default="raw",
                      help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)")
-    from orchestrator.swap import add_swap_command
-
-    add_swap_command(commands)  # drivebench swap: on a running `drivebench run`
-
-    recording_cli.add_commands(commands)
-    recording_cli.add_dataset_commands(commands, parse_camera)
-    from brains.neural.export import add_export_command, add_pack_command
-    from brains.train_cli import add_train_command
-
-    add_train_command(commands)
-    add_export_command(commands)
-    add_pack_command(commands)
-    from orchestrator.matrix_cli import add_matrix_command
-    from orchestrator.matrix_report import add_report_command
-
-    add_matrix_command(commands)
-    add_report_command(commands)
-    from brains.cli import add_brains_command
-    from orchestrator.paper import add_paper_command
-
-    add_brains_command(commands)  # drivebench brains list | check | schema
-
-    add_paper_command(commands)
-    from orchestrator.health import add_health_command
-    from services.viz.cli import add_view_command
-
-    add_health_command(commands)
-    add_view_command(commands)  # drivebench view: a run live in Foxglove
-
-    circuits = commands.add_parser("circuits", help="list, show and import circuits")
-    circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
-    circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
-    show = circuit_commands.add_parser("show", help="a top-down picture of a circuit (start point and direction)")
-    show.add_argument("name", help="circuit name (also random:SEED, twisty:SEED)")
-    show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
-    show.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
-    importer = circuit_commands.add_parser(
-        "import", help="import a racetrack-database centreline CSV (x_m,y_m,w_tr_right_m,w_tr_left_m)")
-    importer.add_argument("file", type=Path, help="the CSV file")
-    importer.add_argument("--name", required=True, help="name to use it by (letters, digits, _ . -)")
-    importer.add_argument("--scale", type=float, default=1.0, help="scale factor (default 1: real size)")
-    importer.add_argument("--overwrite", action="store_true", help="replace an imported circuit of that name")
-    return parser
+    run.set_defaults(func=command_run)
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
@@ -329,40 +272,6 @@ def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]
     return launches
 
 
-def command_circuits(args: argparse.Namespace) -> int:
-    try:
-        if args.circuits_command == "list":
-            rows = [("name", "lap (m)", "road (m)", "source")]
-            for name in circuit_names():
-                try:
-                    circuit = load_circuit(name)
-                except CircuitError as error:  # one broken user file must not hide the others
-                    rows.append((name, "-", "-", f"cannot load: {error}"))
-                    continue
-                rows.append((name, f"{circuit.length_m:.1f}", f"{2 * circuit.road_half_width_m:.1f}", circuit.source))
-            rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed: a spline, gentle bends"))
-            rows.append(("twisty:SEED", "400-1500", "3.0", "generated from the seed: straights and 8.5-12 m hairpins"))
-            widths = [max(len(row[i]) for row in rows) for i in range(3)]
-            for row in rows:
-                print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")
-        elif args.circuits_command == "show":
-            from circuits.picture import save_circuit_picture
-
-            circuit = load_circuit(args.name)
-            save_circuit_picture(circuit, args.output, width_px=args.width)
-            print(f"{circuit.name}: {circuit.length_m:.1f} m -> {args.output}", file=sys.stderr)
-        elif args.circuits_command == "import":
-            from circuits.importer import import_racetrack_csv
-
-            path = import_racetrack_csv(args.file, name=args.name, scale=args.scale, overwrite=args.overwrite)
-            circuit = load_circuit(args.name)
-            print(f"imported {args.name}: {circuit.length_m:.1f} m, road {2 * circuit.road_half_width_m:.1f} m "
-                  f"-> {path}", file=sys.stderr)
-    except CircuitError as error:
-        raise UsageError(str(error)) from None
-    return EXIT_OK
-
-
 def report(score: EpisodeScore, run_dir: Path, *, as_json: bool) -> None:
     if as_json:
         print(codec.to_json(score))
@@ -371,74 +280,3 @@ def report(score: EpisodeScore, run_dir: Path, *, as_json: bool) -> None:
     print(f"\nscore: {run_dir / 'score.json'}", file=sys.stderr)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    exit_on_sigterm()  # SIGTERM stops the stack as cleanly as Ctrl-C does
-    try:
-        if args.command == "run":
-            return command_run(args)
-        if args.command == "circuits":
-            return command_circuits(args)
-        if args.command == "swap":
-            from orchestrator.swap import run_swap_command
-
-            return run_swap_command(args)
-        if args.command == "train":
-            from brains.train_cli import run_train
-
-            return run_train(args)
-        if args.command == "export":
-            from brains.neural.export import run_export
-
-            return run_export(args)
-        if args.command == "pack":
-            from brains.neural.export import run_pack
-
-            return run_pack(args)
-        if args.command == "matrix":
-            from orchestrator.matrix_cli import run_matrix_command
-
-            return run_matrix_command(args)
-        if args.command == "brains":
-            from brains.cli import run_brains_command
-
-            return run_brains_command(args)
-        if args.command == "paper":
-            from orchestrator.paper import run_paper_command
-
-            return run_paper_command(args)
-        if args.command == "view":
-            from services.viz.cli import run_view_command
-
-            return run_view_command(args)
-        if args.command == "health":
-            from orchestrator.health import run_health_command
-
-            return run_health_command(args)
-        if args.command == "report":
-            from orchestrator.matrix_report import run_report
-
-            return run_report(args)
-        return recording_cli.run_command(args)
-    except (UsageError, recording_cli.RecordingUsageError, MatrixUsageError) as error:
-        print(f"drivebench: error: {error}", file=sys.stderr)
-        return EXIT_USAGE
-    except (StackError, BusError) as error:
-        kind = f" ({error.kind})" if isinstance(error, StackFailure) else ""
-        print(f"drivebench: the stack could not run{kind}: {error}", file=sys.stderr)
-        return EXIT_STACK
-    except KeyboardInterrupt:
-        print("drivebench: interrupted; every process stopped", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # `drivebench ... | head`: the reader has all it wanted
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - so the interpreter's final flush does not fail
-        return EXIT_OK
-    except SystemExit as stop:
-        if isinstance(stop.code, int) and stop.code > 128:  # our SIGTERM handler: the stack is already stopped
-            print("drivebench: terminated; every process stopped", file=sys.stderr)
-        raise
-    return EXIT_USAGE
-
-
-if __name__ == "__main__":
-    sys.exit(main())

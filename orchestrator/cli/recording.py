@@ -10,30 +10,49 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+from orchestrator.cli.errors import EXIT_OK, UsageError
+from orchestrator.cli.run import parse_camera
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
 from recorder.dataset import DatasetError
 from recorder.reading import RecordingError, recording_info
 
 
-class RecordingUsageError(Exception):
-    """A mistake on the command line (one line)."""
+def add(commands: argparse._SubParsersAction) -> None:
+    """``recorder info|repair``, ``replay`` and ``dataset build|collect``."""
+    _add_recording_commands(commands)
+    _add_dataset_commands(commands)
 
 
-def add_commands(commands: argparse._SubParsersAction) -> None:
+def _usage_errors(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``command`` with a bad recording, dataset or value turned into a usage error (one line, exit 2)."""
+    @functools.wraps(command)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return command(args)
+        except (RecordingError, DatasetError, ValueError) as error:  # ValueError: CollectError
+            raise UsageError(str(error)) from None
+    return run
+
+
+def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     recorder = commands.add_parser("recorder", help="inspect and repair MCAP recordings")
     recorder_commands = recorder.add_subparsers(dest="recorder_command", required=True)
     info = recorder_commands.add_parser("info", help="channels, message counts, episodes of a recording")
     info.add_argument("file", type=Path)
+    info.set_defaults(func=_usage_errors(_info))
     repair = recorder_commands.add_parser("repair", help="recover everything readable from a killed recorder's file")
     repair.add_argument("file", type=Path, help="a .mcap.part file, or a truncated .mcap")
     repair.add_argument("-o", "--output", type=Path, help="output file (default: x.mcap.part -> x.mcap, "
                                                           "x.mcap -> x.repaired.mcap)")
     repair.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
+    repair.set_defaults(func=_usage_errors(_repair))
 
     replay = commands.add_parser("replay", help="publish a recording back onto the bus")
     replay.add_argument("file", type=Path)
@@ -43,14 +62,16 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--run-id", help="publish under this run id instead of the recorded one")
     replay.add_argument("--keys", help="only keys matching this glob, e.g. '*/sim/*'")
     replay.add_argument("--router", help=f"router endpoint (default: ${ROUTER_ENV})")
+    replay.set_defaults(func=_usage_errors(_replay))
 
 
-def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> None:
+def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     dataset = commands.add_parser("dataset", help="training datasets from recordings")
     dataset_commands = dataset.add_subparsers(dest="dataset_command", required=True)
     build = dataset_commands.add_parser("build", help="pair recorded frames with the commands that answered them")
     build.add_argument("recordings", nargs="+", type=Path, help="MCAP recordings (drivebench run --record)")
     _add_build_options(build)
+    build.set_defaults(func=_usage_errors(_build))
     collect = dataset_commands.add_parser(
         "collect", help="drive the explicit brain on each circuit with recording on, then build the dataset")
     collect.add_argument("--circuits", required=True, help="comma-separated circuit names")
@@ -73,6 +94,7 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
                          help="drive with bursts of extra yaw rate up to RADPS (the noisy brain) while --brain, "
                               "undisturbed, labels every frame: recovery data (DART); default 0 = off")
     _add_build_options(collect)
+    collect.set_defaults(func=_usage_errors(_collect))
 
 
 def _add_build_options(parser: argparse.ArgumentParser) -> None:
@@ -110,49 +132,27 @@ def dataset_options(args: argparse.Namespace):
     except ValueError:
         size = crop = offsets = None
     if size is None:
-        raise RecordingUsageError(f"--size must look like 100x50, got {args.size!r}")
+        raise UsageError(f"--size must look like 100x50, got {args.size!r}")
     if crop is None:
-        raise RecordingUsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
+        raise UsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
     if offsets is None or args.history < 1 or args.stride < 1:
-        raise RecordingUsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
+        raise UsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
     return DatasetOptions(width_px=size[0], height_px=size[1], crop_top_fraction=crop[0],
                           crop_bottom_fraction=crop[1], camera=args.camera_key, brain=args.label_brain,
                           offsets_frames=offsets, split=args.split, seed=args.seed)
 
 
-def build_from_recordings(recordings: list[Path], args: argparse.Namespace, options) -> int:
-    from recorder.dataset import build_dataset
-    from recorder.reading import read_messages
+def _build(args: argparse.Namespace) -> int:
+    from orchestrator.collect import build_from_recordings
 
-    for path in recordings:
-        recording_info(path)  # a missing or broken file fails before any work
-    sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
-    manifest = build_dataset(sources, out_dir=args.output, options=options, progress=sys.stderr.isatty(),
-                             overwrite=args.overwrite)
-    split = manifest.split
-    print(f"dataset {args.output}: {manifest.totals.samples} samples from {len(recordings)} recording(s), "
-          f"{manifest.totals.episodes} episode(s); train {split.train_samples} samples, val {split.val_samples} "
-          f"({split.rule})", file=sys.stderr)
-    return 0
+    return build_from_recordings(args.recordings, output=args.output, options=dataset_options(args),
+                                 overwrite=args.overwrite)
 
 
-def run_command(args: argparse.Namespace) -> int:
-    try:
-        if args.command == "recorder" and args.recorder_command == "info":
-            return _info(args)
-        if args.command == "recorder" and args.recorder_command == "repair":
-            return _repair(args)
-        if args.command == "replay":
-            return _replay(args)
-        if args.command == "dataset" and args.dataset_command == "build":
-            return build_from_recordings(args.recordings, args, dataset_options(args))
-        if args.command == "dataset" and args.dataset_command == "collect":
-            from orchestrator.collect import collect
+def _collect(args: argparse.Namespace) -> int:
+    from orchestrator.collect import collect
 
-            return collect(args, dataset_options(args))
-    except (RecordingError, DatasetError, ValueError) as error:  # ValueError: CollectError
-        raise RecordingUsageError(str(error)) from None
-    raise RecordingUsageError(f"unknown command {args.command!r}")
+    return collect(args, dataset_options(args))
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -170,7 +170,7 @@ def _info(args: argparse.Namespace) -> int:
         if name.startswith("episode:"):
             spec = json.loads(data.get("spec", "{}"))
             print(f"  {name}: circuit {spec.get('circuit')}, brain {spec.get('active_brain')}, seed {spec.get('seed')}")
-    return 0
+    return EXIT_OK
 
 
 def _repair(args: argparse.Namespace) -> int:
@@ -179,7 +179,7 @@ def _repair(args: argparse.Namespace) -> int:
     report = repair(args.file, output=args.output, overwrite=args.overwrite)
     tail = f"; stopped at a damaged or torn record ({report.stopped_at})" if report.stopped_at else ""
     print(f"recovered {report.messages} messages -> {report.output}{tail}", file=sys.stderr)
-    return 0
+    return EXIT_OK
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -187,13 +187,13 @@ def _replay(args: argparse.Namespace) -> int:
 
     router = args.router or os.environ.get(ROUTER_ENV)
     if not router:
-        raise RecordingUsageError(f"replay needs a router to publish to: --router tcp/HOST:7447 or ${ROUTER_ENV}")
+        raise UsageError(f"replay needs a router to publish to: --router tcp/HOST:7447 or ${ROUTER_ENV}")
     if not args.max_speed and not args.rate > 0:
-        raise RecordingUsageError(f"--rate must be > 0, got {args.rate}")
+        raise UsageError(f"--rate must be > 0, got {args.rate}")
     recording_info(args.file)  # a bad file fails here, before a bus session is opened
     with Bus(BusConfig(connect=[router]), name="replay") as bus:
         report = replay(args.file, bus, rate=None if args.max_speed else args.rate, run_id=args.run_id,
                         keys_glob=args.keys, progress=sys.stderr.isatty())
     print(f"replayed {report.messages} messages on {len(report.counts)} keys "
           f"({report.span_s:.1f} s of recording in {report.wall_s:.1f} s)", file=sys.stderr)
-    return 0
+    return EXIT_OK

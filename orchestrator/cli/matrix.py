@@ -15,14 +15,10 @@ import sys
 import time
 from pathlib import Path
 
-EXIT_SOME_FAILED = 3
+from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
 
 
-class MatrixUsageError(Exception):
-    pass
-
-
-def add_matrix_command(commands) -> None:
+def add(commands: argparse._SubParsersAction) -> None:
     matrix = commands.add_parser(
         "matrix", help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
         description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
@@ -33,6 +29,7 @@ def add_matrix_command(commands) -> None:
     matrix.add_argument("--smoke", action="store_true",
                         help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
                              "4 s of simulated time each on a 160x120 camera (what CI runs)")
+    matrix.set_defaults(func=run_matrix_command)
 
 
 def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, default_workers: int) -> None:
@@ -58,7 +55,7 @@ def load_matrix_file(path: Path):
     try:
         return load_matrix(path)
     except MatrixError as error:
-        raise MatrixUsageError(str(error)) from None
+        raise UsageError(str(error)) from None
 
 
 def run_matrix_command(args: argparse.Namespace) -> int:
@@ -81,7 +78,7 @@ def _preflight(matrix) -> None:
         try:
             preflight_launches([brain_launch(entry)])
         except ValueError as error:
-            raise MatrixUsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
+            raise UsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
 
 
 def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
@@ -98,17 +95,17 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
 
     if args.plan:
         print(plan_table(matrix))
-        return 0
+        return EXIT_OK
     if args.workers < 1:
-        raise MatrixUsageError(f"--workers must be >= 1, got {args.workers}")
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if args.resume and args.out is None:
-        raise MatrixUsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
+        raise UsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
     if args.retry_failed and not args.resume:
-        raise MatrixUsageError("--retry-failed goes with --resume")
+        raise UsageError("--retry-failed goes with --resume")
     _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():
-        raise MatrixUsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
+        raise UsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
                                f"choose another -o folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(filename=out_dir / "matrix.log", level=logging.INFO,
@@ -122,18 +119,18 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
     try:
         progress = runner.run()
     except ResultsError as error:
-        raise MatrixUsageError(str(error)) from None
+        raise UsageError(str(error)) from None
     except KeyboardInterrupt:
         display.close()
         print(f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
               f"`{command} -o {out_dir} --resume` runs the rest", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     finally:
         display.close()
     print(summary_line(progress, out_dir), file=sys.stderr)
     if report:
         _write_report(out_dir)
-    return EXIT_SOME_FAILED if progress.failed else 0
+    return EXIT_SOME_FAILED if progress.failed else EXIT_OK
 
 
 def _write_report(out_dir: Path) -> None:

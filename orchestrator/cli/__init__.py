@@ -1,0 +1,78 @@
+"""The ``drivebench`` command: one module per subcommand, one error table for all of them.
+
+    drivebench run [--circuit simple] [--brain explicit] [--laps 1] [--camera 320x240] [--record F.mcap] [--json] ...
+    drivebench swap BRAIN [--weights CKPT] [--name NAME] [--run RUN_ID] [--router EP] [--keep-old]
+    drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR; drivebench paper
+    drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
+    drivebench recorder info|repair, replay, dataset build|collect, train, export, pack, brains list|check|schema,
+    circuits list|show|import
+
+Each module of :data:`COMMANDS` has ``add(commands)``, which adds its subcommand(s) with ``set_defaults(func=...)``;
+``main`` calls that function and turns the errors of ``orchestrator.cli.errors`` (and a stack that could not run)
+into one line on stderr and the exit code of that table. Modules import what is heavy (torch, the report stack)
+inside their commands, so ``drivebench --help`` and a healthcheck stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from orchestrator.cli import (
+    brains,
+    circuits,
+    export,
+    health,
+    matrix,
+    paper,
+    recording,
+    report,
+    run,
+    swap,
+    train,
+    view,
+)
+from orchestrator.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CommandFailed, UsageError
+from orchestrator.launcher import StackError, StackFailure
+from protocol.bus import BusError
+from protocol.runtime import exit_on_sigterm
+
+COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="drivebench", description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
+                                       "them, build datasets, train and serve networks.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    for module in COMMANDS:
+        module.add(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    exit_on_sigterm()  # SIGTERM stops the stack as cleanly as Ctrl-C does
+    try:
+        return args.func(args)
+    except UsageError as error:
+        print(f"drivebench: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except CommandFailed as error:
+        print(f"drivebench: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    except (StackError, BusError) as error:
+        kind = f" ({error.kind})" if isinstance(error, StackFailure) else ""
+        print(f"drivebench: the stack could not run{kind}: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print("drivebench: interrupted; every process stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # `drivebench ... | head`: the reader has all it wanted
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - so the interpreter's final flush does not fail
+        return EXIT_OK
+    except SystemExit as stop:
+        if isinstance(stop.code, int) and stop.code > 128:  # our SIGTERM handler: the stack is already stopped
+            print("drivebench: terminated; every process stopped", file=sys.stderr)
+        raise
