@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from pathlib import Path
 import msgspec
 
 from brains.registry import bus_name
+from orchestrator import processes
 from protocol import codec, graph, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
@@ -61,16 +61,6 @@ class StackFailure(StackError):
                 "score": None if self.score is None else msgspec.to_builtins(self.score)}
 
 
-def describe_exit(code: int) -> str:
-    """``exited with code 3`` or, for a process a signal ended, ``killed by SIGKILL``."""
-    if code < 0:
-        try:
-            return f"killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"killed by signal {-code}"
-    return f"exited with code {code}"
-
-
 class EpisodeAborted(StackError):
     """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
 
@@ -80,7 +70,6 @@ LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions r
 # Which failure a dead or vanished process of each role means for its episode.
 FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
                    "noise": "noise_died", "recorder": "recorder_died", "router": "router_died"}
-LOG_LINE_CHARS = 200  # a dead process's last log line, quoted in its failure (a simulator's may hold a whole spec)
 # How long a start refused because the simulator has not yet seen the brain's token is retried.
 START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
@@ -128,11 +117,7 @@ class Child:
     log_path: Path
 
     def last_log_line(self) -> str:
-        try:
-            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
-        except OSError:
-            return ""
-        return lines[-1] if lines else ""
+        return processes.last_log_line(self.log_path)
 
 
 @dataclass
@@ -244,14 +229,9 @@ class LocalStack:
     def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
         log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
         env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
-        env |= {"PYTHONUNBUFFERED": "1", "DRIVEBENCH_PARENT_PID": str(os.getpid())}
+        env["DRIVEBENCH_PARENT_PID"] = str(os.getpid())  # children stop by themselves when this process dies
         joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
-        with open(log_path, "ab") as log_file:
-            process = subprocess.Popen(
-                [sys.executable, "-m", module, *joins, *argv],
-                stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                start_new_session=True,  # Ctrl-C reaches only us; we stop the children in order
-            )
+        process = processes.spawn([sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env)
         child = Child(role=role, name=name, process=process, log_path=log_path)
         self.children.append(child)
         return child
@@ -262,11 +242,8 @@ class LocalStack:
             if code == 0 and child.role == "brain":
                 continue  # stopped on request (a live swap retired it): not a failure
             if code is not None and (child.role, child.name) not in self._tolerated:
-                detail = child.last_log_line()
-                if len(detail) > LOG_LINE_CHARS:
-                    detail = detail[:LOG_LINE_CHARS - 3] + "..."
-                return f"{child.role} {child.name!r} {describe_exit(code)}" + (f"; its last log line: {detail}"
-                                                                             if detail else "")
+                return processes.exit_reason(child.process, what=f"{child.role} {child.name!r}",
+                                             log_path=child.log_path)
         return None
 
     def dead_child_reason(self) -> str | None:
@@ -354,17 +331,7 @@ class LocalStack:
 
     @staticmethod
     def _stop(children: list[Child], *, grace_s: float) -> None:
-        for child in children:
-            if child.process.poll() is None:
-                child.process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + grace_s
-        for child in children:
-            try:
-                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s %s did not stop in %.0f s: killing it", child.role, child.name, grace_s)
-                child.process.kill()
-                child.process.wait()
+        processes.stop([c.process for c in children], grace_s=grace_s, names=[f"{c.role} {c.name}" for c in children])
 
     # -- episodes --
 

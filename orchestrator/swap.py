@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from brains.registry import UnknownBrainError, bus_name, require_brain
+from orchestrator import processes
 from orchestrator.launcher import STACK_FILE
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig
@@ -224,23 +225,12 @@ def _start_brain(*, router: str, run_id: str, brain: str, name: str, options: tu
     for option in options:
         argv += ["--set", f"options.{option}"]
     env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_PARENT_PID"}
-    env["PYTHONUNBUFFERED"] = "1"
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "ab") as log_file:
-        return subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                start_new_session=True)
+    return processes.spawn(argv, log_path=log_path, env=env)
 
 
 def _died(process: subprocess.Popen, name: str, log_path: Path) -> str | None:
     """Why the new brain host is gone (exit code and last log line), or None while it runs."""
-    code = process.poll()
-    if code is None:
-        return None
-    try:
-        lines = [line for line in log_path.read_text(errors="replace").splitlines() if line.strip()]
-    except OSError:
-        lines = []
-    return f"brain {name!r} exited with code {code}" + (f": {lines[-1]}" if lines else "")
+    return processes.exit_reason(process, what=f"brain {name!r}", log_path=log_path)
 
 
 def _wait_alive(bus: Bus, run_id: str, name: str, *, process: subprocess.Popen, log_path: Path,
@@ -293,13 +283,7 @@ def _stop_brain(bus: Bus, run_id: str, name: str) -> bool:
 
 
 def _terminate(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+    processes.stop([process], grace_s=10.0, names=["the new brain host"])
 
 
 # -- finding the stack -------------------------------------------------------------------------------------------------
