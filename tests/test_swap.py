@@ -111,7 +111,8 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
     assert not reply.ok and "no episode is running" in reply.detail
-    with pytest.raises(SwapError, match="brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"):
+    died = "brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"
+    with pytest.raises(SwapError, match=died):
         swap_brain(router=stack.endpoint, run_id=stack.run_id, brain="constant", name=None, options=("warp=9",),
                    log_path=stack.run_dir / "logs", timeout_s=30)
     thread, outcome = run_in_thread(stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64,
