@@ -45,25 +45,26 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
+from brains.augment import augment_batch, to_unit_float
+from brains.labels import BALANCE_CAP, LabelNorm, balance_weights, label_norm
 from brains.nets import MODELS, ModelInfo, make_model
-from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, MAX_PIXEL, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
+from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, V_SCALE, W_SCALE
 from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from brains.neural.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS, MANIFEST_FILE, DatasetError, DrivingDataset
+from brains.training_curve import plot_curve
+from recorder.dataset import MANIFEST_FILE, DatasetError, DrivingDataset
 
 BEST_FILE, LAST_FILE, METRICS_FILE, CURVE_FILE = "model.ckpt", "last.ckpt", "metrics.json", "curve.png"
 LABEL_KINDS = ("zscore", "paper")
 DEVICES = ("auto", "cpu", "cuda")
 # A bin's sampling weight is at most this many times that of the most common bin: a lone sample in an otherwise
 # empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
-BALANCE_CAP = 50.0
 EVAL_BATCH = 256
 # Options a resumed run must share with the run that wrote last.ckpt; epochs, patience, device, threads may change.
 RESUME_FIXED = ("model", "data", "hyper", "seed", "lr", "batch_size", "labels", "max_samples_per_epoch", "augment",
@@ -160,158 +161,6 @@ class TrainResult:
     best_epoch: int
     samples_per_s: float
     model: nn.Module
-
-
-# -- labels ----------------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LabelNorm:
-    """y_n = (y - mean) / std per label, y = [v m/s, w rad/s]; the network predicts y_n."""
-
-    kind: str
-    mean: tuple[float, float]
-    std: tuple[float, float]
-
-    def normalise(self, y: torch.Tensor) -> torch.Tensor:
-        return (y - y.new_tensor(self.mean)) / y.new_tensor(self.std)
-
-    def denormalise(self, y_n: torch.Tensor) -> torch.Tensor:
-        return y_n * y_n.new_tensor(self.std) + y_n.new_tensor(self.mean)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"image_mean": [float(v) for v in IMAGENET_MEAN], "image_std": [float(v) for v in IMAGENET_STD],
-                "labels": self.kind, "label_mean": list(self.mean), "label_std": list(self.std)}
-
-
-def label_norm(kind: str, train_labels: np.ndarray, *, mirrored: bool = False) -> LabelNorm:
-    """"zscore": mean/std of the training labels (N, 2); "paper": DLS's v_n = (v-6.5)/17.5, w_n = (w+7.1)/14.2.
-
-    mirrored: training mirrors half the samples (w -> -w), so the yaw rates the network learns are the symmetric
-    mixture of w and -w: its mean is 0 and its std sqrt(mean(w²)). The paper's labels are not clipped to [0, 1]
-    here, so de-normalisation stays the exact inverse.
-    """
-    if kind == "paper":
-        return LabelNorm("paper", (V_OFFSET, W_OFFSET), (V_SCALE, W_SCALE))
-    values = train_labels.astype(np.float64)
-    if mirrored:
-        values = np.concatenate([values, values * np.array([1.0, -1.0])])
-    std = values.std(axis=0)
-    std = np.where(std > 1e-6, std, 1.0)  # a constant label (e.g. a fixed speed) would divide by zero
-    return LabelNorm("zscore", tuple(float(v) for v in values.mean(axis=0)), tuple(float(v) for v in std))
-
-
-def balance_weights(yaw_rate_radps: np.ndarray, edges_radps=ABS_YAW_RATE_EDGES_RADPS,
-                    cap: float = BALANCE_CAP) -> np.ndarray:
-    """Sampling weights (N,) float64 summing to 1: ∝ 1 / (training samples in the sample's |w| bin).
-
-    Bins as in the manifest histogram: edges[i] <= |w| < edges[i + 1], the last open-ended. Every occupied bin is
-    then drawn about equally often, except that no weight exceeds ``cap`` times the most common bin's.
-    """
-    edges = np.asarray(edges_radps, dtype=np.float64)
-    bins = np.searchsorted(edges, np.abs(np.asarray(yaw_rate_radps, dtype=np.float64)), side="right") - 1
-    counts = np.bincount(bins, minlength=len(edges)).astype(np.float64)
-    weights = np.minimum(1.0 / counts[bins], cap / counts.max())
-    return weights / weights.sum()
-
-
-# -- augmentation ----------------------------------------------------------------------------------------------------
-
-_LUMA = (0.299, 0.587, 0.114)  # sums to 1
-
-
-def to_unit_float(frames: torch.Tensor) -> torch.Tensor:
-    """uint8 frames (B, T, H, W, 3) as gathered -> float32 (B, T, 3, H, W) in [0, 1], contiguous.
-
-    Channels go first while still uint8: float ops on the permuted (channels-last strided) tensor are several
-    times slower."""
-    return frames.permute(0, 1, 4, 2, 3).contiguous().float().div_(MAX_PIXEL)
-
-
-def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, *, mirror_p: float = 0.5,
-                  jitter: float = 0.2, blur_p: float = 0.2,
-                  noise_max: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random training augmentation, one parameter set per sample shared by all its frames.
-
-    frames: uint8 (B, T, H, W, 3) RGB; labels: (B, 2) physical [v m/s, w rad/s]. Returns float32 (B, T, 3, H, W)
-    in [0, 1] and the labels. Mirror left-right with w -> -w (probability mirror_p); brightness, contrast and
-    saturation factors uniform in [1 - jitter, 1 + jitter]; Gaussian blur (probability blur_p, sigma 0.5..1.5 px,
-    one sigma per batch); with ``noise_max`` > 0, salt and pepper of density uniform in [0, noise_max] on half the
-    samples (:func:`salt_pepper_resized`). The same random numbers are drawn whatever the data, so the generator
-    advances identically every batch (resume stays exact).
-    """
-    draws = torch.rand(5, frames.shape[0], generator=generator).to(frames.device)
-    sigma = 0.5 + float(torch.rand(1, generator=generator))
-    frames, labels = mirror(frames, labels, draws[0] < mirror_p)  # on uint8: 4x less memory to move
-    x = colour_jitter(to_unit_float(frames), *(1 - jitter + 2 * jitter * draws[1:4]))
-    blurred = (draws[4] < blur_p).nonzero().squeeze(1)
-    if len(blurred):  # x is a fresh tensor here (colour_jitter), so writing into it is safe
-        x[blurred] = gaussian_blur(x[blurred], sigma)
-    if noise_max > 0:  # drawn only when asked for, so runs without it keep their random sequence
-        density = torch.rand(frames.shape[0], generator=generator) * noise_max
-        density = torch.where(torch.rand(frames.shape[0], generator=generator) < 0.5, density, 0.0)
-        x = salt_pepper_resized(x, density.to(x.device), generator)
-    return x, labels
-
-
-# Camera pixels averaged into one network pixel: 320x240 cropped to its lower half and resized to 100x50 averages
-# 3.2 x 2.4; the noise injector's salt and pepper is per camera pixel, so the network sees it averaged that way.
-NOISE_SUBPIXELS = 8
-
-
-def salt_pepper_resized(x: torch.Tensor, density: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """Salt and pepper noise as it looks after an area resize: of each pixel's ``NOISE_SUBPIXELS`` camera pixels,
-    Binomial(n, density) are replaced, half of them (binomially) by white and the rest by black; independent per
-    frame and pixel, the same across a pixel's channels (the injector replaces whole pixels).
-
-    x: (B, T, 3, H, W) in [0, 1]; density: (B,) per sample, 0 = untouched.
-    """
-    b, t, _, h, w = x.shape
-    n = float(NOISE_SUBPIXELS)
-    counts = torch.full((b, t, 1, h, w), n)
-    replaced = torch.binomial(counts, density.view(-1, 1, 1, 1, 1).expand(b, t, 1, h, w).cpu(), generator=generator)
-    white = torch.binomial(replaced, torch.full_like(replaced, 0.5), generator=generator)
-    replaced, white = replaced.to(x.device), white.to(x.device)
-    return (x * (n - replaced) + white) / n
-
-
-def mirror(frames: torch.Tensor, labels: torch.Tensor, flip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Left-right mirror of the samples where ``flip`` (B,) bool is set, with their yaw rate negated (mirroring
-    the road turns w into -w). frames: (B, T, H, W, C), width second to last; labels: (B, 2) physical [v, w]."""
-    chosen = flip.nonzero().squeeze(1)
-    frames = frames.clone()
-    frames[chosen] = frames[chosen].flip(-2)  # only the chosen half: ~2x faster than a torch.where over all
-    w = torch.where(flip, -labels[:, 1], labels[:, 1])
-    return frames, torch.stack([labels[:, 0], w], dim=1)
-
-
-def colour_jitter(x: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor,
-                  saturation: torch.Tensor) -> torch.Tensor:
-    """x (B, T, 3, H, W) RGB in [0, 1]; factors (B,), 1 = unchanged. Brightness scales x; contrast scales about the
-    image's mean grey; saturation scales about each pixel's grey; clamped to [0, 1].
-
-    Composed in closed form, one pass over the pixels instead of a dozen (grey is linear, luma sums to 1):
-    x' = s·c·b·x + (1-s)·c·b·grey(x) + (1-c)·b·mean_grey(x).
-    """
-    per_sample = (-1, 1, 1, 1)
-    grey = (x[:, :, 0] * _LUMA[0]).add_(x[:, :, 1], alpha=_LUMA[1]).add_(x[:, :, 2], alpha=_LUMA[2])  # (B, T, H, W)
-    scale = brightness * contrast
-    offset = (((1 - saturation) * scale).view(per_sample) * grey
-              + ((1 - contrast) * brightness).view(per_sample) * grey.mean((-2, -1), keepdim=True))
-    return torch.addcmul(offset.unsqueeze(2), x, (saturation * scale).view(-1, 1, 1, 1, 1)).clamp_(0.0, 1.0)
-
-
-def gaussian_blur(x: torch.Tensor, sigma: float, radius: int = 2) -> torch.Tensor:
-    """Separable Gaussian blur over the last two dims (H, W) of x, edges replicated; sigma in pixels.
-
-    Shifted-slice sums: for a 5-tap kernel this is several times faster on CPU than a depthwise convolution."""
-    height, width = x.shape[-2:]
-    taps = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    kernel = torch.exp(-taps ** 2 / (2 * sigma ** 2))
-    kernel = (kernel / kernel.sum()).tolist()
-    padded = F.pad(x.reshape(-1, 1, height, width), (radius,) * 4, mode="replicate")
-    rows = sum(k * padded[..., i:i + width] for i, k in enumerate(kernel))
-    return sum(k * rows[..., i:i + height, :] for i, k in enumerate(kernel)).view(x.shape)
 
 
 # -- data ------------------------------------------------------------------------------------------------------------
@@ -432,58 +281,6 @@ def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: Label
             "mse_normalised": sq_sum / (2 * n),
             "mae_paper": float((abs_sum / paper_scale).sum()) / (2 * n),
             "mse_paper": float((phys_sq_sum / paper_scale ** 2).sum()) / (2 * n)}
-
-
-# -- training curve --------------------------------------------------------------------------------------------------
-
-_COLOURS = {"train_loss": (200, 120, 0), "train_eval_loss": (0, 160, 0), "val_loss": (0, 0, 220),
-            "val_mae_speed_mps": (160, 0, 160), "val_mae_yaw_rate_radps": (0, 140, 220)}
-
-
-def plot_curve(curve: list[dict[str, Any]], path: Path) -> None:
-    """PNG of the curve drawn with OpenCV (matplotlib is not a dependency): losses on a log scale (left) and
-    validation MAE (right), one point per epoch."""
-    image = np.full((420, 960, 3), 255, np.uint8)
-    _panel(image, (0, 0, 480, 420), curve, ("train_loss", "train_eval_loss", "val_loss"), "loss (log10)", log=True)
-    _panel(image, (480, 0, 480, 420), curve, ("val_mae_speed_mps", "val_mae_yaw_rate_radps"),
-           "val MAE (log10; v m/s, w rad/s)", log=True, empty="no validation split")
-    if not cv2.imwrite(str(path), image):
-        raise TrainError(f"cannot write {path}")
-
-
-def _panel(image: np.ndarray, box: tuple[int, int, int, int], curve: list[dict[str, Any]], keys: tuple[str, ...],
-           title: str, *, log: bool, empty: str = "no data") -> None:
-    x0, y0, width, height = box
-    left, top, right, bottom = x0 + 60, y0 + 30, x0 + width - 15, y0 + height - 45
-    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
-    cv2.putText(image, title, (left, top - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    series = {k: [(e["epoch"], e[k]) for e in curve if e.get(k) is not None and e[k] > (0 if log else -math.inf)]
-              for k in keys}
-    values = [math.log10(v) if log else v for points in series.values() for _, v in points]
-    if not values:
-        cv2.putText(image, empty, (left + 20, (top + bottom) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (90, 90, 90), 1,
-                    cv2.LINE_AA)
-        return
-    low, high = min(values), max(values)
-    high = high if high > low else low + 1.0
-    epochs = [e["epoch"] for e in curve]
-    first, last = min(epochs), max(max(epochs), min(epochs) + 1)
-    to_px = lambda epoch, v: (int(left + (epoch - first) / (last - first) * (right - left)),  # noqa: E731
-                              int(bottom - ((math.log10(v) if log else v) - low) / (high - low) * (bottom - top)))
-    for row, key in enumerate(k for k in keys if series[k]):
-        points = np.array([to_px(e, v) for e, v in series[key]], np.int32)
-        cv2.polylines(image, [points], False, _COLOURS[key], 2, cv2.LINE_AA)
-        for point in points if len(points) < 12 else ():  # a lone epoch is a point, not a line
-            cv2.circle(image, tuple(int(v) for v in point), 3, _COLOURS[key], -1, cv2.LINE_AA)
-        cv2.putText(image, key, (left + 8, top + 18 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42, _COLOURS[key], 1,
-                    cv2.LINE_AA)
-    label = (lambda v: f"{10 ** v:.3g}") if log else (lambda v: f"{v:.3g}")
-    for text, y in ((label(high), top + 5), (label(low), bottom)):
-        cv2.putText(image, text, (x0 + 4, y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for text, x in ((str(first), left), (str(last), right - 20)):
-        cv2.putText(image, text, (x, bottom + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, "epoch", ((left + right) // 2 - 20, bottom + 36), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1,
-                cv2.LINE_AA)
 
 
 # -- training --------------------------------------------------------------------------------------------------------
@@ -798,7 +595,8 @@ class _Trainer:
         temporary = self.output / f".{METRICS_FILE}.tmp"
         temporary.write_text(json.dumps(report, indent=2) + "\n")
         os.replace(temporary, self.output / METRICS_FILE)
-        plot_curve(self.state.curve, self.output / CURVE_FILE)
+        if not plot_curve(self.state.curve, self.output / CURVE_FILE):
+            raise TrainError(f"cannot write {self.output / CURVE_FILE}")
 
 
 def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], None] | None = None,
@@ -817,6 +615,5 @@ def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], 
 
 __all__ = [
     "CHECKPOINT_FORMAT", "CheckpointError", "LabelNorm", "TrainError", "TrainInterrupted", "TrainOptions",
-    "TrainResult", "augment_batch", "balance_weights", "colour_jitter", "evaluate", "gaussian_blur", "label_norm",
-    "mirror", "plot_curve", "to_unit_float", "train",
+    "TrainResult", "BALANCE_CAP", "balance_weights", "evaluate", "label_norm", "train",
 ]

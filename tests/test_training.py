@@ -18,6 +18,7 @@ torch = require("torch")
 import cv2  # noqa: E402
 
 from brains import training  # noqa: E402
+from brains.augment import augment_batch, mirror, to_unit_float  # noqa: E402
 from brains.nets.preprocess import prepare_batch  # noqa: E402
 from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint  # noqa: E402
 from brains.training import (  # noqa: E402
@@ -26,11 +27,8 @@ from brains.training import (  # noqa: E402
     TrainError,
     TrainInterrupted,
     TrainOptions,
-    augment_batch,
     balance_weights,
     label_norm,
-    mirror,
-    to_unit_float,
     train,
 )
 from orchestrator.cli import main  # noqa: E402
@@ -346,7 +344,7 @@ def test_hyper_values_are_typed():
 
 
 def test_salt_and_pepper_augmentation_looks_like_the_injectors_noise_after_the_resize():
-    from brains.training import augment_batch, salt_pepper_resized
+    from brains.augment import augment_batch, salt_pepper_resized
 
     generator = torch.Generator().manual_seed(0)
     x = torch.full((2, 3, 3, 50, 100), 0.3)
