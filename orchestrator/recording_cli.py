@@ -161,8 +161,9 @@ def _info(args: argparse.Namespace) -> int:
     width = max((len(c.topic) for c in info.channels), default=10)
     for channel in sorted(info.channels, key=lambda c: c.topic):
         kind = "bus " if channel.bus_key else "view"
+        key = f"  <- {channel.key}" if channel.key and channel.key != channel.topic else ""  # stable topics
         print(f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
-              f"{channel.schema} ({channel.message_encoding})")
+              f"{channel.schema} ({channel.message_encoding}){key}")
     missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
     if any(missing.values()):
         print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")

@@ -110,11 +110,12 @@ def test_flushes_come_every_second_of_simulated_time_even_when_wall_time_flies(t
 
 def test_info_lists_bus_and_view_channels(tmp_path):
     info = recording_info(write_recording(tmp_path / "a.mcap", two_episodes()))
-    bus = {c.topic: c.messages for c in info.channels if c.bus_key}
-    assert bus == {keys.camera_raw("r1"): 42, keys.pose("r1"): 42, keys.command("r1", "explicit"): 42}
+    bus = {c.key: (c.topic, c.messages) for c in info.channels if c.bus_key}
+    assert bus == {keys.camera_raw("r1"): ("/camera/truth", 42), keys.pose("r1"): ("/car/state", 42),
+                   keys.command("r1", "explicit"): ("/brain/explicit/cmd", 42)}
     views = {c.topic: c.schema for c in info.channels if not c.bus_key}
-    assert views[keys.view("r1", "car_pose")] == "foxglove.PoseInFrame"
-    assert views[keys.view("r1", "world_from_car")] == "foxglove.FrameTransform"
+    assert views["/car/pose"] == "foxglove.PoseInFrame"
+    assert views["/tf"] == "foxglove.FrameTransform"
 
 
 def test_keys_glob_selects_channels(tmp_path):
