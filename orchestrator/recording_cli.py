@@ -2,6 +2,7 @@
 
     drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
     drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
+    drivebench recorder merge A B -o AB.mcap    compare runs: each under its own namespace (recorder.merge)
     drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
     drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
     drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
@@ -34,6 +35,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     repair.add_argument("-o", "--output", type=Path, help="output file (default: x.mcap.part -> x.mcap, "
                                                           "x.mcap -> x.repaired.mcap)")
     repair.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
+    from recorder.merge import add_merge_command
+
+    add_merge_command(recorder_commands)
 
     replay = commands.add_parser("replay", help="publish a recording back onto the bus")
     replay.add_argument("file", type=Path)
@@ -142,6 +146,10 @@ def run_command(args: argparse.Namespace) -> int:
             return _info(args)
         if args.command == "recorder" and args.recorder_command == "repair":
             return _repair(args)
+        if args.command == "recorder" and args.recorder_command == "merge":
+            from recorder.merge import run_merge_command
+
+            return run_merge_command(args)
         if args.command == "replay":
             return _replay(args)
         if args.command == "dataset" and args.dataset_command == "build":

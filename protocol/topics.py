@@ -125,3 +125,21 @@ def run_topics(*, brains: tuple[str, ...] = (), perturbed: bool = True, score: b
 
 # Every topic but the brains' commands (one per brain: COMMAND_PATTERN).
 TOPICS: frozenset[str] = frozenset(_BUS_TOPICS.values()) | frozenset(VIEW_TOPICS.values())
+
+
+# -- comparing runs: one namespace per run (``recorder.merge``) --------------------------------------------------------
+
+# Namespaces ``drivebench recorder merge`` gives its inputs in order, unless named: fixed, so that one shipped layout
+# (docs/foxglove/drivebench-compare-layout.json) shows any merged pair.
+DEFAULT_NAMESPACES = ("runA", "runB", "runC", "runD", "runE", "runF", "runG", "runH")
+
+
+def namespaced(topic: str, namespace: str) -> str:
+    """``/camera/truth`` of run namespace ``runA`` -> ``/runA/camera/truth``."""
+    return f"/{keys.check_name(namespace, what='namespace')}{stable_topic(topic)}"
+
+
+def namespaced_frame(frame_id: str, namespace: str, *, shared: frozenset[str] = frozenset({"world"})) -> str:
+    """A coordinate frame of one run in a merged file: ``car`` -> ``runA/car``; the ``world`` frame is shared, so both
+    cars and circuits are drawn in one 3D view."""
+    return frame_id if frame_id in shared or not frame_id else f"{namespace}/{frame_id}"
