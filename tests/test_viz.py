@@ -403,7 +403,10 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
     assert rtf["stuck"] >= 0.6 * rtf["reading"]
     assert max(samples) < rss_before + 60  # the backlog: 120 messages, at most ~50 kB each, plus the encoders
     assert max(samples[half:]) < max(samples[:half]) + 15  # flat: it does not grow with the messages sent
-    assert not closed and read_late < sent_while_stuck  # still connected; the oldest were dropped, not queued
+    # Still connected; what did not fit its backlog (120 messages in the server, 4 MB in the gate) was dropped.
+    assert not closed and read_late < sent_while_stuck
+    gate = re.findall(r"(\d+) messages \((\d+) bytes\) dropped for slow viewers; peak backlog (\d+) bytes", viz.log())
+    assert int(gate[-1][2]) <= 4_000_000
 
 
 # -- drivebench view -----------------------------------------------------------------------------------------------
@@ -431,6 +434,10 @@ def test_view_without_a_router_says_so_in_one_line(capsys, monkeypatch):
     assert "no router" in one_error_line(capsys)
     assert run_view_command(view_args("--router", "tcp/127.0.0.1:7447", "--port", "70000")) == 2
     assert "port" in one_error_line(capsys)
+    assert run_view_command(view_args("--router", "tcp/127.0.0.1:7447", "--max-viewers", "0")) == 2
+    assert "max_viewers must be within 1..1000, got 0" in one_error_line(capsys)
+    assert run_view_command(view_args("--router", "tcp/127.0.0.1:7447", "--backlog-bytes", "10")) == 2
+    assert "backlog_bytes must be within" in one_error_line(capsys)
 
 
 @pytest.mark.integration

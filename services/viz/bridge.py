@@ -18,7 +18,9 @@ one's last message (``protocol.recording.EpisodeClock``, as in recordings), so a
 geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
 
 A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
-client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``).
+client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``). With
+``max_viewers`` / ``backlog_bytes``, viewers come in through ``services.viz.gate``: a cap on their number, and each
+one's queue bounded in bytes too.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, 
 from protocol.recording import EpisodeClock, Schema, channel_layout, to_record
 from protocol.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS, topic_of_key
 from protocol.views import ViewMaker, ViewMessage, protobuf_schema
+from services.viz.gate import ViewerGate
 
 log = logging.getLogger("drivebench.viz")
 _SDK_LOG = logging.getLogger("foxglove")  # foxglove-sdk's Rust log records arrive under it
@@ -106,7 +109,8 @@ class LiveBridge:
     """
 
     def __init__(self, *, run_id: str, host: str, port: int, backlog: int, jpeg_quality: int = 90,
-                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False):
+                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False,
+                 max_viewers: int | None = None, backlog_bytes: int | None = None):
         self.run_id = run_id
         self.jpeg_quality = jpeg_quality
         self.sent: Counter[str] = Counter()  # messages sent per topic (logged while some viewer subscribed)
@@ -152,19 +156,30 @@ class LiveBridge:
             self._channel(self._view_topics[name_], "protobuf", protobuf_schema(message_class),
                           {VIEW_METADATA: "1", RUN_ID_METADATA: run_id})
         _SDK_LOG.addHandler(self._lost)
+        self.gate: ViewerGate | None = None
+        # With limits, viewers reach the SDK's server only through the gate (services.viz.gate), which listens on
+        # the address asked for; the server itself then listens on a loopback port of its own.
+        gated = max_viewers is not None or backlog_bytes is not None
         try:
             self._server = foxglove.start_server(
-                name=name, host=host, port=port, context=self._context, message_backlog_size=backlog,
-                server_listener=_Listener(self))
+                name=name, host="127.0.0.1" if gated else host, port=0 if gated else port, context=self._context,
+                message_backlog_size=backlog, server_listener=_Listener(self))
         except RuntimeError as error:
             _SDK_LOG.removeHandler(self._lost)
             raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
                               f"{str(error).removeprefix('FoxgloveError: ')}") from None
+        if gated:
+            try:
+                self.gate = ViewerGate(host=host, port=port, upstream_port=self._server.port,
+                                       max_viewers=max_viewers or 1_000_000, backlog_bytes=backlog_bytes or 1 << 40)
+            except OSError as error:
+                self.close()
+                raise BridgeError(f"cannot serve Foxglove WebSocket: {error.strerror}") from None
 
     @property
     def port(self) -> int:
-        """The port the server listens on (the actual one when started with port 0)."""
-        return self._server.port
+        """The port viewers connect to (the actual one when started with port 0)."""
+        return self.gate.port if self.gate is not None else self._server.port
 
     # -- channels --
 
@@ -294,6 +309,8 @@ class LiveBridge:
 
     def close(self) -> None:
         _SDK_LOG.removeHandler(self._lost)
+        if getattr(self, "gate", None) is not None:
+            self.gate.close()
         self._server.stop()
         with self._channels_lock:
             for channel in self._channels.values():
