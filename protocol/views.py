@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
-from protocol.messages import EpisodeEvent, EpisodeSpec, EventKind, Pose
+from protocol.messages import EndReason, EpisodeEvent, EpisodeSpec, EventKind, Pose
 from protocol.recording import Schema
 from protocol.topics import view_topic
 
@@ -115,14 +115,19 @@ def _event_log(event: EpisodeEvent, *, log_time_ns: int):
     """One line of the episode log (Foxglove's Log panel) for an episode event, stamped with the viewer's clock."""
     from foxglove_schemas_protobuf.Log_pb2 import Log
 
-    detail = {EventKind.START: lambda: f"circuit {event.spec.circuit}, brain {event.spec.active_brain}, "
-                                       f"seed {event.spec.seed}" if event.spec is not None else "",
-              EventKind.LAP: lambda: f"lap {event.lap}",
-              EventKind.BRAIN_SWITCH: lambda: f"to brain {event.brain}",
-              EventKind.END: lambda: f"reason {event.reason}" if event.reason is not None else ""}[event.kind]()
+    detail = ""
+    if event.kind == EventKind.START and event.spec is not None:
+        detail = f"circuit {event.spec.circuit}, brain {event.spec.active_brain}, seed {event.spec.seed}"
+    elif event.kind == EventKind.LAP:
+        detail = f"lap {event.lap}"
+    elif event.kind == EventKind.BRAIN_SWITCH:
+        detail = f"to brain {event.brain}"
+    elif event.kind == EventKind.END and event.reason is not None:
+        detail = f"reason {event.reason}"
     text = " ".join(part for part in (f"episode {event.header.episode}: {event.kind}", detail, event.detail) if part)
-    level = Log.WARNING if event.kind == EventKind.END and event.reason not in (None, "laps_completed") else Log.INFO
-    log = Log(level=level, message=text, name=f"drivebench/{event.header.run_id}")
+    # An episode that did not reach its lap target stands out in the log.
+    failed = event.kind == EventKind.END and event.reason not in (None, EndReason.LAPS_COMPLETED)
+    log = Log(level=Log.WARNING if failed else Log.INFO, message=text, name=f"drivebench/{event.header.run_id}")
     log.timestamp.seconds, log.timestamp.nanos = divmod(log_time_ns, 1_000_000_000)
     return log
 

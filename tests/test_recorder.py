@@ -18,7 +18,7 @@ import pytest
 from mcap_validation import assert_valid_mcap
 
 from orchestrator.launcher import free_loopback_port
-from protocol import codec, keys
+from protocol import codec, keys, topics
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.messages import (
     CameraFrame,
@@ -319,6 +319,9 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     replayed = list(read_messages(second))
     expected = sorted((keys.with_run_id(r.key, "again"), codec.encode(rebased(r.message, "again"))) for r in original)
     assert sorted((r.key, codec.encode(r.message)) for r in replayed) == expected
+    # Two runs (two run ids), one topic set: a Foxglove layout made on one shows the other.
+    assert {c.topic for c in recording_info(first).channels} == {c.topic for c in recording_info(second).channels} \
+        == topics.run_topics(brains=("explicit",))
     assert_valid_mcap(first, second)
 
 

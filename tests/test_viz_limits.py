@@ -3,6 +3,7 @@ Foxglove WebSocket clients on a real bridge (no bus needed: the bridge is fed di
 
 from __future__ import annotations
 
+import socket
 import time
 
 import cv2
@@ -52,6 +53,17 @@ def test_viewers_beyond_the_cap_are_refused_and_let_in_once_one_leaves():
         assert (bridge.gate.stats.served, bridge.gate.stats.refused) == (3, 1)
     finally:
         bridge.close()
+
+
+def test_a_port_already_taken_is_one_clear_error():
+    from services.viz.bridge import BridgeError
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(BridgeError, match=rf"cannot serve Foxglove WebSocket on 127.0.0.1:{port}: .*in use"):
+            LiveBridge(run_id="r", host="127.0.0.1", port=port, backlog=10, max_viewers=2, backlog_bytes=100_000)
 
 
 def read_everything(stuck: StuckClient, *, quiet_s: float = 1.0) -> tuple[list[bytes], bool]:

@@ -39,7 +39,7 @@ from foxglove.websocket import ServerListener
 from protocol import keys
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
 from protocol.recording import EpisodeClock, Schema, channel_layout, to_record
-from protocol.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS, topic_of_key
+from protocol.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS
 from protocol.views import ViewMaker, ViewMessage, protobuf_schema
 from services.viz.gate import ViewerGate
 
@@ -174,7 +174,8 @@ class LiveBridge:
                                        max_viewers=max_viewers or 1_000_000, backlog_bytes=backlog_bytes or 1 << 40)
             except OSError as error:
                 self.close()
-                raise BridgeError(f"cannot serve Foxglove WebSocket: {error.strerror}") from None
+                raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
+                                  f"{error.strerror or error}") from None
 
     @property
     def port(self) -> int:
@@ -231,10 +232,6 @@ class LiveBridge:
     def advertise_perturbed_camera(self) -> None:
         """Advertise the perturbed camera (a noise injector is alive) before its first frame."""
         self._bus_channel(keys.camera_perturbed(self.run_id), CameraFrame)
-
-    def topic_of_key(self, key: str) -> str:
-        """The stable topic of bus key ``key`` (``protocol.topics``)."""
-        return topic_of_key(key)
 
     def topics(self) -> list[str]:
         with self._channels_lock:

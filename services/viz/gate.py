@@ -60,9 +60,9 @@ class ViewerGate:
         try:
             self._server = self._loop.run_until_complete(
                 asyncio.start_server(self._on_viewer, host=host or None, port=port, reuse_address=True))
-        except OSError as error:
+        except OSError:
             self._loop.close()
-            raise OSError(error.errno, f"cannot listen on {host}:{port}: {error.strerror}") from None
+            raise
         self.port = self._server.sockets[0].getsockname()[1]
         self._thread = threading.Thread(target=self._loop.run_forever, name="viz-gate", daemon=True)
         self._thread.start()
