@@ -59,7 +59,7 @@ def test_the_layout_tree_and_panels_match(name):
     assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
     for panel_id, config in layout["configById"].items():
         assert re.fullmatch(r"(3D|Image|Plot|RosOut|Table)![a-zA-Z0-9-]+", panel_id)
-        assert config["foxglovePanelTitle"]
+        assert config["foxglovePanelTitle"] == config["lichtblickPanelTitle"] != ""
 
 
 def test_the_single_run_layout_shows_what_the_issue_asks_for():

@@ -53,7 +53,8 @@ class _Builder:
 
     def panel(self, kind: str, name: str, title: str, config: dict[str, Any]) -> str:
         panel_id = f"{kind}!{name}"
-        self.config_by_id[panel_id] = {**config, "foxglovePanelTitle": title}
+        # Each app reads its own title key and ignores the other's.
+        self.config_by_id[panel_id] = {**config, "foxglovePanelTitle": title, "lichtblickPanelTitle": title}
         return panel_id
 
     def three_d(self, name: str, *, namespaces: tuple[str, ...] | None, follow: str) -> str:
