@@ -63,7 +63,7 @@ class _Builder:
             def topic(t: str, ns=ns) -> str:
                 return t if ns is None else topics.namespaced(t, ns)
             shown[topic(topics.CIRCUIT)] = {"visible": True}
-            shown[topic(topics.CAR_POSE)] = {"visible": True, "type": "arrow", "axisScale": 1.0}
+            shown[topic(topics.CAR_POSE)] = {"visible": True, "type": "arrow"}
         return self.panel("3D", name, "car on the circuit", {
             "cameraState": {"perspective": True, "distance": 25, "phi": 55, "thetaOffset": 45, "fovy": 45,
                             "near": 0.5, "far": 5000, "target": [0, 0, 0], "targetOffset": [0, 0, 0],
