@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 log = logging.getLogger("drivebench.viz")
 
-HANDSHAKE_LIMIT_BYTES = 16 * 1024
+HANDSHAKE_LIMIT_BYTES = 16 * 1024  # a viewer's HTTP upgrade request is well under 1 kB
+HANDSHAKE_TIMEOUT_S = 10.0  # a connection that never completes its request holds no viewer slot for long
 _BINARY, _MESSAGE_DATA = 0x2, 0x01
 
 
@@ -59,7 +60,8 @@ class ViewerGate:
         self._connections: set[asyncio.Task] = set()
         try:
             self._server = self._loop.run_until_complete(
-                asyncio.start_server(self._on_viewer, host=host or None, port=port, reuse_address=True))
+                asyncio.start_server(self._on_viewer, host=host or None, port=port, reuse_address=True,
+                                     limit=HANDSHAKE_LIMIT_BYTES))
         except OSError:
             self._loop.close()
             raise
@@ -72,7 +74,10 @@ class ViewerGate:
     async def _on_viewer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self._connections.add(asyncio.current_task())
         try:
-            request = await _read_head(reader)
+            try:
+                request = await asyncio.wait_for(_read_head(reader), HANDSHAKE_TIMEOUT_S)
+            except TimeoutError:
+                return
             if request is None:
                 return
             if self.stats.viewers >= self.max_viewers:
