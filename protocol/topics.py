@@ -36,6 +36,7 @@ from protocol import keys
 
 RUN_ID_METADATA = "drivebench.run_id"
 VIEW_METADATA = "drivebench.view"
+NAMESPACE_METADATA = "drivebench.namespace"  # the run's namespace in a merged file (recorder.merge)
 
 CAMERA_TRUTH = "/camera/truth"
 CAMERA_BRAIN = "/camera/brain"

@@ -15,7 +15,7 @@ aligned from their starts. Messages keep their bytes except the Foxglove geometr
 rewritten. Channel metadata keeps the bus key and run id and adds ``drivebench.namespace``; each input's file
 metadata is copied under ``<namespace>/<name>``, and ``drivebench.merge`` lists namespaces, sources and run ids.
 Replay and datasets still read a merged file (channels map back to bus keys by metadata) when its runs have different
-run ids; build datasets from the original files otherwise.
+run ids; when two share one (two compose runs, both ``compose``) they refuse it in one line: use the originals.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from protocol.views import CAR_FRAME
 from recorder.reading import MCAP_ERRORS, RecordingError, _indexed_reader, _open, describe_error
 from recorder.writer import CHUNK_SIZE_BYTES, LIBRARY
 
-NAMESPACE_METADATA = "drivebench.namespace"
+NAMESPACE_METADATA = topics.NAMESPACE_METADATA
 MERGE_METADATA = "drivebench.merge"
 _FRAME_FIELDS = frozenset({"frame_id", "parent_frame_id", "child_frame_id"})
 # Car box colours (RGBA) per run, in namespace order: the first run keeps the recorder's blue.

@@ -17,7 +17,7 @@ from mcap.stream_reader import CRCValidationError
 
 from protocol import keys
 from protocol.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
-from protocol.topics import RUN_ID_METADATA
+from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
@@ -60,6 +60,7 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
                     and (keys_glob is None or fnmatch.fnmatchcase(c.metadata[KEY_METADATA], keys_glob))}
         if not selected:
             return
+        _check_keys_unique(path, [summary.channels[i] for i in selected])
         topics = sorted({summary.channels[i].topic for i in selected})
         try:
             for schema, channel, record in reader.iter_messages(topics=topics, log_time_order=True):
@@ -122,6 +123,17 @@ def recording_info(path: Path) -> RecordingInfo:
                              start_ns=statistics.message_start_time if statistics else 0,
                              end_ns=statistics.message_end_time if statistics else 0,
                              channels=channels, metadata=metadata)
+
+
+def _check_keys_unique(path: Path, channels) -> None:
+    """A merged file (``recorder.merge``) whose runs share a run id holds one bus key in two namespaces: their
+    messages would interleave on one key, so replay and datasets refuse it."""
+    namespaces: dict[str, str] = {}
+    for channel in channels:
+        key, namespace = channel.metadata[KEY_METADATA], channel.metadata.get(NAMESPACE_METADATA, "")
+        if namespaces.setdefault(key, namespace) != namespace:
+            raise RecordingError(f"{path}: a merged file whose runs /{namespaces[key]} and /{namespace} share the run "
+                                 f"id {keys.run_of_key(key)!r}; replay or build datasets from the original recordings")
 
 
 def _run_id(metadata: dict[str, str]) -> str:

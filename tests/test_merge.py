@@ -15,7 +15,7 @@ from test_topics import LEGACY, expected_schemas, one_run, write
 
 from protocol import codec, topics
 from recorder.merge import MergeError, merge
-from recorder.reading import read_messages
+from recorder.reading import RecordingError, read_messages
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,6 +91,18 @@ def test_an_old_file_merges_onto_stable_namespaced_topics(tmp_path):
     assert not any("legacy1" in topic for topic in schemas)
     assert metadata["drivebench.merge"]["run_ids"] == '{"new": ["r1"], "old": ["legacy1"]}'
     assert_valid_mcap(report.output)
+
+
+def test_runs_that_share_a_run_id_merge_for_viewing_but_replay_and_datasets_refuse_the_file(tmp_path):
+    a = write(tmp_path / "a.mcap", one_run("compose"), run_id="compose")
+    b = write(tmp_path / "b.mcap", one_run("compose", steps=10), run_id="compose")
+    report = merge([a, b], output=tmp_path / "ab.mcap")
+    schemas, messages, _, _ = read_all(report.output)
+    assert len(messages["/runA/camera/truth"]) == 25 and len(messages["/runB/camera/truth"]) == 10
+    with pytest.raises(RecordingError, match=r"ab\.mcap: a merged file whose runs /runA and /runB share the run id "
+                                             r"'compose'; replay or build datasets from the original recordings"):
+        list(read_messages(report.output))
+    assert [r.key for r in read_messages(a, keys_glob="*/scorer/*")]  # the originals read as ever
 
 
 @pytest.mark.parametrize(("names", "message"), [

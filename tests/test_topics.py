@@ -93,7 +93,7 @@ def one_run(run_id: str, *, brain: str = "explicit", steps: int = 25) -> list[tu
 
     messages: list[tuple[str, msgspec.Struct]] = [(keys.events(run_id), start_event(run_id, 0, spec))]
     for seq in range(steps):
-        pixels = np.full((6, 8, 3), seq, np.uint8).tobytes()
+        pixels = np.full((6, 8, 3), seq % 256, np.uint8).tobytes()
         messages += [(keys.camera_raw(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
                      (keys.camera_perturbed(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6,
                                                                  data=pixels)),
