@@ -1,7 +1,7 @@
 """How bus messages are stored in MCAP, both ways: the recorder writes with it, replay and datasets read with it.
 
-One MCAP channel per bus key, in encodings Foxglove and Lichtblick show with no plugin (they cannot show msgpack,
-``reference/recording.md`` §4):
+One MCAP channel per bus key, named by its stable topic (``protocol.topics``: ``/camera/truth``, ...), in encodings
+Foxglove and Lichtblick show with no plugin (they cannot show msgpack, ``reference/recording.md`` §4):
 
 * ``CameraFrame`` -> protobuf ``foxglove.RawImage`` (lossless, the default) or ``foxglove.CompressedImage``
   (JPEG). The schema is Foxglove's own, extended with four fields numbered from 1000 that carry what Foxglove's
@@ -10,10 +10,10 @@ One MCAP channel per bus key, in encodings Foxglove and Lichtblick show with no 
   a reader built from Foxglove's stock schema skips them as unknown fields.
 * every other message -> JSON with a JSON Schema generated from its struct (readable, plottable: ``.speed_mps``).
 
-Channel metadata ``drivebench.key`` and ``drivebench.type`` name the bus key and message type, so a reader can
-rebuild the exact message, and with it the exact MessagePack wire bytes (``codec.encode``); JPEG frames are the one
-lossy case. ``publish_time`` is the header's ``stamp_ns`` and ``sequence`` its ``seq``; the recorder chooses
-``log_time`` (see ``recorder.writer``).
+Channel metadata ``drivebench.key`` and ``drivebench.type`` name the bus key and message type (and
+``drivebench.run_id`` the run), so a reader can rebuild the exact message, and with it the exact MessagePack wire
+bytes (``codec.encode``); JPEG frames are the one lossy case. ``publish_time`` is the header's ``stamp_ns`` and
+``sequence`` its ``seq``; the recorder chooses ``log_time`` (see ``recorder.writer``).
 """
 
 from __future__ import annotations
@@ -28,9 +28,11 @@ import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
+from protocol import keys
 from protocol.messages import BUS_MESSAGES, CameraFrame, Command, EpisodeEvent, EpisodeScore, Header, LiveMetrics, Pose
+from protocol.topics import RUN_ID_METADATA, topic_of_key
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"  # 2: stable topics (protocol.topics); 1: topics were the bus keys
 KEY_METADATA = "drivebench.key"
 TYPE_METADATA = "drivebench.type"
 IMAGE_FORMATS = ("raw", "jpeg")
@@ -69,13 +71,15 @@ _TYPES_BY_TAG = {type_tag(t): t for t in BUS_MESSAGES}
 
 
 def channel_layout(key: str, message_type: type[msgspec.Struct], *, image_format: str = "raw") -> ChannelLayout:
-    """The MCAP channel for messages of ``message_type`` published on bus key ``key``."""
-    metadata = {KEY_METADATA: key, TYPE_METADATA: type_tag(message_type)}
+    """The MCAP channel for messages of ``message_type`` published on bus key ``key``: its stable topic
+    (``protocol.topics``), with the key, type and run id in its metadata."""
+    metadata = {KEY_METADATA: key, TYPE_METADATA: type_tag(message_type), RUN_ID_METADATA: keys.run_of_key(key)}
+    topic = topic_of_key(key)
     if message_type is CameraFrame:
         check_image_format(image_format)
-        return ChannelLayout(topic=key, message_encoding="protobuf", schema=_image_schema(image_format),
+        return ChannelLayout(topic=topic, message_encoding="protobuf", schema=_image_schema(image_format),
                              metadata=metadata)
-    return ChannelLayout(topic=key, message_encoding="json", schema=_json_schema(message_type), metadata=metadata)
+    return ChannelLayout(topic=topic, message_encoding="json", schema=_json_schema(message_type), metadata=metadata)
 
 
 def check_image_format(image_format: str) -> str:

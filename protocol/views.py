@@ -1,7 +1,10 @@
-"""Channels derived for viewers: the car pose as a Foxglove pose and transform, the circuit as a Foxglove scene.
+"""Channels derived for viewers: the car pose as a Foxglove pose and transform, the circuit as a Foxglove scene,
+the episode events as Foxglove log lines.
 
-They make a recording useful in Foxglove's 3D panel (the car moving on the track) without a plugin. They are views
-only: replay and datasets read the bus channels and skip these (``protocol.recording.is_bus_channel``).
+They make a recording useful in Foxglove's 3D panel (the car moving on the track) and Log panel without a plugin.
+They are views only: replay and datasets read the bus channels and skip these (``protocol.recording.is_bus_channel``).
+Their topics are stable (``protocol.topics``: ``/car/pose``, ``/tf``, ``/circuit``, ``/episode/log``); the run id is
+in :attr:`ViewMessage.run_id` (channel metadata, for the writer and the live view).
 """
 
 from __future__ import annotations
@@ -13,9 +16,9 @@ from dataclasses import dataclass
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
-from protocol import keys
-from protocol.messages import EpisodeEvent, EpisodeSpec, EventKind, Pose
+from protocol.messages import EndReason, EpisodeEvent, EpisodeSpec, EventKind, Pose
 from protocol.recording import Schema
+from protocol.topics import view_topic
 
 WORLD_FRAME = "world"
 CAR_FRAME = "car"
@@ -25,10 +28,11 @@ _LINE_RGBA = {"red": (0.85, 0.05, 0.05, 1.0), "white": (1.0, 1.0, 1.0, 1.0)}
 
 @dataclass(frozen=True)
 class ViewMessage:
-    topic: str
+    topic: str  # stable (protocol.topics)
     schema: Schema
     message: Message
     log_time_ns: int
+    run_id: str = ""
 
 
 @functools.cache
@@ -77,6 +81,8 @@ class ViewMaker:
             self._track_sent_ns = None
         if isinstance(message, Pose):
             views += self._pose_views(message, log_time_ns)
+        if isinstance(message, EpisodeEvent):
+            views.append(self._view("episode_log", _event_log(message, log_time_ns=log_time_ns), log_time_ns))
         if self._track is not None and (self._track_sent_ns is None
                                         or (self._track_resend_ns is not None
                                             and log_time_ns - self._track_sent_ns >= self._track_resend_ns)):
@@ -101,8 +107,29 @@ class ViewMaker:
         return [self._view("car_pose", in_frame, log_time_ns), self._view("world_from_car", transform, log_time_ns)]
 
     def _view(self, name: str, message: Message, log_time_ns: int) -> ViewMessage:
-        return ViewMessage(topic=keys.view(self.run_id, name), schema=protobuf_schema(type(message)),
-                           message=message, log_time_ns=log_time_ns)
+        return ViewMessage(topic=view_topic(name), schema=protobuf_schema(type(message)), message=message,
+                           log_time_ns=log_time_ns, run_id=self.run_id)
+
+
+def _event_log(event: EpisodeEvent, *, log_time_ns: int):
+    """One line of the episode log (Foxglove's Log panel) for an episode event, stamped with the viewer's clock."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    detail = ""
+    if event.kind == EventKind.START and event.spec is not None:
+        detail = f"circuit {event.spec.circuit}, brain {event.spec.active_brain}, seed {event.spec.seed}"
+    elif event.kind == EventKind.LAP:
+        detail = f"lap {event.lap}"
+    elif event.kind == EventKind.BRAIN_SWITCH:
+        detail = f"to brain {event.brain}"
+    elif event.kind == EventKind.END and event.reason is not None:
+        detail = f"reason {event.reason}"
+    text = " ".join(part for part in (f"episode {event.header.episode}: {event.kind}", detail, event.detail) if part)
+    # An episode that did not reach its lap target stands out in the log.
+    failed = event.kind == EventKind.END and event.reason not in (None, EndReason.LAPS_COMPLETED)
+    log = Log(level=Log.WARNING if failed else Log.INFO, message=text, name=f"drivebench/{event.header.run_id}")
+    log.timestamp.seconds, log.timestamp.nanos = divmod(log_time_ns, 1_000_000_000)
+    return log
 
 
 def _track_scene(spec: EpisodeSpec):

@@ -15,7 +15,9 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.stream_reader import CRCValidationError
 
+from protocol import keys
 from protocol.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
+from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
@@ -52,12 +54,18 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
     with _open(path) as stream:
         reader = _indexed_reader(stream, path)
         summary = reader.get_summary()
-        topics = [c.topic for c in summary.channels.values() if is_bus_channel(dict(c.metadata))
-                  and (keys_glob is None or fnmatch.fnmatchcase(c.topic, keys_glob))]
-        if not topics:
+        # Selected by bus key (channel metadata), not topic: topics are stable names shared by every run
+        # (protocol.topics), and files recorded before them used the key as topic; both read the same way.
+        selected = {c.id for c in summary.channels.values() if is_bus_channel(dict(c.metadata))
+                    and (keys_glob is None or fnmatch.fnmatchcase(c.metadata[KEY_METADATA], keys_glob))}
+        if not selected:
             return
+        _check_keys_unique(path, [summary.channels[i] for i in selected])
+        topics = sorted({summary.channels[i].topic for i in selected})
         try:
             for schema, channel, record in reader.iter_messages(topics=topics, log_time_order=True):
+                if channel.id not in selected:
+                    continue  # another run's channel of the same topic, outside keys_glob
                 yield Recorded(key=channel.metadata[KEY_METADATA],
                                message=_decode(record.data, schema, channel, path, record.sequence),
                                log_time_ns=record.log_time)
@@ -68,11 +76,16 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
 
 @dataclass(frozen=True)
 class ChannelInfo:
+    """One channel of a recording. topic: its name in viewers (stable, ``protocol.topics``, in files recorded since
+    format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not say."""
+
     topic: str
     schema: str
     message_encoding: str
     messages: int
     bus_key: bool
+    key: str = ""
+    run_id: str = ""
 
 
 @dataclass(frozen=True)
@@ -99,7 +112,8 @@ def recording_info(path: Path) -> RecordingInfo:
         counts = statistics.channel_message_counts if statistics else {}
         channels = [ChannelInfo(topic=c.topic, schema=summary.schemas[c.schema_id].name if c.schema_id else "",
                                 message_encoding=c.message_encoding, messages=counts.get(c.id, 0),
-                                bus_key=is_bus_channel(dict(c.metadata)))
+                                bus_key=is_bus_channel(dict(c.metadata)), key=c.metadata.get(KEY_METADATA, ""),
+                                run_id=_run_id(dict(c.metadata)))
                     for c in summary.channels.values()]
         try:
             metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
@@ -109,6 +123,26 @@ def recording_info(path: Path) -> RecordingInfo:
                              start_ns=statistics.message_start_time if statistics else 0,
                              end_ns=statistics.message_end_time if statistics else 0,
                              channels=channels, metadata=metadata)
+
+
+def _check_keys_unique(path: Path, channels) -> None:
+    """A merged file (``recorder.merge``) whose runs share a run id holds one bus key in two namespaces: their
+    messages would interleave on one key, so replay and datasets refuse it."""
+    namespaces: dict[str, str] = {}
+    for channel in channels:
+        key, namespace = channel.metadata[KEY_METADATA], channel.metadata.get(NAMESPACE_METADATA, "")
+        if namespaces.setdefault(key, namespace) != namespace:
+            raise RecordingError(f"{path}: a merged file whose runs /{namespaces[key]} and /{namespace} share the run "
+                                 f"id {keys.run_of_key(key)!r}; replay or build datasets from the original recordings")
+
+
+def _run_id(metadata: dict[str, str]) -> str:
+    if RUN_ID_METADATA in metadata:
+        return metadata[RUN_ID_METADATA]
+    try:
+        return keys.run_of_key(metadata.get(KEY_METADATA, ""))  # files of format 1 name it only in the key
+    except ValueError:
+        return ""
 
 
 def _open(path: Path):

@@ -50,7 +50,7 @@ def replay(path: Path, bus: Bus, *, rate: float | None = 1.0, run_id: str | None
     if run_id is not None:
         keys.check_name(run_id, what="run id")
     info = recording_info(path)
-    publishers = _publishers(bus, [c.topic for c in info.channels if c.bus_key], run_id)
+    publishers = _publishers(bus, [c.key for c in info.channels if c.bus_key], run_id)
     counts: Counter[str] = Counter()
     bar = _progress_bar(sum(c.messages for c in info.channels if c.bus_key), enabled=progress)
     started = time.monotonic()

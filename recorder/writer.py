@@ -6,6 +6,8 @@
 * ``flush_if_due`` closes the open chunk every ~1 s of wall time *or* of simulated time, whichever comes first, so
   a recorder killed with SIGKILL loses at most the last second of either (lock-step runs several times faster
   than real time); ``recorder.repair`` rebuilds a complete file from what was flushed.
+* Topics are stable (``protocol.topics``: ``/camera/truth``, ``/car/pose``, ...), the same in every run; the bus key
+  and run id of each channel are in its metadata.
 * Log time is the simulated time of each message on one clock for the whole file: episode n's stamps are offset
   to start one second after the last message of episode n-1, so episodes follow each other on the timeline.
 """
@@ -33,6 +35,7 @@ from protocol.recording import (
     record_stamps,
     to_record,
 )
+from protocol.topics import RUN_ID_METADATA, VIEW_METADATA
 from protocol.views import ViewMaker, ViewMessage
 
 log = logging.getLogger("drivebench.recorder")
@@ -127,11 +130,13 @@ class RecordingWriter:
         self._last_seq[stream] = max(last, header.seq)
 
     def _write_view(self, view: ViewMessage) -> None:
-        if view.topic not in self._channels:
+        # One channel per run and view: the topic is the same in every run (protocol.topics).
+        channel_key = f"{view.run_id}:{view.topic}"
+        if channel_key not in self._channels:
             layout = ChannelLayout(topic=view.topic, message_encoding="protobuf", schema=view.schema,
-                                   metadata={"drivebench.view": "1"})
-            self._channel(layout, view.topic)
-        self._writer.add_message(self._channels[view.topic], log_time=view.log_time_ns,
+                                   metadata={VIEW_METADATA: "1", RUN_ID_METADATA: view.run_id})
+            self._channel(layout, channel_key)
+        self._writer.add_message(self._channels[channel_key], log_time=view.log_time_ns,
                                  data=view.message.SerializeToString(), publish_time=view.log_time_ns)
 
     def _channel(self, layout: ChannelLayout | None, topic: str) -> int:

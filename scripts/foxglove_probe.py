@@ -2,9 +2,9 @@
 
     .venv/bin/python scripts/foxglove_probe.py ws://127.0.0.1:8765 --seconds 8
 
-Subscribes to every advertised ``.../sim/camera`` channel, decodes the JPEGs it receives, and prints one JSON line:
-images, rate, picture size. Exit 0 when at least one decodable image arrived, 1 otherwise. Needs ``websockets``
-(the test extra).
+Subscribes to the ground-truth camera (``/camera/truth``; ``.../sim/camera`` on servers from before stable topics),
+decodes the JPEGs it receives, and prints one JSON line: images, rate, picture size. Exit 0 when at least one
+decodable image arrived, 1 otherwise. Needs ``websockets`` (the test extra).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from websockets.sync.client import connect
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 1
+CAMERA_TOPICS = ("/camera/truth",)  # protocol.topics.CAMERA_TRUTH (this script imports nothing of the project)
 
 
 def probe(url: str, *, seconds: float) -> dict:
@@ -36,7 +37,8 @@ def probe(url: str, *, seconds: float) -> dict:
             if isinstance(message, str):
                 body = json.loads(message)
                 if body.get("op") == "advertise":
-                    cameras = [c for c in body["channels"] if c["topic"].endswith("/sim/camera")]
+                    cameras = [c for c in body["channels"] if c["topic"] in CAMERA_TOPICS
+                               or c["topic"].endswith("/sim/camera")]
                     if cameras:
                         ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                             {"id": c["id"], "channelId": c["id"]} for c in cameras]}))

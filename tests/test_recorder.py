@@ -18,7 +18,7 @@ import pytest
 from mcap_validation import assert_valid_mcap
 
 from orchestrator.launcher import free_loopback_port
-from protocol import codec, keys
+from protocol import codec, keys, topics
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.messages import (
     CameraFrame,
@@ -110,11 +110,12 @@ def test_flushes_come_every_second_of_simulated_time_even_when_wall_time_flies(t
 
 def test_info_lists_bus_and_view_channels(tmp_path):
     info = recording_info(write_recording(tmp_path / "a.mcap", two_episodes()))
-    bus = {c.topic: c.messages for c in info.channels if c.bus_key}
-    assert bus == {keys.camera_raw("r1"): 42, keys.pose("r1"): 42, keys.command("r1", "explicit"): 42}
+    bus = {c.key: (c.topic, c.messages) for c in info.channels if c.bus_key}
+    assert bus == {keys.camera_raw("r1"): ("/camera/truth", 42), keys.pose("r1"): ("/car/state", 42),
+                   keys.command("r1", "explicit"): ("/brain/explicit/cmd", 42)}
     views = {c.topic: c.schema for c in info.channels if not c.bus_key}
-    assert views[keys.view("r1", "car_pose")] == "foxglove.PoseInFrame"
-    assert views[keys.view("r1", "world_from_car")] == "foxglove.FrameTransform"
+    assert views["/car/pose"] == "foxglove.PoseInFrame"
+    assert views["/tf"] == "foxglove.FrameTransform"
 
 
 def test_keys_glob_selects_channels(tmp_path):
@@ -318,6 +319,9 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     replayed = list(read_messages(second))
     expected = sorted((keys.with_run_id(r.key, "again"), codec.encode(rebased(r.message, "again"))) for r in original)
     assert sorted((r.key, codec.encode(r.message)) for r in replayed) == expected
+    # Two runs (two run ids), one topic set: a Foxglove layout made on one shows the other.
+    assert {c.topic for c in recording_info(first).channels} == {c.topic for c in recording_info(second).channels} \
+        == topics.run_topics(brains=("explicit",))
     assert_valid_mcap(first, second)
 
 

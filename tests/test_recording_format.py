@@ -83,17 +83,20 @@ def test_every_recorded_type_is_covered():
     assert {type(m) for m in MESSAGES} == set(RECORDED_MESSAGES)
 
 
+KEY = "drivebench/run/r1/k"  # channels are only made for run keys
+
+
 def test_channels_are_viewable_without_plugins():
     for message_type in RECORDED_MESSAGES:
-        layout = channel_layout("k", message_type)
+        layout = channel_layout(KEY, message_type)
         assert (layout.message_encoding, layout.schema.encoding) in {("protobuf", "protobuf"), ("json", "jsonschema")}
         assert is_bus_channel(layout.metadata)
-    assert channel_layout("k", CameraFrame).schema.name == "foxglove.RawImage"
-    assert channel_layout("k", CameraFrame, image_format="jpeg").schema.name == "foxglove.CompressedImage"
+    assert channel_layout(KEY, CameraFrame).schema.name == "foxglove.RawImage"
+    assert channel_layout(KEY, CameraFrame, image_format="jpeg").schema.name == "foxglove.CompressedImage"
 
 
 def test_json_schemas_name_the_fields_at_the_root():
-    schema = json.loads(channel_layout("k", Command).schema.data)
+    schema = json.loads(channel_layout(KEY, Command).schema.data)
     assert schema["type"] == "object"
     assert {"speed_mps", "yaw_rate_radps", "header"} <= set(schema["properties"])
     assert "$ref" not in json.dumps(schema)
@@ -114,7 +117,7 @@ def test_raw_images_read_by_foxglove_stock_schema():
 def test_jpeg_images_come_back_close_not_exact():
     frame = CameraFrame(header=HEADER, width_px=64, height_px=48,
                         data=np.full((48, 64, 3), (200, 30, 30), np.uint8).tobytes())
-    layout = channel_layout("k", CameraFrame, image_format="jpeg")
+    layout = channel_layout(KEY, CameraFrame, image_format="jpeg")
     back = from_record(to_record(frame, image_format="jpeg"), schema_name=layout.schema.name,
                        metadata=layout.metadata)
     assert (back.header, back.width_px, back.height_px) == (frame.header, 64, 48)
@@ -123,11 +126,11 @@ def test_jpeg_images_come_back_close_not_exact():
 
 
 def test_bad_records_raise_one_clear_error():
-    layout = channel_layout("k", Pose)
+    layout = channel_layout(KEY, Pose)
     with pytest.raises(RecordFormatError, match="Pose"):
         from_record(b'{"type": "drivebench.Pose.v1", "x_m": "far"}', schema_name="", metadata=layout.metadata)
     with pytest.raises(RecordFormatError, match="drivebench.type"):
         from_record(b"{}", schema_name="", metadata={"drivebench.key": "k"})
-    camera = channel_layout("k", CameraFrame)
+    camera = channel_layout(KEY, CameraFrame)
     with pytest.raises(RecordFormatError, match="RawImage"):
         from_record(b"\xff\xff\xff", schema_name=camera.schema.name, metadata=camera.metadata)

@@ -25,13 +25,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_topics import expected_schemas
 from websockets.client import ClientProtocol
 from websockets.frames import Opcode
 from websockets.sync.client import connect
 from websockets.uri import parse_uri
 
 from orchestrator.launcher import free_loopback_port
-from protocol import keys
+from protocol import keys, topics
 from protocol.bus import Bus, BusConfig, Inbox
 from protocol.messages import (
     CameraFrame,
@@ -241,20 +242,23 @@ def decode_jpeg_image(payload: bytes) -> np.ndarray:
 def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_stack):
     stack = make_stack()
     run = stack.run_id
-    views = {name: keys.view(run, name) for name in ("car_pose", "world_from_car", "track")}
-    camera, command = keys.camera_raw(run), keys.command(run, "explicit")
+    views = {name: topics.view_topic(name) for name in ("car_pose", "world_from_car", "track", "episode_log")}
+    camera, command = topics.CAMERA_TRUTH, topics.command_topic("explicit")
+    # The stable topic set, the same as a recording's (tests/test_topics.py): one layout shows both.
+    published = topics.run_topics(brains=("explicit",))
     with viz_process(stack) as viz, foxglove_client(viz.port) as client:
-        client.wait_for_channels({camera, keys.pose(run), keys.live_metrics(run), keys.events(run),
-                                  keys.score(run), *views.values()})
+        client.wait_for_channels(published)
+        assert set(client.channels) == published
+        assert {t: c["schemaName"] for t, c in client.channels.items()} == expected_schemas(published, image="jpeg")
         assert client.server_info["name"] == f"drivebench {run}"
         advertised = client.channels[camera]
         assert (advertised["encoding"], advertised["schemaName"], advertised["schemaEncoding"]) == \
             ("protobuf", "foxglove.CompressedImage", "protobuf")
-        assert client.channels[keys.live_metrics(run)]["schemaEncoding"] == "jsonschema"
+        assert client.channels[topics.METRICS_LIVE]["schemaEncoding"] == "jsonschema"
         time.sleep(0.5)  # the subscriptions reach the server
 
         frames = Inbox()  # the camera on the bus, as the simulator publishes it
-        stack.bus.subscribe(camera, CameraFrame, inbox=frames)
+        stack.bus.subscribe(keys.camera_raw(run), CameraFrame, inbox=frames)
         started, cpu_before = time.monotonic(), viz.cpu_s()
         score = stack.run_episode(EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA))
         ended, cpu_used = time.monotonic(), viz.cpu_s() - cpu_before
@@ -284,7 +288,7 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
     from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-    poses = [json.loads(m.payload) for m in client.messages[keys.pose(run)]]
+    poses = [json.loads(m.payload) for m in client.messages[topics.CAR_STATE]]
     assert len(poses) >= 0.9 * len(on_bus) and {"x_m", "y_m", "yaw_rad", "header"} <= set(poses[-1])
     car = PoseInFrame.FromString(client.messages[views["car_pose"]][-1].payload)
     transform = FrameTransform.FromString(client.messages[views["world_from_car"]][-1].payload)
@@ -299,13 +303,17 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
     # Commands of the brain, live metrics, events and the score: JSON a viewer can plot.
     commands = [json.loads(m.payload) for m in client.messages[command]]
     assert len(commands) >= 0.9 * len(on_bus) and commands[-1]["brain"] == "explicit" and "speed_mps" in commands[-1]
-    live = [json.loads(m.payload) for m in client.messages[keys.live_metrics(run)]]
+    live = [json.loads(m.payload) for m in client.messages[topics.METRICS_LIVE]]
     assert live and live[-1]["real_time_factor"] > 0 and live[-1]["laps_target"] == 1
-    events = [json.loads(m.payload) for m in client.messages[keys.events(run)]]
+    events = [json.loads(m.payload) for m in client.messages[topics.EPISODE_EVENTS]]
     assert [event["kind"] for event in events] == ["start", "end"] and events[0]["spec"]["circuit"] == "simple"
-    scores = [json.loads(m.payload) for m in client.messages[keys.score(run)]]
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    log_lines = [Log.FromString(m.payload).message for m in client.messages[views["episode_log"]]]
+    assert log_lines[0].startswith("episode 0: start circuit simple") and "end reason time_limit" in log_lines[-1]
+    scores = [json.loads(m.payload) for m in client.messages[topics.EPISODE_SCORE]]
     assert len(scores) == 1 and scores[0]["reason"] == "time_limit"
-    perturbed = client.messages[keys.camera_perturbed(run)]  # the stack's noise injector publishes one
+    perturbed = client.messages[topics.CAMERA_BRAIN]  # the stack's noise injector publishes one
     assert perturbed and decode_jpeg_image(perturbed[-1].payload).shape == (CAMERA.height_px, CAMERA.width_px, 3)
 
 
@@ -324,7 +332,7 @@ def test_channels_added_while_viewers_connect_reach_them():
                 clients.append(viewers.enter_context(foxglove_client(bridge.port)))
                 bridge.advertise_command(brain)
             deadline, seq = time.monotonic() + 15, 0
-            while missing := [b for b in brains if not all(c.messages[keys.command("r", b)] for c in clients)]:
+            while missing := [b for b in brains if not all(c.messages[topics.command_topic(b)] for c in clients)]:
                 assert time.monotonic() < deadline, f"never reached every viewer: {missing}"
                 bridge.maintain()
                 for brain in brains:
@@ -348,9 +356,8 @@ def sample_rss(viz: Viz, stop: threading.Event, samples: list[float]) -> None:
 @pytest.mark.integration
 def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_stack):
     stack = make_stack()
-    run = stack.run_id
-    everything = {keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run), keys.command(run, "explicit"),
-                  keys.view(run, "track")}
+    everything = {topics.CAMERA_TRUTH, topics.CAMERA_BRAIN, topics.CAR_STATE, topics.command_topic("explicit"),
+                  topics.CIRCUIT}
     # Salt and pepper makes the perturbed camera's JPEGs big (~50 kB): an episode then sends far more than the
     # kernel's socket buffers hold (a few MB), so the server's per-client backlog really fills and drops.
     spec = EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA, noise=[SaltPepper(probability=0.2)])
@@ -381,7 +388,7 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
     rtf = {name: score.metrics.real_time_factor
            for name, score in (("alone", alone), ("reading", reading), ("stuck", with_stuck))}
     half = len(samples) // 2
-    noisy = reader.messages[keys.camera_perturbed(run)]
+    noisy = reader.messages[topics.CAMERA_BRAIN]
     print(f"\nreal-time factor: {rtf['alone']:.2f} with no viewer, {rtf['reading']:.2f} with a viewer reading every "
           f"channel, {rtf['stuck']:.2f} with one that never reads ({100 * rtf['stuck'] / rtf['reading']:.0f} % of "
           f"reading, {100 * rtf['stuck'] / rtf['alone']:.0f} % of none); viz RSS {rss_before:.1f} MB before, max "
@@ -395,7 +402,10 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
     assert rtf["stuck"] >= 0.6 * rtf["reading"]
     assert max(samples) < rss_before + 60  # the backlog: 120 messages, at most ~50 kB each, plus the encoders
     assert max(samples[half:]) < max(samples[:half]) + 15  # flat: it does not grow with the messages sent
-    assert not closed and read_late < sent_while_stuck  # still connected; the oldest were dropped, not queued
+    # Still connected; what did not fit its backlog (120 messages in the server, 4 MB in the gate) was dropped.
+    assert not closed and read_late < sent_while_stuck
+    gate = re.findall(r"(\d+) messages \((\d+) bytes\) dropped for slow viewers; peak backlog (\d+) bytes", viz.log())
+    assert int(gate[-1][2]) <= 4_000_000
 
 
 # -- drivebench view -----------------------------------------------------------------------------------------------
@@ -420,6 +430,10 @@ def test_view_without_a_router_says_so_in_one_line(capsys, monkeypatch):
     assert "no router" in one_error_line(capsys)
     assert view("--router", "tcp/127.0.0.1:7447", "--port", "70000") == 2
     assert "port" in one_error_line(capsys)
+    assert view("--router", "tcp/127.0.0.1:7447", "--max-viewers", "0") == 2
+    assert "max_viewers must be within 1..1000, got 0" in one_error_line(capsys)
+    assert view("--router", "tcp/127.0.0.1:7447", "--backlog-bytes", "10") == 2
+    assert "backlog_bytes must be within" in one_error_line(capsys)
 
 
 @pytest.mark.integration
@@ -463,13 +477,13 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
         assert f"run {run} via {stack.endpoint}" in lines[-1] and f"ws://127.0.0.1:{port}" in lines[-1]
         with foxglove_client(port) as client:
             deadline = time.monotonic() + 20
-            wanted = (keys.view(run, "track"), keys.camera_raw(run), keys.command(run, "explicit"))
+            wanted = (topics.CIRCUIT, topics.CAMERA_TRUTH, topics.command_topic("explicit"))
             while not all(client.messages[topic] for topic in wanted):
                 assert time.monotonic() < deadline, f"missing: {[t for t in wanted if not client.messages[t]]}"
                 time.sleep(0.1)
-            track = SceneUpdate.FromString(client.messages[keys.view(run, "track")][0].payload)
+            track = SceneUpdate.FromString(client.messages[topics.CIRCUIT][0].payload)
             assert track.entities[0].id == "track"  # the circuit, from the spec the simulator gave for episode 0
-            assert decode_jpeg_image(client.messages[keys.camera_raw(run)][-1].payload).shape == (48, 64, 3)
+            assert decode_jpeg_image(client.messages[topics.CAMERA_TRUTH][-1].payload).shape == (48, 64, 3)
         stack._control(ControlRequest(action="stop"))
         episode.join(timeout=30)
         view.send_signal(signal.SIGTERM)

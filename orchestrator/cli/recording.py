@@ -2,6 +2,7 @@
 
     drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
     drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
+    drivebench recorder merge A B -o AB.mcap    compare runs: each under its own namespace (recorder.merge)
     drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
     drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
     drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
@@ -53,6 +54,13 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
                                                           "x.mcap -> x.repaired.mcap)")
     repair.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     repair.set_defaults(func=_usage_errors(_repair))
+    merge = recorder_commands.add_parser(
+        "merge", help="several recordings in one file, each run under its own namespace (compare runs in Foxglove)")
+    merge.add_argument("files", nargs="+", type=Path, metavar="FILE.mcap")
+    merge.add_argument("-o", "--output", type=Path, required=True, help="the merged .mcap to write")
+    merge.add_argument("--names", help="namespaces, comma-separated, one per file (default runA,runB,...)")
+    merge.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
+    merge.set_defaults(func=_usage_errors(_merge))
 
     replay = commands.add_parser("replay", help="publish a recording back onto the bus")
     replay.add_argument("file", type=Path)
@@ -155,14 +163,27 @@ def _collect(args: argparse.Namespace) -> int:
     return collect(args, dataset_options(args))
 
 
+def _merge(args: argparse.Namespace) -> int:
+    """Raises MergeError (a RecordingError: a usage error here) on a mistake."""
+    from recorder.merge import merge
+
+    names = [n.strip() for n in args.names.split(",")] if args.names else None
+    report = merge(args.files, output=args.output, names=names, overwrite=args.overwrite)
+    runs = ", ".join(f"/{ns} <- {source}" for ns, source in report.namespaces.items())
+    print(f"merged {report.messages} messages -> {report.output} ({runs}); open it in Foxglove with "
+          f"docs/foxglove/drivebench-compare-layout.json", file=sys.stderr)
+    return EXIT_OK
+
+
 def _info(args: argparse.Namespace) -> int:
     info = recording_info(args.file)
     print(f"{info.path}: {info.messages} messages over {info.duration_s:.1f} s of recording time")
     width = max((len(c.topic) for c in info.channels), default=10)
     for channel in sorted(info.channels, key=lambda c: c.topic):
         kind = "bus " if channel.bus_key else "view"
+        key = f"  <- {channel.key}" if channel.key and channel.key != channel.topic else ""  # stable topics
         print(f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
-              f"{channel.schema} ({channel.message_encoding})")
+              f"{channel.schema} ({channel.message_encoding}){key}")
     missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
     if any(missing.values()):
         print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")

@@ -1,6 +1,7 @@
 """``drivebench view``: serve a running run to Foxglove (WebSocket) from this machine, until Ctrl-C or SIGTERM.
 
-    drivebench view [--run RUN] [--router EP] [--host 127.0.0.1] [--port 8765] [--backlog 60]
+    drivebench view [--run RUN] [--router EP] [--host 127.0.0.1] [--port 8765] [--backlog 120] [--max-viewers 4]
+                    [--backlog-bytes 4000000]
 
 The router comes from ``--router`` or ``DRIVEBENCH_ROUTER``; the run from ``--run``, ``DRIVEBENCH_RUN_ID``, or else the
 only run with a process alive on that router (from the liveliness tokens). Mistakes and an unreachable router are
@@ -43,6 +44,10 @@ def add(commands: argparse._SubParsersAction) -> None:
                       help=f"TCP port to serve on (default: {DEFAULT_PORT})")
     view.add_argument("--backlog", dest="view_backlog", type=int, default=VizConfig().backlog,
                       help="messages queued per viewer before the oldest are dropped (default: %(default)s)")
+    view.add_argument("--max-viewers", dest="view_max_viewers", type=int, default=VizConfig().max_viewers,
+                      help="viewers served at once; more are refused (default: %(default)s)")
+    view.add_argument("--backlog-bytes", dest="view_backlog_bytes", type=int, default=VizConfig().backlog_bytes,
+                      help="bytes queued per viewer before messages are dropped (default: %(default)s)")
     view.set_defaults(func=run_view_command)
 
 
@@ -58,7 +63,9 @@ def run_view_command(args: argparse.Namespace) -> int:
         try:
             if wanted is not None:
                 keys.check_name(wanted, what="run id")
-            VizConfig(host=args.view_host, port=args.view_port, backlog=args.view_backlog)  # checks the values
+            limits = {"backlog": args.view_backlog, "max_viewers": args.view_max_viewers,
+                      "backlog_bytes": args.view_backlog_bytes}
+            VizConfig(host=args.view_host, port=args.view_port, **limits)  # checks the values
             # TLS and credentials come from the environment as for every process (protocol.bus.BusConfig); a
             # router that accepts TCP but never completes Zenoh's handshake ends in an error line, not a hang.
             bus_config = BusConfig(mode="client", connect=[router], connect_timeout_ms=CONNECT_TIMEOUT_MS)
@@ -69,7 +76,7 @@ def run_view_command(args: argparse.Namespace) -> int:
         with Bus(bus_config, name=f"view-{os.getpid()}") as bus:
             run_id = _choose_run(bus, router, wanted)
             config = VizConfig(bus=bus.config, run_id=run_id, name=f"view-{os.getpid()}", host=args.view_host,
-                               port=args.view_port, backlog=args.view_backlog)
+                               port=args.view_port, **limits)
             service = VizService(config, bus)
             try:
                 print(f"drivebench view: run {run_id} via {router}: in Foxglove, Open connection -> Foxglove "

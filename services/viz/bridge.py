@@ -1,14 +1,15 @@
 """The core of the live view: bus messages in, Foxglove WebSocket channels out. Knows nothing of Zenoh.
 
 It serves a Foxglove WebSocket server (foxglove-sdk, subprotocol ``foxglove.sdk.v1``) and maps each bus message to
-the channel a recording would hold for it (``protocol.recording``, ``protocol.views``), so a layout made for a
-recording of a run also works live on that run:
+the channel a recording would hold for it (``protocol.recording``, ``protocol.views``), under the same stable topics
+(``protocol.topics``: ``/camera/truth``, ``/car/pose``, ``/tf``, ...), so one layout
+(``docs/foxglove/drivebench-layout.json``) shows any recording and any live run:
 
 * camera frames -> ``foxglove.CompressedImage`` (protobuf, JPEG; the recording's image schema with the run id,
   episode, sequence number and dropped flag as extra fields), one channel per camera key;
-* poses -> the views ``car_pose`` (``foxglove.PoseInFrame``) and ``world_from_car`` (``foxglove.FrameTransform``),
-  and the episode's circuit as ``track`` (``foxglove.SceneUpdate``), sent once per episode and again whenever a
-  viewer subscribes to it;
+* poses -> the views ``/car/pose`` (``foxglove.PoseInFrame``) and ``/tf`` (``foxglove.FrameTransform``), and the
+  episode's circuit as ``/circuit`` (``foxglove.SceneUpdate``), sent once per episode and again whenever a viewer
+  subscribes to it; episode events also as ``/episode/log`` (``foxglove.Log``);
 * poses themselves, commands (one channel per brain), live metrics, episode events and scores -> JSON with a JSON
   Schema.
 
@@ -17,7 +18,9 @@ one's last message (``protocol.recording.EpisodeClock``, as in recordings), so a
 geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
 
 A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
-client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``).
+client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``). With
+``max_viewers`` / ``backlog_bytes``, viewers come in through ``services.viz.gate``: a cap on their number, and each
+one's queue bounded in bytes too.
 """
 
 from __future__ import annotations
@@ -36,7 +39,9 @@ from foxglove.websocket import ServerListener
 from protocol import keys
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
 from protocol.recording import EpisodeClock, Schema, channel_layout, to_record
+from protocol.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS
 from protocol.views import ViewMaker, ViewMessage, protobuf_schema
+from services.viz.gate import ViewerGate
 
 log = logging.getLogger("drivebench.viz")
 _SDK_LOG = logging.getLogger("foxglove")  # foxglove-sdk's Rust log records arrive under it
@@ -50,9 +55,9 @@ class BridgeError(RuntimeError):
     """The server could not start (port taken, bad host): one line."""
 
 
-def view_topics(run_id: str) -> dict[str, str]:
-    """Topics of the derived views: car pose, world -> car transform, track."""
-    return {name: keys.view(run_id, name) for name in ("car_pose", "world_from_car", "track")}
+def view_topics() -> dict[str, str]:
+    """Topics of the derived views by name: car pose, world -> car transform, track, episode log."""
+    return dict(VIEW_TOPICS)
 
 
 class _LostSubscriptions(logging.Handler):
@@ -104,7 +109,8 @@ class LiveBridge:
     """
 
     def __init__(self, *, run_id: str, host: str, port: int, backlog: int, jpeg_quality: int = 90,
-                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False):
+                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False,
+                 max_viewers: int | None = None, backlog_bytes: int | None = None):
         self.run_id = run_id
         self.jpeg_quality = jpeg_quality
         self.sent: Counter[str] = Counter()  # messages sent per topic (logged while some viewer subscribed)
@@ -117,7 +123,8 @@ class LiveBridge:
         self._clock = EpisodeClock()
         self._clock_lock = threading.Lock()
         self._views = ViewMaker(run_id, track_resend_ns=None)  # a live viewer keeps the track: once per episode
-        self._view_topics = view_topics(run_id)
+        self._view_topics = view_topics()
+        self._topics_of_keys: dict[str, str] = {}  # bus key -> stable topic
         self._track_wanted = threading.Event()
         self._last_log_time_ns = 0
         # The SDK hands its Rust log records to Python logging, taking the GIL from whichever thread logs, possibly
@@ -140,35 +147,50 @@ class LiveBridge:
         if perturbed:
             self.advertise_perturbed_camera()
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.Log_pb2 import Log
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
         for name_, message_class in (("car_pose", PoseInFrame), ("world_from_car", FrameTransform),
-                                     ("track", SceneUpdate)):
-            self._channel(self._view_topics[name_], "protobuf", protobuf_schema(message_class))
+                                     ("track", SceneUpdate), ("episode_log", Log)):
+            self._channel(self._view_topics[name_], "protobuf", protobuf_schema(message_class),
+                          {VIEW_METADATA: "1", RUN_ID_METADATA: run_id})
         _SDK_LOG.addHandler(self._lost)
+        self.gate: ViewerGate | None = None
+        # With limits, viewers reach the SDK's server only through the gate (services.viz.gate), which listens on
+        # the address asked for; the server itself then listens on a loopback port of its own.
+        gated = max_viewers is not None or backlog_bytes is not None
         try:
             self._server = foxglove.start_server(
-                name=name, host=host, port=port, context=self._context, message_backlog_size=backlog,
-                server_listener=_Listener(self))
+                name=name, host="127.0.0.1" if gated else host, port=0 if gated else port, context=self._context,
+                message_backlog_size=backlog, server_listener=_Listener(self))
         except RuntimeError as error:
             _SDK_LOG.removeHandler(self._lost)
             raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
                               f"{str(error).removeprefix('FoxgloveError: ')}") from None
+        if gated:
+            try:
+                self.gate = ViewerGate(host=host, port=port, upstream_port=self._server.port,
+                                       max_viewers=max_viewers or 1_000_000, backlog_bytes=backlog_bytes or 1 << 40)
+            except OSError as error:
+                self.close()
+                raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
+                                  f"{error.strerror or error}") from None
 
     @property
     def port(self) -> int:
-        """The port the server listens on (the actual one when started with port 0)."""
-        return self._server.port
+        """The port viewers connect to (the actual one when started with port 0)."""
+        return self.gate.port if self.gate is not None else self._server.port
 
     # -- channels --
 
-    def _channel(self, topic: str, encoding: str, schema: Schema) -> foxglove.Channel:
+    def _channel(self, topic: str, encoding: str, schema: Schema,
+                 metadata: dict[str, str] | None = None) -> foxglove.Channel:
         with self._channels_lock:
             channel = self._channels.get(topic)
             if channel is None:
                 channel = self._channels[topic] = foxglove.Channel(
-                    topic, message_encoding=encoding, context=self._context,
+                    topic, message_encoding=encoding, context=self._context, metadata=metadata,
                     schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data))
                 self._ids[channel.id()] = topic
             return channel
@@ -182,11 +204,11 @@ class LiveBridge:
                 old = self._channels.pop(topic, None) if topic is not None else None
                 if old is None:
                     continue  # not ours, or already replaced
-                schema, encoding = old.schema(), old.message_encoding
+                schema, encoding, metadata = old.schema(), old.message_encoding, old.metadata()
                 # Closed first: the SDK hands back the open channel of the same topic and schema, same id and all.
                 old.close()
                 new = self._channels[topic] = foxglove.Channel(
-                    topic, message_encoding=encoding, context=self._context, schema=schema)
+                    topic, message_encoding=encoding, context=self._context, schema=schema, metadata=metadata)
                 self._ids[new.id()] = topic
             self.readvertised += 1
             log.info("advertised %s again: a viewer's subscription to it was lost", topic)
@@ -194,8 +216,14 @@ class LiveBridge:
     def _bus_channel(self, key: str, message_type: type[msgspec.Struct]) -> foxglove.Channel:
         """The channel of bus key ``key`` (its layout is only worked out the first time)."""
         with self._channels_lock:
-            channel = self._channels.get(key)
-        return channel if channel is not None else self._channel(key, *_layout(key, message_type))
+            topic = self._topics_of_keys.get(key)
+            channel = self._channels.get(topic) if topic is not None else None
+        if channel is not None:
+            return channel
+        layout = channel_layout(key, message_type, image_format="jpeg")  # the recording's, with JPEG images
+        with self._channels_lock:
+            self._topics_of_keys[key] = layout.topic
+        return self._channel(layout.topic, layout.message_encoding, layout.schema, layout.metadata)
 
     def advertise_command(self, brain: str) -> None:
         """Advertise the command channel of ``brain`` before its first command (a viewer then misses none)."""
@@ -278,13 +306,10 @@ class LiveBridge:
 
     def close(self) -> None:
         _SDK_LOG.removeHandler(self._lost)
+        if getattr(self, "gate", None) is not None:
+            self.gate.close()
         self._server.stop()
         with self._channels_lock:
             for channel in self._channels.values():
                 channel.close()
 
-
-def _layout(key: str, message_type: type[msgspec.Struct]) -> tuple[str, Schema]:
-    """(message encoding, schema) of the channel of ``key``: the recording's, with JPEG images."""
-    layout = channel_layout(key, message_type, image_format="jpeg")
-    return layout.message_encoding, layout.schema

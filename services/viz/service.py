@@ -9,8 +9,9 @@ Why a slow viewer never slows the simulation:
   * camera frames wait in a queue of ``frame_queue`` frames, newest wins, and one thread per camera key encodes
     them to JPEG (only while a viewer is subscribed to that camera);
   * the small messages (poses, commands, metrics, events, scores) wait in a queue of at most ``PENDING_LIMIT``;
-  * the Foxglove server queues at most ``backlog`` messages per client and drops the oldest, so a client that
-    never reads costs at most ``backlog`` messages of memory and no waiting.
+  * the Foxglove server queues at most ``backlog`` messages per client and drops the oldest, and the gate in front
+    of it (``services.viz.gate``) at most ``backlog_bytes`` per viewer and serves at most ``max_viewers``, so a
+    client that never reads costs bounded memory and no waiting.
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ class VizConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
         whose default of 1024 is ~1 GB of raw frames per slow viewer; 30-60 suits a pure image stream). One step
         of a run is up to ~6 messages here (two cameras, pose, its two views, a command), so 120 holds ~20 steps
         (~1 s at 20 Hz): a few MB of JPEG per viewer at most.
+    max_viewers: viewers served at once; one more is refused (HTTP 503, logged) until one leaves
+        (``services.viz.gate``): each viewer costs socket writes and up to ``backlog_bytes`` of memory.
+    backlog_bytes: bytes queued per viewer before its newest messages are dropped (whole messages, never the
+        channel advertisements), on top of the ``backlog`` bound in messages: a slow viewer of big noisy JPEGs holds
+        at most this much (plus the kernel's socket buffer).
     jpeg_quality: 1-100, of the camera images sent (JPEG: ~1/13 of raw frames' bandwidth).
     frame_queue: camera frames waiting per camera to be encoded; when encoding falls behind, the newest win.
     perturbed: also serve the perturbed camera of a noise injector (``<run>/noise/camera``).
@@ -59,6 +65,8 @@ class VizConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     host: str = "127.0.0.1"
     port: int = DEFAULT_PORT
     backlog: int = 120
+    max_viewers: int = 4
+    backlog_bytes: int = 4_000_000
     jpeg_quality: int = 90
     frame_queue: int = 2
     perturbed: bool = True
@@ -68,6 +76,10 @@ class VizConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
             raise ValueError(f"port must be within 0..65535, got {self.port}")
         if not 1 <= self.backlog <= 100_000:
             raise ValueError(f"backlog must be within 1..100000 messages, got {self.backlog}")
+        if not 1 <= self.max_viewers <= 1000:
+            raise ValueError(f"max_viewers must be within 1..1000, got {self.max_viewers}")
+        if not 10_000 <= self.backlog_bytes <= 10_000_000_000:
+            raise ValueError(f"backlog_bytes must be within 10000..10000000000, got {self.backlog_bytes}")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError(f"jpeg_quality must be 1-100, got {self.jpeg_quality}")
         if not 1 <= self.frame_queue <= 100:
@@ -109,7 +121,8 @@ class VizService:
             self.bridge = LiveBridge(run_id=run, host=config.host, port=config.port, backlog=config.backlog,
                                      jpeg_quality=config.jpeg_quality, name=f"drivebench {run}",
                                      brains=[name for role, name in alive if role == "brain"],
-                                     perturbed=config.perturbed and any(role == "noise" for role, _ in alive))
+                                     perturbed=config.perturbed and any(role == "noise" for role, _ in alive),
+                                     max_viewers=config.max_viewers, backlog_bytes=config.backlog_bytes)
         except BridgeError as error:
             raise UserError(str(error)) from None
         self._bus = bus
@@ -137,8 +150,9 @@ class VizService:
         self._started: set[int] = set()  # episodes whose START was sent
         self._asked: set[int] = set()  # episodes whose missed START we asked the simulator for
         bus.declare_alive(keys.alive(run, "viz", config.name))
-        log.info("serving run %s to Foxglove at %s (backlog %d messages per viewer)", run,
-                 viewer_url(config.host, self.bridge.port), config.backlog)
+        log.info("serving run %s to Foxglove at %s (at most %d viewers; backlog %d messages, %d bytes per viewer)",
+                 run, viewer_url(config.host, self.bridge.port), config.max_viewers, config.backlog,
+                 config.backlog_bytes)
 
     @property
     def port(self) -> int:
@@ -209,6 +223,12 @@ class VizService:
                             f"{sent[p.key]} sent" for p in self._pumps)
         log.info("episode %d ended; so far: %d messages sent; camera frames %s; %d not encoded (no viewer)",
                  episode, sum(sent.values()), cameras, self.bridge.frames_skipped)
+        if (gate := self.bridge.gate) is not None:
+            stats = gate.stats
+            log.info("viewers: %d connected, %d served, %d refused (max %d); %d messages (%d bytes) dropped for "
+                     "slow viewers; peak backlog %d bytes (limit %d)", stats.viewers, stats.served, stats.refused,
+                     gate.max_viewers, stats.dropped_messages, stats.dropped_bytes, stats.peak_backlog_bytes,
+                     gate.backlog_bytes)
 
     def close(self) -> None:
         self._stop.set()
