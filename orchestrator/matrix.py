@@ -46,35 +46,51 @@ Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong 
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
-import math
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import yaml
-from yaml.constructor import SafeConstructor
 
 from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain
 from circuits import circuit_names
 from circuits.library import GENERATED_NAMES, is_circuit_name
+from orchestrator.matrix_conditions import (
+    VARIATION_KEYS,
+    Axis,
+    Perturbation,
+    World,
+    read_axes,
+    read_listed_worlds,
+    read_perturbation,
+    read_perturbations,
+    read_variation_value,
+    read_world,
+    read_worlds,
+)
+from orchestrator.matrix_plan import (
+    DEFAULT_VARIATION,
+    NO_PERTURBATION,
+    BrainEntry,
+    Matrix,
+    MatrixError,
+    PlannedEpisode,
+    part_of,
+    smoke_form,
+)
+from orchestrator.yaml_nodes import NodeReader, label_text, line_of
 from protocol.keys import check_name
-from protocol.messages import NOISE_MODELS, CameraSpec, EpisodeSpec, NoiseStage
+from protocol.messages import CameraSpec, EpisodeSpec
 
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
 from protocol.variations import (
-    CAMERA_KEYS,
-    ROUTE_KEYS,
-    WORLD_KEYS,
     VariationError,
     apply_variation,
-    noise_stage,
-    parse_pairs,
 )
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
@@ -83,114 +99,11 @@ TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturb
 PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
 BRAIN_KEYS = ("name", "weights", "label", "options")
 LIMIT_KEYS = ("laps", "max_sim_seconds", "brain_timeout_s", "step_s")
-VARIATION_KEYS = (*WORLD_KEYS, *CAMERA_KEYS, *ROUTE_KEYS)
-CAMERA_PERTURBATION_KEYS = CAMERA_KEYS
-NOISE_MODEL_NAMES = tuple(model.__struct_config__.tag for model in NOISE_MODELS)
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
-DEFAULT_VARIATION = "default"
-NO_PERTURBATION = "none"
 
 _OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-# An item of a perturbation string: "model", "model=value", "model:key=value,..." or "camera_key=value".
-_STRING_ITEM = re.compile(r"\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:([=:])(.*))?", re.S)
-# "+" joins items; one followed by a digit or sign belongs to a number ("1e+5", "brightness=+0.2").
-_ITEM_JOIN = re.compile(r"\+(?=\s*[A-Za-z_])")
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
-
-
-class MatrixError(ValueError):
-    """A mistake in a matrix file. ``str(error)`` is one line: ``FILE:LINE: what is wrong (what is allowed)``
-    (``FILE: ...`` when the file itself cannot be read). ``source``, ``line`` (1-based, or None) and ``message``
-    are kept as attributes."""
-
-    def __init__(self, message: str, *, source: str, line: int | None) -> None:
-        self.message = re.sub(r"\s*\n\s*", " ", message).strip()
-        self.source = source
-        self.line = line
-        where = source if line is None else f"{source}:{line}"
-        super().__init__(f"{where}: {self.message}")
-
-
-@dataclass(frozen=True)
-class BrainEntry:
-    """One brain of a matrix (or a shadow brain).
-
-    label: unique name of the entry within the matrix; it is also the brain process's bus name and the episode's
-        ``active_brain``, so letters, digits, ``_ . -`` only. Default: the brain's bus name
-        (``brains.registry.bus_name``), or ``<that>-<weights stem>``.
-    brain: a brain name as ``brains.registry.resolve`` takes it: built-in, installed (entry point),
-        ``package.module:Class``, or a Behavior Metrics brain file (absolute once read).
-    weights: absolute path of the checkpoint (resolved from the matrix file's folder), or None.
-    options: the brain's constructor options, in written order, as (key, JSON-able value) pairs.
-    """
-
-    label: str
-    brain: str
-    weights: Path | None = None
-    options: tuple[tuple[str, Any], ...] = ()
-
-    def launch_options(self) -> tuple[str, ...]:
-        """Constructor options as ``key=<JSON value>`` overrides for the brain host (``--set options.KEY=VALUE``),
-        weights last as ``weights="<absolute path>"``. Every value reads back as the same value with YAML."""
-        texts = tuple(f"{key}={_yaml_json(value)}" for key, value in self.options)
-        if self.weights is not None:
-            texts += (f"weights={json.dumps(str(self.weights))}",)
-        return texts
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able form: ``{"label", "brain", "weights" (absolute path or None), "options" (mapping)}``."""
-        return {"label": self.label, "brain": self.brain,
-                "weights": None if self.weights is None else str(self.weights), "options": dict(self.options)}
-
-
-@dataclass(frozen=True)
-class PlannedEpisode:
-    """One episode of a matrix, as planned before anything runs.
-
-    key: stable id, ``"<brain label>/<circuit>/<variation>/<perturbation>/r<repetition>"``.
-    index: position in the matrix's expansion, from 0.
-    variation / perturbation: labels (see the module docstring).
-    spec: the full episode spec: limits, camera, ``seed = matrix seed + repetition``, world variation and camera
-        perturbations applied, noise stages in written order, ``active_brain = brain.label``.
-    """
-
-    key: str
-    index: int
-    brain: BrainEntry
-    circuit: str
-    variation: str
-    perturbation: str
-    repetition: int
-    spec: EpisodeSpec
-    part: str = ""
-
-
-def part_of(key: str) -> str:
-    """The part of an episode key (``"noise:explicit/montreal/..."`` -> ``"noise"``), ``""`` outside parts. Brain
-    labels have no ``:``, so a ``:`` before the first ``/`` can only end a part's name."""
-    head = key.split("/", 1)[0]
-    return head.split(":", 1)[0] if ":" in head else ""
-
-
-@dataclass(frozen=True)
-class Matrix:
-    """A parsed and expanded matrix file.
-
-    name: the matrix's name (default: the file's stem). source: where it was read from. text: the file's text.
-    brains: the driving brains, in written order. shadows: brains that get the same frames but never drive.
-    episodes: every planned episode, in expansion order. variation_keys: the variation axes, in written order.
-    parts: the part names in written order (empty for a matrix without parts).
-    """
-
-    name: str
-    source: str
-    text: str
-    brains: tuple[BrainEntry, ...]
-    shadows: tuple[BrainEntry, ...]
-    episodes: tuple[PlannedEpisode, ...]
-    variation_keys: tuple[str, ...]
-    parts: tuple[str, ...] = ()
 
 
 def load_matrix(path: Path) -> Matrix:
@@ -211,7 +124,7 @@ def load_matrix(path: Path) -> Matrix:
 def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path(".")) -> Matrix:
     """Expand the matrix in ``text``. ``source`` names it in errors (and gives the default name: its stem);
     relative weights paths are resolved from ``base_dir``. Raises :class:`MatrixError` for every mistake."""
-    reader = _Reader(source)
+    reader = NodeReader(source, error_type=MatrixError, top_level_keys=TOP_LEVEL_KEYS)
     root = reader.compose(text)
     top = reader.mapping(root, what="the matrix", allowed=TOP_LEVEL_KEYS)
     if "brains" not in top:
@@ -231,12 +144,12 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
                   parts=tuple(part for part, _ in parts if part))
 
 
-def _check_one_world_form(reader: _Reader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
+def _check_one_world_form(reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
     if "variations" in entries and "worlds" in entries:
         raise reader.error(entries["worlds"][0], "give variations (a product) or worlds (a list), not both")
 
 
-def _parts(reader: _Reader, root: yaml.Node,
+def _parts(reader: NodeReader, root: yaml.Node,
            top: dict[str, tuple[yaml.Node, yaml.Node]]) -> list[tuple[str, dict[str, tuple[yaml.Node, yaml.Node]]]]:
     """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
     if "parts" not in top:
@@ -265,137 +178,7 @@ def _parts(reader: _Reader, root: yaml.Node,
     return parts
 
 
-# -- reading YAML nodes with their line numbers ------------------------------------------------------------------
-
-
-def _line(node: yaml.Node) -> int:
-    return node.start_mark.line + 1
-
-
-class _Reader:
-    """Turns YAML nodes into values, raising :class:`MatrixError` at the node's line."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def error(self, node: yaml.Node | None, message: str) -> MatrixError:
-        return MatrixError(message, source=self.source, line=1 if node is None else _line(node))
-
-    def compose(self, text: str) -> yaml.Node:
-        try:
-            root = yaml.compose(text, Loader=yaml.SafeLoader)
-        except yaml.MarkedYAMLError as error:
-            mark = error.problem_mark or error.context_mark
-            line = 1 if mark is None else mark.line + 1
-            raise MatrixError(f"invalid YAML: {error.problem or error.context}", source=self.source,
-                              line=line) from None
-        except yaml.YAMLError as error:  # a character YAML does not allow: a position, no mark
-            position = getattr(error, "position", None)
-            line = 1 if position is None else text.count("\n", 0, position) + 1
-            raise MatrixError(f"invalid YAML: {error}", source=self.source, line=line) from None
-        if not isinstance(root, yaml.MappingNode):
-            raise MatrixError("the top level must be a mapping (keys: " + ", ".join(TOP_LEVEL_KEYS) + ")",
-                              source=self.source, line=1 if root is None else _line(root))
-        self._check_duplicates(root, seen=set())
-        return root
-
-    def _check_duplicates(self, node: yaml.Node, *, seen: set[int]) -> None:
-        if id(node) in seen:  # aliases may make cycles
-            return
-        seen.add(id(node))
-        if isinstance(node, yaml.MappingNode):
-            first: dict[Any, int] = {}
-            for key_node, value_node in node.value:
-                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else id(key_node)
-                if key in first:
-                    raise self.error(key_node, f"duplicate key {key!r} (first on line {first[key]})")
-                first[key] = _line(key_node)
-                self._check_duplicates(value_node, seen=seen)
-        elif isinstance(node, yaml.SequenceNode):
-            for item in node.value:
-                self._check_duplicates(item, seen=seen)
-
-    def mapping(self, node: yaml.Node, *, what: str,
-                allowed: Iterable[str] | None = None) -> dict[str, tuple[yaml.Node, yaml.Node]]:
-        """key -> (key node, value node), in written order; keys must be text (and within ``allowed``)."""
-        if not isinstance(node, yaml.MappingNode):
-            raise self.error(node, f"{what} must be a mapping, got {_describe(node)}")
-        allowed = None if allowed is None else tuple(allowed)
-        entries = {}
-        for key_node, value_node in node.value:
-            key = self.value(key_node)
-            if not isinstance(key, str):
-                raise self.error(key_node, f"keys of {what} must be text, got {key!r}")
-            if allowed is not None and key not in allowed:
-                raise self.error(key_node, f"unknown key {key!r} in {what} (allowed: {', '.join(allowed)})")
-            entries[key] = (key_node, value_node)
-        return entries
-
-    def items(self, node: yaml.Node, *, what: str) -> list[yaml.Node]:
-        """The items of a non-empty list; any other node stands for a one-item list."""
-        if isinstance(node, yaml.SequenceNode):
-            if not node.value:
-                raise self.error(node, f"{what} is an empty list (give at least one)")
-            return list(node.value)
-        if isinstance(node, yaml.ScalarNode) and self.value(node) is None:
-            raise self.error(node, f"{what} is empty (give at least one)")
-        return [node]
-
-    def value(self, node: yaml.Node) -> Any:
-        """The plain Python value of a node (YAML 1.1 rules: ``on``/``off`` are booleans)."""
-        try:
-            return SafeConstructor().construct_object(node, deep=True)
-        except yaml.YAMLError as error:  # a tag the safe loader does not know (!!python/object, !custom)
-            problem = getattr(error, "problem", None) or error
-            raise self.error(node, f"cannot read this value: {problem}") from None
-
-    def scalar(self, node: yaml.Node, *, what: str) -> Any:
-        if not isinstance(node, yaml.ScalarNode):
-            raise self.error(node, f"{what} must be a single value, got {_describe(node)}")
-        return self.value(node)
-
-    def text(self, node: yaml.Node, *, what: str) -> str:
-        value = self.scalar(node, what=what)
-        if not isinstance(value, str) or not value.strip():
-            raise self.error(node, f"{what} must be text, got {value!r}")
-        return value.strip()
-
-    def integer(self, node: yaml.Node, *, what: str, minimum: int) -> int:
-        value = self.scalar(node, what=what)
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise self.error(node, f"{what} must be an integer >= {minimum}, got {value!r}")
-        return value
-
-    def yaml_text(self, node: yaml.Node, text: str) -> Any:
-        """A value written inside a string (``"gaussian=10"``), read as YAML like the command line does."""
-        try:
-            return yaml.safe_load(text)
-        except yaml.YAMLError:
-            raise self.error(node, f"cannot read the value {text.strip()!r}") from None
-
-
-def _describe(node: yaml.Node) -> str:
-    if node.tag == "tag:yaml.org,2002:null":
-        return "nothing"
-    if isinstance(node, yaml.MappingNode):
-        return "a mapping"
-    if isinstance(node, yaml.SequenceNode):
-        return "a list"
-    return repr(node.value)
-
-
-def _text(value: Any) -> str:
-    """A value as it appears in labels: booleans as on/off, floats in their shortest exact form."""
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    if isinstance(value, float):
-        return repr(value)
-    if value is None:
-        return "none"
-    return str(value)
-
-
-def _name(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], source: str) -> str:
+def _name(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], source: str) -> str:
     if "name" in top:
         return reader.text(top["name"][1], what="name")
     return "matrix" if source.startswith("<") else Path(source).stem
@@ -404,13 +187,13 @@ def _name(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], source: 
 # -- brains ------------------------------------------------------------------------------------------------------
 
 
-def _brain_entries(reader: _Reader, node: yaml.Node, *, what: str,
+def _brain_entries(reader: NodeReader, node: yaml.Node, *, what: str,
                    base_dir: Path) -> list[tuple[BrainEntry, yaml.Node]]:
     return [(_brain_entry(reader, item, what=what, base_dir=base_dir), item)
             for item in reader.items(node, what=what)]
 
 
-def _brain_entry(reader: _Reader, node: yaml.Node, *, what: str, base_dir: Path) -> BrainEntry:
+def _brain_entry(reader: NodeReader, node: yaml.Node, *, what: str, base_dir: Path) -> BrainEntry:
     if isinstance(node, yaml.MappingNode):
         fields = reader.mapping(node, what=f"a {what} entry", allowed=BRAIN_KEYS)
     else:
@@ -431,7 +214,7 @@ def _brain_entry(reader: _Reader, node: yaml.Node, *, what: str, base_dir: Path)
     return BrainEntry(label=label, brain=name, weights=weights, options=options)
 
 
-def _weights(reader: _Reader, node: yaml.Node, *, base_dir: Path) -> Path:
+def _weights(reader: NodeReader, node: yaml.Node, *, base_dir: Path) -> Path:
     written = reader.text(node, what="weights")
     path = base_dir / written
     try:
@@ -446,7 +229,7 @@ def _weights(reader: _Reader, node: yaml.Node, *, base_dir: Path) -> Path:
     return path
 
 
-def _options(reader: _Reader, node: yaml.Node) -> tuple[tuple[str, Any], ...]:
+def _options(reader: NodeReader, node: yaml.Node) -> tuple[tuple[str, Any], ...]:
     options = []
     for key, (key_node, value_node) in reader.mapping(node, what="options").items():
         if key == "weights":
@@ -463,7 +246,7 @@ def _options(reader: _Reader, node: yaml.Node) -> tuple[tuple[str, Any], ...]:
     return tuple(options)
 
 
-def _label(reader: _Reader, node: yaml.Node | None, *, name: str, weights: Path | None, entry: yaml.Node) -> str:
+def _label(reader: NodeReader, node: yaml.Node | None, *, name: str, weights: Path | None, entry: yaml.Node) -> str:
     if node is not None:
         label = reader.text(node, what="label")
         where = node
@@ -478,19 +261,19 @@ def _label(reader: _Reader, node: yaml.Node | None, *, name: str, weights: Path 
         raise reader.error(where, f"{error} (it is the brain's bus name{hint})") from None
 
 
-def _check_unique_labels(reader: _Reader, entries: list[tuple[BrainEntry, yaml.Node]]) -> None:
+def _check_unique_labels(reader: NodeReader, entries: list[tuple[BrainEntry, yaml.Node]]) -> None:
     first: dict[str, int] = {}
     for entry, node in entries:
         if entry.label in first:
             raise reader.error(node, f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
                                      f"labels of brains and shadows must differ: give one a `label`)")
-        first[entry.label] = _line(node)
+        first[entry.label] = line_of(node)
 
 
 # -- circuits, settings ------------------------------------------------------------------------------------------
 
 
-def _circuit(reader: _Reader, node: yaml.Node) -> str:
+def _circuit(reader: NodeReader, node: yaml.Node) -> str:
     name = reader.text(node, what="a circuit")
     if not is_circuit_name(name):
         raise reader.error(node, f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
@@ -498,13 +281,13 @@ def _circuit(reader: _Reader, node: yaml.Node) -> str:
     return name
 
 
-def _circuits(reader: _Reader, node: yaml.Node) -> list[str]:
+def _circuits(reader: NodeReader, node: yaml.Node) -> list[str]:
     circuits: dict[str, int] = {}
     for item in reader.items(node, what="circuits"):
         name = _circuit(reader, item)
         if name in circuits:
             raise reader.error(item, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
-        circuits[name] = _line(item)
+        circuits[name] = line_of(item)
     return list(circuits)
 
 
@@ -512,7 +295,7 @@ def _spec_error(error: msgspec.ValidationError) -> str:
     return re.sub(r" - at `\$[^`]*`$", "", str(error))
 
 
-def _base_spec(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> EpisodeSpec:
+def _base_spec(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> EpisodeSpec:
     """The spec every episode starts from: limits, camera and realtime (circuit, seed, brain set per episode)."""
     fields: dict[str, Any] = {}
     if "limits" in top:
@@ -528,7 +311,7 @@ def _base_spec(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> 
         raise reader.error(top.get("limits", (None, None))[1], f"limits: {_spec_error(error)}") from None
 
 
-def _spec_field(reader: _Reader, node: yaml.Node, *, key: str, what: str) -> Any:
+def _spec_field(reader: NodeReader, node: yaml.Node, *, key: str, what: str) -> Any:
     value = reader.scalar(node, what=what)
     try:
         msgspec.convert({key: value}, EpisodeSpec)
@@ -537,7 +320,7 @@ def _spec_field(reader: _Reader, node: yaml.Node, *, key: str, what: str) -> Any
     return value
 
 
-def _camera(reader: _Reader, node: yaml.Node) -> CameraSpec:
+def _camera(reader: NodeReader, node: yaml.Node) -> CameraSpec:
     if isinstance(node, yaml.ScalarNode):
         match = _CAMERA_SIZE.fullmatch(str(reader.value(node)))
         if not match:
@@ -552,209 +335,11 @@ def _camera(reader: _Reader, node: yaml.Node) -> CameraSpec:
     return _convert_camera(reader, node, fields, what="camera")
 
 
-def _convert_camera(reader: _Reader, node: yaml.Node, fields: dict[str, Any], *, what: str) -> CameraSpec:
+def _convert_camera(reader: NodeReader, node: yaml.Node, fields: dict[str, Any], *, what: str) -> CameraSpec:
     try:
         return msgspec.convert(fields, CameraSpec)
     except msgspec.ValidationError as error:
         raise reader.error(node, f"bad {what}: {_spec_error(error)}") from None
-
-
-# -- variations ----------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Axis:
-    """One variation key and its values: (label text, value as apply_variation takes it, line)."""
-
-    key: str
-    values: tuple[tuple[str, Any, int], ...]
-
-
-@dataclass(frozen=True)
-class _World:
-    """One world variation: its label, the items to apply, and the label text of each key (for exclude)."""
-
-    label: str
-    items: tuple[tuple[str, Any], ...] = ()
-
-    @property
-    def texts(self) -> dict[str, str]:
-        return {key: _text(value) for key, value in self.items}
-
-
-def _variation_value(reader: _Reader, node: yaml.Node, *, key: str) -> Any:
-    value = reader.scalar(node, what=f"a value of {key}")
-    _check_finite(reader, node, key, value)
-    try:
-        apply_variation(EpisodeSpec(), {key: value})
-    except VariationError as error:
-        raise reader.error(node, f"bad {key} value {value!r}: {error}") from None
-    return value
-
-
-def _check_variation_key(reader: _Reader, node: yaml.Node, key: str) -> None:
-    if key not in VARIATION_KEYS:
-        raise reader.error(node, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)})")
-
-
-def _axes(reader: _Reader, node: yaml.Node | None) -> list[_Axis]:
-    if node is None:
-        return []
-    axes = []
-    for key, (key_node, values_node) in reader.mapping(node, what="variations").items():
-        _check_variation_key(reader, key_node, key)
-        values: dict[str, tuple[str, Any, int]] = {}
-        for item in reader.items(values_node, what=f"variations.{key}"):
-            value = _variation_value(reader, item, key=key)
-            text = _text(value)
-            if text in values:
-                raise reader.error(item, f"{key} value {text!r} is listed twice (also on line {values[text][2]})")
-            values[text] = (text, value, _line(item))
-        axes.append(_Axis(key=key, values=tuple(values.values())))
-    return axes
-
-
-def _worlds(axes: list[_Axis]) -> list[_World]:
-    if not axes:
-        return [_World(label=DEFAULT_VARIATION)]
-    return [_world([(axis.key, value) for axis, (_, value, _) in zip(axes, combination)])
-            for combination in itertools.product(*(axis.values for axis in axes))]
-
-
-def _listed_worlds(reader: _Reader, node: yaml.Node) -> tuple[list[_World], list[_Axis]]:
-    """``worlds:``, a list of variation mappings: the worlds in written order, and per key the values they use
-    (the axes exclude entries may name)."""
-    worlds: dict[str, tuple[_World, int]] = {}
-    values: dict[str, dict[str, tuple[str, Any, int]]] = {}
-    for item in reader.items(node, what="worlds"):
-        items = []
-        for key, (key_node, value_node) in reader.mapping(item, what="a world").items():
-            _check_variation_key(reader, key_node, key)
-            value = _variation_value(reader, value_node, key=key)
-            items.append((key, value))
-            values.setdefault(key, {}).setdefault(_text(value), (_text(value), value, _line(value_node)))
-        world = _world(items)
-        if world.label in worlds:
-            raise reader.error(item, f"world {world.label!r} is listed twice (also on line {worlds[world.label][1]})")
-        worlds[world.label] = (world, _line(item))
-    axes = [_Axis(key=key, values=tuple(texts.values())) for key, texts in values.items()]
-    return [world for world, _ in worlds.values()], axes
-
-
-def _world(items: list[tuple[str, Any]]) -> _World:
-    if not items:
-        return _World(label=DEFAULT_VARIATION)
-    return _World(label=",".join(f"{key}={_text(value)}" for key, value in items), items=tuple(items))
-
-
-# -- perturbations -------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Perturbation:
-    """Noise stages (in written order) and camera variation items of one perturbation, with its label and line."""
-
-    label: str
-    line: int
-    noise: tuple[NoiseStage, ...] = ()
-    camera: tuple[tuple[str, Any], ...] = ()
-
-
-def _perturbation(reader: _Reader, node: yaml.Node) -> _Perturbation:
-    noise, camera, labels = [], [], []
-    for key, params, item_node in _perturbation_items(reader, node):
-        if key in NOISE_MODEL_NAMES:
-            noise.append(_noise(reader, item_node, key, params))
-        elif key in CAMERA_PERTURBATION_KEYS:
-            _camera_item(reader, item_node, key, params)
-            camera.append((key, params))
-        else:
-            raise reader.error(item_node, f"unknown perturbation {key!r} (noise models: {', '.join(NOISE_MODEL_NAMES)}"
-                                          f"; camera keys: {', '.join(CAMERA_PERTURBATION_KEYS)}; or none)")
-        labels.append(_item_label(key, params))
-    return _Perturbation(label="+".join(labels) or NO_PERTURBATION, line=_line(node), noise=tuple(noise),
-                         camera=tuple(camera))
-
-
-def _perturbation_items(reader: _Reader, node: yaml.Node) -> Iterator[tuple[str, Any, yaml.Node]]:
-    """(key, parameters, node) of each item: noise model or camera key; nothing for ``none``."""
-    if isinstance(node, yaml.MappingNode):
-        entries = reader.mapping(node, what="a perturbation")
-        if not entries:
-            raise reader.error(node, "an empty perturbation (write none for no perturbation)")
-        for key, (key_node, value_node) in entries.items():
-            if isinstance(value_node, yaml.SequenceNode):
-                raise reader.error(value_node, f"perturbation {key!r} takes a value or a mapping, not a list")
-            yield key, reader.value(value_node), key_node
-        return
-    value = reader.scalar(node, what="a perturbation")
-    if value is None or (isinstance(value, str) and value.strip().lower() == NO_PERTURBATION):
-        return
-    if not isinstance(value, str):
-        raise reader.error(node, f"a perturbation is none, \"model=value\", \"camera=left\" or a mapping of them, "
-                                 f"got {value!r}")
-    for part in _ITEM_JOIN.split(value):
-        yield (*_string_item(reader, node, part), node)
-
-
-def _string_item(reader: _Reader, node: yaml.Node, text: str) -> tuple[str, Any]:
-    match = _STRING_ITEM.fullmatch(text)
-    if not match:
-        raise reader.error(node, f"bad perturbation item {text.strip()!r} (want model, model=value, "
-                                 f"model:key=value,... or camera=PRESET)")
-    key, separator, rest = match[1], match[2], match[3]
-    if separator is None:
-        return key, {}
-    if separator == "=":
-        return key, reader.yaml_text(node, rest)
-    try:
-        pairs = parse_pairs(rest)
-    except VariationError as error:
-        raise reader.error(node, f"bad perturbation item {text.strip()!r}: {error}") from None
-    return key, {name: reader.yaml_text(node, value) for name, value in pairs}
-
-
-def _noise(reader: _Reader, node: yaml.Node, model: str, params: Any) -> NoiseStage:
-    try:
-        return noise_stage({model: params})
-    except VariationError as error:
-        raise reader.error(node, f"bad {model} parameters {params!r}: {error}") from None
-
-
-def _camera_item(reader: _Reader, node: yaml.Node, key: str, value: Any) -> None:
-    if isinstance(value, (dict, list)):
-        raise reader.error(node, f"perturbation {key!r} takes a single value, got {value!r}")
-    _check_finite(reader, node, key, value)
-    try:
-        apply_variation(EpisodeSpec(), {key: value})
-    except VariationError as error:
-        raise reader.error(node, f"bad {key} value {value!r}: {error}") from None
-
-
-def _check_finite(reader: _Reader, node: yaml.Node, key: str, value: Any) -> None:
-    if isinstance(value, float) and not math.isfinite(value):
-        raise reader.error(node, f"{key} must be a finite number, got {value!r}")
-
-
-def _item_label(key: str, params: Any) -> str:
-    if isinstance(params, dict):
-        if not params:
-            return key
-        return f"{key}:" + ",".join(f"{name}={_text(value)}" for name, value in params.items())
-    return f"{key}={_text(params)}"
-
-
-def _perturbations(reader: _Reader, node: yaml.Node | None) -> list[_Perturbation]:
-    if node is None:
-        return [_Perturbation(label=NO_PERTURBATION, line=1)]
-    perturbations: dict[str, _Perturbation] = {}
-    for item in reader.items(node, what="perturbations"):
-        perturbation = _perturbation(reader, item)
-        if perturbation.label in perturbations:
-            first = perturbations[perturbation.label].line
-            raise reader.error(item, f"perturbation {perturbation.label!r} is listed twice (also on line {first})")
-        perturbations[perturbation.label] = perturbation
-    return list(perturbations.values())
 
 
 # -- combinations, exclude, include --------------------------------------------------------------------------------
@@ -766,8 +351,8 @@ class _Combination:
 
     brain: BrainEntry
     circuit: str
-    world: _World
-    perturbation: _Perturbation
+    world: World
+    perturbation: Perturbation
 
     def coordinates(self, repetition: int) -> dict[str, str]:
         """Axis -> label text, what exclude entries match against."""
@@ -786,16 +371,16 @@ class _Plan:
     brains: tuple[BrainEntry, ...]
     shadows: tuple[BrainEntry, ...]
     circuits: list[str]
-    axes: list[_Axis]
-    worlds: list[_World]
-    perturbations: list[_Perturbation]
+    axes: list[Axis]
+    worlds: list[World]
+    perturbations: list[Perturbation]
     repetitions: int
     seed: int
     base: EpisodeSpec
     part: str = ""
 
     @classmethod
-    def read(cls, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path,
+    def read(cls, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path,
              part: str = "") -> _Plan:
         brains = _brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
         shadows = (_brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir)
@@ -805,16 +390,16 @@ class _Plan:
             if "repetitions" in top else 1
         seed = reader.integer(top["seed"][1], what="seed", minimum=0) if "seed" in top else 0
         if "worlds" in top:
-            worlds, axes = _listed_worlds(reader, top["worlds"][1])
+            worlds, axes = read_listed_worlds(reader, top["worlds"][1])
         else:
-            axes = _axes(reader, _value_node(top, "variations"))
-            worlds = _worlds(axes)
+            axes = read_axes(reader, _value_node(top, "variations"))
+            worlds = read_worlds(axes)
         return cls(brains=tuple(entry for entry, _ in brains), shadows=tuple(entry for entry, _ in shadows),
                    circuits=_circuits(reader, top["circuits"][1]), axes=axes, worlds=worlds,
-                   perturbations=_perturbations(reader, _value_node(top, "perturbations")),
+                   perturbations=read_perturbations(reader, _value_node(top, "perturbations")),
                    repetitions=repetitions, seed=seed, base=_base_spec(reader, top), part=part)
 
-    def expand(self, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], *,
+    def expand(self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *,
                first_index: int = 0) -> list[PlannedEpisode]:
         self._check_size(reader, top)
         excludes = [self._exclude(reader, item) for item in _list_of(reader, top, "exclude")]
@@ -835,7 +420,7 @@ class _Plan:
         return [self._episode(reader, key, first_index + index, combination, repetition)
                 for index, (key, (combination, repetition)) in enumerate(planned.items())]
 
-    def _check_size(self, reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
+    def _check_size(self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
         count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
         count *= len(self.worlds)
         if count > MAX_EPISODES:
@@ -847,7 +432,7 @@ class _Plan:
                                                                      self.perturbations):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
-    def _exclude(self, reader: _Reader, node: yaml.Node) -> dict[str, str]:
+    def _exclude(self, reader: NodeReader, node: yaml.Node) -> dict[str, str]:
         """An exclude entry as axis -> label text; every value must be one the matrix has (typos fail here)."""
         allowed = ("brain", "circuit", "repetition", "perturbation", *(axis.key for axis in self.axes))
         entries = reader.mapping(node, what="an exclude entry")
@@ -861,15 +446,15 @@ class _Plan:
             raise reader.error(node, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
         return {key: self._exclude_value(reader, key, value_node) for key, (_, value_node) in entries.items()}
 
-    def _exclude_value(self, reader: _Reader, key: str, node: yaml.Node) -> str:
+    def _exclude_value(self, reader: NodeReader, key: str, node: yaml.Node) -> str:
         if key == "perturbation":
-            text = _perturbation(reader, node).label
+            text = read_perturbation(reader, node).label
             known = [perturbation.label for perturbation in self.perturbations]
         elif key == "repetition":
             text = str(reader.integer(node, what="exclude repetition", minimum=0))
             known = [str(repetition) for repetition in range(self.repetitions)]
         else:
-            text = _text(reader.scalar(node, what=f"exclude {key}"))
+            text = label_text(reader.scalar(node, what=f"exclude {key}"))
             known = self._known(key)
         if text not in known:
             raise reader.error(node, f"exclude {key} {text!r} is not in this matrix (known: {', '.join(known)})")
@@ -882,7 +467,7 @@ class _Plan:
             return list(self.circuits)
         return [text for axis in self.axes if axis.key == key for text, _, _ in axis.values]
 
-    def _include(self, reader: _Reader, node: yaml.Node) -> _Combination:
+    def _include(self, reader: NodeReader, node: yaml.Node) -> _Combination:
         allowed = ("brain", "circuit", "perturbation", *VARIATION_KEYS)
         entries = reader.mapping(node, what="an include entry", allowed=allowed)
         if "brain" not in entries or "circuit" not in entries:
@@ -894,19 +479,19 @@ class _Plan:
         if label not in brains:
             raise reader.error(brain_node, f"include brain {label!r} is not a brain label of this matrix "
                                            f"(labels: {', '.join(brains)})")
-        perturbation = (_perturbation(reader, entries["perturbation"][1]) if "perturbation" in entries
-                        else _Perturbation(label=NO_PERTURBATION, line=_line(node)))
+        perturbation = (read_perturbation(reader, entries["perturbation"][1]) if "perturbation" in entries
+                        else Perturbation(label=NO_PERTURBATION, line=line_of(node)))
         return _Combination(brain=brains[label], circuit=_circuit(reader, entries["circuit"][1]),
                             world=self._include_world(reader, entries), perturbation=perturbation)
 
-    def _include_world(self, reader: _Reader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> _World:
+    def _include_world(self, reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> World:
         # Matrix axes first, in their order, so an include of an existing combination has the same label.
         axis_keys = [axis.key for axis in self.axes]
         keys = [key for key in axis_keys if key in entries]
         keys += [key for key in entries if key in VARIATION_KEYS and key not in axis_keys]
-        return _world([(key, _variation_value(reader, entries[key][1], key=key)) for key in keys])
+        return read_world([(key, read_variation_value(reader, entries[key][1], key=key)) for key in keys])
 
-    def _episode(self, reader: _Reader, key: str, index: int, combination: _Combination,
+    def _episode(self, reader: NodeReader, key: str, index: int, combination: _Combination,
                  repetition: int) -> PlannedEpisode:
         spec = msgspec.structs.replace(self.base, circuit=combination.circuit, seed=self.seed + repetition,
                                        active_brain=combination.brain.label,
@@ -928,7 +513,7 @@ def _value_node(top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> yaml.N
     return top[key][1] if key in top else None
 
 
-def _list_of(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> list[yaml.Node]:
+def _list_of(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> list[yaml.Node]:
     return reader.items(top[key][1], what=key) if key in top else []
 
 
@@ -936,39 +521,5 @@ def _matches(exclude: dict[str, str], coordinates: dict[str, str]) -> bool:
     return all(coordinates.get(key) == text for key, text in exclude.items())
 
 
-def _yaml_json(value: Any) -> str:
-    """JSON text that PyYAML reads back as the same value: JSON's ``1e-07`` is a string to YAML 1.1, which wants
-    a dot in the mantissa (``1.0e-07``)."""
-    if isinstance(value, float):
-        text = json.dumps(value)
-        mantissa, e, exponent = text.partition("e")
-        return f"{mantissa}.0e{exponent}" if e and "." not in mantissa else text
-    if isinstance(value, list):
-        return "[" + ", ".join(_yaml_json(item) for item in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(str(key))}: {_yaml_json(item)}" for key, item in value.items()) + "}"
-    return json.dumps(value)
-
-
-def smoke_form(matrix: Matrix, *, brains: Iterable[str] | None = None, cells_per_part: int = 2,
-               sim_seconds: float = 4.0, camera_wh: tuple[int, int] = (160, 120)) -> Matrix:
-    """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
-    first ``cells_per_part`` conditions of every part, repetition 0, ``sim_seconds`` of simulated time on a small
-    camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
-    wanted = None if brains is None else set(brains)
-    kept: list[PlannedEpisode] = []
-    conditions_by_part: dict[str, list] = {}
-    for episode in matrix.episodes:
-        if (wanted is not None and episode.brain.label not in wanted) or episode.repetition != 0:
-            continue
-        conditions = conditions_by_part.setdefault(episode.part, [])
-        condition = (episode.variation, episode.perturbation)
-        if condition not in conditions:
-            if len(conditions) >= cells_per_part:
-                continue
-            conditions.append(condition)
-        camera = msgspec.structs.replace(episode.spec.camera, width_px=camera_wh[0], height_px=camera_wh[1])
-        spec = msgspec.structs.replace(episode.spec, max_sim_seconds=sim_seconds, camera=camera)
-        kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
-    return dataclasses.replace(matrix, name=f"{matrix.name}-smoke", episodes=tuple(kept),
-                               brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted))
+__all__ = ["DEFAULT_VARIATION", "NO_PERTURBATION", "BrainEntry", "Matrix", "MatrixError", "PlannedEpisode",
+           "load_matrix", "parse_matrix", "part_of", "smoke_form"]
