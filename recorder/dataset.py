@@ -21,12 +21,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import json
 import math
 import re
 import shutil
 import sys
-import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
@@ -42,27 +40,34 @@ from tqdm import tqdm
 from protocol import keys
 from protocol.images import frame_image
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeSpec, EventKind
+from recorder.dataset_format import (
+    ABS_YAW_RATE_EDGES_RADPS,
+    ARRAY_FILES,
+    FORMAT_VERSION,
+    INDEX_FILES,
+    LABEL_NAMES,
+    MANIFEST_FILE,
+    DatasetError,
+    DatasetManifest,
+    EpisodeInfo,
+    Histogram,
+    LabelStats,
+    SourceInfo,
+    SplitInfo,
+    Totals,
+    TrainStats,
+    check_offsets,
+    one_line,
+    valid_windows,
+)
+from recorder.dataset_reading import DrivingDataset, samples_per_second
 
 if TYPE_CHECKING:  # only for annotations: reading.py may pull in the MCAP library, this module must not
     from recorder.reading import Recorded
 
-FORMAT_VERSION = 1
-LABEL_NAMES = ("speed_mps", "yaw_rate_radps")
-ARRAY_FILES = ("frames.npy", "labels.npy", "episode.npy", "frame_seq.npy", "stamp_ns.npy")
-INDEX_FILES = {"train": "train_index.npy", "val": "val_index.npy"}
-MANIFEST_FILE = "manifest.json"
-# Bin edges of the |yaw rate| histogram (rad/s): DLS's oversampling thresholds (0.3, 0.5, 1, 2, 3, 4) refined below
-# 1 rad/s, where a pure-pursuit expert spends most of its time. The last bin is open-ended.
-ABS_YAW_RATE_EDGES_RADPS = (0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
-# Unanswered frames held per episode at most: a brain that skips frames (real-time mode) or never answers must not
-# grow memory; a lock-step answer comes one frame later, so this is generous (~7.5 MB at 100x50).
 MAX_PENDING_FRAMES = 500
 MAX_EARLY_COMMANDS = 500
 _SPLIT = re.compile(r"^(none|episode:(?P<fraction>[0-9.]+)|circuit:(?P<circuits>[^,\s]+(,[^,\s]+)*))$")
-
-
-class DatasetError(RuntimeError):
-    """A dataset that cannot be built or opened: one line naming the source or folder and what is wrong."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,17 +117,6 @@ class DatasetOptions:
         return {**dataclasses.asdict(self), "offsets_frames": list(self.offsets_frames)}
 
 
-def check_offsets(offsets_frames: Sequence[int]) -> tuple[int, ...]:
-    """The offsets as a tuple of ints; DatasetError unless they are strictly increasing and end at 0."""
-    offsets = tuple(offsets_frames)
-    if not offsets or not all(isinstance(o, (int, np.integer)) and not isinstance(o, bool) for o in offsets):
-        raise DatasetError(f"bad options: offsets_frames must be a non-empty sequence of ints, got {offsets_frames!r}")
-    offsets = tuple(int(o) for o in offsets)
-    if offsets[-1] != 0 or any(b <= a for a, b in zip(offsets, offsets[1:])):
-        raise DatasetError(f"bad options: offsets_frames must be strictly increasing and end at 0, got {offsets}")
-    return offsets
-
-
 def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
     """("none", None), ("episode", fraction) or ("circuit", names); DatasetError for anything else."""
     match = _SPLIT.match(split)
@@ -140,110 +134,6 @@ def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
     if match["circuits"] is not None:
         return "circuit", tuple(match["circuits"].split(","))
     return "none", None
-
-
-# -- manifest --------------------------------------------------------------------------------------------------------
-
-
-class _Struct(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    pass
-
-
-class EpisodeInfo(_Struct):
-    """One episode of one source. ``index`` is its dataset-wide episode index (``episode.npy``)."""
-
-    index: int
-    run_id: str
-    episode: int
-    circuit: str
-    world: dict[str, Any]
-    noise: list[dict[str, Any]]
-    camera_width_px: int
-    camera_height_px: int
-    step_s: float
-    seed: int
-    active_brain: str
-    label_brains: dict[str, int]  # brain -> frames labelled with its commands
-    commands_ignored: dict[str, int]  # brain -> commands of brains that were not being labelled
-    end_reason: str | None  # None: the recording holds no END event for it
-    frames_kept: int
-    frames_skipped: dict[str, int]  # reason -> frames: dropped, no_command, duplicate (lock-step resend),
-    # bad_frame (payload not rgb8 of its size), bad_label (non-finite command)
-    windows: int  # samples whose whole history window lies in this episode
-    split: str  # "train", "val" or "unused" (no sample kept)
-
-
-class SourceInfo(_Struct):
-    name: str
-    run_ids: list[str]
-    messages: int
-    frames_outside_episodes: int  # camera frames of an episode whose START is not in this source
-    episodes: list[EpisodeInfo]
-
-
-class LabelStats(_Struct):
-    mean: float
-    std: float
-    min: float
-    max: float
-    q01: float
-    q10: float
-    q50: float
-    q90: float
-    q99: float
-
-
-class Histogram(_Struct):
-    """counts[i]: samples with edges[i] <= |w| < edges[i + 1]; the last bin is open-ended (>= edges[-1])."""
-
-    edges_radps: list[float]
-    counts: list[int]
-
-
-class TrainStats(_Struct):
-    """Label statistics of the TRAIN split only (the labels at ``train_index``), raw physical units."""
-
-    samples: int
-    speed_mps: LabelStats
-    yaw_rate_radps: LabelStats
-    abs_yaw_rate_histogram: Histogram
-
-
-class SplitInfo(_Struct):
-    rule: str
-    seed: int
-    train_episodes: list[int]
-    val_episodes: list[int]
-    train_samples: int
-    val_samples: int
-
-
-class Totals(_Struct):
-    samples: int
-    episodes: int
-    frames_skipped: dict[str, int]
-
-
-class DatasetManifest(_Struct):
-    """Everything about a dataset folder, as written to ``manifest.json``.
-
-    offsets_s: offsets_frames x step_s, or None when the episodes have different step_s (then only offsets (0,) are
-    allowed). image_width_px / image_height_px: the stored frame size.
-    """
-
-    format_version: int
-    created_utc: str
-    options: dict[str, Any]
-    image_width_px: int
-    image_height_px: int
-    label_names: list[str]
-    offsets_frames: list[int]
-    step_s: float | None
-    offsets_s: list[float] | None
-    sources: list[SourceInfo]
-    totals: Totals
-    split: SplitInfo
-    train_label_stats: TrainStats
 
 
 # -- writing ---------------------------------------------------------------------------------------------------------
@@ -499,7 +389,7 @@ def _read_source(name: str, open_stream: Callable[[], Iterable[Recorded]], paire
         try:
             iterator = iter(open_stream())
         except Exception as error:
-            raise DatasetError(f"source {name}: cannot be opened: {_one_line(error)}") from error
+            raise DatasetError(f"source {name}: cannot be opened: {one_line(error)}") from error
         while True:
             try:
                 record = next(iterator)
@@ -507,7 +397,7 @@ def _read_source(name: str, open_stream: Callable[[], Iterable[Recorded]], paire
                 break
             except Exception as error:
                 raise DatasetError(f"source {name}: reading failed after {pairer.messages} messages: "
-                                   f"{_one_line(error)}") from error
+                                   f"{one_line(error)}") from error
             try:
                 pairer.feed(record)
             except DatasetError as error:
@@ -515,28 +405,7 @@ def _read_source(name: str, open_stream: Callable[[], Iterable[Recorded]], paire
     pairer.finish()
 
 
-def _one_line(error: BaseException) -> str:
-    text = str(error).strip().splitlines()
-    return f"{type(error).__name__}: {text[0] if text else ''}".rstrip(": ")
-
-
 # -- windows, split, statistics --------------------------------------------------------------------------------------
-
-
-def valid_windows(episode: np.ndarray, frame_seq: np.ndarray, offsets_frames: Sequence[int]) -> np.ndarray:
-    """Indices t (int64) whose samples t + o, for every offset o, exist, lie in t's episode and have
-    frame_seq[t + o] == frame_seq[t] + o: a window never crosses an episode or spans a skipped or dropped frame."""
-    count = len(episode)
-    t = np.arange(count)
-    ok = np.ones(count, dtype=bool)
-    for offset in offsets_frames:
-        if offset == 0:
-            continue
-        source = t + offset
-        ok &= (source >= 0) & (source < count)
-        source = np.clip(source, 0, max(count - 1, 0))
-        ok &= (episode[source] == episode) & (frame_seq[source] == frame_seq + offset)
-    return np.flatnonzero(ok).astype(np.int64)
 
 
 def _choose_val_episodes(options: DatasetOptions, used: list[dict[str, Any]]) -> set[int]:
@@ -749,134 +618,8 @@ def _manifest(options: DatasetOptions, infos, samples: int, step_s: float | None
         train_label_stats=train_label_stats(train_labels))
 
 
-# -- reading ---------------------------------------------------------------------------------------------------------
-
-
-class DrivingDataset:
-    """One split of a dataset folder: sample i = (frames at t + offsets, label at t), t = the split's i-th window.
-
-    split: "train", "val" or "all" (both). offsets_frames: None = the manifest's (the stored index); other offsets
-    (strictly increasing, ending at 0) recompute the valid windows from the episode and frame_seq arrays.
-    Frames are memory-mapped, never loaded whole. Raises DatasetError (one line) for a missing file or bad manifest.
-    """
-
-    def __init__(self, path: Path, *, split: str = "train", offsets_frames: tuple[int, ...] | None = None):
-        self.path = Path(path)
-        if split not in ("train", "val", "all"):
-            raise DatasetError(f"dataset {self.path}: split must be 'train', 'val' or 'all', got {split!r}")
-        self.split = split
-        self._typed = _load_manifest(self.path)
-        self.manifest: dict[str, Any] = msgspec.to_builtins(self._typed)
-        self.frames, self.labels, self.episode, self.frame_seq, self.stamp_ns = _load_arrays(self.path, self._typed)
-        if offsets_frames is None:
-            self.offsets_frames = tuple(self._typed.offsets_frames)
-            self._index = self._stored_index()
-        else:
-            self.offsets_frames = check_offsets(offsets_frames)
-            self._index = self._recomputed_index()
-        self._offsets = np.asarray(self.offsets_frames, dtype=np.int64)
-
-    def _stored_index(self) -> np.ndarray:
-        names = ("train", "val") if self.split == "all" else (self.split,)
-        parts = [_load_index(self.path, INDEX_FILES[name], len(self.frames)) for name in names]
-        return np.sort(np.concatenate(parts))
-
-    def _recomputed_index(self) -> np.ndarray:
-        split = self._typed.split
-        episodes = {"train": split.train_episodes, "val": split.val_episodes,
-                    "all": split.train_episodes + split.val_episodes}[self.split]
-        windows = valid_windows(self.episode, self.frame_seq, self.offsets_frames)
-        return windows[np.isin(self.episode[windows], episodes)]
-
-    @property
-    def index(self) -> np.ndarray:
-        """Sample indices t (into the arrays) of this split's windows."""
-        return self._index
-
-    def __len__(self) -> int:
-        return len(self._index)
-
-    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(frames uint8 (T, H, W, 3) oldest first, label float32 (2,) [speed_mps, yaw_rate_radps] at the last)."""
-        t = int(self._index[i])
-        return np.asarray(self.frames[t + self._offsets]), np.asarray(self.labels[t])
-
-    def batch(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One gather for many items: (frames uint8 (B, T, H, W, 3), labels float32 (B, 2))."""
-        t = self._index[np.asarray(indices, dtype=np.int64)]
-        rows = (t[:, None] + self._offsets[None, :]).reshape(-1)
-        frames = np.asarray(self.frames[rows]).reshape(len(t), len(self._offsets), *self.frames.shape[1:])
-        return frames, np.asarray(self.labels[t])
-
-
-def _load_manifest(path: Path) -> DatasetManifest:
-    if not path.is_dir():
-        raise DatasetError(f"dataset {path}: not a folder")
-    try:
-        raw = (path / MANIFEST_FILE).read_bytes()
-    except OSError as error:
-        raise DatasetError(f"dataset {path}: cannot read {MANIFEST_FILE}: {error.strerror or error}") from None
-    try:
-        version = json.loads(raw).get("format_version")
-    except (ValueError, AttributeError) as error:
-        raise DatasetError(f"dataset {path}: {MANIFEST_FILE} is not a JSON object: {_one_line(error)}") from None
-    if version != FORMAT_VERSION:
-        raise DatasetError(f"dataset {path}: {MANIFEST_FILE} format_version {version!r}, this reader knows "
-                           f"{FORMAT_VERSION}")
-    try:
-        return msgspec.json.decode(raw, type=DatasetManifest)
-    except (msgspec.ValidationError, msgspec.DecodeError) as error:
-        raise DatasetError(f"dataset {path}: bad {MANIFEST_FILE}: {_one_line(error)}") from None
-
-
-def _load_arrays(path: Path, manifest: DatasetManifest) -> tuple[np.ndarray, ...]:
-    if missing := [name for name in (*ARRAY_FILES, *INDEX_FILES.values()) if not (path / name).is_file()]:
-        raise DatasetError(f"dataset {path}: missing {', '.join(missing)}")
-    n = manifest.totals.samples
-    expected = {"frames.npy": (np.uint8, (n, manifest.image_height_px, manifest.image_width_px, 3)),
-                "labels.npy": (np.float32, (n, 2)), "episode.npy": (np.int32, (n,)),
-                "frame_seq.npy": (np.int32, (n,)), "stamp_ns.npy": (np.int64, (n,))}
-    arrays = []
-    for name, (dtype, shape) in expected.items():
-        array = _load_npy(path, name, mmap=name == "frames.npy")
-        if array.dtype != dtype or array.shape != shape:
-            raise DatasetError(f"dataset {path}: {name} is {array.dtype} {array.shape}, the manifest says "
-                               f"{np.dtype(dtype)} {shape}")
-        arrays.append(array)
-    return tuple(arrays)
-
-
-def _load_npy(path: Path, name: str, *, mmap: bool) -> np.ndarray:
-    try:
-        return np.load(path / name, mmap_mode="r" if mmap else None, allow_pickle=False)
-    except (OSError, ValueError) as error:
-        raise DatasetError(f"dataset {path}: cannot read {name}: {_one_line(error)}") from None
-
-
-def _load_index(path: Path, name: str, samples: int) -> np.ndarray:
-    index = _load_npy(path, name, mmap=False)
-    if index.dtype != np.int64 or index.ndim != 1 or (len(index) and not 0 <= index.min() <= index.max() < samples):
-        raise DatasetError(f"dataset {path}: {name} is not an int64 index into {samples} samples")
-    return index
-
-
-def samples_per_second(dataset: DrivingDataset, batch_size: int = 64, seconds: float = 2.0, seed: int = 0) -> float:
-    """Items per second that ``dataset.batch`` delivers for random batches of ``batch_size``, over ``seconds``
-    (after one warm-up batch)."""
-    if len(dataset) == 0:
-        raise DatasetError(f"dataset {dataset.path}: the {dataset.split} split is empty")
-    rng = np.random.default_rng(seed)
-    dataset.batch(rng.integers(0, len(dataset), batch_size))
-    items = 0
-    start = time.perf_counter()
-    while (elapsed := time.perf_counter() - start) < seconds:
-        dataset.batch(rng.integers(0, len(dataset), batch_size))
-        items += batch_size
-    return items / elapsed
-
-
-__all__ = [
-    "ABS_YAW_RATE_EDGES_RADPS", "DatasetError", "DatasetManifest", "DatasetOptions", "DrivingDataset", "EpisodeInfo",
-    "LABEL_NAMES", "build_dataset", "check_offsets", "parse_split", "samples_per_second", "train_label_stats",
-    "valid_windows",
-]
+# Building is this module's; the format and the reader are re-exported so that ``recorder.dataset`` is the one name.
+__all__ = ["ABS_YAW_RATE_EDGES_RADPS", "ARRAY_FILES", "FORMAT_VERSION", "INDEX_FILES", "LABEL_NAMES", "MANIFEST_FILE",
+           "DatasetError", "DatasetManifest", "DatasetOptions", "DrivingDataset", "EpisodeInfo", "Histogram",
+           "LabelStats", "SourceInfo", "SplitInfo", "Totals", "TrainStats", "build_dataset", "check_offsets",
+           "parse_split", "samples_per_second", "train_label_stats", "valid_windows"]

@@ -1,0 +1,161 @@
+"""The on-disk form of a training dataset (``recorder.dataset`` builds it, ``recorder.dataset_reading`` reads it):
+its file names, format version, label names, the yaw-rate bins it balances on, and its manifest."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import msgspec
+import numpy as np
+
+FORMAT_VERSION = 1
+LABEL_NAMES = ("speed_mps", "yaw_rate_radps")
+ARRAY_FILES = ("frames.npy", "labels.npy", "episode.npy", "frame_seq.npy", "stamp_ns.npy")
+INDEX_FILES = {"train": "train_index.npy", "val": "val_index.npy"}
+MANIFEST_FILE = "manifest.json"
+# Bin edges of the |yaw rate| histogram (rad/s): DLS's oversampling thresholds (0.3, 0.5, 1, 2, 3, 4) refined below
+# 1 rad/s, where a pure-pursuit expert spends most of its time. The last bin is open-ended.
+ABS_YAW_RATE_EDGES_RADPS = (0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
+# Unanswered frames held per episode at most: a brain that skips frames (real-time mode) or never answers must not
+# grow memory; a lock-step answer comes one frame later, so this is generous (~7.5 MB at 100x50).
+
+class DatasetError(RuntimeError):
+    """A dataset that cannot be built or opened: one line naming the source or folder and what is wrong."""
+
+
+# -- manifest --------------------------------------------------------------------------------------------------------
+
+
+class _Struct(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    pass
+
+
+class EpisodeInfo(_Struct):
+    """One episode of one source. ``index`` is its dataset-wide episode index (``episode.npy``)."""
+
+    index: int
+    run_id: str
+    episode: int
+    circuit: str
+    world: dict[str, Any]
+    noise: list[dict[str, Any]]
+    camera_width_px: int
+    camera_height_px: int
+    step_s: float
+    seed: int
+    active_brain: str
+    label_brains: dict[str, int]  # brain -> frames labelled with its commands
+    commands_ignored: dict[str, int]  # brain -> commands of brains that were not being labelled
+    end_reason: str | None  # None: the recording holds no END event for it
+    frames_kept: int
+    frames_skipped: dict[str, int]  # reason -> frames: dropped, no_command, duplicate (lock-step resend),
+    # bad_frame (payload not rgb8 of its size), bad_label (non-finite command)
+    windows: int  # samples whose whole history window lies in this episode
+    split: str  # "train", "val" or "unused" (no sample kept)
+
+
+class SourceInfo(_Struct):
+    name: str
+    run_ids: list[str]
+    messages: int
+    frames_outside_episodes: int  # camera frames of an episode whose START is not in this source
+    episodes: list[EpisodeInfo]
+
+
+class LabelStats(_Struct):
+    mean: float
+    std: float
+    min: float
+    max: float
+    q01: float
+    q10: float
+    q50: float
+    q90: float
+    q99: float
+
+
+class Histogram(_Struct):
+    """counts[i]: samples with edges[i] <= |w| < edges[i + 1]; the last bin is open-ended (>= edges[-1])."""
+
+    edges_radps: list[float]
+    counts: list[int]
+
+
+class TrainStats(_Struct):
+    """Label statistics of the TRAIN split only (the labels at ``train_index``), raw physical units."""
+
+    samples: int
+    speed_mps: LabelStats
+    yaw_rate_radps: LabelStats
+    abs_yaw_rate_histogram: Histogram
+
+
+class SplitInfo(_Struct):
+    rule: str
+    seed: int
+    train_episodes: list[int]
+    val_episodes: list[int]
+    train_samples: int
+    val_samples: int
+
+
+class Totals(_Struct):
+    samples: int
+    episodes: int
+    frames_skipped: dict[str, int]
+
+
+class DatasetManifest(_Struct):
+    """Everything about a dataset folder, as written to ``manifest.json``.
+
+    offsets_s: offsets_frames x step_s, or None when the episodes have different step_s (then only offsets (0,) are
+    allowed). image_width_px / image_height_px: the stored frame size.
+    """
+
+    format_version: int
+    created_utc: str
+    options: dict[str, Any]
+    image_width_px: int
+    image_height_px: int
+    label_names: list[str]
+    offsets_frames: list[int]
+    step_s: float | None
+    offsets_s: list[float] | None
+    sources: list[SourceInfo]
+    totals: Totals
+    split: SplitInfo
+    train_label_stats: TrainStats
+
+
+def one_line(error: BaseException) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def check_offsets(offsets_frames: Sequence[int]) -> tuple[int, ...]:
+    """The offsets as a tuple of ints; DatasetError unless they are strictly increasing and end at 0."""
+    offsets = tuple(offsets_frames)
+    if not offsets or not all(isinstance(o, (int, np.integer)) and not isinstance(o, bool) for o in offsets):
+        raise DatasetError(f"bad options: offsets_frames must be a non-empty sequence of ints, got {offsets_frames!r}")
+    offsets = tuple(int(o) for o in offsets)
+    if offsets[-1] != 0 or any(b <= a for a, b in zip(offsets, offsets[1:])):
+        raise DatasetError(f"bad options: offsets_frames must be strictly increasing and end at 0, got {offsets}")
+    return offsets
+
+
+def valid_windows(episode: np.ndarray, frame_seq: np.ndarray, offsets_frames: Sequence[int]) -> np.ndarray:
+    """Indices t (int64) whose samples t + o, for every offset o, exist, lie in t's episode and have
+    frame_seq[t + o] == frame_seq[t] + o: a window never crosses an episode or spans a skipped or dropped frame."""
+    count = len(episode)
+    t = np.arange(count)
+    ok = np.ones(count, dtype=bool)
+    for offset in offsets_frames:
+        if offset == 0:
+            continue
+        source = t + offset
+        ok &= (source >= 0) & (source < count)
+        source = np.clip(source, 0, max(count - 1, 0))
+        ok &= (episode[source] == episode) & (frame_seq[source] == frame_seq + offset)
+    return np.flatnonzero(ok).astype(np.int64)
