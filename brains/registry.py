@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from brains.base import Brain
+from brains.nets import MODELS
 
 ENTRY_POINT_GROUP = "drivebench.brains"
 BEHAVIOR_METRICS = "behavior_metrics"
@@ -36,13 +37,10 @@ _REGISTRY: dict[str, str] = {
     "constant": "brains.constant.brain:ConstantBrain",
     "noisy": "brains.noisy.brain:NoisyBrain",
     "expert": "brains.expert.brain:ExpertBrain",  # privileged: pure pursuit on the ground-truth pose
-    # The paper's networks, served from a checkpoint (``--weights CKPT``); each checks the checkpoint's model.
-    "pilotnet": "brains.neural.brain:pilotnet",
-    "deepest_lstm_tiny_pilotnet": "brains.neural.brain:deepest_lstm_tiny_pilotnet",
-    "pilotnet_x3": "brains.neural.brain:pilotnet_x3",
-    "memdccp": "brains.neural.brain:memdccp",
-    "recurrent_tiny_pilotnet": "brains.neural.brain:recurrent_tiny_pilotnet",  # ours: memory over three frames
-    "neural": "brains.neural.brain:neural",  # any network: whatever the checkpoint holds
+    # Every network of brains.nets is a brain of its name, served from a checkpoint (``--weights CKPT``) that must
+    # hold that network (brains.neural.brain makes the factory); "neural" serves whatever the checkpoint holds.
+    **{name: f"brains.neural.brain:{name}" for name in MODELS},
+    "neural": "brains.neural.brain:neural",
     # A Behavior Metrics brain file, run unchanged: --brain behavior_metrics --brain-option file=brain.py
     BEHAVIOR_METRICS: "brains.behavior_metrics.adapter:BehaviorMetricsBrain",
 }

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import tempfile
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ import cv2
 import numpy as np
 
 from brains.base import Action, Observation
+from brains.nets import MODELS
 from brains.neural.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -219,9 +221,13 @@ def _factory(brain: str, model: str | None):
     return make
 
 
-pilotnet = _factory("pilotnet", "pilotnet")
-deepest_lstm_tiny_pilotnet = _factory("deepest_lstm_tiny_pilotnet", "deepest_lstm_tiny_pilotnet")
-pilotnet_x3 = _factory("pilotnet_x3", "pilotnet_x3")
-memdccp = _factory("memdccp", "memdccp")
-recurrent_tiny_pilotnet = _factory("recurrent_tiny_pilotnet", "recurrent_tiny_pilotnet")
 neural = _factory("neural", None)
+_NETWORK_FACTORIES: dict[str, Callable[..., NeuralBrain]] = {}
+
+
+def __getattr__(name: str) -> Callable[..., NeuralBrain]:
+    """``brains.neural.brain.<network>``: the brain factory of every network in ``brains.nets.MODELS``, made on
+    first use, so that a new network folder is a brain with no line here (PEP 562 module attribute)."""
+    if name not in MODELS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return _NETWORK_FACTORIES.setdefault(name, _factory(name, name))
