@@ -79,7 +79,7 @@ class Traffic(enum.Enum):
     METRICS = "metrics"  # small, latest wins
 
 
-_QOS = {
+_QOS: dict[Traffic, dict[str, Any]] = {
     Traffic.FRAMES: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA),
     Traffic.FRAMES_LOSSLESS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),
     Traffic.COMMANDS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
@@ -104,7 +104,8 @@ class Publisher(Generic[T]):
         self._publisher.put(payload)
 
     def has_subscribers(self) -> bool:
-        return bool(self._publisher.matching_status.matching)
+        status: Any = self._publisher.matching_status  # a MatchingStatus (zenoh's stub says bool)
+        return bool(status.matching)
 
     def close(self) -> None:
         self._publisher.undeclare()
@@ -328,7 +329,8 @@ class Bus:
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
             if reply.ok is not None:
                 return reply.ok.payload.to_bytes()
-            errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
+            if reply.err is not None:
+                errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
         if errors:
             raise BusError(f"request to {key} failed: {errors[0]}")
         return None

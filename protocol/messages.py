@@ -95,7 +95,7 @@ def _check_probability(name: str, value: float) -> None:
         raise ValueError(f"{name} must be within 0..1, got {value}")
 
 
-class SaltPepper(_Noise, tag="salt_pepper"):
+class SaltPepper(_Noise, tag="salt_pepper", frozen=True):
     """Each pixel becomes black or white (equally likely) with ``probability`` (the paper: 0.2, 0.4, 0.6)."""
 
     probability: float
@@ -104,7 +104,7 @@ class SaltPepper(_Noise, tag="salt_pepper"):
         _check_probability("salt_pepper probability", self.probability)
 
 
-class Gaussian(_Noise, tag="gaussian"):
+class Gaussian(_Noise, tag="gaussian", frozen=True):
     """Additive gaussian noise, standard deviation ``sigma`` in 0-255 intensity units, clipped."""
 
     sigma: float
@@ -114,7 +114,7 @@ class Gaussian(_Noise, tag="gaussian"):
             raise ValueError(f"gaussian sigma must be >= 0, got {self.sigma}")
 
 
-class Blur(_Noise, tag="blur"):
+class Blur(_Noise, tag="blur", frozen=True):
     """Gaussian blur with a ``kernel_px`` x ``kernel_px`` kernel (odd)."""
 
     kernel_px: int
@@ -124,7 +124,7 @@ class Blur(_Noise, tag="blur"):
             raise ValueError(f"blur kernel_px must be an odd number >= 1, got {self.kernel_px}")
 
 
-class Brightness(_Noise, tag="brightness"):
+class Brightness(_Noise, tag="brightness", frozen=True):
     """``out = contrast * (in - 128) + 128 + 255 * brightness``, clipped: brightness -1..1, contrast >= 0."""
 
     brightness: float = 0.0
@@ -136,7 +136,7 @@ class Brightness(_Noise, tag="brightness"):
                              f"got {self.brightness}, {self.contrast}")
 
 
-class Occlusion(_Noise, tag="occlusion"):
+class Occlusion(_Noise, tag="occlusion", frozen=True):
     """``patches`` black rectangles, each ``size_fraction`` of the image's height by ``size_fraction`` of its width,
     at random places (they may overlap), in a frame with ``probability``."""
 
@@ -151,7 +151,7 @@ class Occlusion(_Noise, tag="occlusion"):
                              f"{self.size_fraction}")
 
 
-class Jpeg(_Noise, tag="jpeg"):
+class Jpeg(_Noise, tag="jpeg", frozen=True):
     """JPEG re-encoding at ``quality`` (1-100)."""
 
     quality: int
@@ -161,7 +161,7 @@ class Jpeg(_Noise, tag="jpeg"):
             raise ValueError(f"jpeg quality must be within 1..100, got {self.quality}")
 
 
-class Delay(_Noise, tag="delay"):
+class Delay(_Noise, tag="delay", frozen=True):
     """The brain sees the image of ``frames`` frames earlier (the first frames of an episode: the oldest one)."""
 
     frames: int
@@ -171,7 +171,7 @@ class Delay(_Noise, tag="delay"):
             raise ValueError(f"delay frames must be within 0..{MAX_DELAY_FRAMES}, got {self.frames}")
 
 
-class Drop(_Noise, tag="drop"):
+class Drop(_Noise, tag="drop", frozen=True):
     """A frame is lost with ``probability``: the brain gets no new image and its last command stands."""
 
     probability: float

@@ -64,7 +64,7 @@ class ChannelLayout:
 
 
 def type_tag(message_type: type[msgspec.Struct]) -> str:
-    return message_type.__struct_config__.tag
+    return str(message_type.__struct_config__.tag)
 
 
 _TYPES_BY_TAG = {type_tag(t): t for t in BUS_MESSAGES}
@@ -97,7 +97,7 @@ def to_record(message: msgspec.Struct, *, image_format: str = "raw", jpeg_qualit
 
 def record_stamps(message: msgspec.Struct) -> tuple[int, int]:
     """(publish_time_ns, sequence) for the MCAP Message record of a bus message: its header stamp and seq."""
-    header: Header = message.header
+    header: Header = getattr(message, "header")  # every bus message has one; Struct itself does not say so
     return header.stamp_ns, header.seq & 0xFFFFFFFF
 
 

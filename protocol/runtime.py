@@ -18,10 +18,23 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
-from protocol.bus import Bus, BusError
+from protocol.bus import Bus, BusConfig, BusError
 from protocol.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
 
 T = TypeVar("T")
+
+
+class ServiceConfig(Protocol):
+    """What ``service_main`` needs of a service's config type: how to join the bus, and its name on it."""
+
+    @property
+    def bus(self) -> BusConfig: ...
+
+    @property
+    def name(self) -> str: ...
+
+
+C = TypeVar("C", bound=ServiceConfig)
 
 log = logging.getLogger("drivebench")
 
@@ -149,7 +162,7 @@ class Service(Protocol):
     def serve_forever(self) -> None: ...
 
 
-def service_main(role: str, description: str, config_type: type[T], make_service: Callable[[T, Bus], Service],
+def service_main(role: str, description: str, config_type: type[C], make_service: Callable[[C, Bus], Service],
                  argv: list[str] | None = None) -> int:
     """The whole ``main`` of a service: parse, load and log the config, open the bus, serve until stopped.
 

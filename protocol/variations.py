@@ -43,7 +43,7 @@ _BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True,
 # The parameter a bare ``model=value`` sets.
 _PRIMARY = {"salt_pepper": "probability", "gaussian": "sigma", "blur": "kernel_px", "brightness": "brightness",
             "occlusion": "patches", "jpeg": "quality", "delay": "frames", "drop": "probability"}
-_MODELS = {model.__struct_config__.tag: model for model in NOISE_MODELS}
+_MODELS: dict[str, Any] = {str(model.__struct_config__.tag): model for model in NOISE_MODELS}
 
 
 def parse_pairs(text: str) -> list[tuple[str, str]]:

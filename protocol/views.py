@@ -107,7 +107,8 @@ class ViewMaker:
         return [self._view("car_pose", in_frame, log_time_ns), self._view("world_from_car", transform, log_time_ns)]
 
     def _view(self, name: str, message: Message, log_time_ns: int) -> ViewMessage:
-        return ViewMessage(topic=view_topic(name), schema=protobuf_schema(type(message)), message=message,
+        schema = protobuf_schema(type(message))  # type: ignore[arg-type]  # protobuf's stub: classes unhashable
+        return ViewMessage(topic=view_topic(name), schema=schema, message=message,
                            log_time_ns=log_time_ns, run_id=self.run_id)
 
 
