@@ -6,7 +6,8 @@ ARG BASE_IMAGE=python:3.11-slim-bookworm
 
 FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-# EXTRAS=ml: neural brains (torch, onnxruntime). EXTRAS="" gives a small image for the explicit brain and the rest.
+# The image always has the whole stack (drivebench[stack]). EXTRAS=ml adds neural brains (torch, onnxruntime);
+# EXTRAS="" gives a small image for the explicit brain and the rest.
 ARG EXTRAS=ml
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 # A compiler only for packages without a wheel for this platform (pybullet on some architectures).
@@ -24,8 +25,7 @@ COPY services services
 COPY brains brains
 COPY recorder recorder
 COPY orchestrator orchestrator
-# EXTRAS="" installs plain "." (pip rejects ".[]" as an invalid requirement).
-RUN if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi
+RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"
 # Smaller by ~290 MB: pybullet's wheel carries 126 MB of debug symbols and ~170 MB of example robots, meshes and
 # environments (pybullet_data, _envs, _examples, _robots, _utils) that drivebench never loads: it builds its own scene.
 RUN site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") \

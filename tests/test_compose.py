@@ -158,8 +158,8 @@ def test_dockerfile_copies_every_package_the_project_installs():
     assert packages <= copied, f"packages not copied into the image: {packages - copied}"
     for path in copied:
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
-    # EXTRAS= must install plain "." (pip rejects ".[]"; a real engine's build found it).
-    assert 'if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi' in dockerfile
+    # The whole stack always; EXTRAS (ml, or empty: never ".[stack,]", which pip rejects) only adds to it.
+    assert 'RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"' in dockerfile
     assert "ARG EXTRAS=ml" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
     assert "TORCH_INDEX_URL" in dockerfile
     assert re.findall(r"^USER (\S+)", dockerfile, flags=re.M)[-1] not in ("root", "0"), "the image must not run as root"
