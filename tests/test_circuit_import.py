@@ -9,8 +9,9 @@ import pytest
 import yaml
 
 from circuits import CircuitError, circuit_names, load_circuit
-from circuits.importer import import_racetrack_csv, main
+from circuits.importer import import_racetrack_csv
 from circuits.library import check_track, min_turn_radius_m
+from orchestrator.cli import main
 
 HEADER = "# x_m,y_m,w_tr_right_m,w_tr_left_m\n"
 
@@ -185,7 +186,7 @@ def test_a_track_whose_parts_run_too_close_for_its_width_is_refused(tmp_path):
 
 def test_the_command_line_imports_and_reports_errors(tmp_path, user_dir, capsys):
     csv = write_csv(tmp_path / "a.csv", ellipse(100.0, 60.0))
-    assert main([str(csv), "--name", "cli", "--scale", "0.5"]) == 0
-    assert capsys.readouterr().out.strip() == str(user_dir / "cli.yaml")
-    assert main([str(csv), "--name", "simple"]) == 2
+    assert main(["circuits", "import", str(csv), "--name", "cli", "--scale", "0.5"]) == 0
+    assert capsys.readouterr().err.strip().endswith(f"-> {user_dir / 'cli.yaml'}")
+    assert main(["circuits", "import", str(csv), "--name", "simple"]) == 2
     assert "built-in" in capsys.readouterr().err
