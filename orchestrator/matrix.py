@@ -15,6 +15,7 @@ A matrix file::
     camera: 320x240                           # or {width_px: 320, height_px: 240, hfov_rad: ...}
     seed: 7                                   # default 0
     realtime: false                           # default false (lock-step)
+    renderer: gl                              # pybullet, gl or auto (default: pybullet; --renderer overrides)
     shadows: [{name: constant, options: {speed_mps: 2}}]   # brains that see the same frames but never drive
     exclude: [{brain: explicit, line: none}]  # drop every combination matching ALL the given keys
     include: [{brain: explicit, circuit: monaco}]          # extra combinations, expanded over repetitions
@@ -51,7 +52,7 @@ import itertools
 import json
 import math
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,9 +77,10 @@ from protocol.variations import (
     noise_stage,
     parse_pairs,
 )
+from services.simulator.renderers import default_renderer
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
-                  "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")
+                  "camera", "seed", "realtime", "renderer", "shadows", "exclude", "include", "parts")
 # What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
 PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
 BRAIN_KEYS = ("name", "weights", "label", "options")
@@ -89,6 +91,7 @@ NOISE_MODEL_NAMES = tuple(model.__struct_config__.tag for model in NOISE_MODELS)
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
 DEFAULT_VARIATION = "default"
+MATRIX_RENDERER = "pybullet"  # the renderer of a matrix file without `renderer:` (and no $DRIVEBENCH_RENDERER)
 NO_PERTURBATION = "none"
 
 _OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -520,12 +523,27 @@ def _base_spec(reader: _Reader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> 
             fields[key] = _spec_field(reader, value_node, key=key, what=f"limits.{key}")
     if "realtime" in top:
         fields["realtime"] = _spec_field(reader, top["realtime"][1], key="realtime", what="realtime")
+    if "renderer" in top:
+        fields["renderer"] = _spec_field(reader, top["renderer"][1], key="renderer", what="renderer")
+    else:
+        try:
+            fields["renderer"] = default_renderer(MATRIX_RENDERER)
+        except ValueError as error:
+            raise MatrixError(str(error), source=reader.source, line=None) from None
     if "camera" in top:
         fields["camera"] = _camera(reader, top["camera"][1])
     try:
         return msgspec.convert(fields, EpisodeSpec)
     except msgspec.ValidationError as error:
         raise reader.error(top.get("limits", (None, None))[1], f"limits: {_spec_error(error)}") from None
+
+
+def with_renderer(matrix: Matrix, choose: Callable[[str], str]) -> Matrix:
+    """``matrix`` with each episode's renderer replaced by ``choose(renderer)`` (the command line's choice, or
+    "auto" resolved where the stacks run)."""
+    episodes = tuple(dataclasses.replace(episode, spec=msgspec.structs.replace(
+        episode.spec, renderer=choose(episode.spec.renderer))) for episode in matrix.episodes)
+    return dataclasses.replace(matrix, episodes=episodes)
 
 
 def _spec_field(reader: _Reader, node: yaml.Node, *, key: str, what: str) -> Any:

@@ -107,7 +107,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         assert service["image"] == "drivebench:latest", name
         assert service["build"]["context"] == str(ROOT), name
         assert service["build"]["network"] == "host", name
-        assert service["build"]["args"]["EXTRAS"] == "ml", name
+        assert service["build"]["args"]["EXTRAS"] == "ml,gl", name
         assert service["build"]["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm", name
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
         assert "networks" not in service, name
@@ -160,7 +160,7 @@ def test_dockerfile_copies_every_package_the_project_installs():
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
     # EXTRAS= must install plain "." (pip rejects ".[]"; a real engine's build found it).
     assert 'if [ -n "${EXTRAS}" ]; then pip install ".[${EXTRAS}]"; else pip install .; fi' in dockerfile
-    assert "ARG EXTRAS=ml" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
+    assert "ARG EXTRAS=ml,gl" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
     assert "TORCH_INDEX_URL" in dockerfile
     assert re.findall(r"^USER (\S+)", dockerfile, flags=re.M)[-1] not in ("root", "0"), "the image must not run as root"
     assert (ROOT / ".dockerignore").read_text().count(".venv") == 1
