@@ -306,3 +306,26 @@ def test_the_simulator_resolves_auto_itself_for_an_attached_driver(tmp_path):
         reference = stack.run_episode(EpisodeSpec(renderer="pybullet", max_sim_seconds=1.0))  # same simulator
     assert score.spec.renderer == "gl" and score.metrics.steps >= 19
     assert reference.spec.renderer == "pybullet" and reference.metrics.steps == score.metrics.steps
+
+
+def test_dataset_collect_puts_its_renderer_in_every_spec(monkeypatch):
+    import argparse
+
+    from orchestrator.collect import CollectError, collection_specs
+
+    args = argparse.Namespace(circuits="simple,montreal", direction="forward", laps=1, max_sim_seconds=100.0,
+                              camera=(320, 240), recovery_noise=0.0, brain="explicit", variation=[], randomise=False,
+                              renderer="pybullet")
+    assert {spec.renderer for spec in collection_specs(args)} == {"pybullet"}
+    child = _child("""
+        import argparse
+        from orchestrator.collect import collection_specs
+        args = argparse.Namespace(circuits="simple", direction="forward", laps=1, max_sim_seconds=100.0,
+                                  camera=(320, 240), recovery_noise=0.0, brain="explicit", variation=[],
+                                  randomise=False, renderer="auto")
+        print(collection_specs(args)[0].renderer)
+    """, NO_EGL)
+    assert child.stdout.strip() == "pybullet" and "renderer auto: using pybullet" in child.stderr
+    monkeypatch.setenv("DRIVEBENCH_RENDERER", "vulkan")
+    with pytest.raises(CollectError, match="DRIVEBENCH_RENDERER must be one of"):
+        collection_specs(argparse.Namespace(**{**vars(args), "renderer": None}))
