@@ -26,7 +26,7 @@ from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
-COLLECT_RENDERER = "pybullet"  # the renderer without --renderer or $DRIVEBENCH_RENDERER
+COLLECT_RENDERER = "auto"  # without --renderer or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 
 
 def collection_brains(args: argparse.Namespace) -> list[BrainLaunch]:

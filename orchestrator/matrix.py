@@ -15,7 +15,7 @@ A matrix file::
     camera: 320x240                           # or {width_px: 320, height_px: 240, hfov_rad: ...}
     seed: 7                                   # default 0
     realtime: false                           # default false (lock-step)
-    renderer: gl                              # pybullet, gl or auto (default: pybullet; --renderer overrides)
+    renderer: pybullet                        # pybullet, gl or auto (default: auto; --renderer overrides)
     shadows: [{name: constant, options: {speed_mps: 2}}]   # brains that see the same frames but never drive
     exclude: [{brain: explicit, line: none}]  # drop every combination matching ALL the given keys
     include: [{brain: explicit, circuit: monaco}]          # extra combinations, expanded over repetitions
@@ -91,7 +91,7 @@ NOISE_MODEL_NAMES = tuple(model.__struct_config__.tag for model in NOISE_MODELS)
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
 DEFAULT_VARIATION = "default"
-MATRIX_RENDERER = "pybullet"  # the renderer of a matrix file without `renderer:` (and no $DRIVEBENCH_RENDERER)
+MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 NO_PERTURBATION = "none"
 
 _OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")

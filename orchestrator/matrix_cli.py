@@ -51,7 +51,7 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
     parser.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
                         help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
-                             "else $DRIVEBENCH_RENDERER, else pybullet)")
+                             "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)")
 
 
 def load_matrix_file(path: Path):

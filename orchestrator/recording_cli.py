@@ -63,7 +63,7 @@ def add_dataset_commands(commands: argparse._SubParsersAction, parse_camera) -> 
                          help="simulator camera (default 320x240); --size sets the dataset's image size")
     collect.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
                          help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
-                              "else pybullet")
+                              "else auto (gl where EGL works, else pybullet)")
     collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                          help="world variation for every circuit, as in drivebench run (with --randomise: pins "
                               "what it names, e.g. line=none,walls=off, and the rest is still drawn)")

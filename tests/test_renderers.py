@@ -253,7 +253,12 @@ def test_llvmpipe_gets_one_thread_unless_the_user_chose():
     assert _child(code, {"LP_NUM_THREADS": "2"}).stdout.strip() == "2"
 
 
-def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it():
+def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it(monkeypatch):
+    monkeypatch.delenv("DRIVEBENCH_RENDERER", raising=False)
+    default = parse_matrix("brains: [explicit]\ncircuits: [simple]\n")
+    assert {episode.spec.renderer for episode in default.episodes} == {"auto"}  # parity holds: gl where EGL works
+    monkeypatch.setenv("DRIVEBENCH_RENDERER", "pybullet")
+    assert parse_matrix("brains: [explicit]\ncircuits: [simple]\n").episodes[0].spec.renderer == "pybullet"
     text = "brains: [explicit]\ncircuits: [simple]\nrenderer: gl\n"
     matrix = parse_matrix(text)
     assert {episode.spec.renderer for episode in matrix.episodes} == {"gl"}
