@@ -33,7 +33,6 @@ import numpy as np
 from circuits import Circuit
 from protocol.messages import CameraSpec, WorldVariation
 from services.simulator.car import CarState
-from services.simulator.scene import grass_occluded
 from services.simulator.world import (
     SceneDescription,
     camera_eye_and_axes,
@@ -132,7 +131,6 @@ class GLScene:
         self._vao = self._ctx.vertex_array(self._program, [(self._vbo, "3f 3f", "in_position", "in_colour")])
         self._centres = np.stack([mesh.centre_m for mesh in description.meshes])
         self._radii = np.array([mesh.radius_m for mesh in description.meshes])
-        self._is_grass = np.array([mesh.kind == "grass" for mesh in description.meshes])
         self._framebuffers: dict[tuple[int, int], object] = {}
         self._sky = tuple(channel / 255.0 for channel in description.sky_rgb)
         self.visible_chunk_count = len(description.meshes)
@@ -160,22 +158,24 @@ class GLScene:
         return framebuffer
 
     def _visible_runs(self, eye: np.ndarray, far_m: float) -> list[tuple[int, int]]:
-        """(first vertex, vertex count) of each run of consecutive chunks to draw."""
+        """(first vertex, vertex count) of each run of consecutive chunks to draw.
+
+        Unlike the PyBullet scene, the grass is not hidden when the walls occlude it: here the depth test rejects
+        its pixels for less than the centre-line projection that decides it costs (measured: 0.13 ms a frame).
+        """
         if self.cull_margin_m is None:
             draw = np.ones(len(self._radii), dtype=bool)
         else:
-            draw = np.linalg.norm(self._centres - eye, axis=1) - self._radii <= far_m + self.cull_margin_m
-            if grass_occluded(self.description, eye):
-                draw &= ~self._is_grass
+            offsets = self._centres - eye
+            gaps = np.sqrt(np.einsum("ij,ij->i", offsets, offsets)) - self._radii
+            draw = gaps <= far_m + self.cull_margin_m
         self.visible_chunk_count = int(draw.sum())
-        runs: list[tuple[int, int]] = []
-        for index in np.flatnonzero(draw).tolist():
-            first, count = int(self._first[index]), int(self._count[index])
-            if runs and runs[-1][0] + runs[-1][1] == first:
-                runs[-1] = (runs[-1][0], runs[-1][1] + count)
-            else:
-                runs.append((first, count))
-        return runs
+        # Runs of consecutive drawn chunks: one draw call each.
+        edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
+        starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        firsts = self._first[starts]
+        lasts = self._first[ends - 1] + self._count[ends - 1]
+        return list(zip(firsts.tolist(), (lasts - firsts).tolist()))
 
     def render(self, car: CarState, camera: CameraSpec) -> np.ndarray:
         """The camera image for the car at ``car``: height_px x width_px x 3 uint8 RGB, row 0 at the top."""

@@ -239,11 +239,12 @@ def camera_eye_and_axes(car: CarState, camera: CameraSpec) -> tuple[np.ndarray, 
 def view_matrix(car: CarState, camera: CameraSpec) -> np.ndarray:
     """camera_from_world, 4x4 (OpenGL convention: the camera looks along -z, y up), as gluLookAt builds it."""
     eye, forward, up = camera_eye_and_axes(car, camera)
-    side = np.cross(forward, up)
-    side /= np.linalg.norm(side)
-    true_up = np.cross(side, forward)
+    # forward and up are orthonormal by construction, so side = forward x up is a unit vector and up is already
+    # gluLookAt's recomputed up; written out, since np.cross costs more than the rest of a small frame's set-up.
+    side = np.array([forward[1] * up[2] - forward[2] * up[1], forward[2] * up[0] - forward[0] * up[2],
+                     forward[0] * up[1] - forward[1] * up[0]])
     view = np.eye(4)
-    view[0, :3], view[1, :3], view[2, :3] = side, true_up, -forward
+    view[0, :3], view[1, :3], view[2, :3] = side, up, -forward
     view[:3, 3] = -view[:3, :3] @ eye
     return view
 
