@@ -334,3 +334,21 @@ def test_dataset_collect_puts_its_renderer_in_every_spec(monkeypatch):
     monkeypatch.setenv("DRIVEBENCH_RENDERER", "vulkan")
     with pytest.raises(CollectError, match="DRIVEBENCH_RENDERER must be one of"):
         collection_specs(argparse.Namespace(**{**vars(args), "renderer": None}))
+
+
+@pytest.mark.integration
+def test_a_simulator_without_egl_refuses_gl_in_one_line_and_falls_back_for_auto(tmp_path, monkeypatch):
+    """The simulator's own check, for a driver that did not resolve the renderer (an attached one): gl is refused
+    with the reason, auto runs with pybullet and the score says so."""
+    from orchestrator.launcher import BrainLaunch, LocalStack, StackError
+
+    monkeypatch.setenv("GLCONTEXT_LINUX_LIBEGL", NO_EGL["GLCONTEXT_LINUX_LIBEGL"])  # the stack's processes inherit it
+    with LocalStack(run_id="noegl", run_dir=tmp_path, brains=[BrainLaunch("explicit")]) as stack:
+        with pytest.raises(StackError, match=r"renderer gl: no EGL OpenGL 3.3 context: .* not loaded") as refused:
+            stack.run_episode(EpisodeSpec(renderer="gl", max_sim_seconds=0.5))
+        score = stack.run_episode(EpisodeSpec(renderer="auto", max_sim_seconds=0.5))
+    assert "\n" not in str(refused.value)
+    assert score.spec.renderer == "pybullet" and score.metrics.steps == 10
+    notices = [line for line in (tmp_path / "logs" / "simulator.log").read_text().splitlines()
+               if "renderer auto: using pybullet" in line]
+    assert len(notices) == 1 and "not loaded" in notices[0]
