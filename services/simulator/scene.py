@@ -1,7 +1,9 @@
 """The rendered world of one circuit: road, centre line, walls, grass and sky, seen by the car's front camera.
 
-PyBullet in ``DIRECT`` mode with the CPU ``ER_TINY_RENDERER`` (no GL, deterministic pixels); see
-``reference/simulator.md`` for the measurements behind the choices here:
+PyBullet in ``DIRECT`` mode with the CPU ``ER_TINY_RENDERER`` (no GL, deterministic pixels): the reference renderer.
+The world itself (meshes, colours, lighting, sky) is :mod:`services.simulator.world`'s scene description, which the
+``gl`` backend (:mod:`services.simulator.gl_scene`) draws too. See ``reference/simulator.md`` for the measurements
+behind the choices here:
 
 * Every mesh is split into chunks of at most :data:`MAX_TRIANGLES_PER_CHUNK` triangles (about 25 m of track). Before
   each frame, chunks whose bounding sphere lies entirely beyond the camera's far plane plus a margin get alpha 0,
