@@ -36,10 +36,11 @@ RUN site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"
     && python -c "import pybullet; pybullet.connect(pybullet.DIRECT); pybullet.disconnect()"
 
 FROM ${BASE_IMAGE}
-# libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed. EGL and Mesa's
-# llvmpipe for --renderer gl without a GPU (DRIVEBENCH_RENDERER=gl|auto in compose's environment).
-RUN apt-get update && apt-get install -y --no-install-recommends libgomp1 libegl1 libgl1 libegl-mesa0 \
-       libgl1-mesa-dri libgbm1 \
+ARG EXTRAS=ml,gl
+# libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed. With the gl extra,
+# EGL and Mesa's llvmpipe (~145 MB, LLVM most of it) for --renderer gl without a GPU (DRIVEBENCH_RENDERER in compose).
+RUN case ",${EXTRAS}," in *,gl,*) gl="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1" ;; *) gl="" ;; esac \
+    && apt-get update && apt-get install -y --no-install-recommends libgomp1 $gl \
     && rm -rf /var/lib/apt/lists/*
 COPY --from=build /opt/venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \
