@@ -6,9 +6,10 @@ ARG BASE_IMAGE=python:3.11-slim-bookworm
 
 FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-# The image always has the whole stack (drivebench[stack]). EXTRAS=ml adds neural brains (torch, onnxruntime);
-# EXTRAS="" gives a small image for the explicit brain and the rest.
-ARG EXTRAS=ml
+# The image always has the whole stack (drivebench[stack]). EXTRAS adds to it: ml, neural brains (torch,
+# onnxruntime); gl, the fast renderer (moderngl, Mesa's EGL). EXTRAS="" gives a small image for the explicit brain
+# and the rest (PyBullet's renderer only).
+ARG EXTRAS=ml,gl
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 # A compiler only for packages without a wheel for this platform (pybullet on some architectures).
 RUN apt-get update && apt-get install -y --no-install-recommends build-essential \
@@ -35,8 +36,11 @@ RUN site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"
     && python -c "import pybullet; pybullet.connect(pybullet.DIRECT); pybullet.disconnect()"
 
 FROM ${BASE_IMAGE}
-# libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed.
-RUN apt-get update && apt-get install -y --no-install-recommends libgomp1 \
+ARG EXTRAS=ml,gl
+# libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed. With the gl extra,
+# EGL and Mesa's llvmpipe (~145 MB, LLVM most of it) for --renderer gl without a GPU (DRIVEBENCH_RENDERER in compose).
+RUN case ",${EXTRAS}," in *,gl,*) gl="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1" ;; *) gl="" ;; esac \
+    && apt-get update && apt-get install -y --no-install-recommends libgomp1 $gl \
     && rm -rf /var/lib/apt/lists/*
 COPY --from=build /opt/venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \

@@ -1,7 +1,9 @@
 """Episodes per hour of a matrix, with 1 and with N workers, side by side in one run; and what a fresh stack per
 episode costs against the episode itself.
 
-    .venv/bin/python benchmarks/matrix.py [--episodes 6] [--sim-seconds 20] [--workers 2]
+    .venv/bin/python benchmarks/matrix.py [--episodes 6] [--sim-seconds 20] [--workers 2] [--renderers pybullet,gl]
+
+Each renderer (``--renderers``) runs both cases, side by side in one run.
 
 Every episode gets a fresh stack (its own processes under its own run id); the start-up share says what that
 isolation costs. Lock-step episodes are CPU-bound, so more workers than cores buys nothing.
@@ -21,9 +23,9 @@ from orchestrator.matrix_runner import MatrixRunner, RunOptions
 from orchestrator.results import ResultStore
 
 
-def matrix_text(*, episodes: int, sim_seconds: float, camera: str) -> str:
+def matrix_text(*, episodes: int, sim_seconds: float, camera: str, renderer: str = "pybullet") -> str:
     return (f"name: bench\nbrains: [explicit]\ncircuits: [simple]\nrepetitions: {episodes}\n"
-            f"limits: {{laps: 1, max_sim_seconds: {sim_seconds}}}\ncamera: {camera}\n")
+            f"limits: {{laps: 1, max_sim_seconds: {sim_seconds}}}\ncamera: {camera}\nrenderer: {renderer}\n")
 
 
 def run_case(text: str, workers: int) -> dict:
@@ -47,15 +49,21 @@ def main() -> int:
     parser.add_argument("--sim-seconds", type=float, default=20.0, help="simulated seconds per episode")
     parser.add_argument("--workers", type=int, default=2, help="the parallel case (the other is 1)")
     parser.add_argument("--camera", default="320x240")
+    parser.add_argument("--renderers", default="pybullet,gl", help="renderers side by side (default pybullet,gl)")
     args = parser.parse_args()
-    text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera)
-    rows = [run_case(text, 1), run_case(text, args.workers)]
-    base = rows[0]["episodes_per_hour"]
-    print(f"{args.episodes} episodes of {args.sim_seconds:.0f} s sim (explicit, simple, {args.camera})\n")
-    print("| workers | wall | episodes/hour | vs 1 worker | episode (sim loop) | stack start + stop per episode |")
-    print("|---|---|---|---|---|---|")
+    rows = []
+    for renderer in args.renderers.split(","):
+        text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera,
+                           renderer=renderer)
+        rows += [{**run_case(text, 1), "renderer": renderer}, {**run_case(text, args.workers), "renderer": renderer}]
+    print(f"{args.episodes} episodes of at most {args.sim_seconds:.0f} s sim, one lap (explicit, simple, "
+          f"{args.camera})\n")
+    print("| renderer | workers | wall | episodes/hour | vs 1 worker | episode (sim loop) | stack start + stop per "
+          "episode |")
+    print("|---|---|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+        base = next(r for r in rows if r["renderer"] == row["renderer"])["episodes_per_hour"]
+        print(f"| {row['renderer']} | {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
               f"{row['episodes_per_hour'] / base:.2f}x | {row['episode_s']:.1f} s | {row['overhead_s']:.1f} s |")
     failed = sum(row["failed"] for row in rows)
     if failed:

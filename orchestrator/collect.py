@@ -23,8 +23,10 @@ from orchestrator.launcher import BrainLaunch, LocalStack
 from orchestrator.progress import EpisodeProgress
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
+from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
+COLLECT_RENDERER = "auto"  # without --renderer or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 
 
 def collection_brains(args: argparse.Namespace) -> list[BrainLaunch]:
@@ -44,6 +46,10 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
     if not circuits:
         raise CollectError("--circuits needs at least one circuit name")
     directions = ("forward", "reverse") if args.direction == "both" else (args.direction,)
+    try:
+        renderer = choose_renderer(getattr(args, "renderer", None), fallback=COLLECT_RENDERER)
+    except ValueError as error:
+        raise CollectError(str(error)) from None
     specs = []
     for index, circuit in enumerate(circuits):
         for direction in directions:
@@ -54,7 +60,7 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                 spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=seed,
                                    camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
                                    active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
-                                   direction=direction)
+                                   direction=direction, renderer=renderer)
                 if getattr(args, "randomise", False):
                     spec = randomised(spec)
                 for variation in args.variation:  # after the draw: what is pinned stays pinned

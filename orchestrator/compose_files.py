@@ -51,7 +51,7 @@ x-drivebench: &drivebench
     args:
       BASE_IMAGE: ${BASE_IMAGE:-python:3.11-slim-bookworm}
       TORCH_INDEX_URL: ${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}
-      EXTRAS: ${EXTRAS-ml}  # EXTRAS= (empty): no torch, a small image for the explicit brain
+      EXTRAS: ${EXTRAS-ml,gl}  # EXTRAS= (empty): no torch, no moderngl, a small image for the explicit brain
   network_mode: host
   # Never root; your uid and gid keep ./results yours (DRIVEBENCH_UID=$(id -u) DRIVEBENCH_GID=$(id -g) when not 1000).
   # Create ./results before the first `up`: a folder Docker creates for a bind mount belongs to root.
@@ -64,6 +64,7 @@ x-drivebench: &drivebench
     DRIVEBENCH_MODE: ${DRIVEBENCH_MODE:-}  # empty: peer; `client` for a process on another machine than the router
     DRIVEBENCH_RUN_ID: ${DRIVEBENCH_RUN_ID:-compose}
     DRIVEBENCH_LOG: ${DRIVEBENCH_LOG:-INFO}
+    DRIVEBENCH_RENDERER: ${DRIVEBENCH_RENDERER:-}  # camera renderer: pybullet (empty), gl or auto
   volumes:
     - ${RESULTS_DIR:-./results}:/results
 

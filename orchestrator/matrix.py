@@ -15,6 +15,7 @@ A matrix file::
     camera: 320x240                           # or {width_px: 320, height_px: 240, hfov_rad: ...}
     seed: 7                                   # default 0
     realtime: false                           # default false (lock-step)
+    renderer: pybullet                        # pybullet, gl or auto (default: auto; --renderer overrides)
     shadows: [{name: constant, options: {speed_mps: 2}}]   # brains that see the same frames but never drive
     exclude: [{brain: explicit, line: none}]  # drop every combination matching ALL the given keys
     include: [{brain: explicit, circuit: monaco}]          # extra combinations, expanded over repetitions
@@ -82,6 +83,7 @@ from orchestrator.matrix_plan import (
     PlannedEpisode,
     part_of,
     smoke_form,
+    with_renderer,
 )
 from orchestrator.yaml_nodes import NodeReader, label_text, line_of
 from protocol.keys import check_name
@@ -92,15 +94,17 @@ from protocol.variations import (
     VariationError,
     apply_variation,
 )
+from services.simulator.renderers import default_renderer
 
 TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
-                  "camera", "seed", "realtime", "shadows", "exclude", "include", "parts")
+                  "camera", "seed", "realtime", "renderer", "shadows", "exclude", "include", "parts")
 # What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
 PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
 BRAIN_KEYS = ("name", "weights", "label", "options")
 LIMIT_KEYS = ("laps", "max_sim_seconds", "brain_timeout_s", "step_s")
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
+MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 
 _OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
@@ -303,6 +307,13 @@ def _base_spec(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) 
             fields[key] = _spec_field(reader, value_node, key=key, what=f"limits.{key}")
     if "realtime" in top:
         fields["realtime"] = _spec_field(reader, top["realtime"][1], key="realtime", what="realtime")
+    if "renderer" in top:
+        fields["renderer"] = _spec_field(reader, top["renderer"][1], key="renderer", what="renderer")
+    else:
+        try:
+            fields["renderer"] = default_renderer(MATRIX_RENDERER)
+        except ValueError as error:
+            raise MatrixError(str(error), source=reader.source, line=None) from None
     if "camera" in top:
         fields["camera"] = _camera(reader, top["camera"][1])
     try:
@@ -522,4 +533,4 @@ def _matches(exclude: dict[str, str], coordinates: dict[str, str]) -> bool:
 
 
 __all__ = ["DEFAULT_VARIATION", "NO_PERTURBATION", "BrainEntry", "Matrix", "MatrixError", "PlannedEpisode",
-           "load_matrix", "parse_matrix", "part_of", "smoke_form"]
+           "load_matrix", "parse_matrix", "part_of", "smoke_form", "with_renderer"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,3 +142,11 @@ def smoke_form(matrix: Matrix, *, brains: Iterable[str] | None = None, cells_per
         kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
     return dataclasses.replace(matrix, name=f"{matrix.name}-smoke", episodes=tuple(kept),
                                brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted))
+
+
+def with_renderer(matrix: Matrix, choose: Callable[[str], str]) -> Matrix:
+    """``matrix`` with each episode's renderer replaced by ``choose(renderer)`` (the command line's choice, or
+    "auto" resolved where the stacks run)."""
+    episodes = tuple(dataclasses.replace(episode, spec=msgspec.structs.replace(
+        episode.spec, renderer=choose(episode.spec.renderer))) for episode in matrix.episodes)
+    return dataclasses.replace(matrix, episodes=episodes)

@@ -107,7 +107,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         assert service["image"] == "drivebench:latest", name
         assert service["build"]["context"] == str(ROOT), name
         assert service["build"]["network"] == "host", name
-        assert service["build"]["args"]["EXTRAS"] == "ml", name
+        assert service["build"]["args"]["EXTRAS"] == "ml,gl", name
         assert service["build"]["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm", name
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
         assert "networks" not in service, name
@@ -158,9 +158,9 @@ def test_dockerfile_copies_every_package_the_project_installs():
     assert packages <= copied, f"packages not copied into the image: {packages - copied}"
     for path in copied:
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
-    # The whole stack always; EXTRAS (ml, or empty: never ".[stack,]", which pip rejects) only adds to it.
+    # The whole stack always; EXTRAS (ml,gl, or empty: never ".[stack,]", which pip rejects) only adds to it.
     assert 'RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"' in dockerfile
-    assert "ARG EXTRAS=ml" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
+    assert "ARG EXTRAS=ml,gl" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
     assert "TORCH_INDEX_URL" in dockerfile
     assert re.findall(r"^USER (\S+)", dockerfile, flags=re.M)[-1] not in ("root", "0"), "the image must not run as root"
     assert (ROOT / ".dockerignore").read_text().count(".venv") == 1

@@ -46,6 +46,9 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     parser.add_argument("--retry-failed", action="store_true",
                         help="with --resume: also run again the episodes the stack failed")
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+    parser.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
+                        help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
+                             "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)")
 
 
 def load_matrix_file(path: Path):
@@ -81,6 +84,26 @@ def _preflight(matrix) -> None:
             raise UsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
 
 
+def _resolve_renderers(matrix, requested: str | None):
+    """Every episode's renderer: ``requested`` (--renderer) over the file's, with "auto" resolved here, where the
+    matrix's stacks run (one notice on stderr when it falls back), and "gl" checked before the first episode."""
+    from orchestrator.matrix import with_renderer
+    from services.simulator.renderers import choose_renderer
+
+    chosen: dict[str, str] = {}
+
+    def choose(renderer: str) -> str:
+        wanted = requested or renderer
+        if wanted not in chosen:
+            try:
+                chosen[wanted] = choose_renderer(wanted)
+            except ValueError as error:
+                raise UsageError(f"{matrix.name}: {error}") from None
+        return chosen[wanted]
+
+    return with_renderer(matrix, choose)
+
+
 def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
                     report: bool = True, facts: dict | None = None) -> int:
     """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say, with progress on stderr, then
@@ -102,6 +125,7 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
         raise UsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed goes with --resume")
+    matrix = _resolve_renderers(matrix, getattr(args, "renderer", None))
     _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():

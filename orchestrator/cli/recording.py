@@ -90,6 +90,9 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     collect.add_argument("--brain", default="explicit", help="the brain whose driving is recorded (default explicit)")
     collect.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
                          help="simulator camera (default 320x240); --size sets the dataset's image size")
+    collect.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
+                         help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
+                              "else auto (gl where EGL works, else pybullet)")
     collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                          help="world variation for every circuit, as in drivebench run (with --randomise: pins "
                               "what it names, e.g. line=none,walls=off, and the rest is still drawn)")

@@ -32,8 +32,9 @@ from orchestrator.progress import EpisodeProgress
 from orchestrator.report import metrics_table
 from protocol import codec
 from protocol.bus import BusError
-from protocol.messages import CameraSpec, EpisodeScore, EpisodeSpec
+from protocol.messages import RENDERERS, CameraSpec, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
+from services.simulator.renderers import choose_renderer
 
 
 def parse_camera(text: str) -> tuple[int, int]:
@@ -62,6 +63,10 @@ def add(commands: argparse._SubParsersAction) -> None:
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
     run.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
                      help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)")
+    run.add_argument("--renderer", choices=RENDERERS,
+                     help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same "
+                          "scene, ~10x faster) or auto (gl where EGL works, else pybullet); default: "
+                          "$DRIVEBENCH_RENDERER, else pybullet")
     run.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
                      help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
                           "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
@@ -105,7 +110,8 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
                            realtime=args.realtime, camera=CameraSpec(width_px=width, height_px=height),
                            active_brain=args.brain if args.attach else bus_name(args.brain),
                            brain_timeout_s=args.brain_timeout,
-                           noise=[noise_stage(item) for item in args.noise], direction=args.direction)
+                           noise=[noise_stage(item) for item in args.noise], direction=args.direction,
+                           renderer=choose_renderer(args.renderer, local=not args.attach))
         for variation in args.variation:
             spec = apply_variation(spec, variation)
         return spec
@@ -141,7 +147,7 @@ def command_run(args: argparse.Namespace) -> int:
         "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
     }, sort_keys=False))
     print(f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
-          f"camera {spec.camera.width_px}x{spec.camera.height_px}, "
+          f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
           f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}", file=sys.stderr)
     if args.record is not None and args.record.suffix != ".mcap":
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")

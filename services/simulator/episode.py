@@ -14,7 +14,7 @@ import numpy as np
 from circuits import Circuit, load_circuit
 from protocol.messages import EndReason, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState, integrate_unicycle
-from services.simulator.scene import Scene
+from services.simulator.renderers import Renderer, make_scene, resolve_renderer
 
 # Behavior Metrics' F1 car is ~1 m long and ~0.4 m wide (the 0.2-scaled Renault mesh). It touches a wall when its
 # centre is closer than half its width to the road edge.
@@ -22,23 +22,27 @@ CAR_HALF_WIDTH_M = 0.2
 
 
 class SceneCache:
-    """Scenes by circuit and world variation: building one costs far more than a step, and episodes reuse them.
+    """Scenes by circuit, world variation and renderer: building one costs far more than a step, and episodes reuse
+    them.
 
-    Keeps at most ``capacity`` scenes (each holds a PyBullet client and the circuit's meshes); the least recently
-    used goes first.
+    Keeps at most ``capacity`` scenes (each holds a PyBullet client or GL buffers, and the circuit's meshes); the
+    least recently used goes first.
     """
 
     def __init__(self, *, capacity: int = 4) -> None:
-        self._scenes: dict[tuple[str, WorldVariation], Scene] = {}
+        self._scenes: dict[tuple[str, WorldVariation, str], Renderer] = {}
         self._capacity = capacity
 
-    def get(self, circuit: Circuit, world: WorldVariation = WorldVariation()) -> Scene:
-        key = (circuit.name, world)
+    def get(self, circuit: Circuit, world: WorldVariation = WorldVariation(), *,
+            renderer: str = "pybullet") -> Renderer:
+        """The scene, drawn by ``renderer`` ("pybullet" or "gl"; "auto" is resolved here, in the rendering thread)."""
+        renderer = resolve_renderer(renderer).name
+        key = (circuit.name, world, renderer)
         scene = self._scenes.pop(key, None)
         if scene is None:
             while len(self._scenes) >= self._capacity:
                 self._scenes.pop(next(iter(self._scenes))).close()
-            scene = Scene.for_world(circuit, world)
+            scene = make_scene(circuit, world, renderer=renderer)
         self._scenes[key] = scene  # most recently used last
         return scene
 
@@ -66,7 +70,7 @@ class EpisodeSim:
     def __init__(self, spec: EpisodeSpec, *, scenes: SceneCache, circuit: Circuit | None = None):
         self.spec = spec
         self.circuit = circuit or load_circuit(spec.circuit, direction=spec.direction)
-        self._scene = scenes.get(self.circuit, spec.world)
+        self._scene = scenes.get(self.circuit, spec.world, renderer=spec.renderer)
         x_m, y_m, yaw_rad = self.circuit.start_pose()
         self.car = CarState(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad)
         self.seq = 0

@@ -38,6 +38,8 @@ from protocol.messages import (
 )
 from protocol.runtime import stop_requested
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
+from services.simulator.gl_scene import egl_unavailable_reason
+from services.simulator.renderers import resolve_spec
 
 log = logging.getLogger("drivebench.simulator")
 
@@ -94,6 +96,10 @@ class SimulatorService:
         # Status alone on its own key: access control lets every process read it (a late-joining brain host, scorer
         # or recorder) while only the orchestrator may use sim/control; "status" there still works too.
         bus.serve(keys.sim_status(run), self._on_status)
+        # Whether --renderer gl can run here, probed now in the thread that will render (a GL context is bound to
+        # its thread), before the liveliness token says we are ready: a start asking for gl is refused with the
+        # reason rather than accepted and failed.
+        self._gl_unavailable = egl_unavailable_reason()
         bus.declare_alive(keys.alive(run, "simulator", config.name))
 
     # -- callbacks (Zenoh's callback thread: never block) --
@@ -194,6 +200,8 @@ class SimulatorService:
             return codec.encode(ControlReply(ok=False, detail="start needs a spec"))
         if self._state != "idle" or not self._requests.empty():
             return codec.encode(ControlReply(ok=False, detail=f"busy ({self._state})", state=self._state))
+        if request.spec.renderer == "gl" and self._gl_unavailable:
+            return codec.encode(ControlReply(ok=False, detail=f"renderer gl: {self._gl_unavailable}"))
         try:
             # Loaded here, so that a bad name is refused rather than run.
             circuit = load_circuit(request.spec.circuit, direction=request.spec.direction)
@@ -224,7 +232,7 @@ class SimulatorService:
             with self._alive_lock:  # before "running": a switch accepted from now on applies to this episode
                 self._active_brain = spec.active_brain
                 self._switches.clear()
-            self._spec = spec
+            self._spec = spec = resolve_spec(spec)  # "auto" resolved before anyone can read the running spec
             self._state = "running"
             try:
                 self.run_episode(spec, circuit)
@@ -233,6 +241,9 @@ class SimulatorService:
 
     def run_episode(self, spec: EpisodeSpec, circuit: Circuit | None = None) -> EndReason:
         episode = self._episode
+        # "auto" becomes the renderer this process can run (probed in the thread that renders); the START event and
+        # the status carry the resolved spec, so the score and the recording name the renderer that drew the frames.
+        self._spec = spec = resolve_spec(spec)
         sim = EpisodeSim(spec, scenes=self._scenes, circuit=circuit)
         self._frames = self._frames_latest if spec.realtime else self._frames_lossless
         if self._state != "running":  # called directly (tests, benchmarks), not through serve_forever
