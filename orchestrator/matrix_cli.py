@@ -33,6 +33,9 @@ def add_matrix_command(commands) -> None:
     matrix.add_argument("--smoke", action="store_true",
                         help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
                              "4 s of simulated time each on a 160x120 camera (what CI runs)")
+    from orchestrator.ray_matrix import add_ray_options
+
+    add_ray_options(matrix)
 
 
 def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, default_workers: int) -> None:
@@ -105,6 +108,7 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
         raise MatrixUsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
     if args.retry_failed and not args.resume:
         raise MatrixUsageError("--retry-failed goes with --resume")
+    ray_options = _ray_options(args)
     _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():
@@ -115,10 +119,16 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
                         format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
     options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
                          resume=args.resume, retry_failed=args.retry_failed, facts=dict(facts or {}))
-    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {args.workers} worker(s); "
+    where = f"{args.workers} worker(s)" if ray_options is None else f"Ray cluster {ray_options.address}"
+    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {where}; "
           f"output {out_dir}", file=sys.stderr)
     display = ProgressDisplay()
-    runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
+    if ray_options is None:
+        runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
+    else:
+        from orchestrator.ray_matrix import RayMatrixRunner
+
+        runner = RayMatrixRunner(matrix, out_dir, options, ray_options=ray_options, on_change=display.update)
     try:
         progress = runner.run()
     except ResultsError as error:
@@ -134,6 +144,19 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
     if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else 0
+
+
+def _ray_options(args: argparse.Namespace):
+    """``--ray`` and its companions (None: a local run), checked before anything starts."""
+    from orchestrator.ray_matrix import import_ray, ray_options_from
+
+    try:
+        ray_options = ray_options_from(args)
+    except ValueError as error:
+        raise MatrixUsageError(str(error)) from None
+    if ray_options is not None:
+        import_ray()  # without Ray installed: how to install it, in one line
+    return ray_options
 
 
 def _write_report(out_dir: Path) -> None:
