@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import sqlite3
 import subprocess
 import sys
@@ -70,3 +72,26 @@ def test_a_results_file_from_before_the_node_column_reads_and_takes_new_rows(tmp
         store.record(dataclasses.replace(old, key="k2", index=1, node="10.0.0.8/12345678", lost_attempts=lost))
         new = store.results()[1]
     assert (new.node, new.lost_attempts) == ("10.0.0.8/12345678", lost)
+
+
+def test_compose_ray_file_resolves_and_its_worker_declares_episode_slots(tmp_path):
+    from test_compose import ROOT, compose
+
+    result = compose("config", "--format", "json", file=ROOT / "compose.ray.yaml", profiles=())
+    assert result.returncode == 0, result.stderr
+    services = json.loads(result.stdout)["services"]
+    assert services["ray-head"]["command"][:3] == ["ray", "start", "--head"] and "0" in services["ray-head"]["command"]
+    shell, flag, script = services["ray-worker"]["command"]
+    assert (shell, flag) == ("sh", "-c") and script.startswith("exec ray start ")
+    # The worker's own shell line, run for real with `ray` swapped for a printer of its arguments: the resources
+    # argument is the JSON Ray wants, one slot per core by default.
+    printer = tmp_path / "ray"
+    printer.write_text("#!/bin/sh\nfor arg in \"$@\"; do printf '%s\\n' \"$arg\"; done\n")
+    printer.chmod(0o755)
+    for slots, expected in (("3", 3), ("", len(os.sched_getaffinity(0)))):
+        env = {"PATH": f"{tmp_path}:{os.environ['PATH']}", "EPISODE_SLOTS": slots, "RAY_HEAD": "10.0.0.1:6379"}
+        run = subprocess.run(["sh", "-c", script.replace("$$", "$")], capture_output=True, text=True, env=env,
+                             timeout=10)
+        args = run.stdout.splitlines()
+        assert args[args.index("--address") + 1] == "10.0.0.1:6379"
+        assert json.loads(args[args.index("--resources") + 1]) == {EPISODE_SLOT: expected}
