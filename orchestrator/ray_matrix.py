@@ -35,6 +35,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 import time
@@ -146,12 +147,29 @@ def connect(address: str) -> None:
     ray = import_ray()
     if ray.is_initialized():
         return
+    _probe(address)
     try:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False,
                  runtime_env={"env_vars": {"LP_NUM_THREADS": "1"}})
+    except ImportError as error:  # ray:// without Ray Client's packages
+        raise ClusterError(f"{address!r} needs Ray Client: pip install 'ray[client]' ({error})") from None
     except (ConnectionError, RuntimeError, ValueError) as error:
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise ClusterError(f"no Ray cluster at {address!r}: {first}") from None
+
+
+def _probe(address: str, *, timeout_s: float = 5.0) -> None:
+    """A ``HOST:PORT`` where nothing listens, as one line at once (Ray itself would retry for minutes)."""
+    if address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise ClusterError(f"--ray {address!r}: expected auto, HOST:PORT or ray://HOST:10001")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as error:
+        raise ClusterError(f"no Ray cluster at {address!r}: nothing answers there ({error.strerror or error})") \
+            from None
 
 
 def alive_nodes() -> list[dict]:

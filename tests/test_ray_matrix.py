@@ -247,3 +247,14 @@ def test_without_ray_installed_ray_says_how_to_install_it(tmp_path):
     assert run.stderr.strip().splitlines() == [
         "drivebench: the stack could not run: --ray needs Ray: pip install 'drivebench[cluster]' "
         "(or: pip install 'ray>=2.50')"]
+
+
+def test_an_address_where_no_cluster_answers_is_one_line_at_once(tmp_path):
+    path = write_matrix(tmp_path, "name: alone\nbrains: [explicit]\ncircuits: [simple]\n")
+    started = time.monotonic()
+    run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", f"{LOOPBACK}:1")
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 1
+    assert stderr.strip().splitlines()[-1] == (f"drivebench: the stack could not run: no Ray cluster at "
+                                               f"'{LOOPBACK}:1': nothing answers there (Connection refused)")
+    assert time.monotonic() - started < 30
