@@ -237,18 +237,6 @@ def test_a_resource_no_node_has_fails_at_once_in_one_line(cluster, tmp_path):
     assert finished_rows(tmp_path / "out" / "results.sqlite") == []
 
 
-def test_without_ray_installed_ray_says_how_to_install_it(tmp_path):
-    path = write_matrix(tmp_path, "name: plain\nbrains: [explicit]\ncircuits: [simple]\n")
-    # A Python where `import ray` fails, as on an install without the extra.
-    code = ("import sys; sys.modules['ray'] = None; from orchestrator.cli import main; "
-            f"sys.exit(main(['matrix', {str(path)!r}, '-o', {str(tmp_path / 'out')!r}, '--ray', 'auto']))")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert run.returncode == 1
-    assert run.stderr.strip().splitlines() == [
-        "drivebench: the stack could not run: --ray needs Ray: pip install 'drivebench[cluster]' "
-        "(or: pip install 'ray>=2.50')"]
-
-
 def test_an_address_where_no_cluster_answers_is_one_line_at_once(tmp_path):
     path = write_matrix(tmp_path, "name: alone\nbrains: [explicit]\ncircuits: [simple]\n")
     started = time.monotonic()

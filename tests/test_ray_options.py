@@ -95,3 +95,16 @@ def test_compose_ray_file_resolves_and_its_worker_declares_episode_slots(tmp_pat
         args = run.stdout.splitlines()
         assert args[args.index("--address") + 1] == "10.0.0.1:6379"
         assert json.loads(args[args.index("--resources") + 1]) == {EPISODE_SLOT: expected}
+
+
+def test_without_ray_installed_ray_says_how_to_install_it(tmp_path):
+    path = tmp_path / "m.yaml"
+    path.write_text("name: plain\nbrains: [explicit]\ncircuits: [simple]\n")
+    # A Python where `import ray` fails, as on an install without the extra.
+    code = ("import sys; sys.modules['ray'] = None; from orchestrator.cli import main; "
+            f"sys.exit(main(['matrix', {str(path)!r}, '-o', {str(tmp_path / 'out')!r}, '--ray', 'auto']))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1
+    assert run.stderr.strip().splitlines() == [
+        "drivebench: the stack could not run: --ray needs Ray: pip install 'drivebench[cluster]' "
+        "(or: pip install 'ray>=2.50')"]
