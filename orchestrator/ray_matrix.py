@@ -39,6 +39,7 @@ import socket
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from orchestrator.launcher import StackError
@@ -61,6 +62,7 @@ RECORDING_NAME = "recording.mcap"
 SMALL_FILE_BYTES = 4 * 1024 * 1024  # a log longer than this comes back as its last 4 MiB
 WATCHDOG_SLACK_S = 60.0  # above the stack's own guards: start-up, the episode, the recorder's stop grace
 POLL_S = 0.25
+LIVE_PERIOD_S = 1.0  # how often a running episode sends its live metrics to the driver
 
 
 class ClusterError(StackError):
@@ -233,32 +235,38 @@ class RayMatrixRunner(MatrixRunner):
             name="drivebench-episode")
         shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a task needs: name and shadows
         waiting = collections.deque((episode, ()) for episode in todo)
-        running: dict = {}  # ObjectRef -> (episode, lost attempts so far, lane)
+        running: dict = {}  # ObjectRefGenerator -> (episode, lost attempts so far, lane)
         free_lanes = list(range(len(progress.workers)))
         try:
             while waiting or running:
                 while waiting and free_lanes and len(running) < self._window():
                     episode, lost = waiting.popleft()
                     lane = free_lanes.pop(0)
-                    ref = task.remote(matrix=shared, episode=episode, options=self.options,
-                                      artifacts=self._artifacts_text())
-                    running[ref] = (episode, lost, lane)
+                    stream = task.remote(matrix=shared, episode=episode, options=self.options,
+                                         artifacts=self._artifacts_text())
+                    running[stream] = (episode, lost, lane)
                     with progress.lock:
                         progress.workers[lane].episode, progress.workers[lane].live = episode, None
                 ready, _ = ray.wait(list(running), num_returns=1, timeout=POLL_S)
-                for ref in ready:
-                    episode, lost, lane = running.pop(ref)
+                for stream in ready:  # its next item is there: live metrics, the result, or the task's error
+                    episode, lost, lane = running[stream]
+                    item = self._next_item(stream)
+                    if "live" in item:
+                        with progress.lock:
+                            progress.workers[lane].live = item["live"]
+                        continue
+                    del running[stream]
                     with progress.lock:
-                        progress.workers[lane].episode = None
+                        progress.workers[lane].episode, progress.workers[lane].live = None, None
                     free_lanes.append(lane)
-                    result = self._collect(ref, episode, lost, waiting)
+                    result = self._collect(item, episode, lost, waiting)
                     if result is not None:
                         self._finish(result, store, progress)
                 self._on_change(progress)
         except BaseException:
             self.stop()
-            for ref in running:  # Ctrl-C, SIGTERM: stop them now (force: a plain cancel waits for a sleeping task)
-                ray.cancel(ref, force=True)
+            for stream in running:  # Ctrl-C, SIGTERM: stop them now (force: a plain cancel waits for a sleeping task)
+                ray.cancel(stream, force=True)
             raise
 
     def _window(self) -> int:
@@ -271,11 +279,32 @@ class RayMatrixRunner(MatrixRunner):
     def _artifacts_text(self) -> str | None:
         return None if self.ray_options.artifacts is None else str(self.ray_options.artifacts)
 
-    def _collect(self, ref, episode: PlannedEpisode, lost: tuple, waiting: collections.deque) -> EpisodeResult | None:
+    @staticmethod
+    def _next_item(stream) -> dict:
+        """The next item of a task's stream: ``{"live": LiveMetrics}``, ``{"result", "files"}``, or
+        ``{"error": exception}`` when the task failed (Ray raises it where the item would be)."""
+        ray = import_ray()
+        try:
+            value = ray.get(next(stream))
+        except StopIteration:
+            return {"error": RuntimeError("the episode's task ended without a result")}
+        except ray.exceptions.RayError as error:
+            return {"error": error}
+        if "live" in value:
+            from protocol import codec
+            from protocol.messages import LiveMetrics
+
+            return {"live": codec.decode(value["live"], LiveMetrics)}
+        return value
+
+    def _collect(self, item: dict, episode: PlannedEpisode, lost: tuple,
+                 waiting: collections.deque) -> EpisodeResult | None:
         """The result of a finished task; None when its node was lost and it is submitted again."""
         ray = import_ray()
         try:
-            outcome = ray.get(ref)
+            if "error" in item:
+                raise item["error"]
+            outcome = item
         except _lost_errors() as error:
             attempt = {"node": _node_in(error), "error": f"{type(error).__name__}: {_first_line(error)}"}
             lost = (*lost, attempt)
@@ -284,7 +313,7 @@ class RayMatrixRunner(MatrixRunner):
                 waiting.appendleft((episode, lost))
                 return None
             return self._lost_result(episode, lost)
-        except ray.exceptions.RayError as error:  # the task itself broke (not the episode): typed, not retried
+        except (ray.exceptions.RayError, RuntimeError) as error:  # the task itself broke, not the episode: not retried
             return self._lost_result(episode, lost, failure=f"error: {type(error).__name__}: {_first_line(error)}")
         return self._land(episode, outcome, lost)
 
@@ -379,8 +408,9 @@ class _NodeRunner(MatrixRunner):
 
 
 def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions,
-                     artifacts: str | None) -> dict:
-    """One episode on this node (a Ray task's body): ``{"result": EpisodeResult, "files": {path: bytes}}``.
+                     artifacts: str | None) -> Iterator[dict]:
+    """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` about once a
+    second while it drives (the driver's progress lanes), then ``{"result": EpisodeResult, "files": {path: bytes}}``.
 
     The episode folder is ``<artifacts>/episodes/<index>`` (recording included) or, without artifacts, a temporary
     folder removed before returning; ``files`` holds its small files (not the recording), paths relative to it.
@@ -389,6 +419,7 @@ def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOpt
 
     from orchestrator.launcher import free_loopback_port
     from orchestrator.matrix_runner import WorkerState
+    from protocol import codec
     from protocol.bus import Bus, BusConfig
 
     context = ray.get_runtime_context()
@@ -409,20 +440,42 @@ def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOpt
     timer.daemon = True
     router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="episode-router")
     started_at = time.time()
+    state = WorkerState()
+    outcome: dict = {}
+
+    def drive() -> None:
+        try:
+            outcome["result"] = runner._run_one(episode, router.config.listen[0], state)
+        except BaseException as error:  # noqa: BLE001 - raised again in the task, where Ray reports it
+            outcome["error"] = error
+
+    thread = threading.Thread(target=drive, name="episode", daemon=True)
     try:
         timer.start()
-        result = runner._run_one(episode, router.config.listen[0], WorkerState())
+        thread.start()
+        sent = None
+        while thread.is_alive():
+            thread.join(timeout=LIVE_PERIOD_S)
+            if state.live is not None and state.live is not sent:
+                sent = state.live
+                yield {"live": codec.encode(sent)}
     finally:
         timer.cancel()
+        if thread.is_alive():  # the task itself was cancelled: abandon the episode
+            runner.stop()
         runner.kill_group()
+        thread.join(timeout=10.0)
         router.close()
+    if "error" in outcome:
+        raise outcome["error"]
+    result = outcome.get("result")
     folder = work / "episodes" / f"{episode.index:04d}"
     if result is None or fired.is_set():
         result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
     files = _small_files(folder)
     if scratch is not None:
         shutil.rmtree(scratch, ignore_errors=True)
-    return {"result": result, "files": files}
+    yield {"result": result, "files": files}
 
 
 def _timed_out(episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float,

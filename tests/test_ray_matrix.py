@@ -101,8 +101,14 @@ camera: 96x72
 """))
     local = MatrixRunner(matrix, tmp_path / "local", RunOptions(workers=1)).run()
     artifacts = tmp_path / "shared"
-    remote = RayMatrixRunner(matrix, tmp_path / "ray", RunOptions(record=True),
+    live_seen: list = []  # what the progress lanes showed: live metrics streamed from the tasks
+
+    def watch_lanes(progress) -> None:
+        live_seen.extend(worker.live for worker in progress.workers if worker.live is not None)
+
+    remote = RayMatrixRunner(matrix, tmp_path / "ray", RunOptions(record=True), on_change=watch_lanes,
                              ray_options=RayOptions(address=cluster.address, artifacts=artifacts)).run()
+    assert live_seen and max(live.sim_time_s for live in live_seen) > 0.5
     assert (local.done, local.failed) == (remote.done, remote.failed) == (2, 0)
     local_arrays, ray_arrays = trajectories(tmp_path / "local"), trajectories(tmp_path / "ray")
     assert local_arrays.keys() == ray_arrays.keys() and len(local_arrays) == 2
