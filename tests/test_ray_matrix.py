@@ -6,6 +6,7 @@ Ray is the optional extra ``cluster``: skipped without it on a developer's machi
 
 from __future__ import annotations
 
+import csv
 import os
 import signal
 import subprocess
@@ -173,6 +174,14 @@ camera: 96x72
     assert lost[0].lost_attempts[0]["node"] == second_label
     assert lost[0].lost_attempts[0]["error"].startswith(("NodeDiedError", "WorkerCrashedError"))
     assert {r.node for r in results} == {lost[0].node}
+    # The report's episode table says where each ran and what was lost on the way.
+    from orchestrator.matrix_report import write_report
+
+    write_report(tmp_path / "out")
+    with open(tmp_path / "out" / "episodes.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    assert sorted(row["lost_attempts"] for row in rows) == ["0", "0", "1"]
+    assert {row["node"] for row in rows} == {lost[0].node}
 
 
 def running_episodes(out: Path) -> list[str]:
