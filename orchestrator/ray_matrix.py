@@ -62,7 +62,7 @@ RECORDING_NAME = "recording.mcap"
 SMALL_FILE_BYTES = 4 * 1024 * 1024  # a log longer than this comes back as its last 4 MiB
 WATCHDOG_SLACK_S = 60.0  # above the stack's own guards: start-up, the episode, the recorder's stop grace
 POLL_S = 0.25
-LIVE_PERIOD_S = 1.0  # how often a running episode sends its live metrics to the driver
+LIVE_PERIOD_S = 0.5  # how often a running episode sends its live metrics to the driver
 
 
 class ClusterError(StackError):
@@ -116,6 +116,9 @@ def ray_options_from(args: argparse.Namespace) -> RayOptions | None:
     if args.record and args.artifacts is None:
         raise ValueError("--record with --ray needs --artifacts DIR, a folder every node mounts (recordings are "
                          "too large to travel through Ray)")
+    if args.workers != 1:
+        raise ValueError("--workers is for a local run: on Ray, the nodes' episode_slot resources set how many "
+                         "episodes run at once")
     if args.node_retries < 0:
         raise ValueError(f"--node-retries must be >= 0, got {args.node_retries}")
     resources = {EPISODE_SLOT: 1.0}
@@ -204,6 +207,14 @@ def _offer(node: dict) -> str:
         ", ".join(f"{name}={amount:g}" for name, amount in sorted(shown.items())) or "nothing")
 
 
+def task_resources(resources: dict) -> dict:
+    """Ray task options for what one episode asks for: CPU and GPU are Ray's own fields (Ray refuses them among
+    custom resources); the rest, episode_slot first, are custom resources. No CPU unless asked: the slot is the cap.
+    A GPU share makes Ray set CUDA_VISIBLE_DEVICES for the task, which the stack's brain inherits."""
+    custom = dict(resources)
+    return {"num_cpus": custom.pop("CPU", 0), "num_gpus": custom.pop("GPU", 0), "resources": custom}
+
+
 def node_label(*, ip: str, node_id: str) -> str:
     """How a results row names a Ray node: ``<ip>/<first 8 hex of its node id>`` (several nodes may share a host)."""
     return f"{ip}/{node_id[:8]}"
@@ -231,7 +242,7 @@ class RayMatrixRunner(MatrixRunner):
     def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
         ray = import_ray()
         task = ray.remote(run_episode_task).options(
-            num_cpus=0, resources=dict(self.ray_options.resources), max_retries=0,  # node deaths: retried here
+            **task_resources(self.ray_options.resources), max_retries=0,  # node deaths: retried here, recorded
             name="drivebench-episode")
         shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a task needs: name and shadows
         waiting = collections.deque((episode, ()) for episode in todo)
@@ -409,7 +420,7 @@ class _NodeRunner(MatrixRunner):
 
 def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions,
                      artifacts: str | None) -> Iterator[dict]:
-    """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` about once a
+    """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` twice a
     second while it drives (the driver's progress lanes), then ``{"result": EpisodeResult, "files": {path: bytes}}``.
 
     The episode folder is ``<artifacts>/episodes/<index>`` (recording included) or, without artifacts, a temporary

@@ -45,17 +45,17 @@ LOOPBACK = "127.0.0.1"
 FAST_HEALTH = {"health_check_period_ms": 500, "health_check_failure_threshold": 4}
 
 
-def worker_node(cluster: Cluster, *, slots: int):
-    return cluster.add_node(num_cpus=1, resources={EPISODE_SLOT: slots}, node_ip_address=LOOPBACK)
+def worker_node(cluster: Cluster, *, slots: int, gpus: int = 0):
+    return cluster.add_node(num_cpus=1, num_gpus=gpus, resources={EPISODE_SLOT: slots}, node_ip_address=LOOPBACK)
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot; this process is
-    the driver."""
+    """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot and one GPU (Ray's
+    bookkeeping only: nothing here uses it); this process is the driver."""
     cluster = Cluster(initialize_head=True, connect=False,
                       head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH})
-    worker_node(cluster, slots=1)
+    worker_node(cluster, slots=1, gpus=1)
     cluster.wait_for_nodes()
     ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
     yield cluster
@@ -97,7 +97,7 @@ def test_a_matrix_on_the_cluster_gives_the_local_results_bit_for_bit_with_its_re
 name: same
 brains: [explicit, {name: constant, options: {speed_mps: 1.5, yaw_rate_radps: 0.2}}]
 circuits: [simple]
-limits: {laps: 1, max_sim_seconds: 3}
+limits: {laps: 1, max_sim_seconds: 6}
 camera: 96x72
 """))
     local = MatrixRunner(matrix, tmp_path / "local", RunOptions(workers=1)).run()
@@ -107,9 +107,11 @@ camera: 96x72
     def watch_lanes(progress) -> None:
         live_seen.extend(worker.live for worker in progress.workers if worker.live is not None)
 
+    # Each episode also asks for half a GPU, as a neural brain would: Ray's own GPU field, not a custom resource.
     remote = RayMatrixRunner(matrix, tmp_path / "ray", RunOptions(record=True), on_change=watch_lanes,
-                             ray_options=RayOptions(address=cluster.address, artifacts=artifacts)).run()
-    assert live_seen and max(live.sim_time_s for live in live_seen) > 0.5
+                             ray_options=RayOptions(address=cluster.address, artifacts=artifacts,
+                                                    resources={EPISODE_SLOT: 1.0, "GPU": 0.5})).run()
+    assert live_seen and max(live.sim_time_s for live in live_seen) > 0.5  # 6 s sim: about 2 s of wall time
     assert (local.done, local.failed) == (remote.done, remote.failed) == (2, 0)
     local_arrays, ray_arrays = trajectories(tmp_path / "local"), trajectories(tmp_path / "ray")
     assert local_arrays.keys() == ray_arrays.keys() and len(local_arrays) == 2
@@ -134,6 +136,8 @@ camera: 96x72
         assert recording == artifacts / "episodes" / f"{result.index:04d}" / "recording.mcap"
         assert recording.stat().st_size > 10_000
     assert_valid_mcap(*(Path(r.recording) for r in ray_results))
+    # Each task killed its process group on the way out: nothing of either stack is left.
+    assert not [pid for r in ray_results for pid in processes_with(f"--run-id {r.run_id}")]
     assert all(r.node and r.lost_attempts == () for r in local_results.values())
 
 
@@ -242,11 +246,11 @@ def test_a_resource_no_node_has_fails_at_once_in_one_line(cluster, tmp_path):
     path = write_matrix(tmp_path, "name: greedy\nbrains: [explicit]\ncircuits: [simple]\n")
     started = time.monotonic()
     run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", cluster.address,
-                     "--ray-resource", "GPU=0.5")
+                     "--ray-resource", "GPU=2")
     _, stderr = run.communicate(timeout=60)
     assert run.returncode == 1
     lines = stderr.strip().splitlines()
-    assert "no node of the Ray cluster has what one episode asks for (episode_slot=1, GPU=0.5)" in lines[-1]
+    assert "no node of the Ray cluster has what one episode asks for (episode_slot=1, GPU=2)" in lines[-1]
     assert "Traceback" not in stderr
     assert time.monotonic() - started < 30
     assert finished_rows(tmp_path / "out" / "results.sqlite") == []

@@ -30,6 +30,7 @@ def run_matrix(tmp_path, *args: str) -> subprocess.CompletedProcess:
     (("--ray", "auto", "--node-retries", "-1"), "--node-retries must be >= 0, got -1"),
     (("--artifacts", "/tmp"), "--artifacts and --ray-resource go with --ray ADDRESS"),
     (("--ray", " "), "--ray needs an address: auto, HOST:PORT or ray://HOST:10001"),
+    (("--ray", "auto", "--workers", "4"), "--workers is for a local run: on Ray, the nodes' episode_slot"),
 ])
 def test_a_ray_option_mistake_is_one_line_and_nothing_starts(tmp_path, args, message):
     run = run_matrix(tmp_path, *args)
