@@ -38,7 +38,8 @@ def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict
         if ray_address is None:
             runner = MatrixRunner(parse_matrix(text), Path(folder), RunOptions(workers=workers))
         else:
-            from orchestrator.ray_matrix import RayMatrixRunner, RayOptions
+            from orchestrator.ray_matrix import RayMatrixRunner
+            from orchestrator.ray_options import RayOptions
 
             runner = RayMatrixRunner(parse_matrix(text), Path(folder), RunOptions(),
                                      ray_options=RayOptions(address=ray_address))

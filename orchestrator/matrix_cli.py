@@ -33,7 +33,7 @@ def add_matrix_command(commands) -> None:
     matrix.add_argument("--smoke", action="store_true",
                         help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
                              "4 s of simulated time each on a 160x120 camera (what CI runs)")
-    from orchestrator.ray_matrix import add_ray_options
+    from orchestrator.ray_options import add_ray_options
 
     add_ray_options(matrix)
 
@@ -148,7 +148,7 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
 
 def _ray_options(args: argparse.Namespace):
     """``--ray`` and its companions (None: a local run), checked before anything starts."""
-    from orchestrator.ray_matrix import import_ray, ray_options_from
+    from orchestrator.ray_options import import_ray, ray_options_from
 
     try:
         ray_options = ray_options_from(args)

@@ -35,7 +35,8 @@ from test_matrix_run import finished_rows, processes_with, write_matrix  # noqa:
 
 from orchestrator.matrix import load_matrix  # noqa: E402
 from orchestrator.matrix_runner import MatrixRunner, RunOptions  # noqa: E402
-from orchestrator.ray_matrix import EPISODE_SLOT, RayMatrixRunner, RayOptions  # noqa: E402
+from orchestrator.ray_matrix import RayMatrixRunner  # noqa: E402
+from orchestrator.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
 from orchestrator.results import ResultStore  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

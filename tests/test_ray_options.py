@@ -12,7 +12,8 @@ import sys
 
 import pytest
 
-from orchestrator.ray_matrix import EPISODE_SLOT, slots_of
+from orchestrator.ray_matrix import slots_of
+from orchestrator.ray_options import EPISODE_SLOT
 from orchestrator.results import ResultStore
 
 
