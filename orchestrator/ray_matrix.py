@@ -70,8 +70,7 @@ def connect(address: str) -> None:
         return
     _probe(address)
     try:
-        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False,
-                 runtime_env={"env_vars": {"LP_NUM_THREADS": "1"}})
+        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
     except ImportError as error:  # ray:// without Ray Client's packages
         raise ClusterError(f"{address!r} needs Ray Client: pip install 'ray[client]' ({error})") from None
     except (ConnectionError, RuntimeError, ValueError) as error:
@@ -344,15 +343,23 @@ def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOpt
     """
     import ray
 
+    context = ray.get_runtime_context()
+    node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
+    scratch = None if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-episode-"))
+    try:
+        yield from _drive(matrix=matrix, episode=episode, options=options, node=node, work=Path(artifacts or scratch))
+    finally:
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path) -> Iterator[dict]:
+    """:func:`run_episode_task` in the folder ``work``: the stack in one process group, under a watchdog."""
     from orchestrator.launcher import free_loopback_port
     from orchestrator.matrix_runner import WorkerState
     from protocol import codec
     from protocol.bus import Bus, BusConfig
 
-    context = ray.get_runtime_context()
-    node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
-    scratch = None if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-episode-"))
-    work = Path(artifacts) if artifacts is not None else scratch
     runner = _NodeRunner(matrix, work, options, node=node)
     guard_s = (options.startup_timeout_s + episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S
                + WATCHDOG_SLACK_S)
@@ -396,13 +403,9 @@ def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOpt
     if "error" in outcome:
         raise outcome["error"]
     result = outcome.get("result")
-    folder = work / "episodes" / f"{episode.index:04d}"
     if result is None or fired.is_set():
         result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
-    files = _small_files(folder)
-    if scratch is not None:
-        shutil.rmtree(scratch, ignore_errors=True)
-    yield {"result": result, "files": files}
+    yield {"result": result, "files": _small_files(work / "episodes" / f"{episode.index:04d}")}
 
 
 def _timed_out(episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float,

@@ -155,18 +155,15 @@ camera: 96x72
 """))
     removed = threading.Event()
 
-    def remove_the_second_node_once_both_run(progress) -> None:
-        if removed.is_set() or progress.running < 2 or progress.done:
-            return
-        if not hasattr(remove_the_second_node_once_both_run, "since"):
-            remove_the_second_node_once_both_run.since = time.monotonic()
-        if time.monotonic() - remove_the_second_node_once_both_run.since > 4.0:  # both stacks up and driving
+    def remove_the_second_node_once_both_drive(progress) -> None:
+        driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
+        if not removed.is_set() and not progress.done and len(driving) == 2:  # both stacks up, both cars moving
             cluster.remove_node(second, allow_graceful=False)
             removed.set()
 
     progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
                                ray_options=RayOptions(address=cluster.address),
-                               on_change=remove_the_second_node_once_both_run).run()
+                               on_change=remove_the_second_node_once_both_drive).run()
     assert removed.is_set(), "the second node was never removed mid-matrix"
     assert (progress.done, progress.failed) == (3, 0)
     with ResultStore(tmp_path / "out", create=False) as store:
