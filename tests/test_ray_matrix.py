@@ -186,6 +186,41 @@ camera: 96x72
     assert {row["node"] for row in rows} == {lost[0].node}
 
 
+def test_past_its_retries_a_node_death_is_a_failed_row_of_kind_node_died(cluster, tmp_path):
+    second = worker_node(cluster, slots=1)
+    cluster.wait_for_nodes()
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: unlucky
+brains: [explicit]
+circuits: [simple]
+repetitions: 2
+limits: {laps: 1, max_sim_seconds: 12}
+camera: 96x72
+"""))
+    removed = threading.Event()
+
+    def remove_the_second_node_once_both_drive(progress) -> None:
+        driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
+        if not removed.is_set() and len(driving) == 2:
+            cluster.remove_node(second, allow_graceful=False)
+            removed.set()
+
+    progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
+                               ray_options=RayOptions(address=cluster.address, node_retries=0),
+                               on_change=remove_the_second_node_once_both_drive).run()
+    assert removed.is_set()
+    assert (progress.done, progress.failed) == (1, 1)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        failed = [r for r in store.results() if r.status == "failed"]
+    assert len(failed) == 1 and failed[0].failure_kind == "node_died", failed
+    assert failed[0].node == failed[0].lost_attempts[0]["node"] == f"{LOOPBACK}/{second.node_id[:8]}"
+    assert failed[0].score is None  # never counted as a driven episode
+    from orchestrator.matrix_report import write_report
+
+    files = write_report(tmp_path / "out")  # a row with no trajectory and no logs still reports
+    assert "node_died" in files.markdown.read_text()
+
+
 def running_episodes(out: Path) -> list[str]:
     """Run ids of the episodes whose folder is there (config.yaml written) but whose result is not."""
     finished = {row[0] for row in finished_rows(out / "results.sqlite")}
