@@ -2,11 +2,18 @@
 episode costs against the episode itself.
 
     .venv/bin/python benchmarks/matrix.py [--episodes 6] [--sim-seconds 20] [--workers 2] [--renderers pybullet,gl]
+    .venv/bin/python benchmarks/matrix.py --ray [--episodes 4] [--sim-seconds 60]
 
 Each renderer (``--renderers``) runs both cases, side by side in one run.
 
 Every episode gets a fresh stack (its own processes under its own run id); the start-up share says what that
 isolation costs. Lock-step episodes are CPU-bound, so more workers than cores buys nothing.
+
+``--ray`` (needs ``drivebench[cluster]``) compares instead: 1 local worker, then a Ray cluster on this machine (a
+head that runs no episode plus 1, then 2 worker nodes of one episode_slot each, every raylet on 127.0.0.1) running
+the same matrix, and the time Ray adds per episode (task dispatch, a worker process, the episode's own router, the
+result's trip) against the local worker, as a share of one episode. The local case runs with the idle cluster
+beside it, so that both share the cores with Ray's own processes.
 """
 
 from __future__ import annotations
@@ -28,17 +35,25 @@ def matrix_text(*, episodes: int, sim_seconds: float, camera: str, renderer: str
             f"limits: {{laps: 1, max_sim_seconds: {sim_seconds}}}\ncamera: {camera}\nrenderer: {renderer}\n")
 
 
-def run_case(text: str, workers: int) -> dict:
+def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         started = time.monotonic()
-        progress = MatrixRunner(parse_matrix(text), Path(folder), RunOptions(workers=workers)).run()
+        if ray_address is None:
+            runner = MatrixRunner(parse_matrix(text), Path(folder), RunOptions(workers=workers))
+        else:
+            from orchestrator.ray_matrix import RayMatrixRunner
+            from orchestrator.ray_options import RayOptions
+
+            runner = RayMatrixRunner(parse_matrix(text), Path(folder), RunOptions(),
+                                     ray_options=RayOptions(address=ray_address))
+        progress = runner.run()
         wall_s = time.monotonic() - started
         with ResultStore(Path(folder), create=False) as store:
             results = store.results()
     episode_walls = [r.score.metrics.wall_time_s for r in results if r.score is not None]
     totals = [r.wall_s for r in results]
     return {"workers": workers, "done": progress.done, "failed": progress.failed, "wall_s": wall_s,
-            "episodes_per_hour": 3600 * len(results) / wall_s,
+            "episodes_per_hour": 3600 * len(results) / wall_s, "task_s": statistics.median(totals),
             "episode_s": statistics.median(episode_walls), "overhead_s": statistics.median(
                 [total - episode for total, episode in zip(totals, episode_walls)])}
 
@@ -50,7 +65,10 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2, help="the parallel case (the other is 1)")
     parser.add_argument("--camera", default="320x240")
     parser.add_argument("--renderers", default="pybullet,gl", help="renderers side by side (default pybullet,gl)")
+    parser.add_argument("--ray", action="store_true", help="1 local worker against a Ray cluster of 1 and 2 nodes")
     args = parser.parse_args()
+    if args.ray:
+        return ray_main(args, matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera))
     rows = []
     for renderer in args.renderers.split(","):
         text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera,
@@ -66,6 +84,48 @@ def main() -> int:
         print(f"| {row['renderer']} | {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
               f"{row['episodes_per_hour'] / base:.2f}x | {row['episode_s']:.1f} s | {row['overhead_s']:.1f} s |")
     failed = sum(row["failed"] for row in rows)
+    if failed:
+        print(f"\n{failed} episode(s) failed", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def ray_main(args: argparse.Namespace, text: str) -> int:
+    """Local 1 worker against Ray with 1 and with 2 worker nodes, and Ray's cost per episode."""
+    import os
+
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # every Ray address on loopback (read at import)
+    import ray
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "node_ip_address": "127.0.0.1"})
+    try:
+        cluster.add_node(num_cpus=1, resources={"episode_slot": 1}, node_ip_address="127.0.0.1")
+        cluster.wait_for_nodes()
+        ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
+        # The local run with the idle cluster beside it: both cases then share the cores with Ray's own processes,
+        # and the difference is what Ray's dispatch costs per episode.
+        local = run_case(text, 1)
+        rows = [("local, 1 worker", local), ("Ray, 1 worker node", run_case(text, 1, ray_address=cluster.address))]
+        cluster.add_node(num_cpus=1, resources={"episode_slot": 1}, node_ip_address="127.0.0.1")
+        cluster.wait_for_nodes()
+        rows.append(("Ray, 2 worker nodes", run_case(text, 2, ray_address=cluster.address)))
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    base = local["episodes_per_hour"]
+    print(f"{args.episodes} episodes of {args.sim_seconds:.0f} s sim (explicit, simple, {args.camera}); "
+          f"{os.cpu_count()} cores\n")
+    print("| runs on | wall | episodes/hour | vs local | per episode (driver) | of which in the task |")
+    print("|---|---|---|---|---|---|")
+    for name, row in rows:
+        print(f"| {name} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+              f"{row['episodes_per_hour'] / base:.2f}x | {row['wall_s'] / args.episodes:.1f} s | "
+              f"{row['task_s']:.1f} s |")
+    one_node = rows[1][1]
+    added_s = (one_node["wall_s"] - local["wall_s"]) / args.episodes
+    print(f"\nRay adds {added_s:+.2f} s per episode against a local worker "
+          f"({100 * added_s / (local['wall_s'] / args.episodes):+.1f} % of a {args.sim_seconds:.0f} s-sim episode)")
+    failed = sum(row["failed"] for _, row in rows)
     if failed:
         print(f"\n{failed} episode(s) failed", file=sys.stderr)
     return 1 if failed else 0

@@ -132,11 +132,15 @@ class LocalStack:
     router_endpoint: str | None = None  # join this running router instead (a matrix's workers share one)
     record: Path | None = None  # an MCAP file: a recorder process records the whole run to it
     record_options: tuple[str, ...] = ()  # recorder config overrides, e.g. ("image_format=jpeg",)
+    # True: every child joins one new process group (``process_group``, the first child's pid) instead of a session
+    # each, so that its owner can kill the whole stack, grandchildren included, with one killpg (a Ray task does).
+    one_group: bool = False
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.process_group: int | None = None  # with one_group, once the first child is started
         self._init_state(busy_wait_s=0.0)
 
     def _init_state(self, *, busy_wait_s: float) -> None:
@@ -231,7 +235,12 @@ class LocalStack:
         env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
         env["DRIVEBENCH_PARENT_PID"] = str(os.getpid())  # children stop by themselves when this process dies
         joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
-        process = processes.spawn([sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env)
+        # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
+        group = (self.process_group or 0) if self.one_group else None
+        process = processes.spawn([sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env,
+                                  process_group=group)
+        if self.one_group and self.process_group is None:
+            self.process_group = process.pid
         child = Child(role=role, name=name, process=process, log_path=log_path)
         self.children.append(child)
         return child

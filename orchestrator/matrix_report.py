@@ -422,7 +422,8 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
             if name == "lap_times_s":
                 value = ";".join(repr(float(v)) for v in value) if value else ""
             row[name] = "" if value is None else value
-        row.update({"recording": r.recording or "", "trajectory": r.trajectory or "", "logs": r.logs or ""})
+        row.update({"recording": r.recording or "", "trajectory": r.trajectory or "", "logs": r.logs or "",
+                    "node": r.node or "", "lost_attempts": len(r.lost_attempts)})
         rows.append(row)
     return rows
 

@@ -21,6 +21,7 @@ import json
 import logging
 import queue
 import shutil
+import socket
 import sys
 import threading
 import time
@@ -130,7 +131,21 @@ class MatrixRunner:
         self._check_same_matrix(store)
         todo = self.pending(store)
         progress = MatrixProgress(total=len(self.matrix.episodes), skipped=len(self.matrix.episodes) - len(todo),
-                                  workers=[WorkerState() for _ in range(max(1, self.options.workers))])
+                                  workers=[WorkerState() for _ in range(self._lanes())])
+        try:
+            self._dispatch(todo, store, progress)
+        finally:
+            store.close()
+        self._on_change(progress)
+        return progress
+
+    def _lanes(self) -> int:
+        """How many episodes run at once (one progress lane each)."""
+        return max(1, self.options.workers)
+
+    def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
+        """Run ``todo``, each result through :meth:`_finish`, calling ``on_change`` as it goes. Here: worker threads
+        on this machine; :mod:`orchestrator.ray_matrix` runs them as tasks on a Ray cluster instead."""
         jobs: queue.Queue[PlannedEpisode] = queue.Queue()
         for episode in todo:
             jobs.put(episode)
@@ -154,9 +169,6 @@ class MatrixRunner:
             raise
         finally:
             router.close()
-            store.close()
-        self._on_change(progress)
-        return progress
 
     def _check_same_matrix(self, store: ResultStore) -> None:
         previous = store.fact("source_text")
@@ -191,14 +203,18 @@ class MatrixRunner:
                 state.episode, state.live = None, None
             if result is None:  # abandoned: not a result
                 return
-            with self._store_lock:
-                store.record(result)
-            with progress.lock:
-                progress.finished.append(result)
-                if result.status == "done":
-                    progress.done += 1
-                else:
-                    progress.failed += 1
+            self._finish(result, store, progress)
+
+    def _finish(self, result: EpisodeResult, store: ResultStore, progress: MatrixProgress) -> None:
+        """One finished episode: committed to the results, then counted."""
+        with self._store_lock:
+            store.record(result)
+        with progress.lock:
+            progress.finished.append(result)
+            if result.status == "done":
+                progress.done += 1
+            else:
+                progress.failed += 1
 
     def _run_one(self, episode: PlannedEpisode, endpoint: str, state: WorkerState) -> EpisodeResult | None:
         folder = self._episode_folder(episode)
@@ -206,10 +222,10 @@ class MatrixRunner:
         started_at = time.time()
         trace = Trace()
         outcome: dict = {"status": "done", "score": None, "failure": None}
-        stack = LocalStack(run_id=run_id, run_dir=folder, brains=self._launches(episode),
-                           router_endpoint=endpoint, startup_timeout_s=self.options.startup_timeout_s,
-                           record=folder / "recording.mcap" if self.options.record else None,
-                           record_options=(f"image_format={self.options.record_images}",))
+        stack = self._make_stack(run_id=run_id, run_dir=folder, brains=self._launches(episode),
+                                 router_endpoint=endpoint, startup_timeout_s=self.options.startup_timeout_s,
+                                 record=folder / "recording.mcap" if self.options.record else None,
+                                 record_options=(f"image_format={self.options.record_images}",))
         self._write_config(folder, episode, run_id)
         try:
             stack.start()
@@ -248,7 +264,15 @@ class MatrixRunner:
             started_at=started_at, ended_at=time.time(), reason=str(score.reason) if score is not None else None,
             failure=outcome["failure"], score=score,
             recording=self._relative(recording) if recording.is_file() else None,
-            trajectory=self._relative(trajectory), logs=self._relative(folder / "logs"))
+            trajectory=self._relative(trajectory), logs=self._relative(folder / "logs"), node=self._node_name())
+
+    def _make_stack(self, **settings) -> LocalStack:
+        """The stack of one episode (a hook: a Ray task puts its processes in one process group)."""
+        return LocalStack(**settings)
+
+    def _node_name(self) -> str:
+        """Where episodes run, for the results (a hook: Ray tasks name their cluster node)."""
+        return socket.gethostname()
 
     def _episode_folder(self, episode: PlannedEpisode) -> Path:
         folder = self.out_dir / "episodes" / f"{episode.index:04d}"

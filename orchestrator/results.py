@@ -33,6 +33,7 @@ FAILURE_KINDS = (
     "router_died",  # the router went away: every process lost its link at once
     "start_failed",  # the stack did not come up, or the simulator refused the episode
     "wall_timeout",  # no score within the wall-clock guard (a hung episode)
+    "node_died",  # (--ray) the cluster node running it died, more often than the retries allow
     "error",  # anything else, with its message
 )
 
@@ -60,9 +61,15 @@ CREATE TABLE IF NOT EXISTS episodes (
     ended_at     REAL NOT NULL,
     recording    TEXT,               -- MCAP file, relative to the output folder, when recorded
     trajectory   TEXT,               -- .npz file of poses and live progress, relative to the output folder
-    logs         TEXT                -- folder of the episode's process logs, relative to the output folder
+    logs         TEXT,               -- folder of the episode's process logs, relative to the output folder
+    node         TEXT,               -- where it ran: the host name, or "<ip>/<ray node id>" on a Ray cluster
+    lost_attempts TEXT               -- JSON list of earlier attempts lost with their node ({"node", "error"})
 );
 """
+# Columns added after the first release: a results file written before them gets them (NULL) when opened.
+_ADDED_COLUMNS = {"node": "TEXT", "lost_attempts": "TEXT"}
+_COLUMNS = ("key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
+            "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts")
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,8 @@ class EpisodeResult:
     recording: str | None = None
     trajectory: str | None = None
     logs: str | None = None
+    node: str | None = None  # where it ran (None in results written before this was recorded)
+    lost_attempts: tuple[dict, ...] = ()  # earlier attempts whose node died ({"node", "error"}), never results
 
     @property
     def wall_s(self) -> float:
@@ -116,8 +125,15 @@ class ResultStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")  # a row committed is a row on disk, SIGKILL or not
             self._db.executescript(_SCHEMA)
+            self._add_new_columns()
         except sqlite3.DatabaseError as error:
             raise ResultsError(f"{self.path}: not a usable results database ({error})") from None
+
+    def _add_new_columns(self) -> None:
+        have = {row[1] for row in self._db.execute("PRAGMA table_info(episodes)")}
+        for name, kind in _ADDED_COLUMNS.items():
+            if name not in have:
+                self._db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {kind}")
 
     def close(self) -> None:
         self._db.close()
@@ -142,13 +158,12 @@ class ResultStore:
     def record(self, result: EpisodeResult) -> None:
         """Store (or replace) one finished episode; committed before this returns."""
         self._db.execute(
-            "INSERT OR REPLACE INTO episodes (key, idx, brain, circuit, variation, perturbation, repetition, "
-            "spec_json, brain_json, status, reason, failure, score_json, run_id, started_at, ended_at, recording, "
-            "trajectory, logs) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            f"INSERT OR REPLACE INTO episodes ({_COLUMNS}) VALUES ({', '.join('?' * 21)})",
             (result.key, result.index, result.brain, result.circuit, result.variation, result.perturbation,
              result.repetition, codec.to_json(result.spec), json.dumps(result.brain_entry), result.status,
              result.reason, result.failure, codec.to_json(result.score) if result.score is not None else None,
-             result.run_id, result.started_at, result.ended_at, result.recording, result.trajectory, result.logs))
+             result.run_id, result.started_at, result.ended_at, result.recording, result.trajectory, result.logs,
+             result.node, json.dumps(list(result.lost_attempts)) if result.lost_attempts else None))
 
     def finished_keys(self, *, include_failed: bool = True) -> set[str]:
         query = "SELECT key FROM episodes" + ("" if include_failed else " WHERE status = 'done'")
@@ -156,15 +171,12 @@ class ResultStore:
 
     def results(self) -> list[EpisodeResult]:
         """Every stored episode, in matrix order."""
-        rows = self._db.execute(
-            "SELECT key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, "
-            "reason, failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs "
-            "FROM episodes ORDER BY idx").fetchall()
+        rows = self._db.execute(f"SELECT {_COLUMNS} FROM episodes ORDER BY idx").fetchall()
         return [self._result(row) for row in rows]
 
     def _result(self, row: tuple) -> EpisodeResult:
         (key, index, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason,
-         failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs) = row
+         failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts) = row
         try:
             spec = _from_json(spec_json, EpisodeSpec)
             score = _from_json(score_json, EpisodeScore) if score_json else None
@@ -174,7 +186,8 @@ class ResultStore:
                              perturbation=perturbation, repetition=repetition, spec=spec,
                              brain_entry=json.loads(brain_json), status=status, run_id=run_id, started_at=started_at,
                              ended_at=ended_at, reason=reason, failure=failure, score=score, recording=recording,
-                             trajectory=trajectory, logs=logs)
+                             trajectory=trajectory, logs=logs, node=node,
+                             lost_attempts=tuple(json.loads(lost_attempts)) if lost_attempts else ())
 
 
 def _from_json(text: str, message_type: type):

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
+from orchestrator.cli.ray import add_ray_options, ray_options_from
 
 
 def add(commands: argparse._SubParsersAction) -> None:
@@ -29,6 +30,7 @@ def add(commands: argparse._SubParsersAction) -> None:
     matrix.add_argument("--smoke", action="store_true",
                         help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
                              "4 s of simulated time each on a 160x120 camera (what CI runs)")
+    add_ray_options(matrix)
     matrix.set_defaults(func=run_matrix_command)
 
 
@@ -84,7 +86,7 @@ def _preflight(matrix) -> None:
             raise UsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
 
 
-def _resolve_renderers(matrix, requested: str | None):
+def _resolve_renderers(matrix, requested: str | None, *, here: bool = True):
     """Every episode's renderer: ``requested`` (--renderer) over the file's, with "auto" resolved here, where the
     matrix's stacks run (one notice on stderr when it falls back), and "gl" checked before the first episode."""
     from orchestrator.matrix import with_renderer
@@ -94,6 +96,8 @@ def _resolve_renderers(matrix, requested: str | None):
 
     def choose(renderer: str) -> str:
         wanted = requested or renderer
+        if not here and wanted == "auto":
+            return wanted
         if wanted not in chosen:
             try:
                 chosen[wanted] = choose_renderer(wanted)
@@ -125,7 +129,9 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
         raise UsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed goes with --resume")
-    matrix = _resolve_renderers(matrix, getattr(args, "renderer", None))
+    ray_options = _ray_options(args)
+    # On a cluster, "auto" is resolved by each node's simulator: this machine's EGL says nothing about theirs.
+    matrix = _resolve_renderers(matrix, getattr(args, "renderer", None), here=ray_options is None)
     _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():
@@ -136,10 +142,16 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
                         format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
     options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
                          resume=args.resume, retry_failed=args.retry_failed, facts=dict(facts or {}))
-    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {args.workers} worker(s); "
+    where = f"{args.workers} worker(s)" if ray_options is None else f"Ray cluster {ray_options.address}"
+    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {where}; "
           f"output {out_dir}", file=sys.stderr)
     display = ProgressDisplay()
-    runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
+    if ray_options is None:
+        runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
+    else:
+        from orchestrator.ray_matrix import RayMatrixRunner
+
+        runner = RayMatrixRunner(matrix, out_dir, options, ray_options=ray_options, on_change=display.update)
     try:
         progress = runner.run()
     except ResultsError as error:
@@ -155,6 +167,19 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
     if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else EXIT_OK
+
+
+def _ray_options(args: argparse.Namespace):
+    """``--ray`` and its companions (None: a local run), checked before anything starts."""
+    from orchestrator.ray_options import import_ray
+
+    try:
+        ray_options = ray_options_from(args)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    if ray_options is not None:
+        import_ray()  # without Ray installed: how to install it, in one line
+    return ray_options
 
 
 def _write_report(out_dir: Path) -> None:

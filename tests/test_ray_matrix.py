@@ -1,0 +1,300 @@
+"""Integration: matrices on a real Ray cluster on this machine (a head with no episode slots plus worker nodes, each
+its own raylet, all on 127.0.0.1), against the same matrices run locally.
+
+Ray is the optional extra ``cluster``: skipped without it on a developer's machine, a failure in CI.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+import yaml
+
+# Ray resolves a loopback address to the host's outward address unless it believes it runs single-machine, and only
+# loopback may be used here: pin every Ray process (this one, the CLI's, the raylets' workers) to 127.0.0.1. Read
+# when ray is imported, so before it.
+os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+
+import needs  # noqa: E402
+
+ray = needs.require("ray")
+
+from mcap_validation import assert_valid_mcap  # noqa: E402
+from ray.cluster_utils import Cluster  # noqa: E402
+from test_matrix_run import finished_rows, processes_with, write_matrix  # noqa: E402
+
+from orchestrator.matrix import load_matrix  # noqa: E402
+from orchestrator.matrix_runner import MatrixRunner, RunOptions  # noqa: E402
+from orchestrator.ray_matrix import RayMatrixRunner  # noqa: E402
+from orchestrator.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
+from orchestrator.results import ResultStore  # noqa: E402
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+LOOPBACK = "127.0.0.1"
+# Node deaths found in about 2 s rather than Ray's default 15 s.
+FAST_HEALTH = {"health_check_period_ms": 500, "health_check_failure_threshold": 4}
+
+
+def worker_node(cluster: Cluster, *, slots: int, gpus: int = 0):
+    return cluster.add_node(num_cpus=1, num_gpus=gpus, resources={EPISODE_SLOT: slots}, node_ip_address=LOOPBACK)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot and one GPU (Ray's
+    bookkeeping only: nothing here uses it); this process is the driver."""
+    cluster = Cluster(initialize_head=True, connect=False,
+                      head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH})
+    worker_node(cluster, slots=1, gpus=1)
+    cluster.wait_for_nodes()
+    ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
+    yield cluster
+    ray.shutdown()
+    cluster.shutdown()
+
+
+def drivebench(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+# The lock-step part of a trajectory (the simulator's poses); the live-progress samples beside them are taken at a
+# wall-clock rate by the scorer, so they differ between any two runs, local or not.
+POSE_ARRAYS = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
+# Score metrics measured in wall-clock time (how fast the machine was), not on the road.
+WALL_METRICS = {"wall_time_s", "real_time_factor", "mean_inference_time_s", "command_rate_hz",
+                "command_latency_p50_ms", "command_latency_p95_ms", "inference_p50_ms", "inference_p95_ms"}
+
+
+def road_metrics(result) -> dict:
+    metrics = msgspec.to_builtins(result.score.metrics)
+    return {name: value for name, value in metrics.items() if name not in WALL_METRICS}
+
+
+def trajectories(out: Path) -> dict[str, dict[str, bytes]]:
+    """Every episode's pose arrays as raw bytes, by episode key."""
+    with ResultStore(out, create=False) as store:
+        results = store.results()
+    arrays = {}
+    for result in results:
+        with np.load(out / result.trajectory) as data:
+            arrays[result.key] = {name: data[name].tobytes() for name in POSE_ARRAYS}
+    return arrays
+
+
+def test_a_matrix_on_the_cluster_gives_the_local_results_bit_for_bit_with_its_recordings(cluster, tmp_path):
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: same
+brains: [explicit, {name: constant, options: {speed_mps: 1.5, yaw_rate_radps: 0.2}}]
+circuits: [simple]
+limits: {laps: 1, max_sim_seconds: 6}
+camera: 96x72
+"""))
+    local = MatrixRunner(matrix, tmp_path / "local", RunOptions(workers=1)).run()
+    artifacts = tmp_path / "shared"
+    live_seen: list = []  # what the progress lanes showed: live metrics streamed from the tasks
+
+    def watch_lanes(progress) -> None:
+        live_seen.extend(worker.live for worker in progress.workers if worker.live is not None)
+
+    # Each episode also asks for half a GPU, as a neural brain would: Ray's own GPU field, not a custom resource.
+    remote = RayMatrixRunner(matrix, tmp_path / "ray", RunOptions(record=True), on_change=watch_lanes,
+                             ray_options=RayOptions(address=cluster.address, artifacts=artifacts,
+                                                    resources={EPISODE_SLOT: 1.0, "GPU": 0.5})).run()
+    assert live_seen and max(live.sim_time_s for live in live_seen) > 0.5  # 6 s sim: about 2 s of wall time
+    assert (local.done, local.failed) == (remote.done, remote.failed) == (2, 0)
+    local_arrays, ray_arrays = trajectories(tmp_path / "local"), trajectories(tmp_path / "ray")
+    assert local_arrays.keys() == ray_arrays.keys() and len(local_arrays) == 2
+    for key, arrays in local_arrays.items():
+        assert len(np.frombuffer(arrays["x_m"])) > 50, key  # a real drive, not two empty files
+        assert ray_arrays[key] == arrays, f"{key}: the trajectory on Ray differs from the local one"
+    with ResultStore(tmp_path / "local", create=False) as store:
+        local_results = {r.key: r for r in store.results()}
+    with ResultStore(tmp_path / "ray", create=False) as store:
+        ray_results = store.results()
+    worker = next(node for node in ray.nodes() if node["Alive"] and node["Resources"].get(EPISODE_SLOT))
+    for result in ray_results:
+        assert road_metrics(result) == road_metrics(local_results[result.key])
+        assert result.reason == local_results[result.key].reason
+        assert result.node == f"{LOOPBACK}/{worker['NodeID'][:8]}" and result.lost_attempts == ()
+        # The small files came back into the output folder; the recording stayed on the shared path.
+        folder = tmp_path / "ray" / "episodes" / f"{result.index:04d}"
+        assert {"score.json", "config.yaml", "trajectory.npz"} <= {p.name for p in folder.iterdir()}
+        assert (folder / "logs" / "simulator.log").stat().st_size > 0
+        assert not (folder / "recording.mcap").exists()
+        recording = Path(result.recording)
+        assert recording == artifacts / "episodes" / f"{result.index:04d}" / "recording.mcap"
+        assert recording.stat().st_size > 10_000
+    assert_valid_mcap(*(Path(r.recording) for r in ray_results))
+    # Each task killed its process group on the way out: nothing of either stack is left.
+    assert not [pid for r in ray_results for pid in processes_with(f"--run-id {r.run_id}")]
+    assert all(r.node and r.lost_attempts == () for r in local_results.values())
+
+
+def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path):
+    second = worker_node(cluster, slots=1)
+    cluster.wait_for_nodes()
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: dying
+brains: [explicit]
+circuits: [simple]
+repetitions: 3
+limits: {laps: 1, max_sim_seconds: 12}
+camera: 96x72
+"""))
+    removed = threading.Event()
+
+    def remove_the_second_node_once_both_drive(progress) -> None:
+        driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
+        if not removed.is_set() and not progress.done and len(driving) == 2:  # both stacks up, both cars moving
+            cluster.remove_node(second, allow_graceful=False)
+            removed.set()
+
+    progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
+                               ray_options=RayOptions(address=cluster.address),
+                               on_change=remove_the_second_node_once_both_drive).run()
+    assert removed.is_set(), "the second node was never removed mid-matrix"
+    assert (progress.done, progress.failed) == (3, 0)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        results = store.results()
+    assert [r.status for r in results] == ["done"] * 3  # one row each: nothing lost, nothing counted twice
+    lost = [r for r in results if r.lost_attempts]
+    assert len(lost) == 1, [(r.key, r.lost_attempts) for r in results]
+    second_label = f"{LOOPBACK}/{second.node_id[:8]}"
+    assert lost[0].node != second_label  # it ran again on the node that lives
+    assert lost[0].lost_attempts[0]["node"] == second_label
+    assert lost[0].lost_attempts[0]["error"].startswith(("NodeDiedError", "WorkerCrashedError"))
+    assert {r.node for r in results} == {lost[0].node}
+    # The report's episode table says where each ran and what was lost on the way.
+    from orchestrator.matrix_report import write_report
+
+    write_report(tmp_path / "out")
+    with open(tmp_path / "out" / "episodes.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    assert sorted(row["lost_attempts"] for row in rows) == ["0", "0", "1"]
+    assert {row["node"] for row in rows} == {lost[0].node}
+
+
+def test_past_its_retries_a_node_death_is_a_failed_row_of_kind_node_died(cluster, tmp_path):
+    second = worker_node(cluster, slots=1)
+    cluster.wait_for_nodes()
+    matrix = load_matrix(write_matrix(tmp_path, """
+name: unlucky
+brains: [explicit]
+circuits: [simple]
+repetitions: 2
+limits: {laps: 1, max_sim_seconds: 12}
+camera: 96x72
+"""))
+    removed = threading.Event()
+
+    def remove_the_second_node_once_both_drive(progress) -> None:
+        driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
+        if not removed.is_set() and len(driving) == 2:
+            cluster.remove_node(second, allow_graceful=False)
+            removed.set()
+
+    progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
+                               ray_options=RayOptions(address=cluster.address, node_retries=0),
+                               on_change=remove_the_second_node_once_both_drive).run()
+    assert removed.is_set()
+    assert (progress.done, progress.failed) == (1, 1)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        failed = [r for r in store.results() if r.status == "failed"]
+    assert len(failed) == 1 and failed[0].failure_kind == "node_died", failed
+    assert failed[0].node == failed[0].lost_attempts[0]["node"] == f"{LOOPBACK}/{second.node_id[:8]}"
+    assert failed[0].score is None  # never counted as a driven episode
+    from orchestrator.matrix_report import write_report
+
+    files = write_report(tmp_path / "out")  # a row with no trajectory and no logs still reports
+    assert "node_died" in files.markdown.read_text()
+
+
+def running_episodes(out: Path) -> list[str]:
+    """Run ids of the episodes whose folder is there (config.yaml written) but whose result is not."""
+    finished = {row[0] for row in finished_rows(out / "results.sqlite")}
+    run_ids = []
+    for path in sorted(out.glob("episodes/*/config.yaml")):
+        try:
+            config = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError:  # caught half-written
+            continue
+        if "run_id" in config and config.get("key") not in finished:
+            run_ids.append(config["run_id"])
+    return run_ids
+
+
+def test_driver_killed_then_resume_runs_only_what_did_not_finish(cluster, tmp_path):
+    path = write_matrix(tmp_path, """
+name: resumable
+brains: [explicit]
+circuits: [simple]
+repetitions: 3
+limits: {laps: 1, max_sim_seconds: 3}
+camera: 96x72
+""")
+    out = tmp_path / "out"
+    # --artifacts on the output folder (one machine): the episode folders, config.yaml with its run id, land there.
+    first = drivebench("matrix", str(path), "-o", str(out), "--ray", cluster.address, "--artifacts", str(out),
+                       "--no-report")
+    deadline = time.monotonic() + 120
+    while not (finished_rows(out / "results.sqlite") and running_episodes(out)):  # one done, the next under way
+        assert first.poll() is None, first.communicate()[1]
+        assert time.monotonic() < deadline, "no episode finished in 120 s"
+        time.sleep(0.1)
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    before = finished_rows(out / "results.sqlite")
+    assert 1 <= len(before) < 3
+    # The episode that was running when the driver died: its stack does not outlive it (Ray ends the dead driver's
+    # tasks; the stack's processes watch their parent).
+    cut_short = running_episodes(out)
+    assert cut_short, "no episode was running when the driver was killed"
+    deadline = time.monotonic() + 20
+    while any(processes_with(f"--run-id {run_id}") for run_id in cut_short):
+        assert time.monotonic() < deadline, f"orphaned stack processes of {cut_short}"
+        time.sleep(0.2)
+    resumed = drivebench("matrix", str(path), "-o", str(out), "--ray", cluster.address, "--resume", "--no-report")
+    _, stderr = resumed.communicate(timeout=200)
+    assert resumed.returncode == 0, stderr
+    after = finished_rows(out / "results.sqlite")
+    assert len(after) == 3 and {row[3] for row in after} == {"done"}
+    assert [row for row in after if row[0] in {b[0] for b in before}] == before  # finished ones untouched
+    assert f"{3 - len(before)} episode(s) run" in stderr and f"{len(before)} already in the results" in stderr
+    assert "Ray cluster" in stderr
+
+
+def test_a_resource_no_node_has_fails_at_once_in_one_line(cluster, tmp_path):
+    path = write_matrix(tmp_path, "name: greedy\nbrains: [explicit]\ncircuits: [simple]\n")
+    started = time.monotonic()
+    run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", cluster.address,
+                     "--ray-resource", "GPU=2")
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 1
+    lines = stderr.strip().splitlines()
+    assert "no node of the Ray cluster has what one episode asks for (episode_slot=1, GPU=2)" in lines[-1]
+    assert "Traceback" not in stderr
+    assert time.monotonic() - started < 30
+    assert finished_rows(tmp_path / "out" / "results.sqlite") == []
+
+
+def test_an_address_where_no_cluster_answers_is_one_line_at_once(tmp_path):
+    path = write_matrix(tmp_path, "name: alone\nbrains: [explicit]\ncircuits: [simple]\n")
+    started = time.monotonic()
+    run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", f"{LOOPBACK}:1")
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 1
+    assert stderr.strip().splitlines()[-1] == (f"drivebench: the stack could not run: no Ray cluster at "
+                                               f"'{LOOPBACK}:1': nothing answers there (Connection refused)")
+    assert time.monotonic() - started < 30
