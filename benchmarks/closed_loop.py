@@ -89,14 +89,17 @@ def main() -> int:
     renderers = args.renderers.split(",")
     scenes = SceneCache()
     rows = []
-    with tempfile.TemporaryDirectory() as tmp, \
-            LocalStack(run_id=f"bench{uuid.uuid4().hex[:6]}", run_dir=Path(tmp),
-                       brains=[BrainLaunch("explicit")]) as stack:
-        progress = tqdm(total=len(sizes) * len(renderers) * args.repeats * 2, desc="closed loop", file=sys.stderr,
-                        unit="run")
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        LocalStack(run_id=f"bench{uuid.uuid4().hex[:6]}", run_dir=Path(tmp), brains=[BrainLaunch("explicit")]) as stack,
+    ):
+        progress = tqdm(
+            total=len(sizes) * len(renderers) * args.repeats * 2, desc="closed loop", file=sys.stderr, unit="run"
+        )
         for width, height in sizes:
-            base = EpisodeSpec(circuit="simple", max_sim_seconds=args.sim_seconds,
-                               camera=CameraSpec(width_px=width, height_px=height))
+            base = EpisodeSpec(
+                circuit="simple", max_sim_seconds=args.sim_seconds, camera=CameraSpec(width_px=width, height_px=height)
+            )
             measured = {renderer: ([], [], []) for renderer in renderers}  # in-process, pipeline, stages
             for renderer in renderers:  # warm caches (scene build, GL context) outside the measurement
                 spec = msgspec.structs.replace(base, renderer=renderer)
@@ -114,30 +117,48 @@ def main() -> int:
                     stages.append(stage)
             for renderer, (local, piped, stages) in measured.items():
                 median_stages = {name: statistics.median(stage[name] for stage in stages) for name in stages[0]}
-                rows.append((f"{width}x{height}", renderer, statistics.median(local), statistics.median(piped),
-                             base.step_s, median_stages))
+                rows.append(
+                    (
+                        f"{width}x{height}",
+                        renderer,
+                        statistics.median(local),
+                        statistics.median(piped),
+                        base.step_s,
+                        median_stages,
+                    )
+                )
         progress.close()
     scenes.close()
-    print(f"closed loop, explicit brain, simple circuit, {args.sim_seconds:g} s sim per run, median of "
-          f"{args.repeats}, lock-step at {1 / rows[0][4]:.0f} Hz control")
+    print(
+        f"closed loop, explicit brain, simple circuit, {args.sim_seconds:g} s sim per run, median of "
+        f"{args.repeats}, lock-step at {1 / rows[0][4]:.0f} Hz control"
+    )
     print()
-    print("| camera | renderer | in-process steps/s | in-process RTF | pipeline steps/s | pipeline RTF "
-          "| pipeline / in-process | cost of the process split |")
+    print(
+        "| camera | renderer | in-process steps/s | in-process RTF | pipeline steps/s | pipeline RTF "
+        "| pipeline / in-process | cost of the process split |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for size, renderer, local, piped, step_s, _ in rows:
-        print(f"| {size} | {renderer} | {local:.1f} | {local * step_s:.2f}x | {piped:.1f} | {piped * step_s:.2f}x | "
-              f"{piped / local:.2f} | {100 * (1 - piped / local):.0f} % |")
+        print(
+            f"| {size} | {renderer} | {local:.1f} | {local * step_s:.2f}x | {piped:.1f} | {piped * step_s:.2f}x | "
+            f"{piped / local:.2f} | {100 * (1 - piped / local):.0f} % |"
+        )
     print()
-    print("ms per step: in-process stages; pipeline step and command round trip (p50), and the rest of a pipeline "
-          "step (pipeline step - render - encode - round trip: publishing, scoring's share of the CPU, waits)")
+    print(
+        "ms per step: in-process stages; pipeline step and command round trip (p50), and the rest of a pipeline "
+        "step (pipeline step - render - encode - round trip: publishing, scoring's share of the CPU, waits)"
+    )
     print()
     print("| camera | renderer | render | encode | brain | physics | pipeline step | round trip | rest |")
     print("|---|---|---|---|---|---|---|---|---|")
     for size, renderer, _, _, _, stage in rows:
         ms = {name: 1e3 * seconds for name, seconds in stage.items()}
         rest = ms["pipeline_step"] - ms["render"] - ms["encode"] - ms["round_trip"]
-        print(f"| {size} | {renderer} | {ms['render']:.2f} | {ms['encode']:.2f} | {ms['brain']:.2f} | "
-              f"{ms['step']:.2f} | {ms['pipeline_step']:.2f} | {ms['round_trip']:.2f} | {rest:.2f} |")
+        print(
+            f"| {size} | {renderer} | {ms['render']:.2f} | {ms['encode']:.2f} | {ms['brain']:.2f} | "
+            f"{ms['step']:.2f} | {ms['pipeline_step']:.2f} | {ms['round_trip']:.2f} | {rest:.2f} |"
+        )
     return 0
 
 

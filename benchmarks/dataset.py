@@ -34,9 +34,29 @@ STD = np.array([0.229, 0.224, 0.225], np.float32).reshape(1, 1, 3, 1, 1)
 
 def collect(folder: Path, sim_seconds: float) -> Path:
     out = folder / "data"
-    subprocess.run([sys.executable, "-m", "orchestrator.cli", "dataset", "collect", "--circuits", "simple",
-                    "--max-sim-seconds", str(sim_seconds), "--history", "3", "--stride", "2", "--split", "none",
-                    "-o", str(out)], check=True, cwd=ROOT)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator.cli",
+            "dataset",
+            "collect",
+            "--circuits",
+            "simple",
+            "--max-sim-seconds",
+            str(sim_seconds),
+            "--history",
+            "3",
+            "--stride",
+            "2",
+            "--split",
+            "none",
+            "-o",
+            str(out),
+        ],
+        check=True,
+        cwd=ROOT,
+    )
     return out
 
 
@@ -74,8 +94,10 @@ def main() -> None:
             x = frames.transpose(0, 1, 4, 2, 3).astype(np.float32) / 255.0
             return torch.from_numpy((x - MEAN) / STD), torch.from_numpy(labels)
 
-        rows = [("loader (uint8 gather)", rate(load, batch=args.batch, seconds=args.seconds)),
-                ("loader + normalised tensors", rate(load_tensor, batch=args.batch, seconds=args.seconds))]
+        rows = [
+            ("loader (uint8 gather)", rate(load, batch=args.batch, seconds=args.seconds)),
+            ("loader + normalised tensors", rate(load_tensor, batch=args.batch, seconds=args.seconds)),
+        ]
         x, y = load_tensor()
         for name, inputs in (("deepest_lstm_tiny_pilotnet", x[:, -1]), ("memdccp", x)):
             model = make_model(name)

@@ -65,8 +65,7 @@ def standing_still() -> BrainLaunch:
 def kill_child(role: str, name: str, folder: Path, *, fault: str | None = None) -> Row:
     """SIGKILL one process of a stack (the router too: then it runs as a child process) mid-episode."""
     run_id = f"f{uuid.uuid4().hex[:6]}"
-    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()],
-                       embed_router=role != "router")
+    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()], embed_router=role != "router")
     killed_at: list[float] = []
     with stack:
         victim = stack.child(role, name)
@@ -77,8 +76,9 @@ def kill_child(role: str, name: str, folder: Path, *, fault: str | None = None) 
 
         threading.Timer(KILL_AFTER_S, kill).start()
         try:
-            score = stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=SMALL_CAMERA),
-                                      wall_timeout_s=120)
+            score = stack.run_episode(
+                EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=SMALL_CAMERA), wall_timeout_s=120
+            )
             outcome, reason = "scored", str(score.reason)
         except StackFailure as failure:
             outcome, reason = "failed, typed", failure.kind
@@ -89,8 +89,13 @@ def kill_child(role: str, name: str, folder: Path, *, fault: str | None = None) 
 def kill_recorder(folder: Path) -> Row:
     run_id = f"f{uuid.uuid4().hex[:6]}"
     recording = folder / f"{run_id}.mcap"
-    stack = LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[BrainLaunch("explicit")], record=recording,
-                       record_options=("image_format=jpeg",))
+    stack = LocalStack(
+        run_id=run_id,
+        run_dir=folder / run_id,
+        brains=[BrainLaunch("explicit")],
+        record=recording,
+        record_options=("image_format=jpeg",),
+    )
     with stack:
         poses = Inbox()
         stack.bus.subscribe(keys.pose(run_id), Pose, inbox=poses)
@@ -111,8 +116,14 @@ def kill_recorder(folder: Path) -> Row:
     last_ns = max(r.message.header.stamp_ns for r in read_messages(repaired) if r.message.header.run_id == run_id)
     lost_s = (at_kill[0] - last_ns) / 1e9
     reason = f"{score.reason} + recorder_died" if stack.recording_failure is not None else str(score.reason)
-    return Row("kill -9 recorder (JPEG, lock-step)", "scored, recording flagged", reason, detected, orphans(run_id),
-               f"{max(lost_s, 0.0):.2f} s of simulated time")
+    return Row(
+        "kill -9 recorder (JPEG, lock-step)",
+        "scored, recording flagged",
+        reason,
+        detected,
+        orphans(run_id),
+        f"{max(lost_s, 0.0):.2f} s of simulated time",
+    )
 
 
 def clean_env(**variables: str) -> dict[str, str]:
@@ -121,8 +132,14 @@ def clean_env(**variables: str) -> dict[str, str]:
 
 def drivebench(*args: str, env: dict[str, str], log: Path) -> subprocess.Popen:
     with open(log, "ab") as out:
-        return subprocess.Popen([sys.executable, "-m", *args], stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT,
-                                start_new_session=True)
+        return subprocess.Popen(
+            [sys.executable, "-m", *args],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=ROOT,
+            start_new_session=True,
+        )
 
 
 def wait_for(condition, *, timeout_s: float) -> float | None:
@@ -135,8 +152,12 @@ def wait_for(condition, *, timeout_s: float) -> float | None:
     return None
 
 
-COMPOSE_SERVICES = {"simulator": ["services.simulator"], "noise": ["services.noise"], "scorer": ["services.scorer"],
-                    "brain": ["brains", "--brain", "constant", "--set", "options.speed_mps=0.0"]}
+COMPOSE_SERVICES = {
+    "simulator": ["services.simulator"],
+    "noise": ["services.noise"],
+    "scorer": ["services.scorer"],
+    "brain": ["brains", "--brain", "constant", "--set", "options.speed_mps=0.0"],
+}
 
 
 def restart_router(folder: Path) -> Row:
@@ -152,10 +173,20 @@ def restart_router(folder: Path) -> Row:
     processes = {"router": drivebench(*router_argv, env=env, log=logs / "router.log")}
     try:
         wait_for(lambda: _answers(endpoint), timeout_s=30)
-        processes |= {name: drivebench(*argv, env=env, log=logs / f"{name}.log")
-                      for name, argv in COMPOSE_SERVICES.items()}
-        attach = ("orchestrator.cli", "run", "--attach", "--brain", "constant", "--runs-dir", str(logs / "runs"),
-                  "--camera", "64x48")
+        processes |= {
+            name: drivebench(*argv, env=env, log=logs / f"{name}.log") for name, argv in COMPOSE_SERVICES.items()
+        }
+        attach = (
+            "orchestrator.cli",
+            "run",
+            "--attach",
+            "--brain",
+            "constant",
+            "--runs-dir",
+            str(logs / "runs"),
+            "--camera",
+            "64x48",
+        )
         driver = drivebench(*attach, "--max-sim-seconds", "600", env=env, log=logs / "driver.log")
         simulator_log = logs / "simulator.log"
         wait_for(lambda: "episode 0 started" in simulator_log.read_text(errors="replace"), timeout_s=90)
@@ -166,8 +197,9 @@ def restart_router(folder: Path) -> Row:
         processes["router"] = drivebench(*router_argv, env=env, log=logs / "router.log")
         driver.wait(timeout=60)
         driver_failed_s = time.monotonic() - killed_at
-        ended_s = wait_for(lambda: "episode 0 ended: driver_lost" in simulator_log.read_text(errors="replace"),
-                           timeout_s=30)
+        ended_s = wait_for(
+            lambda: "episode 0 ended: driver_lost" in simulator_log.read_text(errors="replace"), timeout_s=30
+        )
         failure = json.loads(next((logs / "runs").glob("*/failure.json")).read_text())["failure"]
         again = drivebench(*attach, "--max-sim-seconds", "4", env=env, log=logs / "driver.log").wait(timeout=120)
         services_kept = all(processes[name].poll() is None for name in COMPOSE_SERVICES)
@@ -180,9 +212,13 @@ def restart_router(folder: Path) -> Row:
     next_run = "next attach scored" if again == 0 else f"next attach exited {again}"
     ended = "episode ended driver_lost" if ended_s is not None else "EPISODE STILL RUNNING"
     kept = "services kept" if services_kept else "A SERVICE DIED"
-    return Row("router kill -9 + restart under an attached run (compose services)",
-               f"driver failed typed; {ended}; {next_run}; {kept}", f"{failure} + driver_lost", driver_failed_s,
-               sum(process.poll() is None for process in processes.values()))
+    return Row(
+        "router kill -9 + restart under an attached run (compose services)",
+        f"driver failed typed; {ended}; {next_run}; {kept}",
+        f"{failure} + driver_lost",
+        driver_failed_s,
+        sum(process.poll() is None for process in processes.values()),
+    )
 
 
 def _answers(endpoint: str) -> bool:
@@ -199,11 +235,30 @@ def kill_driver(folder: Path) -> Row:
         events = Inbox()
         stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=events)
         env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-        driver = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--attach", "--router",
-                                   stack.endpoint, "--run-id", run_id, "--max-sim-seconds", "600", "--realtime",
-                                   "--camera", "64x48", "--out", str(folder / f"{run_id}-driver")],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-                                  start_new_session=True)
+        driver = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "orchestrator.cli",
+                "run",
+                "--attach",
+                "--router",
+                stack.endpoint,
+                "--run-id",
+                run_id,
+                "--max-sim-seconds",
+                "600",
+                "--realtime",
+                "--camera",
+                "64x48",
+                "--out",
+                str(folder / f"{run_id}-driver"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+            start_new_session=True,
+        )
         reason, detected = "none", None
         deadline = time.monotonic() + 60
         while (received := events.recv(timeout_s=1.0)) is None or received.message.kind != EventKind.START:
@@ -230,8 +285,10 @@ def flood(folder: Path, seconds: float) -> Row:
             sent = [0]
 
             def spam() -> None:
-                publishers = [stack.bus.publisher(keys.command(run_id, "explicit"), Pose, Traffic.COMMANDS),
-                              stack.bus.publisher(keys.camera_perturbed(run_id), Pose, Traffic.FRAMES)]
+                publishers = [
+                    stack.bus.publisher(keys.command(run_id, "explicit"), Pose, Traffic.COMMANDS),
+                    stack.bus.publisher(keys.camera_perturbed(run_id), Pose, Traffic.FRAMES),
+                ]
                 deadline = time.monotonic() + seconds
                 while not stop.is_set() and time.monotonic() < deadline:
                     for publisher in publishers:
@@ -246,15 +303,21 @@ def flood(folder: Path, seconds: float) -> Row:
             peaks = {f"{child.role}/{child.name}": peak_rss_mb(child.process.pid) for child in stack.children}
             results.append((score, sent[0], run_id, peaks))
     (clean, _, _, clean_peaks), (noisy, count, run_id, noisy_peaks) = results
-    same = (clean.metrics.progress_m, clean.metrics.cross_track_mean_m) == \
-        (noisy.metrics.progress_m, noisy.metrics.cross_track_mean_m)
+    same = (clean.metrics.progress_m, clean.metrics.cross_track_mean_m) == (
+        noisy.metrics.progress_m,
+        noisy.metrics.cross_track_mean_m,
+    )
     growth = {name: noisy_peaks[name] - clean_peaks[name] for name in noisy_peaks if name in clean_peaks}
     worst = max(growth, key=growth.get)
     outcome = "scored" if same else "scored, DIFFERENT"
-    return Row(f"flood: {count:,} garbage messages in {seconds:g} s",
-               f"{outcome}; peak memory +{max(growth[worst], 0):.0f} MB at most ({worst}, "
-               f"{noisy_peaks[worst]:.0f} MB)", str(noisy.reason), None, orphans(run_id),
-               "none (identical trajectory)" if same else "trajectory changed")
+    return Row(
+        f"flood: {count:,} garbage messages in {seconds:g} s",
+        f"{outcome}; peak memory +{max(growth[worst], 0):.0f} MB at most ({worst}, {noisy_peaks[worst]:.0f} MB)",
+        str(noisy.reason),
+        None,
+        orphans(run_id),
+        "none (identical trajectory)" if same else "trajectory changed",
+    )
 
 
 def peak_rss_mb(pid: int) -> float:
@@ -268,26 +331,43 @@ def peak_rss_mb(pid: int) -> float:
 
 
 BAD_INPUTS = [
-    ["run", "--circuit", "nowhere"], ["run", "--brain", "hal"], ["run", "--camera", "big"],
-    ["run", "--noise", "salt_pepper=lots"], ["run", "--variation", "line=purple"], ["run", "--laps", "0"],
-    ["run", "--brain", "explicit", "--weights", "README.md"], ["run", "--brain", "memdccp", "--weights", "README.md"],
-    ["run", "--brain", "constant", "--brain-option", "warp=9"], ["run", "--brain", "no_module:Brain"],
-    ["run", "--brain", "missing_file.py"], ["matrix", "nowhere.yaml"], ["replay", "nowhere.mcap"],
-    ["dataset", "build", "nowhere.mcap", "-o", "x"], ["train", "--model", "resnet", "--data", "x", "-o", "y"],
-    ["brains", "check", "hal"], ["swap", "explicit", "--run", "nothing-running"],
+    ["run", "--circuit", "nowhere"],
+    ["run", "--brain", "hal"],
+    ["run", "--camera", "big"],
+    ["run", "--noise", "salt_pepper=lots"],
+    ["run", "--variation", "line=purple"],
+    ["run", "--laps", "0"],
+    ["run", "--brain", "explicit", "--weights", "README.md"],
+    ["run", "--brain", "memdccp", "--weights", "README.md"],
+    ["run", "--brain", "constant", "--brain-option", "warp=9"],
+    ["run", "--brain", "no_module:Brain"],
+    ["run", "--brain", "missing_file.py"],
+    ["matrix", "nowhere.yaml"],
+    ["replay", "nowhere.mcap"],
+    ["dataset", "build", "nowhere.mcap", "-o", "x"],
+    ["train", "--model", "resnet", "--data", "x", "-o", "y"],
+    ["brains", "check", "hal"],
+    ["swap", "explicit", "--run", "nothing-running"],
 ]
 
 
 def bad_inputs(folder: Path) -> Row:
     clean = 0
     for args in BAD_INPUTS:
-        result = subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                                cwd=folder, timeout=120)
+        result = subprocess.run(
+            [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, cwd=folder, timeout=120
+        )
         last = result.stderr.strip().splitlines()[-1] if result.stderr.strip() else ""
-        clean += (result.returncode in (1, 2) and "Traceback" not in result.stderr
-                  and ("error" in last or "failed" in last))
-    return Row(f"bad input: {len(BAD_INPUTS)} command lines", f"{clean} of {len(BAD_INPUTS)} end in one line "
-               f"naming the mistake", "exit 2 (usage) or 1", None, 0)
+        clean += (
+            result.returncode in (1, 2) and "Traceback" not in result.stderr and ("error" in last or "failed" in last)
+        )
+    return Row(
+        f"bad input: {len(BAD_INPUTS)} command lines",
+        f"{clean} of {len(BAD_INPUTS)} end in one line naming the mistake",
+        "exit 2 (usage) or 1",
+        None,
+        0,
+    )
 
 
 def table(rows: list[Row]) -> str:
@@ -301,18 +381,23 @@ def table(rows: list[Row]) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flood-seconds", type=float, default=5.0, help="how long the flood lasts (default 5)")
-    parser.add_argument("--only", help="comma-separated faults: brain, simulator, noise, scorer, recorder, driver, "
-                                       "router, router_restart, flood, input (default: all)")
+    parser.add_argument(
+        "--only",
+        help="comma-separated faults: brain, simulator, noise, scorer, recorder, driver, "
+        "router, router_restart, flood, input (default: all)",
+    )
     args = parser.parse_args()
     faults = {
         "brain": lambda f: kill_child("brain", "constant", f),
         "simulator": lambda f: kill_child("simulator", "sim", f),
         "noise": lambda f: kill_child("noise", "noise", f),
         "scorer": lambda f: kill_child("scorer", "scorer", f),
-        "recorder": kill_recorder, "driver": kill_driver,
+        "recorder": kill_recorder,
+        "driver": kill_driver,
         "router": lambda f: kill_child("router", "router", f, fault="kill -9 router (separate process)"),
         "router_restart": restart_router,
-        "flood": lambda f: flood(f, args.flood_seconds), "input": bad_inputs,
+        "flood": lambda f: flood(f, args.flood_seconds),
+        "input": bad_inputs,
     }
     chosen = args.only.split(",") if args.only else list(faults)
     unknown = set(chosen) - set(faults)

@@ -63,8 +63,9 @@ class Viewer:
                     body = json.loads(message)
                     wanted = [c for c in body.get("channels", []) if c["topic"] == topics.CAMERA_TRUTH]
                     if body["op"] == "advertise" and wanted:
-                        self.ws.send(json.dumps({"op": "subscribe",
-                                                 "subscriptions": [{"id": 0, "channelId": wanted[0]["id"]}]}))
+                        self.ws.send(
+                            json.dumps({"op": "subscribe", "subscriptions": [{"id": 0, "channelId": wanted[0]["id"]}]})
+                        )
                         self.subscribed.set()
                 elif message[0] == 1 and struct.unpack_from("<I", message, 1)[0] == 0:
                     self.received += 1
@@ -102,8 +103,10 @@ def recording(path: Path, run_id: str, steps: int) -> Path:
             for key in (keys.camera_raw(run_id), keys.camera_perturbed(run_id)):
                 writer.write(key, CameraFrame(header=header(seq, run_id), width_px=320, height_px=240, data=pixels))
             writer.write(keys.pose(run_id), Pose(header=header(seq, run_id), x_m=0.1 * seq, y_m=0.0, yaw_rad=0.0))
-            writer.write(keys.command(run_id, "explicit"), Command(header=header(seq, run_id), brain="explicit",
-                                                                   frame_seq=seq, speed_mps=2.0, yaw_rate_radps=0.1))
+            writer.write(
+                keys.command(run_id, "explicit"),
+                Command(header=header(seq, run_id), brain="explicit", frame_seq=seq, speed_mps=2.0, yaw_rate_radps=0.1),
+            )
     return path
 
 
@@ -117,9 +120,11 @@ def main() -> int:
     frames = [noisy(seq) for seq in range(args.frames)]
     for repeat in range(args.repeats):
         direct, gate = gate_case(frames, gated=False), gate_case(frames, gated=True)
-        print(f"gate, run {repeat + 1}: {args.frames} JPEGs, {direct[2]:.1f} MB; direct {direct[0]:.2f} s wall, "
-              f"{direct[1]:.2f} s CPU; through the gate {gate[0]:.2f} s wall ({gate[0] / direct[0]:.2f}x), "
-              f"{gate[1]:.2f} s CPU ({gate[1] / direct[1]:.2f}x)")
+        print(
+            f"gate, run {repeat + 1}: {args.frames} JPEGs, {direct[2]:.1f} MB; direct {direct[0]:.2f} s wall, "
+            f"{direct[1]:.2f} s CPU; through the gate {gate[0]:.2f} s wall ({gate[0] / direct[0]:.2f}x), "
+            f"{gate[1]:.2f} s CPU ({gate[1] / direct[1]:.2f}x)"
+        )
 
     with tempfile.TemporaryDirectory() as folder:
         sources = [recording(Path(folder) / f"{run}.mcap", run, args.steps) for run in ("a", "b")]
@@ -127,9 +132,11 @@ def main() -> int:
         report = merge(sources, output=Path(folder) / "ab.mcap")
         wall = time.perf_counter() - start
         raw_mb = 2 * 2 * args.steps * 320 * 240 * 3 / 1e6
-        print(f"merge: {report.messages} messages ({raw_mb:.0f} MB of raw frames, "
-              f"{sum(s.stat().st_size for s in sources) / 1e6:.1f} MB of zstd files) in {wall:.2f} s: "
-              f"{report.messages / wall:.0f} messages/s, {raw_mb / wall:.0f} MB/s of frames")
+        print(
+            f"merge: {report.messages} messages ({raw_mb:.0f} MB of raw frames, "
+            f"{sum(s.stat().st_size for s in sources) / 1e6:.1f} MB of zstd files) in {wall:.2f} s: "
+            f"{report.messages / wall:.0f} messages/s, {raw_mb / wall:.0f} MB/s of frames"
+        )
     return 0
 
 

@@ -64,8 +64,15 @@ def configurations(name: str, folder: Path) -> tuple[dict[str, Callable[[], obje
     return calls, torch_threads
 
 
-def measure(calls: dict[str, Callable[[], object]], torch_threads: dict[str, int], *, runs: int, warmup: int,
-            block: int, bar: tqdm) -> dict[str, list[float]]:
+def measure(
+    calls: dict[str, Callable[[], object]],
+    torch_threads: dict[str, int],
+    *,
+    runs: int,
+    warmup: int,
+    block: int,
+    bar: tqdm,
+) -> dict[str, list[float]]:
     """Seconds per call of each configuration, ``runs`` each, taken in rotating blocks."""
     import torch
 
@@ -91,17 +98,23 @@ def measure(calls: dict[str, Callable[[], object]], torch_threads: dict[str, int
 
 
 def tables(results: dict[str, dict[str, list[float]]], params: dict[str, int]) -> str:
-    lines = ["| model | params | threads | eager median | eager p90 | ORT median | ORT p90 | ORT / eager |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| model | params | threads | eager median | eager p90 | ORT median | ORT p90 | ORT / eager |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for name, times in results.items():
         for threads in THREADS:
             eager, ort = times[f"eager{threads}"], times[f"ort{threads}"]
-            lines.append(f"| {name} | {params[name]:,} | {threads} | {percentile_ms(eager, 50):.3f} | "
-                         f"{percentile_ms(eager, 90):.3f} | {percentile_ms(ort, 50):.3f} | "
-                         f"{percentile_ms(ort, 90):.3f} | {statistics.median(ort) / statistics.median(eager):.2f} |")
+            lines.append(
+                f"| {name} | {params[name]:,} | {threads} | {percentile_ms(eager, 50):.3f} | "
+                f"{percentile_ms(eager, 90):.3f} | {percentile_ms(ort, 50):.3f} | "
+                f"{percentile_ms(ort, 90):.3f} | {statistics.median(ort) / statistics.median(eager):.2f} |"
+            )
     lines += ["", "| model | preprocessing 320x240 -> input: median | p90 |", "|---|---:|---:|"]
-    lines += [f"| {name} | {percentile_ms(t['preprocess'], 50):.3f} | {percentile_ms(t['preprocess'], 90):.3f} |"
-              for name, t in results.items()]
+    lines += [
+        f"| {name} | {percentile_ms(t['preprocess'], 50):.3f} | {percentile_ms(t['preprocess'], 90):.3f} |"
+        for name, t in results.items()
+    ]
     return "\n".join(lines)
 
 
@@ -122,17 +135,20 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, dict[str, list[float]]] = {}
     params: dict[str, int] = {}
     total = len(names) * (1 + 2 * len(THREADS)) * args.runs
-    with tempfile.TemporaryDirectory(prefix="drivebench-bench-") as folder, \
-            tqdm(total=total, desc="timed calls", file=sys.stderr, unit=" calls") as bar:
+    with (
+        tempfile.TemporaryDirectory(prefix="drivebench-bench-") as folder,
+        tqdm(total=total, desc="timed calls", file=sys.stderr, unit=" calls") as bar,
+    ):
         for name in names:
             bar.set_postfix_str(name)
             calls, torch_threads = configurations(name, Path(folder))
-            results[name] = measure(calls, torch_threads, runs=args.runs, warmup=args.warmup, block=args.block,
-                                    bar=bar)
+            results[name] = measure(calls, torch_threads, runs=args.runs, warmup=args.warmup, block=args.block, bar=bar)
             params[name] = INFO[name].reference_params
-    print(f"Batch 1, ms per call, {args.runs} runs after {args.warmup} warm-up, rotating blocks of {args.block}; "
-          f"{os.cpu_count()} CPUs, torch {torch.__version__}, onnxruntime {onnxruntime.__version__}. "
-          "Params: Keras count.\n")
+    print(
+        f"Batch 1, ms per call, {args.runs} runs after {args.warmup} warm-up, rotating blocks of {args.block}; "
+        f"{os.cpu_count()} CPUs, torch {torch.__version__}, onnxruntime {onnxruntime.__version__}. "
+        "Params: Keras count.\n"
+    )
     print(tables(results, params))
     return 0
 

@@ -31,8 +31,10 @@ from orchestrator.results import ResultStore
 
 
 def matrix_text(*, episodes: int, sim_seconds: float, camera: str, renderer: str = "pybullet") -> str:
-    return (f"name: bench\nbrains: [explicit]\ncircuits: [simple]\nrepetitions: {episodes}\n"
-            f"limits: {{laps: 1, max_sim_seconds: {sim_seconds}}}\ncamera: {camera}\nrenderer: {renderer}\n")
+    return (
+        f"name: bench\nbrains: [explicit]\ncircuits: [simple]\nrepetitions: {episodes}\n"
+        f"limits: {{laps: 1, max_sim_seconds: {sim_seconds}}}\ncamera: {camera}\nrenderer: {renderer}\n"
+    )
 
 
 def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict:
@@ -44,18 +46,25 @@ def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict
             from orchestrator.ray_matrix import RayMatrixRunner
             from orchestrator.ray_options import RayOptions
 
-            runner = RayMatrixRunner(parse_matrix(text), Path(folder), RunOptions(),
-                                     ray_options=RayOptions(address=ray_address))
+            runner = RayMatrixRunner(
+                parse_matrix(text), Path(folder), RunOptions(), ray_options=RayOptions(address=ray_address)
+            )
         progress = runner.run()
         wall_s = time.monotonic() - started
         with ResultStore(Path(folder), create=False) as store:
             results = store.results()
     episode_walls = [r.score.metrics.wall_time_s for r in results if r.score is not None]
     totals = [r.wall_s for r in results]
-    return {"workers": workers, "done": progress.done, "failed": progress.failed, "wall_s": wall_s,
-            "episodes_per_hour": 3600 * len(results) / wall_s, "task_s": statistics.median(totals),
-            "episode_s": statistics.median(episode_walls), "overhead_s": statistics.median(
-                [total - episode for total, episode in zip(totals, episode_walls)])}
+    return {
+        "workers": workers,
+        "done": progress.done,
+        "failed": progress.failed,
+        "wall_s": wall_s,
+        "episodes_per_hour": 3600 * len(results) / wall_s,
+        "task_s": statistics.median(totals),
+        "episode_s": statistics.median(episode_walls),
+        "overhead_s": statistics.median([total - episode for total, episode in zip(totals, episode_walls)]),
+    }
 
 
 def main() -> int:
@@ -71,18 +80,22 @@ def main() -> int:
         return ray_main(args, matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera))
     rows = []
     for renderer in args.renderers.split(","):
-        text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera,
-                           renderer=renderer)
+        text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera, renderer=renderer)
         rows += [{**run_case(text, 1), "renderer": renderer}, {**run_case(text, args.workers), "renderer": renderer}]
-    print(f"{args.episodes} episodes of at most {args.sim_seconds:.0f} s sim, one lap (explicit, simple, "
-          f"{args.camera})\n")
-    print("| renderer | workers | wall | episodes/hour | vs 1 worker | episode (sim loop) | stack start + stop per "
-          "episode |")
+    print(
+        f"{args.episodes} episodes of at most {args.sim_seconds:.0f} s sim, one lap (explicit, simple, {args.camera})\n"
+    )
+    print(
+        "| renderer | workers | wall | episodes/hour | vs 1 worker | episode (sim loop) | stack start + stop per "
+        "episode |"
+    )
     print("|---|---|---|---|---|---|---|")
     for row in rows:
         base = next(r for r in rows if r["renderer"] == row["renderer"])["episodes_per_hour"]
-        print(f"| {row['renderer']} | {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
-              f"{row['episodes_per_hour'] / base:.2f}x | {row['episode_s']:.1f} s | {row['overhead_s']:.1f} s |")
+        print(
+            f"| {row['renderer']} | {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+            f"{row['episodes_per_hour'] / base:.2f}x | {row['episode_s']:.1f} s | {row['overhead_s']:.1f} s |"
+        )
     failed = sum(row["failed"] for row in rows)
     if failed:
         print(f"\n{failed} episode(s) failed", file=sys.stderr)
@@ -113,18 +126,24 @@ def ray_main(args: argparse.Namespace, text: str) -> int:
         ray.shutdown()
         cluster.shutdown()
     base = local["episodes_per_hour"]
-    print(f"{args.episodes} episodes of {args.sim_seconds:.0f} s sim (explicit, simple, {args.camera}); "
-          f"{os.cpu_count()} cores\n")
+    print(
+        f"{args.episodes} episodes of {args.sim_seconds:.0f} s sim (explicit, simple, {args.camera}); "
+        f"{os.cpu_count()} cores\n"
+    )
     print("| runs on | wall | episodes/hour | vs local | per episode (driver) | of which in the task |")
     print("|---|---|---|---|---|---|")
     for name, row in rows:
-        print(f"| {name} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
-              f"{row['episodes_per_hour'] / base:.2f}x | {row['wall_s'] / args.episodes:.1f} s | "
-              f"{row['task_s']:.1f} s |")
+        print(
+            f"| {name} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+            f"{row['episodes_per_hour'] / base:.2f}x | {row['wall_s'] / args.episodes:.1f} s | "
+            f"{row['task_s']:.1f} s |"
+        )
     one_node = rows[1][1]
     added_s = (one_node["wall_s"] - local["wall_s"]) / args.episodes
-    print(f"\nRay adds {added_s:+.2f} s per episode against a local worker "
-          f"({100 * added_s / (local['wall_s'] / args.episodes):+.1f} % of a {args.sim_seconds:.0f} s-sim episode)")
+    print(
+        f"\nRay adds {added_s:+.2f} s per episode against a local worker "
+        f"({100 * added_s / (local['wall_s'] / args.episodes):+.1f} % of a {args.sim_seconds:.0f} s-sim episode)"
+    )
     failed = sum(row["failed"] for _, row in rows)
     if failed:
         print(f"\n{failed} episode(s) failed", file=sys.stderr)

@@ -48,9 +48,11 @@ def camera_like_frame(width: int, height: int, seed: int) -> np.ndarray:
     """Smooth colour gradients, a bright block with sharp edges, a textured band and mild noise; read-only."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
-    image = np.stack([40 + 150 * x / width, 60 + 120 * y / height,
-                      128 + 60 * np.sin(x / (width / 40) + y / (height / 25) + seed)], axis=2)
-    image[height // 3: height // 2, width // 4: width // 2] = (220, 30, 30)
+    image = np.stack(
+        [40 + 150 * x / width, 60 + 120 * y / height, 128 + 60 * np.sin(x / (width / 40) + y / (height / 25) + seed)],
+        axis=2,
+    )
+    image[height // 3 : height // 2, width // 4 : width // 2] = (220, 30, 30)
     band = slice(2 * height // 3, 2 * height // 3 + max(1, height // 10))
     image[band] += rng.normal(0.0, 25.0, image[band].shape).astype(np.float32)
     image += rng.normal(0.0, 3.0, image.shape).astype(np.float32)
@@ -81,12 +83,13 @@ def main() -> int:
     if args.threads is not None:
         cv2.setNumThreads(args.threads)
     sizes = parse_sizes(args.sizes)
-    frames = {size: [camera_like_frame(*size, seed=seed) for seed in range(FRAME_VARIANTS)]
-              for size in {*sizes, BASELINE_SIZE}}
+    frames = {
+        size: [camera_like_frame(*size, seed=seed) for seed in range(FRAME_VARIANTS)]
+        for size in {*sizes, BASELINE_SIZE}
+    }
 
     # (label, size) -> per-frame callable; the baseline copy is one more case
-    runners: dict[tuple[str, tuple[int, int]], Callable[[np.ndarray], object]] = {
-        ("np.copy", BASELINE_SIZE): np.copy}
+    runners: dict[tuple[str, tuple[int, int]], Callable[[np.ndarray], object]] = {("np.copy", BASELINE_SIZE): np.copy}
     for label, stages in CASES:
         for size in sizes:
             if stages:
@@ -115,11 +118,13 @@ def main() -> int:
                 run(frame)
                 samples.append(time.perf_counter_ns() - started)
 
-    median_ms = {key: statistics.median(samples[:args.frames]) / 1e6 for key, samples in timings.items()}
+    median_ms = {key: statistics.median(samples[: args.frames]) / 1e6 for key, samples in timings.items()}
     copy_ms = median_ms[("np.copy", BASELINE_SIZE)]
-    print(f"Noise models, median ms per frame over {args.frames} frames (after {args.warmup} warm-up); "
-          f"x copy = multiples of one {BASELINE_SIZE[0]}x{BASELINE_SIZE[1]} RGB frame copy ({fmt(copy_ms)} ms here). "
-          f"NumPy {np.__version__}, OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads).")
+    print(
+        f"Noise models, median ms per frame over {args.frames} frames (after {args.warmup} warm-up); "
+        f"x copy = multiples of one {BASELINE_SIZE[0]}x{BASELINE_SIZE[1]} RGB frame copy ({fmt(copy_ms)} ms here). "
+        f"NumPy {np.__version__}, OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads)."
+    )
     print()
     header = "| model | parameters |" + "".join(f" {w}x{h} ms | x copy |" for w, h in sizes)
     print(header)
@@ -127,11 +132,14 @@ def main() -> int:
     for label, stages in CASES:
         fields = stages[0].__struct_fields__ if stages else ()
         params = ", ".join(f"{name}={getattr(stages[0], name)}" for name in fields)
-        cells = "".join(f" {fmt(median_ms[(label, size)])} | {fmt(median_ms[(label, size)] / copy_ms)} |"
-                        for size in sizes)
+        cells = "".join(
+            f" {fmt(median_ms[(label, size)])} | {fmt(median_ms[(label, size)] / copy_ms)} |" for size in sizes
+        )
         print(f"| {label} | {params} |{cells}")
-    print(f"| np.copy (baseline) | {BASELINE_SIZE[0]}x{BASELINE_SIZE[1]} only |" +
-          "".join(f" {fmt(copy_ms)} | 1 |" if size == BASELINE_SIZE else " - | - |" for size in sizes))
+    print(
+        f"| np.copy (baseline) | {BASELINE_SIZE[0]}x{BASELINE_SIZE[1]} only |"
+        + "".join(f" {fmt(copy_ms)} | 1 |" if size == BASELINE_SIZE else " - | - |" for size in sizes)
+    )
     return 0
 
 

@@ -68,17 +68,32 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_case(name: str, image_format: str, images: list[np.ndarray], *, seconds: float, rate_hz: float,
-             folder: Path) -> dict:
+def run_case(
+    name: str, image_format: str, images: list[np.ndarray], *, seconds: float, rate_hz: float, folder: Path
+) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     run_id = f"bench-{name}"
     output = folder / f"{name}.mcap"
     with Bus(BusConfig(mode="router", listen=[endpoint]), name="bench") as bus:
         watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
         recorder = subprocess.Popen(
-            [sys.executable, "-m", "recorder", "--router", endpoint, "--run-id", run_id,
-             "--set", f"output={json.dumps(str(output))}", "--set", f"image_format={image_format}"],
-            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            [
+                sys.executable,
+                "-m",
+                "recorder",
+                "--router",
+                endpoint,
+                "--run-id",
+                run_id,
+                "--set",
+                f"output={json.dumps(str(output))}",
+                "--set",
+                f"image_format={image_format}",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         if watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30):
             raise SystemExit(f"{name}: the recorder did not come up")
         cpu_before = cpu_seconds(recorder.pid)  # start-up (imports) is not recording
@@ -91,18 +106,25 @@ def run_case(name: str, image_format: str, images: list[np.ndarray], *, seconds:
     for item in read_messages(output):
         recorded[item.key] = recorded.get(item.key, 0) + 1
     missing = {key: count - recorded.get(key, 0) for key, count in published.items()}
-    return {"case": name, "published": sum(published.values()), "missing": sum(missing.values()),
-            "missing_by_key": {k.split("/", 3)[3]: v for k, v in missing.items() if v},
-            "cpu_share": cpu / seconds, "mb_per_s": output.stat().st_size / seconds / 1e6,
-            "frames": published[keys.camera_raw(run_id)]}
+    return {
+        "case": name,
+        "published": sum(published.values()),
+        "missing": sum(missing.values()),
+        "missing_by_key": {k.split("/", 3)[3]: v for k, v in missing.items() if v},
+        "cpu_share": cpu / seconds,
+        "mb_per_s": output.stat().st_size / seconds / 1e6,
+        "frames": published[keys.camera_raw(run_id)],
+    }
 
 
-def publish(bus: Bus, run_id: str, images: list[np.ndarray], *, seconds: float, rate_hz: float,
-            desc: str) -> dict[str, int]:
+def publish(
+    bus: Bus, run_id: str, images: list[np.ndarray], *, seconds: float, rate_hz: float, desc: str
+) -> dict[str, int]:
     out = {
         keys.camera_raw(run_id): bus.publisher(keys.camera_raw(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS),
-        keys.camera_perturbed(run_id): bus.publisher(keys.camera_perturbed(run_id), CameraFrame,
-                                                     Traffic.FRAMES_LOSSLESS),
+        keys.camera_perturbed(run_id): bus.publisher(
+            keys.camera_perturbed(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS
+        ),
         keys.pose(run_id): bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS),
         keys.command(run_id, "explicit"): bus.publisher(keys.command(run_id, "explicit"), Command, Traffic.COMMANDS),
         keys.live_metrics(run_id): bus.publisher(keys.live_metrics(run_id), LiveMetrics, Traffic.METRICS),
@@ -115,8 +137,12 @@ def publish(bus: Bus, run_id: str, images: list[np.ndarray], *, seconds: float, 
         counts[key] += 1
 
     steps = int(seconds * rate_hz)
-    send(keys.events(run_id), EpisodeEvent(header=Header(run_id=run_id, episode=0, seq=0, stamp_ns=0),
-                                           kind=EventKind.START, spec=EpisodeSpec()))
+    send(
+        keys.events(run_id),
+        EpisodeEvent(
+            header=Header(run_id=run_id, episode=0, seq=0, stamp_ns=0), kind=EventKind.START, spec=EpisodeSpec()
+        ),
+    )
     start = time.monotonic()
     for seq in tqdm(range(steps), desc=desc, unit="step", file=sys.stderr, leave=False):
         header = Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * 50_000_000)
@@ -124,14 +150,24 @@ def publish(bus: Bus, run_id: str, images: list[np.ndarray], *, seconds: float, 
         send(keys.camera_raw(run_id), frame)
         send(keys.camera_perturbed(run_id), frame)
         send(keys.pose(run_id), Pose(header=header, x_m=0.1 * seq, y_m=0.0, yaw_rad=0.0, speed_mps=2.0))
-        send(keys.command(run_id, "explicit"), Command(header=header, brain="explicit", frame_seq=seq,
-                                                       speed_mps=2.0, yaw_rate_radps=0.1))
+        send(
+            keys.command(run_id, "explicit"),
+            Command(header=header, brain="explicit", frame_seq=seq, speed_mps=2.0, yaw_rate_radps=0.1),
+        )
         if seq % 10 == 0:
-            send(keys.live_metrics(run_id), LiveMetrics(header=Header(run_id=run_id, episode=0, seq=seq // 10,
-                                                                      stamp_ns=header.stamp_ns),
-                                                        progress_laps=0.0, laps_target=1, completed_laps=0,
-                                                        sim_time_s=seq * 0.05, real_time_factor=1.0,
-                                                        cross_track_m=0.0, speed_mps=2.0))
+            send(
+                keys.live_metrics(run_id),
+                LiveMetrics(
+                    header=Header(run_id=run_id, episode=0, seq=seq // 10, stamp_ns=header.stamp_ns),
+                    progress_laps=0.0,
+                    laps_target=1,
+                    completed_laps=0,
+                    sim_time_s=seq * 0.05,
+                    real_time_factor=1.0,
+                    cross_track_m=0.0,
+                    speed_mps=2.0,
+                ),
+            )
         time.sleep(max(0.0, start + (seq + 1) / rate_hz - time.monotonic()))
     return counts
 
@@ -149,15 +185,27 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for name, image_format, with_noise in CASES:
-            rows.append(run_case(name, image_format, noisy if with_noise else clean, seconds=args.seconds,
-                                 rate_hz=args.rate_hz, folder=Path(folder)))
-    print(f"\nrecorder, {width}x{height} frames on 2 camera keys + pose, command, metrics at {args.rate_hz:g} Hz, "
-          f"{args.seconds:g} s per case\n")
+            rows.append(
+                run_case(
+                    name,
+                    image_format,
+                    noisy if with_noise else clean,
+                    seconds=args.seconds,
+                    rate_hz=args.rate_hz,
+                    folder=Path(folder),
+                )
+            )
+    print(
+        f"\nrecorder, {width}x{height} frames on 2 camera keys + pose, command, metrics at {args.rate_hz:g} Hz, "
+        f"{args.seconds:g} s per case\n"
+    )
     print("| images | messages published | missing | recorder CPU (share of one core) | file MB/s |")
     print("|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['case']} | {row['published']} | {row['missing']} | {100 * row['cpu_share']:.0f} % | "
-              f"{row['mb_per_s']:.1f} |")
+        print(
+            f"| {row['case']} | {row['published']} | {row['missing']} | {100 * row['cpu_share']:.0f} % | "
+            f"{row['mb_per_s']:.1f} |"
+        )
     if any(row["missing"] for row in rows):
         print("\nmissing per key:", {row["case"]: row["missing_by_key"] for row in rows if row["missing"]})
 

@@ -20,8 +20,25 @@ RENDERERS = ("pybullet", "gl")
 
 
 def drive(*, brain: str, circuit: str, renderer: str, camera: str, runs_dir: str) -> dict:
-    command = [sys.executable, "-m", "orchestrator.cli", "run", "--json", "--brain", brain, "--circuit", circuit,
-               "--renderer", renderer, "--camera", camera, "--max-sim-seconds", "600", "--runs-dir", runs_dir]
+    command = [
+        sys.executable,
+        "-m",
+        "orchestrator.cli",
+        "run",
+        "--json",
+        "--brain",
+        brain,
+        "--circuit",
+        circuit,
+        "--renderer",
+        renderer,
+        "--camera",
+        camera,
+        "--max-sim-seconds",
+        "600",
+        "--runs-dir",
+        runs_dir,
+    ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=3600)
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed: {result.stderr.strip().splitlines()[-1:]}")
@@ -43,14 +60,23 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as runs_dir:
         for brain in args.brains.split(","):
             for circuit in args.circuits.split(","):
-                scores = {r: drive(brain=brain, circuit=circuit, renderer=r, camera=args.camera, runs_dir=runs_dir)
-                          for r in RENDERERS}
+                scores = {
+                    r: drive(brain=brain, circuit=circuit, renderer=r, camera=args.camera, runs_dir=runs_dir)
+                    for r in RENDERERS
+                }
                 for renderer, score in scores.items():
                     metrics = score["metrics"]
                     lap = metrics["lap_times_s"][0] if metrics["lap_times_s"] else None
-                    row = [brain, circuit, renderer, score["reason"], f"{lap:.2f}" if lap else "-",
-                           f"{metrics['cross_track_mean_m']:.4f}", f"{metrics['cross_track_rms_m']:.4f}",
-                           f"{metrics['real_time_factor']:.1f}x"]
+                    row = [
+                        brain,
+                        circuit,
+                        renderer,
+                        score["reason"],
+                        f"{lap:.2f}" if lap else "-",
+                        f"{metrics['cross_track_mean_m']:.4f}",
+                        f"{metrics['cross_track_rms_m']:.4f}",
+                        f"{metrics['real_time_factor']:.1f}x",
+                    ]
                     if renderer == "gl":
                         base = scores["pybullet"]["metrics"]
                         base_lap = base["lap_times_s"][0] if base["lap_times_s"] else None

@@ -32,8 +32,9 @@ from services.simulator.world import describe_world
 def variations() -> list[tuple[str, WorldVariation, dict]]:
     """(label, world, camera preset variation) for every world variation and every camera preset."""
     items = []
-    for line, road, walls, lighting in itertools.product(("red", "white", "none"), ("grey", "white"), (True, False),
-                                                         ("sun", "no_sun")):
+    for line, road, walls, lighting in itertools.product(
+        ("red", "white", "none"), ("grey", "white"), (True, False), ("sun", "no_sun")
+    ):
         label = f"line={line},road={road},walls={'on' if walls else 'off'},lighting={lighting}"
         items.append((label, WorldVariation(line=line, road=road, walls=walls, lighting=lighting), {}))
     for preset in CAMERA_PRESETS:
@@ -45,8 +46,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--poses", type=int, default=6, help="poses per circuit and variation (default 6)")
     parser.add_argument("--camera", default="320x240", help="camera size WxH (default 320x240)")
-    parser.add_argument("--circuits", default=",".join(builtin_circuit_names()),
-                        help="comma-separated circuits (default: every built-in)")
+    parser.add_argument(
+        "--circuits",
+        default=",".join(builtin_circuit_names()),
+        help="comma-separated circuits (default: every built-in)",
+    )
     args = parser.parse_args()
     width, height = (int(v) for v in args.camera.lower().split("x"))
     rows = []  # (circuit, variation label, mad, ssim, differing)
@@ -62,11 +66,14 @@ def main() -> int:
             with Scene.for_world(circuit, world) as reference, GLScene(describe_world(circuit, world)) as fast:
                 for pose in poses:
                     a, b = reference.render(pose, camera), fast.render(pose, camera)
-                    rows.append((circuit_name, label, mean_absolute_difference(a, b), ssim(a, b),
-                                 differing_fraction(a, b)))
+                    rows.append(
+                        (circuit_name, label, mean_absolute_difference(a, b), ssim(a, b), differing_fraction(a, b))
+                    )
         print(f"{circuit_name}: done ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
-    print(f"renderer parity: PyBullet TinyRenderer vs gl (moderngl/EGL), {width}x{height}, {args.poses} poses per "
-          f"circuit and variation, {len(rows)} frame pairs\n")
+    print(
+        f"renderer parity: PyBullet TinyRenderer vs gl (moderngl/EGL), {width}x{height}, {args.poses} poses per "
+        f"circuit and variation, {len(rows)} frame pairs\n"
+    )
     for title, column in (("per circuit (all variations)", 0), ("per variation (all circuits)", 1)):
         groups = defaultdict(list)
         for row in rows:
@@ -75,12 +82,16 @@ def main() -> int:
         print("|---|---|---|---|---|---|")
         for name, group in groups.items():
             mads, ssims, diffs = ([row[i] for row in group] for i in (2, 3, 4))
-            print(f"| {name} | {statistics.mean(mads):.2f} | {max(mads):.2f} | {statistics.mean(ssims):.4f} | "
-                  f"{min(ssims):.4f} | {100 * max(diffs):.2f} % |")
+            print(
+                f"| {name} | {statistics.mean(mads):.2f} | {max(mads):.2f} | {statistics.mean(ssims):.4f} | "
+                f"{min(ssims):.4f} | {100 * max(diffs):.2f} % |"
+            )
         print()
     mads, ssims, diffs = ([row[i] for row in rows] for i in (2, 3, 4))
-    print(f"all: MAD mean {statistics.mean(mads):.2f}, max {max(mads):.2f}; SSIM mean {statistics.mean(ssims):.4f}, "
-          f"min {min(ssims):.4f}; pixels > 8 levels max {100 * max(diffs):.2f} %")
+    print(
+        f"all: MAD mean {statistics.mean(mads):.2f}, max {max(mads):.2f}; SSIM mean {statistics.mean(ssims):.4f}, "
+        f"min {min(ssims):.4f}; pixels > 8 levels max {100 * max(diffs):.2f} %"
+    )
     worst = min(rows, key=lambda row: row[3])
     print(f"worst frame: {worst[0]} {worst[1]}: MAD {worst[2]:.2f}, SSIM {worst[3]:.4f}")
     return 0

@@ -1,6 +1,6 @@
 """A grid of sample frames, one per world variation and camera preset, for the README (docs/variations.png).
 
-    .venv/bin/python benchmarks/variation_grid.py [-o docs/variations.png]
+.venv/bin/python benchmarks/variation_grid.py [-o docs/variations.png]
 """
 
 from __future__ import annotations
@@ -16,8 +16,17 @@ from protocol.variations import apply_variation
 from services.simulator.episode import EpisodeSim, SceneCache
 
 VARIATIONS = [
-    "line=red", "line=white", "line=none", "road=white", "walls=off", "lighting=no_sun",
-    "camera=left", "camera=right", "camera=rotate_down", "camera=rotate_up", "camera_yaw_rad=0.2",
+    "line=red",
+    "line=white",
+    "line=none",
+    "road=white",
+    "walls=off",
+    "lighting=no_sun",
+    "camera=left",
+    "camera=right",
+    "camera=rotate_down",
+    "camera=rotate_up",
+    "camera_yaw_rad=0.2",
     "road=white,line=none,walls=off",
 ]
 
@@ -39,7 +48,7 @@ def main() -> int:
         cv2.putText(tile, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
     scenes.close()
-    rows = [np.hstack(tiles[i:i + 4]) for i in range(0, len(tiles), 4)]
+    rows = [np.hstack(tiles[i : i + 4]) for i in range(0, len(tiles), 4)]
     cv2.imwrite(args.output, np.vstack(rows))
     print(f"wrote {args.output}", file=sys.stderr)
     return 0

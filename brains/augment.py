@@ -19,9 +19,16 @@ def to_unit_float(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 1, 4, 2, 3).contiguous().float().div_(MAX_PIXEL)
 
 
-def augment_batch(frames: torch.Tensor, labels: torch.Tensor, generator: torch.Generator, *, mirror_p: float = 0.5,
-                  jitter: float = 0.2, blur_p: float = 0.2,
-                  noise_max: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+def augment_batch(
+    frames: torch.Tensor,
+    labels: torch.Tensor,
+    generator: torch.Generator,
+    *,
+    mirror_p: float = 0.5,
+    jitter: float = 0.2,
+    blur_p: float = 0.2,
+    noise_max: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Random training augmentation, one parameter set per sample shared by all its frames.
 
     frames: uint8 (B, T, H, W, 3) RGB; labels: (B, 2) physical [v m/s, w rad/s]. Returns float32 (B, T, 3, H, W)
@@ -76,8 +83,9 @@ def mirror(frames: torch.Tensor, labels: torch.Tensor, flip: torch.Tensor) -> tu
     return frames, torch.stack([labels[:, 0], w], dim=1)
 
 
-def colour_jitter(x: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor,
-                  saturation: torch.Tensor) -> torch.Tensor:
+def colour_jitter(
+    x: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor, saturation: torch.Tensor
+) -> torch.Tensor:
     """x (B, T, 3, H, W) RGB in [0, 1]; factors (B,), 1 = unchanged. Brightness scales x; contrast scales about the
     image's mean grey; saturation scales about each pixel's grey; clamped to [0, 1].
 
@@ -87,8 +95,9 @@ def colour_jitter(x: torch.Tensor, brightness: torch.Tensor, contrast: torch.Ten
     per_sample = (-1, 1, 1, 1)
     grey = (x[:, :, 0] * _LUMA[0]).add_(x[:, :, 1], alpha=_LUMA[1]).add_(x[:, :, 2], alpha=_LUMA[2])  # (B, T, H, W)
     scale = brightness * contrast
-    offset = (((1 - saturation) * scale).view(per_sample) * grey
-              + ((1 - contrast) * brightness).view(per_sample) * grey.mean((-2, -1), keepdim=True))
+    offset = ((1 - saturation) * scale).view(per_sample) * grey + ((1 - contrast) * brightness).view(
+        per_sample
+    ) * grey.mean((-2, -1), keepdim=True)
     return torch.addcmul(offset.unsqueeze(2), x, (saturation * scale).view(-1, 1, 1, 1, 1)).clamp_(0.0, 1.0)
 
 
@@ -98,8 +107,8 @@ def gaussian_blur(x: torch.Tensor, sigma: float, radius: int = 2) -> torch.Tenso
     Shifted-slice sums: for a 5-tap kernel this is several times faster on CPU than a depthwise convolution."""
     height, width = x.shape[-2:]
     taps = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    kernel = torch.exp(-taps ** 2 / (2 * sigma ** 2))
+    kernel = torch.exp(-(taps**2) / (2 * sigma**2))
     kernel = (kernel / kernel.sum()).tolist()
     padded = F.pad(x.reshape(-1, 1, height, width), (radius,) * 4, mode="replicate")
-    rows = sum(k * padded[..., i:i + width] for i, k in enumerate(kernel))
-    return sum(k * rows[..., i:i + height, :] for i, k in enumerate(kernel)).view(x.shape)
+    rows = sum(k * padded[..., i : i + width] for i, k in enumerate(kernel))
+    return sum(k * rows[..., i : i + height, :] for i, k in enumerate(kernel)).view(x.shape)

@@ -41,7 +41,11 @@ STEP_NS = 50_000_000
 
 # Worlds the frames are rendered in: the paper's default, its white line, no line on a white road, and no sun.
 CHECK_WORLDS: tuple[dict[str, Any], ...] = (
-    {}, {"line": "white"}, {"line": "none", "road": "white"}, {"lighting": "no_sun"})
+    {},
+    {"line": "white"},
+    {"line": "none", "road": "white"},
+    {"lighting": "no_sun"},
+)
 
 
 @dataclass(frozen=True)
@@ -66,9 +70,14 @@ class Frame:
     truth: GroundTruth
 
 
-def render_frames(*, circuit: str = "simple", worlds: Iterable[dict[str, Any]] = CHECK_WORLDS,
-                  frames_per_world: int = 12, spacing_m: float = 0.4, camera_wh: tuple[int, int] = (320, 240)
-                  ) -> list[Frame]:
+def render_frames(
+    *,
+    circuit: str = "simple",
+    worlds: Iterable[dict[str, Any]] = CHECK_WORLDS,
+    frames_per_world: int = 12,
+    spacing_m: float = 0.4,
+    camera_wh: tuple[int, int] = (320, 240),
+) -> list[Frame]:
     """Consecutive frames along ``circuit``'s centreline (0.4 m apart: 8 m/s at 20 Hz) in each world, rendered."""
     from circuits import load_circuit
     from protocol.messages import CameraSpec, WorldVariation
@@ -88,8 +97,9 @@ def render_frames(*, circuit: str = "simple", worlds: Iterable[dict[str, Any]] =
     return frames
 
 
-def check_brain(name: str, *, options: dict[str, Any] | None = None, frames: list[Frame] | None = None,
-                memory_steps: int = 300) -> list[Check]:
+def check_brain(
+    name: str, *, options: dict[str, Any] | None = None, frames: list[Frame] | None = None, memory_steps: int = 300
+) -> list[Check]:
     """Run every check on brain ``name`` built with ``options``; one :class:`Check` per check, in order."""
     options = dict(options or {})
     try:
@@ -98,8 +108,14 @@ def check_brain(name: str, *, options: dict[str, Any] | None = None, frames: lis
     except (UnknownBrainError, BrainOptionsError) as error:
         return [Check("make", "fail", str(error), "check the name (drivebench brains list) and its options")]
     except Exception as error:  # the user's constructor: whatever it raises, report it as one line
-        return [Check("make", "fail", f"building it raised {type(error).__name__}: {error}",
-                      "the constructor must accept the options given (keyword arguments) and load what it needs")]
+        return [
+            Check(
+                "make",
+                "fail",
+                f"building it raised {type(error).__name__}: {error}",
+                "the constructor must accept the options given (keyword arguments) and load what it needs",
+            )
+        ]
     results = [Check("make", "pass", f"{type(brain).__name__} from {name} ({origin})")]
     results.append(_check_protocol(brain))
     if results[-1].status == "fail":
@@ -126,16 +142,28 @@ def passed(results: list[Check]) -> bool:
 def _check_protocol(brain: Any) -> Check:
     missing = [method for method in ("reset", "act") if not callable(getattr(brain, method, None))]
     if missing:
-        return Check("protocol", "fail", f"no {' and no '.join(missing)} method",
-                     "implement reset(self, *, seed: int) and act(self, observation) -> Action (brains.base.Brain)")
+        return Check(
+            "protocol",
+            "fail",
+            f"no {' and no '.join(missing)} method",
+            "implement reset(self, *, seed: int) and act(self, observation) -> Action (brains.base.Brain)",
+        )
     try:
         brain.reset(seed=0)
     except TypeError as error:
-        return Check("protocol", "fail", f"reset(seed=0) raised TypeError: {error}",
-                     "reset takes the seed as a keyword argument: def reset(self, *, seed: int) -> None")
+        return Check(
+            "protocol",
+            "fail",
+            f"reset(seed=0) raised TypeError: {error}",
+            "reset takes the seed as a keyword argument: def reset(self, *, seed: int) -> None",
+        )
     except Exception as error:
-        return Check("protocol", "fail", f"reset(seed=0) raised {type(error).__name__}: {error}",
-                     "reset must put the brain back to its start state without failing")
+        return Check(
+            "protocol",
+            "fail",
+            f"reset(seed=0) raised {type(error).__name__}: {error}",
+            "reset must put the brain back to its start state without failing",
+        )
     return Check("protocol", "pass", "reset(seed=...) and act(observation)")
 
 
@@ -152,8 +180,9 @@ def _drive(brain: Any, frames: list[Frame], *, seed: int) -> tuple[list[tuple[fl
     truth = getattr(brain, "needs_ground_truth", False)
     actions, seconds = [], []
     for seq, frame in enumerate(frames):
-        observation = Observation(image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq,
-                                  ground_truth=frame.truth if truth else None)
+        observation = Observation(
+            image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq, ground_truth=frame.truth if truth else None
+        )
         started = time.perf_counter()
         action = brain.act(observation)
         seconds.append(time.perf_counter() - started)
@@ -181,25 +210,47 @@ def _check_act(brain: Any, frames: list[Frame]) -> _ActStage:
     try:
         actions, seconds = _drive(brain, frames, seed=1)
     except _BadAction as error:
-        return _ActStage([Check("act", "fail", str(error),
-                                "return Action(speed_mps=float, yaw_rate_radps=float), both finite")])
+        return _ActStage(
+            [Check("act", "fail", str(error), "return Action(speed_mps=float, yaw_rate_radps=float), both finite")]
+        )
     except ValueError as error:
         if "read-only" in str(error) or "not writeable" in str(error):
-            return _ActStage([Check("act", "pass", "answered frames until it wrote into one"),
-                              Check("read-only", "fail", f"act wrote into the camera image ({error})",
-                                    "copy the image before drawing on it: image = observation.image_rgb.copy()")])
+            return _ActStage(
+                [
+                    Check("act", "pass", "answered frames until it wrote into one"),
+                    Check(
+                        "read-only",
+                        "fail",
+                        f"act wrote into the camera image ({error})",
+                        "copy the image before drawing on it: image = observation.image_rgb.copy()",
+                    ),
+                ]
+            )
         return _ActStage([_raised("act", error)])
     except Exception as error:
         return _ActStage([_raised("act", error)])
     sizes = sorted({f"{f.image_rgb.shape[1]}x{f.image_rgb.shape[0]}" for f in frames})
-    return _ActStage([Check("act", "pass", f"{len(frames)} frames of {len(CHECK_WORLDS)} worlds ({', '.join(sizes)}) "
-                                           f"answered with finite Actions"),
-                      Check("read-only", "pass", "the camera image was left untouched")], actions, seconds)
+    return _ActStage(
+        [
+            Check(
+                "act",
+                "pass",
+                f"{len(frames)} frames of {len(CHECK_WORLDS)} worlds ({', '.join(sizes)}) answered with finite Actions",
+            ),
+            Check("read-only", "pass", "the camera image was left untouched"),
+        ],
+        actions,
+        seconds,
+    )
 
 
 def _raised(name: str, error: Exception) -> Check:
-    return Check(name, "fail", f"act raised {type(error).__name__}: {error}",
-                 "act must answer any 320x240 RGB frame (uint8, H x W x 3) without raising")
+    return Check(
+        name,
+        "fail",
+        f"act raised {type(error).__name__}: {error}",
+        "act must answer any 320x240 RGB frame (uint8, H x W x 3) without raising",
+    )
 
 
 def _check_units(actions: list[tuple[float, float]]) -> Check:
@@ -209,8 +260,9 @@ def _check_units(actions: list[tuple[float, float]]) -> Check:
     if max(speeds) > MAX_SPEED_MPS:
         return Check("units", "fail", detail, "speed_mps is metres per second (km/h / 3.6)")
     if max(yaw_rates) > MAX_YAW_RATE_RADPS:
-        return Check("units", "fail", detail, "yaw_rate_radps is radians per second (degrees * pi / 180), "
-                                              "positive turning left")
+        return Check(
+            "units", "fail", detail, "yaw_rate_radps is radians per second (degrees * pi / 180), positive turning left"
+        )
     if max(speed for speed, _ in actions) <= 0.0:
         return Check("units", "warn", detail + "; it never drives forward on the road", "")
     return Check("units", "pass", detail)
@@ -220,16 +272,22 @@ def _check_answer_time(seconds: list[float]) -> Check:
     p50, p95 = statistics.median(seconds), float(np.percentile(seconds, 95))
     detail = f"p50 {1e3 * p50:.2f} ms, p95 {1e3 * p95:.2f} ms per frame"
     if p95 > LOCKSTEP_TIMEOUT_S:
-        return Check("answer time", "fail", detail + f" (lock-step episodes end after {LOCKSTEP_TIMEOUT_S:.0f} s)",
-                     "answer faster, or raise the episode's brain_timeout_s (run --brain-timeout)")
+        return Check(
+            "answer time",
+            "fail",
+            detail + f" (lock-step episodes end after {LOCKSTEP_TIMEOUT_S:.0f} s)",
+            "answer faster, or raise the episode's brain_timeout_s (run --brain-timeout)",
+        )
     if p50 > REALTIME_BUDGET_S:
-        return Check("answer time", "warn", detail + " (lock-step is fine; real-time runs at 20 Hz will skip frames)",
-                     "")
+        return Check(
+            "answer time", "warn", detail + " (lock-step is fine; real-time runs at 20 Hz will skip frames)", ""
+        )
     return Check("answer time", "pass", detail)
 
 
-def _check_determinism(brain: Any, make_new: Callable[[], Any], frames: list[Frame],
-                       first: list[tuple[float, float]]) -> Check:
+def _check_determinism(
+    brain: Any, make_new: Callable[[], Any], frames: list[Frame], first: list[tuple[float, float]]
+) -> Check:
     fix = "seed every random generator from reset(seed=...) and clear everything the brain remembers in reset"
     try:
         _drive(brain, frames[::-1], seed=2)
@@ -238,11 +296,19 @@ def _check_determinism(brain: Any, make_new: Callable[[], Any], frames: list[Fra
     except Exception as error:
         return Check("determinism", "fail", f"a second run raised {type(error).__name__}: {error}", fix)
     if again != first:
-        return Check("determinism", "fail", f"after other frames, reset(seed=1) gave other actions from frame "
-                                            f"{_first_difference(first, again)}", fix)
+        return Check(
+            "determinism",
+            "fail",
+            f"after other frames, reset(seed=1) gave other actions from frame {_first_difference(first, again)}",
+            fix,
+        )
     if fresh != first:
-        return Check("determinism", "fail", f"a new brain with seed 1 gave other actions from frame "
-                                            f"{_first_difference(first, fresh)}", fix)
+        return Check(
+            "determinism",
+            "fail",
+            f"a new brain with seed 1 gave other actions from frame {_first_difference(first, fresh)}",
+            fix,
+        )
     return Check("determinism", "pass", "same seed, same frames: same actions (after other frames, and fresh)")
 
 
@@ -265,15 +331,24 @@ def _check_memory(brain: Any, frames: list[Frame], *, steps: int) -> Check:
         heap_growth = tracemalloc.get_traced_memory()[0] - heap_before
         rss_growth = _rss_bytes() - rss_before
     except Exception as error:
-        return Check("memory", "fail", f"act raised {type(error).__name__} on frame {steps} frames long: {error}",
-                     "act must keep answering through a long episode")
+        return Check(
+            "memory",
+            "fail",
+            f"act raised {type(error).__name__} on frame {steps} frames long: {error}",
+            "act must keep answering through a long episode",
+        )
     finally:
         tracemalloc.stop()
     growth = max(heap_growth, rss_growth)
     detail = f"{steps} frames: heap {heap_growth / 2**20:+.1f} MiB, resident {rss_growth / 2**20:+.1f} MiB"
     if growth > MEMORY_GROWTH_LIMIT_BYTES:
-        return Check("memory", "fail", detail, "keep a bounded history (collections.deque(maxlen=...)), not every "
-                                               "frame; release what the previous frames needed")
+        return Check(
+            "memory",
+            "fail",
+            detail,
+            "keep a bounded history (collections.deque(maxlen=...)), not every "
+            "frame; release what the previous frames needed",
+        )
     return Check("memory", "pass", detail)
 
 

@@ -92,8 +92,7 @@ class BrainHost:
         self._stop = threading.Event()
         self._spec: EpisodeSpec | None = None
         # A privileged brain (the expert) gets the simulator's ground-truth pose of every frame.
-        self._poses = (bus.subscribe(keys.pose(run), Pose) if getattr(brain, "needs_ground_truth", False)
-                       else None)
+        self._poses = bus.subscribe(keys.pose(run), Pose) if getattr(brain, "needs_ground_truth", False) else None
         self._pose_by_frame: dict[tuple[int, int], Pose] = {}
         bus.serve(keys.brain_control(run, self.name), self._on_control)
         self._simulators = bus.watch_alive(keys.alive_role(run, "simulator")) if config.orphan_timeout_s else None
@@ -125,22 +124,25 @@ class BrainHost:
             return False
         if now - self._simulator_seen < self.config.orphan_timeout_s:
             return False
-        log.info("no simulator on run %s for %.0f s: its stack is gone, exiting", self.config.run_id,
-                 self.config.orphan_timeout_s)
+        log.info(
+            "no simulator on run %s for %.0f s: its stack is gone, exiting",
+            self.config.run_id,
+            self.config.orphan_timeout_s,
+        )
         return True
 
     def _on_control(self, payload: bytes) -> bytes:
         """The control queryable (Zenoh's callback thread: never block)."""
         request = codec.decode(payload, ControlRequest)
         if request.action == "status":
-            return codec.encode(ControlReply(ok=True, state="serving", episode=self._episode,
-                                             active_brain=self.name))
+            return codec.encode(ControlReply(ok=True, state="serving", episode=self._episode, active_brain=self.name))
         if request.action == "stop":
             log.info("stop requested over the bus")
             self._stop.set()
             return codec.encode(ControlReply(ok=True, state="stopping", episode=self._episode))
-        return codec.encode(ControlReply(ok=False, detail=f"unknown action {request.action!r} (brain hosts know "
-                                                           f"status and stop)"))
+        return codec.encode(
+            ControlReply(ok=False, detail=f"unknown action {request.action!r} (brain hosts know status and stop)")
+        )
 
     def _seed_for(self, episode: int) -> int:
         """The episode's seed (and mode) from its START event, or from the simulator's status for a late joiner."""
@@ -171,18 +173,20 @@ class BrainHost:
         else:
             truth = self._ground_truth(h.episode, h.seq) if self._poses is not None else None
             started = time.perf_counter_ns()
-            action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq,
-                                                ground_truth=truth))
+            action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq, ground_truth=truth))
             inference_ns = time.perf_counter_ns() - started
             speed_mps, yaw_rate_radps = float(action.speed_mps), float(action.yaw_rate_radps)
         command = Command(
             header=Header(run_id=self.config.run_id, episode=h.episode, seq=self._seq, stamp_ns=h.stamp_ns),
-            brain=self.name, frame_seq=h.seq, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps,
-            inference_ns=inference_ns)
+            brain=self.name,
+            frame_seq=h.seq,
+            speed_mps=speed_mps,
+            yaw_rate_radps=yaw_rate_radps,
+            inference_ns=inference_ns,
+        )
         self._seq += 1
         self._commands.publish(command)
         self._last = command
-
 
     def _ground_truth(self, episode: int, seq: int) -> GroundTruth | None:
         """The pose of frame (episode, seq), waiting up to GROUND_TRUTH_WAIT_S for it; None (logged) without it."""
@@ -198,8 +202,9 @@ class BrainHost:
                 self._pose_by_frame.pop(next(iter(self._pose_by_frame)))
         pose = self._pose_by_frame[(episode, seq)]
         spec = self._spec or EpisodeSpec()
-        return GroundTruth(x_m=pose.x_m, y_m=pose.y_m, yaw_rad=pose.yaw_rad, circuit=spec.circuit,
-                           direction=spec.direction)
+        return GroundTruth(
+            x_m=pose.x_m, y_m=pose.y_m, yaw_rad=pose.yaw_rad, circuit=spec.circuit, direction=spec.direction
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -208,14 +213,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = service_parser("drivebench brain host: camera frames in, driving commands out")
     parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")
     parser.add_argument("--name", help="name on the bus (default: the brain's name)")
-    parser.add_argument("--weights", metavar="CKPT",
-                        help="neural brains: checkpoint or exported ONNX file (= --set options.weights=CKPT; empty: "
-                             "the shipped weights of that network, if any)")
+    parser.add_argument(
+        "--weights",
+        metavar="CKPT",
+        help="neural brains: checkpoint or exported ONNX file (= --set options.weights=CKPT; empty: "
+        "the shipped weights of that network, if any)",
+    )
     args = parser.parse_args(argv)
 
     def run() -> int:
-        config = load_service_config(BrainHostConfig, args, extra={"brain": args.brain, "name": args.name,
-                                                                   "options.weights": args.weights or None})
+        config = load_service_config(
+            BrainHostConfig,
+            args,
+            extra={"brain": args.brain, "name": args.name, "options.weights": args.weights or None},
+        )
         log_config(config)
         try:
             brain = make_brain(config.brain, **config.options)

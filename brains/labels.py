@@ -30,12 +30,17 @@ class LabelNorm:
         return y_n * y_n.new_tensor(self.std) + y_n.new_tensor(self.mean)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"image_mean": [float(v) for v in IMAGENET_MEAN], "image_std": [float(v) for v in IMAGENET_STD],
-                "labels": self.kind, "label_mean": list(self.mean), "label_std": list(self.std)}
+        return {
+            "image_mean": [float(v) for v in IMAGENET_MEAN],
+            "image_std": [float(v) for v in IMAGENET_STD],
+            "labels": self.kind,
+            "label_mean": list(self.mean),
+            "label_std": list(self.std),
+        }
 
 
 def label_norm(kind: str, train_labels: np.ndarray, *, mirrored: bool = False) -> LabelNorm:
-    """"zscore": mean/std of the training labels (N, 2); "paper": DLS's v_n = (v-6.5)/17.5, w_n = (w+7.1)/14.2.
+    """ "zscore": mean/std of the training labels (N, 2); "paper": DLS's v_n = (v-6.5)/17.5, w_n = (w+7.1)/14.2.
 
     mirrored: training mirrors half the samples (w -> -w), so the yaw rates the network learns are the symmetric
     mixture of w and -w: its mean is 0 and its std sqrt(mean(w²)). The paper's labels are not clipped to [0, 1]
@@ -51,8 +56,9 @@ def label_norm(kind: str, train_labels: np.ndarray, *, mirrored: bool = False) -
     return LabelNorm("zscore", tuple(float(v) for v in values.mean(axis=0)), tuple(float(v) for v in std))
 
 
-def balance_weights(yaw_rate_radps: np.ndarray, edges_radps=ABS_YAW_RATE_EDGES_RADPS,
-                    cap: float = BALANCE_CAP) -> np.ndarray:
+def balance_weights(
+    yaw_rate_radps: np.ndarray, edges_radps=ABS_YAW_RATE_EDGES_RADPS, cap: float = BALANCE_CAP
+) -> np.ndarray:
     """Sampling weights (N,) float64 summing to 1: ∝ 1 / (training samples in the sample's |w| bin).
 
     Bins as in the manifest histogram: edges[i] <= |w| < edges[i + 1], the last open-ended. Every occupied bin is

@@ -110,15 +110,18 @@ def resolve(name: str) -> BrainSource:
     if is_brain_file(name):
         if not Path(name).is_file():
             raise UnknownBrainError(f"Behavior Metrics brain file {name!r} not found")
-        return BrainSource(name, _REGISTRY[BEHAVIOR_METRICS], "Behavior Metrics file",
-                           options=(("file", str(Path(name).resolve())),))
+        return BrainSource(
+            name, _REGISTRY[BEHAVIOR_METRICS], "Behavior Metrics file", options=(("file", str(Path(name).resolve())),)
+        )
     if is_module_target(name):
         return BrainSource(name, name, "module path")
     installed = entry_point_brains()
     if name in installed:
         return installed[name]
-    raise UnknownBrainError(f"unknown brain {name!r} (known: {', '.join(brain_names())}; or give "
-                            f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)")
+    raise UnknownBrainError(
+        f"unknown brain {name!r} (known: {', '.join(brain_names())}; or give "
+        f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)"
+    )
 
 
 def load_factory(source: BrainSource):

@@ -67,8 +67,21 @@ DEVICES = ("auto", "cpu", "cuda")
 # empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
 EVAL_BATCH = 256
 # Options a resumed run must share with the run that wrote last.ckpt; epochs, patience, device, threads may change.
-RESUME_FIXED = ("model", "data", "hyper", "seed", "lr", "batch_size", "labels", "max_samples_per_epoch", "augment",
-                "augment_noise", "balance", "eval_train_samples", "limit_train_samples")
+RESUME_FIXED = (
+    "model",
+    "data",
+    "hyper",
+    "seed",
+    "lr",
+    "batch_size",
+    "labels",
+    "max_samples_per_epoch",
+    "augment",
+    "augment_noise",
+    "balance",
+    "eval_train_samples",
+    "limit_train_samples",
+)
 
 
 class TrainError(RuntimeError):
@@ -181,8 +194,9 @@ class _Split:
         """Raw labels (N, 2) [v m/s, w rad/s] of this split's samples."""
         return np.asarray(self.dataset.labels[self.dataset.index])
 
-    def batch(self, positions: np.ndarray, norm: LabelNorm,
-              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def batch(
+        self, positions: np.ndarray, norm: LabelNorm, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Inputs (B, 3, H, W) or (B, T, 3, H, W) float32 and normalised labels (B, 2); augmented iff generator."""
         frames, labels = self.dataset.batch(positions)
         frames = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
@@ -218,12 +232,16 @@ def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str
     got = (manifest["image_width_px"], manifest["image_height_px"])
     if got != (width, height):
         crop = f" --crop {info.crop_top_fraction:g}:1" if info.crop_top_fraction else ""
-        raise TrainError(f"model {info.name} takes {width}x{height} images (WxH) but dataset {options.data} holds "
-                         f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop}")
+        raise TrainError(
+            f"model {info.name} takes {width}x{height} images (WxH) but dataset {options.data} holds "
+            f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop}"
+        )
     offsets = manifest["offsets_frames"]
     if info.frames > 1 and len(offsets) != info.frames:
-        raise TrainError(f"model {info.name} needs {info.frames} frames per sample but dataset {options.data} has "
-                         f"offsets {offsets}; build it with --history {info.frames} or --offsets -9,-5,0")
+        raise TrainError(
+            f"model {info.name} needs {info.frames} frames per sample but dataset {options.data} has "
+            f"offsets {offsets}; build it with --history {info.frames} or --offsets -9,-5,0"
+        )
 
 
 def _crop_notes(info: ModelInfo, manifest: dict[str, Any]) -> list[str]:
@@ -232,19 +250,24 @@ def _crop_notes(info: ModelInfo, manifest: dict[str, Any]) -> list[str]:
     crop = (float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"]))
     if crop == (info.crop_top_fraction, 1.0):
         return []
-    return [f"dataset rows {crop[0]:g}..{crop[1]:g} of the camera frame differ from the reference {info.name}'s "
-            f"{info.crop_top_fraction:g}..1; the checkpoint records the dataset's crop"]
+    return [
+        f"dataset rows {crop[0]:g}..{crop[1]:g} of the camera frame differ from the reference {info.name}'s "
+        f"{info.crop_top_fraction:g}..1; the checkpoint records the dataset's crop"
+    ]
 
 
 def _input_section(manifest: dict[str, Any], offsets_frames: tuple[int, ...]) -> dict[str, Any]:
     step_s = manifest["step_s"]
     crop = manifest["options"]
-    return {"width_px": manifest["image_width_px"], "height_px": manifest["image_height_px"],
-            "crop_top_fraction": float(crop["crop_top_fraction"]),
-            "crop_bottom_fraction": float(crop["crop_bottom_fraction"]),
-            "offsets_frames": list(offsets_frames),
-            "offsets_s": None if step_s is None else [round(o * step_s, 9) for o in offsets_frames],
-            "step_s": step_s}
+    return {
+        "width_px": manifest["image_width_px"],
+        "height_px": manifest["image_height_px"],
+        "crop_top_fraction": float(crop["crop_top_fraction"]),
+        "crop_bottom_fraction": float(crop["crop_bottom_fraction"]),
+        "offsets_frames": list(offsets_frames),
+        "offsets_s": None if step_s is None else [round(o * step_s, 9) for o in offsets_frames],
+        "step_s": step_s,
+    }
 
 
 def _sha256(path: Path) -> str:
@@ -268,7 +291,7 @@ def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: Label
     phys_sq_sum = torch.zeros(2, dtype=torch.float64)
     sq_sum = 0.0
     for start in range(0, len(positions), EVAL_BATCH):
-        x, y_n = split.batch(positions[start:start + EVAL_BATCH], norm)
+        x, y_n = split.batch(positions[start : start + EVAL_BATCH], norm)
         out = model(x)
         sq_sum += float(((out - y_n) ** 2).sum(dtype=torch.float64))
         error = norm.denormalise(out) - norm.denormalise(y_n)
@@ -277,10 +300,13 @@ def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: Label
     model.train(was_training)
     n = max(len(positions), 1)
     paper_scale = torch.tensor([V_SCALE, W_SCALE], dtype=torch.float64)
-    return {"mae_speed_mps": float(abs_sum[0]) / n, "mae_yaw_rate_radps": float(abs_sum[1]) / n,
-            "mse_normalised": sq_sum / (2 * n),
-            "mae_paper": float((abs_sum / paper_scale).sum()) / (2 * n),
-            "mse_paper": float((phys_sq_sum / paper_scale ** 2).sum()) / (2 * n)}
+    return {
+        "mae_speed_mps": float(abs_sum[0]) / n,
+        "mae_yaw_rate_radps": float(abs_sum[1]) / n,
+        "mse_normalised": sq_sum / (2 * n),
+        "mae_paper": float((abs_sum / paper_scale).sum()) / (2 * n),
+        "mse_paper": float((phys_sq_sum / paper_scale**2).sum()) / (2 * n),
+    }
 
 
 # -- training --------------------------------------------------------------------------------------------------------
@@ -363,8 +389,14 @@ def _resolve_device(name: str) -> torch.device:
 class _Trainer:
     """One training session; ``run`` returns the result or raises TrainInterrupted after saving last.ckpt."""
 
-    def __init__(self, options: TrainOptions, *, progress: bool, log: Callable[[str], None] | None,
-                 on_batch: Callable[[int, int], None] | None):
+    def __init__(
+        self,
+        options: TrainOptions,
+        *,
+        progress: bool,
+        log: Callable[[str], None] | None,
+        on_batch: Callable[[int, int], None] | None,
+    ):
         self.options, self.show_progress, self.log, self.on_batch = options, progress, log, on_batch
         self.info = MODELS[options.model]
         self.device = _resolve_device(options.device)
@@ -376,8 +408,9 @@ class _Trainer:
         self.norm = label_norm(options.labels, labels, mirrored=options.augment)
         rng = np.random.default_rng(options.seed)
         self.pool = _subset(rng, len(train), options.limit_train_samples)  # positions in the train split we draw
-        self.weights = torch.from_numpy(balance_weights(labels[self.pool, 1]) if options.balance
-                                        else np.full(len(self.pool), 1 / len(self.pool)))
+        self.weights = torch.from_numpy(
+            balance_weights(labels[self.pool, 1]) if options.balance else np.full(len(self.pool), 1 / len(self.pool))
+        )
         # A fixed subset: the per-epoch training metric then compares like with like across epochs.
         self.train_eval = self.pool[_subset(rng, len(self.pool), options.eval_train_samples)]
         self.epoch_size = min(len(train), options.max_samples_per_epoch or len(train))
@@ -405,8 +438,10 @@ class _Trainer:
         if self.options.resume and not (self.output / LAST_FILE).is_file():
             raise TrainError(f"cannot resume: {self.output / LAST_FILE} does not exist")
         if existing and not self.options.resume and not self.options.overwrite:
-            raise TrainError(f"run folder {self.output} already holds {', '.join(existing)}; resume it (--resume) or "
-                             f"start again (--overwrite)")
+            raise TrainError(
+                f"run folder {self.output} already holds {', '.join(existing)}; resume it (--resume) or "
+                f"start again (--overwrite)"
+            )
         try:
             self.output.mkdir(parents=True, exist_ok=True)
             for name in existing if self.options.overwrite and not self.options.resume else ():
@@ -419,8 +454,11 @@ class _Trainer:
             last = read_checkpoint(path)
             resume = last["resume"]
             if resume["options"] != self.options.fixed():
-                diff = {k: (resume["options"].get(k), v) for k, v in self.options.fixed().items()
-                        if resume["options"].get(k) != v}
+                diff = {
+                    k: (resume["options"].get(k), v)
+                    for k, v in self.options.fixed().items()
+                    if resume["options"].get(k) != v
+                }
                 raise TrainError(f"cannot resume {path}: options differ (saved, now): {diff}")
             if last["dataset"]["manifest_sha256"] != _sha256(Path(self.options.data) / MANIFEST_FILE):
                 raise TrainError(f"cannot resume {path}: the dataset {self.options.data} changed since")
@@ -450,8 +488,11 @@ class _Trainer:
 
     def _epoch(self, epoch: int) -> None:
         """Train one epoch (or its rest, after an interrupted one) on weighted draws of the train split."""
-        positions = self.pool[torch.multinomial(self.weights, self.epoch_size, replacement=True,
-                                                generator=_epoch_generator(self.options.seed, epoch, 0)).numpy()]
+        positions = self.pool[
+            torch.multinomial(
+                self.weights, self.epoch_size, replacement=True, generator=_epoch_generator(self.options.seed, epoch, 0)
+            ).numpy()
+        ]
         augment = _epoch_generator(self.options.seed, epoch, 1) if self.options.augment else None
         partial = self.state.partial or {"epoch": epoch, "batches": 0, "loss_sum": 0.0, "samples": 0}
         if partial["batches"] and augment is not None:
@@ -459,14 +500,26 @@ class _Trainer:
         self.state.partial = None
         self.model.train()
         size = self.options.batch_size
-        bar = tqdm(total=self.epoch_size, initial=partial["samples"], desc=f"epoch {epoch}/{self.options.epochs}",
-                   unit="sample", file=sys.stderr, disable=not self.show_progress, leave=False, dynamic_ncols=True)
+        bar = tqdm(
+            total=self.epoch_size,
+            initial=partial["samples"],
+            desc=f"epoch {epoch}/{self.options.epochs}",
+            unit="sample",
+            file=sys.stderr,
+            disable=not self.show_progress,
+            leave=False,
+            dynamic_ncols=True,
+        )
         with bar:
             for batch in range(partial["batches"], math.ceil(self.epoch_size / size)):
-                loss = self._step(positions[batch * size:(batch + 1) * size], augment)
+                loss = self._step(positions[batch * size : (batch + 1) * size], augment)
                 samples = min((batch + 1) * size, self.epoch_size)
-                partial = {**partial, "batches": batch + 1, "samples": samples,
-                           "loss_sum": partial["loss_sum"] + loss * (samples - partial["samples"])}
+                partial = {
+                    **partial,
+                    "batches": batch + 1,
+                    "samples": samples,
+                    "loss_sum": partial["loss_sum"] + loss * (samples - partial["samples"]),
+                }
                 bar.update(partial["samples"] - bar.n)
                 bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
                 if self.on_batch is not None:
@@ -495,16 +548,25 @@ class _Trainer:
     def _end_epoch(self, epoch: int) -> None:
         """Evaluate, keep the best weights, extend the curve, save model.ckpt (if better) and last.ckpt."""
         train_metrics = evaluate(self.model, self.train_split, self.train_eval, self.norm)
-        val_metrics = (evaluate(self.model, self.val_split, np.arange(len(self.val_split)), self.norm)
-                       if self.val_split is not None else None)
+        val_metrics = (
+            evaluate(self.model, self.val_split, np.arange(len(self.val_split)), self.norm)
+            if self.val_split is not None
+            else None
+        )
         monitored = (val_metrics or train_metrics)["mse_normalised"]
         state = self.state
         state.epoch = epoch
-        state.curve.append({
-            "epoch": epoch, "train_loss": self.epoch_train_loss, "train_eval_loss": train_metrics["mse_normalised"],
-            "val_loss": val_metrics and val_metrics["mse_normalised"],
-            "val_mae_speed_mps": val_metrics and val_metrics["mae_speed_mps"],
-            "val_mae_yaw_rate_radps": val_metrics and val_metrics["mae_yaw_rate_radps"], "wall_s": self._wall_s()})
+        state.curve.append(
+            {
+                "epoch": epoch,
+                "train_loss": self.epoch_train_loss,
+                "train_eval_loss": train_metrics["mse_normalised"],
+                "val_loss": val_metrics and val_metrics["mse_normalised"],
+                "val_mae_speed_mps": val_metrics and val_metrics["mae_speed_mps"],
+                "val_mae_yaw_rate_radps": val_metrics and val_metrics["mae_yaw_rate_radps"],
+                "wall_s": self._wall_s(),
+            }
+        )
         improved = monitored < state.best_loss
         if improved:
             state.best_loss, state.best_epoch, state.bad_epochs = monitored, epoch, 0
@@ -520,11 +582,17 @@ class _Trainer:
 
     def _epoch_line(self, epoch: int, improved: bool) -> str:
         point = self.state.curve[-1]
-        val = (f"val loss {point['val_loss']:.4f} MAE v {point['val_mae_speed_mps']:.3f} m/s w "
-               f"{point['val_mae_yaw_rate_radps']:.3f} rad/s" if point["val_loss"] is not None else "no val split")
-        return (f"epoch {epoch}/{self.options.epochs}: train loss {point['train_loss']:.4f} (eval "
-                f"{point['train_eval_loss']:.4f}), {val}, {self._samples_per_s():.0f} samples/s"
-                f"{' *best' if improved else ''}")
+        val = (
+            f"val loss {point['val_loss']:.4f} MAE v {point['val_mae_speed_mps']:.3f} m/s w "
+            f"{point['val_mae_yaw_rate_radps']:.3f} rad/s"
+            if point["val_loss"] is not None
+            else "no val split"
+        )
+        return (
+            f"epoch {epoch}/{self.options.epochs}: train loss {point['train_loss']:.4f} (eval "
+            f"{point['train_eval_loss']:.4f}), {val}, {self._samples_per_s():.0f} samples/s"
+            f"{' *best' if improved else ''}"
+        )
 
     def _finish(self) -> TrainResult:
         self.model.load_state_dict(self.best_state)
@@ -532,9 +600,15 @@ class _Trainer:
         if self.state.epoch:
             write_checkpoint(checkpoint, self.output / BEST_FILE)
             self._write_reports()
-        return TrainResult(output=self.output, checkpoint=self.output / BEST_FILE, metrics=checkpoint["metrics"],
-                           epochs_run=self.state.epoch, best_epoch=self.state.best_epoch,
-                           samples_per_s=self._samples_per_s(), model=self.model.eval())
+        return TrainResult(
+            output=self.output,
+            checkpoint=self.output / BEST_FILE,
+            metrics=checkpoint["metrics"],
+            epochs_run=self.state.epoch,
+            best_epoch=self.state.best_epoch,
+            samples_per_s=self._samples_per_s(),
+            model=self.model.eval(),
+        )
 
     # -- outputs
 
@@ -546,52 +620,87 @@ class _Trainer:
 
     def _metrics(self) -> dict[str, Any]:
         state = self.state
-        notes = self.notes + ([] if self.val_split is not None else [
-            "dataset has no validation split: early stopping and the best checkpoint use the training-subset loss"])
-        return {"train": state.best_metrics.get("train"), "val": state.best_metrics.get("val"),
-                "best_epoch": state.best_epoch, "epochs_run": state.epoch, "curve": copy.deepcopy(state.curve),
-                "monitor": "val_loss" if self.val_split is not None else "train_eval_loss",
-                "stopped_early": state.bad_epochs >= self.options.patience and state.epoch < self.options.epochs,
-                "notes": notes}
+        notes = self.notes + (
+            []
+            if self.val_split is not None
+            else [
+                "dataset has no validation split: early stopping and the best checkpoint use the training-subset loss"
+            ]
+        )
+        return {
+            "train": state.best_metrics.get("train"),
+            "val": state.best_metrics.get("val"),
+            "best_epoch": state.best_epoch,
+            "epochs_run": state.epoch,
+            "curve": copy.deepcopy(state.curve),
+            "monitor": "val_loss" if self.val_split is not None else "train_eval_loss",
+            "stopped_early": state.bad_epochs >= self.options.patience and state.epoch < self.options.epochs,
+            "notes": notes,
+        }
 
     def _checkpoint(self, state_dict: dict[str, torch.Tensor]) -> dict[str, Any]:
         options = self.options
         manifest_path = Path(options.data) / MANIFEST_FILE
         return {
-            "format": CHECKPOINT_FORMAT, "model": options.model, "hyper": dict(options.hyper),
+            "format": CHECKPOINT_FORMAT,
+            "model": options.model,
+            "hyper": dict(options.hyper),
             "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
             "input": _input_section(self.train_split.dataset.manifest, self.train_split.dataset.offsets_frames),
             "normalisation": self.norm.to_dict(),
-            "dataset": {"path": str(Path(options.data).resolve()), "manifest_sha256": _sha256(manifest_path),
-                        "samples_train": len(self.pool),
-                        "samples_val": len(self.val_split) if self.val_split is not None else 0},
+            "dataset": {
+                "path": str(Path(options.data).resolve()),
+                "manifest_sha256": _sha256(manifest_path),
+                "samples_train": len(self.pool),
+                "samples_val": len(self.val_split) if self.val_split is not None else 0,
+            },
             "metrics": self._metrics(),
-            "training": {"seed": options.seed, "lr": options.lr, "batch_size": options.batch_size,
-                         "epochs": options.epochs, "device": str(self.device), "wall_s": self._wall_s(),
-                         "samples_per_s": self._samples_per_s(), "torch": str(torch.__version__),
-                         "patience": options.patience, "labels": options.labels, "augment": options.augment,
-                         "augment_noise": options.augment_noise, "balance": options.balance,
-                         "max_samples_per_epoch": options.max_samples_per_epoch,
-                         "limit_train_samples": options.limit_train_samples,
-                         "threads": torch.get_num_threads()},
+            "training": {
+                "seed": options.seed,
+                "lr": options.lr,
+                "batch_size": options.batch_size,
+                "epochs": options.epochs,
+                "device": str(self.device),
+                "wall_s": self._wall_s(),
+                "samples_per_s": self._samples_per_s(),
+                "torch": str(torch.__version__),
+                "patience": options.patience,
+                "labels": options.labels,
+                "augment": options.augment,
+                "augment_noise": options.augment_noise,
+                "balance": options.balance,
+                "max_samples_per_epoch": options.max_samples_per_epoch,
+                "limit_train_samples": options.limit_train_samples,
+                "threads": torch.get_num_threads(),
+            },
         }
 
     def _save_last(self) -> None:
         last = self._checkpoint(self.model.state_dict())
         progress = {**asdict(self.state), "wall_s": self._wall_s()}
-        last.update({
-            "optimizer_state": self.optimizer.state_dict(), "epoch": self.state.epoch,
-            "rng": {"torch": torch.get_rng_state(),
-                    "cuda": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None},
-            "resume": {"options": self.options.fixed(), "progress": progress,
-                       "best_state_dict": {k: v.detach().cpu() for k, v in self.best_state.items()}},
-        })
+        last.update(
+            {
+                "optimizer_state": self.optimizer.state_dict(),
+                "epoch": self.state.epoch,
+                "rng": {
+                    "torch": torch.get_rng_state(),
+                    "cuda": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None,
+                },
+                "resume": {
+                    "options": self.options.fixed(),
+                    "progress": progress,
+                    "best_state_dict": {k: v.detach().cpu() for k, v in self.best_state.items()},
+                },
+            }
+        )
         write_checkpoint(last, self.output / LAST_FILE)
 
     def _write_reports(self) -> None:
         checkpoint = self._checkpoint(self.best_state)
-        report = {key: checkpoint[key] for key in ("model", "hyper", "metrics", "training", "dataset", "input",
-                                                    "normalisation")}
+        report = {
+            key: checkpoint[key]
+            for key in ("model", "hyper", "metrics", "training", "dataset", "input", "normalisation")
+        }
         temporary = self.output / f".{METRICS_FILE}.tmp"
         temporary.write_text(json.dumps(report, indent=2) + "\n")
         os.replace(temporary, self.output / METRICS_FILE)
@@ -599,8 +708,13 @@ class _Trainer:
             raise TrainError(f"cannot write {self.output / CURVE_FILE}")
 
 
-def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], None] | None = None,
-          on_batch: Callable[[int, int], None] | None = None) -> TrainResult:
+def train(
+    options: TrainOptions,
+    *,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+    on_batch: Callable[[int, int], None] | None = None,
+) -> TrainResult:
     """Train ``options.model`` on ``options.data``, writing the run folder ``options.output``.
 
     progress: a tqdm bar per epoch on stderr (loss, samples/s). log: called with one summary line per epoch.
@@ -614,6 +728,16 @@ def train(options: TrainOptions, *, progress: bool = True, log: Callable[[str], 
 
 
 __all__ = [
-    "CHECKPOINT_FORMAT", "CheckpointError", "LabelNorm", "TrainError", "TrainInterrupted", "TrainOptions",
-    "TrainResult", "BALANCE_CAP", "balance_weights", "evaluate", "label_norm", "train",
+    "CHECKPOINT_FORMAT",
+    "CheckpointError",
+    "LabelNorm",
+    "TrainError",
+    "TrainInterrupted",
+    "TrainOptions",
+    "TrainResult",
+    "BALANCE_CAP",
+    "balance_weights",
+    "evaluate",
+    "label_norm",
+    "train",
 ]

@@ -6,5 +6,13 @@ from circuits.centreline import Centreline, Projection
 from circuits.generator import random_circuit, twisty_circuit
 from circuits.library import Circuit, CircuitError, circuit_names, load_circuit
 
-__all__ = ["Centreline", "Circuit", "CircuitError", "Projection", "circuit_names", "load_circuit", "random_circuit",
-           "twisty_circuit"]
+__all__ = [
+    "Centreline",
+    "Circuit",
+    "CircuitError",
+    "Projection",
+    "circuit_names",
+    "load_circuit",
+    "random_circuit",
+    "twisty_circuit",
+]

@@ -73,8 +73,9 @@ class Centreline:
         vx, vy = self._segment_vectors[i]
         return float(x), float(y), math.atan2(vy, vx)
 
-    def project(self, x_m: float, y_m: float, *, near_s_m: float | None = None,
-                window_m: float = TRACKING_WINDOW_M) -> Projection:
+    def project(
+        self, x_m: float, y_m: float, *, near_s_m: float | None = None, window_m: float = TRACKING_WINDOW_M
+    ) -> Projection:
         """Project a point onto the centreline.
 
         Without ``near_s_m``: the closest point, searched around the 8 nearest vertices. With ``near_s_m`` (the

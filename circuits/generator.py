@@ -106,16 +106,18 @@ def _twisty_candidate(rng: np.random.Generator) -> np.ndarray | None:
     """A clockwise straights-and-arcs centreline (a scattered polygon with rounded corners), like _candidate's."""
     count = int(rng.integers(7, 12))
     target_length = rng.uniform(450.0, 1100.0)
-    corners = _scattered_polygon(rng, count=count, mean_radius_m=target_length / (2 * math.pi * 1.2),
-                                 scatter=(0.3, 1.3))
+    corners = _scattered_polygon(
+        rng, count=count, mean_radius_m=target_length / (2 * math.pi * 1.2), scatter=(0.3, 1.3)
+    )
     dense = _rounded_polygon(corners, fillet_radii_m=rng.uniform(*TWISTY_FILLET_RADII_M, count))
     if dense is None:
         return None
     return _checked_and_started(resample_closed_polyline(dense, step_m=RESAMPLE_STEP_M))
 
 
-def _scattered_polygon(rng: np.random.Generator, *, count: int, mean_radius_m: float,
-                       scatter: tuple[float, float]) -> np.ndarray:
+def _scattered_polygon(
+    rng: np.random.Generator, *, count: int, mean_radius_m: float, scatter: tuple[float, float]
+) -> np.ndarray:
     """``count`` points in clockwise order at evenly spaced, jittered angles, at scattered distances from the centre."""
     spacing = 2 * math.pi / count
     angles = -spacing * np.arange(count) + rng.uniform(-0.3, 0.3, count) * spacing  # clockwise

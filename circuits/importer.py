@@ -62,8 +62,7 @@ SMOOTHING_FRACTION = 0.02  # sigma of the smoothing spline, as a fraction of the
 LINE_WIDTH_M = 0.10
 WALL_HEIGHT_M = 0.5
 LICENCE_NOTE = (
-    "keep the original data's licence and attribution "
-    "(racetrack-database: LGPL-3.0, OpenStreetMap contributors ODbL)"
+    "keep the original data's licence and attribution (racetrack-database: LGPL-3.0, OpenStreetMap contributors ODbL)"
 )
 
 

@@ -147,7 +147,7 @@ def _generated_seed(name: str) -> int | None:
     prefix = _generated_prefix(name)
     if prefix is None:
         return None
-    text = name[len(prefix):]
+    text = name[len(prefix) :]
     if not re.fullmatch(r"\d{1,18}", text):
         return None
     return int(text)
@@ -178,8 +178,9 @@ def _load_forward(name: str) -> Circuit:
     if prefix is not None:
         seed = _generated_seed(name)
         if seed is None:
-            raise CircuitError(f"bad generated circuit name {name!r}: "
-                               f"want {prefix}SEED with SEED a non-negative integer")
+            raise CircuitError(
+                f"bad generated circuit name {name!r}: want {prefix}SEED with SEED a non-negative integer"
+            )
         return GENERATORS[prefix](seed)
     raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")
 

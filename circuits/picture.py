@@ -72,12 +72,15 @@ def circuit_picture(circuit: Circuit, *, width_px: int = 800) -> np.ndarray:
     tip = to_px(np.array([x + arrow_m * math.cos(yaw), y + arrow_m * math.sin(yaw)]))[0]
     radius = max(3, road_px // 2 + 2)
     cv2.circle(image, tuple(int(c) for c in start), radius << _SHIFT, START_RGB, -1, cv2.LINE_AA, _SHIFT)
-    cv2.arrowedLine(image, tuple(int(c) for c in start), tuple(int(c) for c in tip), START_RGB, 2, cv2.LINE_AA,
-                    _SHIFT, 0.35)
+    cv2.arrowedLine(
+        image, tuple(int(c) for c in start), tuple(int(c) for c in tip), START_RGB, 2, cv2.LINE_AA, _SHIFT, 0.35
+    )
 
     width_m = 2 * circuit.road_half_width_m
-    text = f"{circuit.name}  {circuit.length_m:.1f} m  ({extent[0] - 2 * pad:.0f} x {extent[1] - 2 * pad:.0f} m, " \
-           f"road {width_m:g} m)"
+    text = (
+        f"{circuit.name}  {circuit.length_m:.1f} m  ({extent[0] - 2 * pad:.0f} x {extent[1] - 2 * pad:.0f} m, "
+        f"road {width_m:g} m)"
+    )
     text = text.encode("ascii", "replace").decode("ascii")
     font_scale = 0.6
     (text_w, _), _ = cv2.getTextSize(text, _FONT, font_scale, 1)

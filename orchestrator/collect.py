@@ -32,8 +32,13 @@ COLLECT_RENDERER = "auto"  # without --renderer or $DRIVEBENCH_RENDERER: gl wher
 def collection_brains(args: argparse.Namespace) -> list[BrainLaunch]:
     brains = [BrainLaunch(args.brain)]
     if args.recovery_noise > 0:
-        brains.append(BrainLaunch("noisy", name=DRIVER, options=(f"base={json.dumps(args.brain)}",
-                                                                 f"steering_noise_radps={args.recovery_noise}")))
+        brains.append(
+            BrainLaunch(
+                "noisy",
+                name=DRIVER,
+                options=(f"base={json.dumps(args.brain)}", f"steering_noise_radps={args.recovery_noise}"),
+            )
+        )
     return brains
 
 
@@ -57,10 +62,16 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                 load_circuit(circuit)
                 # seed = circuit index (reverse: + the circuit count) keeps forward-only collections as they were
                 seed = index + (len(circuits) if direction == "reverse" else 0)
-                spec = EpisodeSpec(circuit=circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=seed,
-                                   camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
-                                   active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
-                                   direction=direction, renderer=renderer)
+                spec = EpisodeSpec(
+                    circuit=circuit,
+                    laps=args.laps,
+                    max_sim_seconds=args.max_sim_seconds,
+                    seed=seed,
+                    camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
+                    active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
+                    direction=direction,
+                    renderer=renderer,
+                )
                 if getattr(args, "randomise", False):
                     spec = randomised(spec)
                 for variation in args.variation:  # after the draw: what is pinned stays pinned
@@ -84,14 +95,27 @@ def randomised(spec: EpisodeSpec) -> EpisodeSpec:
     (measured: with up to 0.3 m, networks learned nothing from these data).
     """
     rng = np.random.default_rng([spec.seed, 0x5EED])
-    world = {"line": str(rng.choice(["red", "white", "none"])), "road": str(rng.choice(["grey", "white"])),
-             "walls": bool(rng.integers(2)), "lighting": str(rng.choice(["sun", "no_sun"])),
-             "camera_offset_m": round(float(rng.uniform(-0.08, 0.08)), 3),
-             "camera_pitch_rad": round(float(rng.uniform(-0.03, 0.22)), 3)}
-    noises = [None, None, None, None, None,
-              f"salt_pepper={rng.uniform(0.05, 0.7):.2f}", f"salt_pepper={rng.uniform(0.3, 0.7):.2f}",
-              f"gaussian={rng.uniform(5, 30):.0f}", f"blur={int(rng.choice([3, 5, 7]))}",
-              f"brightness={rng.uniform(-0.4, 0.4):.2f}", "occlusion:patches=2,size_fraction=0.25"]
+    world = {
+        "line": str(rng.choice(["red", "white", "none"])),
+        "road": str(rng.choice(["grey", "white"])),
+        "walls": bool(rng.integers(2)),
+        "lighting": str(rng.choice(["sun", "no_sun"])),
+        "camera_offset_m": round(float(rng.uniform(-0.08, 0.08)), 3),
+        "camera_pitch_rad": round(float(rng.uniform(-0.03, 0.22)), 3),
+    }
+    noises = [
+        None,
+        None,
+        None,
+        None,
+        None,
+        f"salt_pepper={rng.uniform(0.05, 0.7):.2f}",
+        f"salt_pepper={rng.uniform(0.3, 0.7):.2f}",
+        f"gaussian={rng.uniform(5, 30):.0f}",
+        f"blur={int(rng.choice([3, 5, 7]))}",
+        f"brightness={rng.uniform(-0.4, 0.4):.2f}",
+        "occlusion:patches=2,size_fraction=0.25",
+    ]
     noise = noises[int(rng.integers(len(noises)))]
     spec = apply_variation(spec, world)
     return msgspec.structs.replace(spec, noise=[noise_stage(noise)] if noise else [])
@@ -116,17 +140,23 @@ def collect(args: argparse.Namespace, options) -> int:
         run_id = f"collect-{_episode_name(spec)}-{uuid.uuid4().hex[:6]}"
         recording = work / f"{_episode_name(spec)}.mcap"
         recording.unlink(missing_ok=True)
-        print(f"collect: {spec.active_brain} on {spec.circuit} ({spec.direction}), {spec.laps} lap(s) -> {recording}",
-              file=sys.stderr)
+        print(
+            f"collect: {spec.active_brain} on {spec.circuit} ({spec.direction}), {spec.laps} lap(s) -> {recording}",
+            file=sys.stderr,
+        )
         progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
-            with LocalStack(run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args),
-                            record=recording) as stack:
+            with LocalStack(
+                run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args), record=recording
+            ) as stack:
                 score = stack.run_episode(spec, on_live=progress.update)
         finally:
             progress.close()
-        print(f"collect: {spec.circuit}: {score.reason}, {score.metrics.progress_laps:.2f} laps in "
-              f"{score.metrics.sim_time_s:.1f} s", file=sys.stderr)
+        print(
+            f"collect: {spec.circuit}: {score.reason}, {score.metrics.progress_laps:.2f} laps in "
+            f"{score.metrics.sim_time_s:.1f} s",
+            file=sys.stderr,
+        )
         recordings.append(recording)
     return build_from_recordings(recordings, output=args.output, options=options, overwrite=args.overwrite)
 
@@ -139,10 +169,14 @@ def build_from_recordings(recordings: list[Path], *, output: Path, options, over
     for path in recordings:
         recording_info(path)  # a missing or broken file fails before any work
     sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
-    manifest = build_dataset(sources, out_dir=output, options=options, progress=sys.stderr.isatty(),
-                             overwrite=overwrite)
+    manifest = build_dataset(
+        sources, out_dir=output, options=options, progress=sys.stderr.isatty(), overwrite=overwrite
+    )
     split = manifest.split
-    print(f"dataset {output}: {manifest.totals.samples} samples from {len(recordings)} recording(s), "
-          f"{manifest.totals.episodes} episode(s); train {split.train_samples} samples, val {split.val_samples} "
-          f"({split.rule})", file=sys.stderr)
+    print(
+        f"dataset {output}: {manifest.totals.samples} samples from {len(recordings)} recording(s), "
+        f"{manifest.totals.episodes} episode(s); train {split.train_samples} samples, val {split.val_samples} "
+        f"({split.rule})",
+        file=sys.stderr,
+    )
     return 0

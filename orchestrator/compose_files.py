@@ -159,16 +159,24 @@ def _secure_service(service: graph.ComposeService, identity: str) -> list[str]:
     lines = [f"  {service.name}:"]
     if service.secure_command:
         lines += _flow_list("command", service.secure_command, indent=4)
-    return lines + ["    volumes: *certs", "    environment:", "      <<: *secure",
-                    f"      DRIVEBENCH_TLS_CERT: /certs/{identity}.pem",
-                    f"      DRIVEBENCH_TLS_KEY: /certs/{identity}.key"]
+    return lines + [
+        "    volumes: *certs",
+        "    environment:",
+        "      <<: *secure",
+        f"      DRIVEBENCH_TLS_CERT: /certs/{identity}.pem",
+        f"      DRIVEBENCH_TLS_KEY: /certs/{identity}.key",
+    ]
 
 
 def compose_secure_yaml() -> str:
     """compose.secure.yaml: each compose service its role's certificate (services that run their own local stacks
     take none)."""
-    services = [_secure_service(service, row.identity) for row in graph.ROLES for service in row.compose
-                if service.secure and row.identity]
+    services = [
+        _secure_service(service, row.identity)
+        for row in graph.ROLES
+        for service in row.compose
+        if service.secure and row.identity
+    ]
     return SECURE_HEADER + "\n\n".join("\n".join(lines) for lines in services) + "\n"
 
 
@@ -182,8 +190,15 @@ def router_roles_yaml() -> str:
 def architecture_table() -> str:
     """The README's table of processes (between :data:`README_BEGIN` and :data:`README_END`)."""
     rows = [f"| {row.summary} | {row.source} | {row.consumes} | {row.produces} | {_puts(row)} |" for row in graph.ROLES]
-    return "\n".join([README_BEGIN, "| process | code | consumes | produces | puts (under `drivebench/run/<run>/`) |",
-                      "|---|---|---|---|---|", *rows, README_END])
+    return "\n".join(
+        [
+            README_BEGIN,
+            "| process | code | consumes | produces | puts (under `drivebench/run/<run>/`) |",
+            "|---|---|---|---|---|",
+            *rows,
+            README_END,
+        ]
+    )
 
 
 def _puts(row: graph.Role) -> str:
@@ -197,14 +212,17 @@ def readme_with_table(readme: str) -> str:
     start, end = readme.find(README_BEGIN), readme.find(README_END)
     if start < 0 or end < start:
         raise ValueError(f"README.md has no generated process table (markers {README_BEGIN!r} ... {README_END!r})")
-    return readme[:start] + architecture_table() + readme[end + len(README_END):]
+    return readme[:start] + architecture_table() + readme[end + len(README_END) :]
 
 
 def generated_files(root: Path = ROOT) -> dict[Path, str]:
     """Every generated file and what it should hold."""
-    return {root / "compose.yaml": compose_yaml(), root / "compose.secure.yaml": compose_secure_yaml(),
-            root / "deploy" / "secure" / "router.yaml": router_roles_yaml(),
-            root / "README.md": readme_with_table((root / "README.md").read_text())}
+    return {
+        root / "compose.yaml": compose_yaml(),
+        root / "compose.secure.yaml": compose_secure_yaml(),
+        root / "deploy" / "secure" / "router.yaml": router_roles_yaml(),
+        root / "README.md": readme_with_table((root / "README.md").read_text()),
+    }
 
 
 def stale_files(root: Path = ROOT) -> list[str]:
@@ -213,8 +231,9 @@ def stale_files(root: Path = ROOT) -> list[str]:
     for path, wanted in generated_files(root).items():
         current = path.read_text() if path.is_file() else ""
         if current != wanted:
-            diff = difflib.unified_diff(current.splitlines(), wanted.splitlines(), str(path), "generated", n=0,
-                                        lineterm="")
+            diff = difflib.unified_diff(
+                current.splitlines(), wanted.splitlines(), str(path), "generated", n=0, lineterm=""
+            )
             stale.append(f"{path.relative_to(root)} differs from the process graph:\n" + "\n".join(list(diff)[:20]))
     return stale
 

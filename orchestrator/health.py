@@ -34,5 +34,7 @@ def check_health(role: str, *, endpoint: str, run_id: str, name: str | None = No
         name = bus_name(name)  # compose passes the BRAIN it started, which may be a module path or a file
     if (name is None and names) or name in names:
         return None
-    return f"no {role}{f' {name!r}' if name else ''} alive on run {run_id!r} (alive: " \
-           f"{', '.join(f'{r}/{n}' for _, r, n in alive) or 'nothing'})"
+    return (
+        f"no {role}{f' {name!r}' if name else ''} alive on run {run_id!r} (alive: "
+        f"{', '.join(f'{r}/{n}' for _, r, n in alive) or 'nothing'})"
+    )

@@ -56,9 +56,14 @@ class StackFailure(StackError):
 
     def record(self, *, run_id: str, episode: int | None = None) -> dict:
         """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
-        return {"run_id": run_id, "episode": episode, "failure": self.kind, "detail": str(self),
-                "detected_at_s": round(self.detected_at_s, 3),
-                "score": None if self.score is None else msgspec.to_builtins(self.score)}
+        return {
+            "run_id": run_id,
+            "episode": episode,
+            "failure": self.kind,
+            "detail": str(self),
+            "detected_at_s": round(self.detected_at_s, 3),
+            "score": None if self.score is None else msgspec.to_builtins(self.score),
+        }
 
 
 class EpisodeAborted(StackError):
@@ -68,8 +73,14 @@ class EpisodeAborted(StackError):
 LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions read their bus settings from: none
 
 # Which failure a dead or vanished process of each role means for its episode.
-FAILURE_OF_ROLE = {"brain": "brain_died", "simulator": "simulator_died", "scorer": "scorer_died",
-                   "noise": "noise_died", "recorder": "recorder_died", "router": "router_died"}
+FAILURE_OF_ROLE = {
+    "brain": "brain_died",
+    "simulator": "simulator_died",
+    "scorer": "scorer_died",
+    "noise": "noise_died",
+    "recorder": "recorder_died",
+    "router": "router_died",
+}
 # How long a start refused because the simulator has not yet seen the brain's token is retried.
 START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
@@ -172,8 +183,9 @@ class LocalStack:
         # A local stack is configured by its own arguments alone (LOCAL_ENV): bus variables meant for a stack spread
         # over machines (router, mode, TLS, credentials) must not leak into it.
         if self.router_endpoint is not None:
-            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}",
-                           env=LOCAL_ENV)
+            self.bus = Bus(
+                BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}", env=LOCAL_ENV
+            )
         elif self.embed_router:
             self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher", env=LOCAL_ENV)
         else:
@@ -197,8 +209,9 @@ class LocalStack:
             raise StackError(dead)
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
-            raise StackError(f"not alive after {self.startup_timeout_s:.0f} s: {names} "
-                             f"(logs in {self.run_dir / 'logs'})")
+            raise StackError(
+                f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})"
+            )
         self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
@@ -237,8 +250,9 @@ class LocalStack:
         joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
         # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
         group = (self.process_group or 0) if self.one_group else None
-        process = processes.spawn([sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env,
-                                  process_group=group)
+        process = processes.spawn(
+            [sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env, process_group=group
+        )
         if self.one_group and self.process_group is None:
             self.process_group = process.pid
         child = Child(role=role, name=name, process=process, log_path=log_path)
@@ -251,8 +265,9 @@ class LocalStack:
             if code == 0 and child.role == "brain":
                 continue  # stopped on request (a live swap retired it): not a failure
             if code is not None and (child.role, child.name) not in self._tolerated:
-                return processes.exit_reason(child.process, what=f"{child.role} {child.name!r}",
-                                             log_path=child.log_path)
+                return processes.exit_reason(
+                    child.process, what=f"{child.role} {child.name!r}", log_path=child.log_path
+                )
         return None
 
     def dead_child_reason(self) -> str | None:
@@ -266,13 +281,19 @@ class LocalStack:
             return StackFailure(FAILURE_OF_ROLE.get(role, "error"), dead)
         if self._watch is not None and (gone := self._required - self._watch.alive()):
             if self._router_gone():
-                return StackFailure("router_died", f"the router at {self.endpoint} stopped answering (every "
-                                                   f"process lost its link: {len(gone)} liveliness token(s) gone)")
+                return StackFailure(
+                    "router_died",
+                    f"the router at {self.endpoint} stopped answering (every "
+                    f"process lost its link: {len(gone)} liveliness token(s) gone)",
+                )
             if len(gone) > 1 and gone == self._required:
                 # A router killed and started again at once answers the probe, but every link through it broke.
-                return StackFailure("router_died", f"every process lost its liveliness token at once ({len(gone)} "
-                                                   f"tokens): the link through the router at {self.endpoint} broke "
-                                                   f"(the router restarted?)")
+                return StackFailure(
+                    "router_died",
+                    f"every process lost its liveliness token at once ({len(gone)} "
+                    f"tokens): the link through the router at {self.endpoint} broke "
+                    f"(the router restarted?)",
+                )
             _, role, name = keys.parse_alive(sorted(gone)[0])
             return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
         return None
@@ -324,12 +345,16 @@ class LocalStack:
             return
         ours = {child.name for child in self.children if child.role == "brain"}
         try:
-            foreign = {name for _, role, name in map(keys.parse_alive, self.bus.alive_now(keys.alive_all(self.run_id)))
-                       if role == "brain" and name not in ours}
+            foreign = {
+                name
+                for _, role, name in map(keys.parse_alive, self.bus.alive_now(keys.alive_all(self.run_id)))
+                if role == "brain" and name not in ours
+            }
             for name in sorted(foreign):
                 log.info("stopping brain %s (not started by this stack)", name)
-                self.bus.request(keys.brain_control(self.run_id, name), codec.encode(ControlRequest(action="stop")),
-                                 timeout_s=2.0)
+                self.bus.request(
+                    keys.brain_control(self.run_id, name), codec.encode(ControlRequest(action="stop")), timeout_s=2.0
+                )
         except (BusError, ValueError) as error:
             log.warning("could not stop the brains this stack did not start: %s", error)
             return
@@ -344,8 +369,14 @@ class LocalStack:
 
     # -- episodes --
 
-    def run_episode(self, spec: EpisodeSpec, *, on_live: Callable[[LiveMetrics], None] | None = None,
-                    wall_timeout_s: float | None = None, abort: Callable[[], bool] | None = None) -> EpisodeScore:
+    def run_episode(
+        self,
+        spec: EpisodeSpec,
+        *,
+        on_live: Callable[[LiveMetrics], None] | None = None,
+        wall_timeout_s: float | None = None,
+        abort: Callable[[], bool] | None = None,
+    ) -> EpisodeScore:
         """Start one episode and wait for its score.
 
         ``wall_timeout_s`` guards against a stack that stops moving. ``abort`` is polled a few times a second: when
@@ -356,8 +387,10 @@ class LocalStack:
         """
         assert self.bus is not None, "start the stack first"
         inbox = Inbox()
-        subscriptions = [self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
-                         self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox)]
+        subscriptions = [
+            self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
+            self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox),
+        ]
         try:
             return self._await_score(spec, inbox, on_live=on_live, wall_timeout_s=wall_timeout_s, abort=abort)
         finally:
@@ -418,8 +451,9 @@ class LocalStack:
         while True:
             reply = self._control(request)
             waited = time.monotonic() - started
-            retry = ("is not alive" in reply.detail and waited < START_RETRY_S) or \
-                (reply.detail.startswith("busy") and waited < self.busy_wait_s)
+            retry = ("is not alive" in reply.detail and waited < START_RETRY_S) or (
+                reply.detail.startswith("busy") and waited < self.busy_wait_s
+            )
             if reply.ok or not retry:
                 return reply
             time.sleep(0.2)
@@ -439,10 +473,15 @@ class LocalStack:
             if payload is not None:
                 return codec.decode(payload, ControlReply)
             time.sleep(0.2)
-        hint = (" (under the router's access control, only an orchestrator identity may start, stop or switch runs)"
-                if self.bus.resolved.secure else "")
-        raise StackFailure("simulator_died",
-                           f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}")
+        hint = (
+            " (under the router's access control, only an orchestrator identity may start, stop or switch runs)"
+            if self.bus.resolved.secure
+            else ""
+        )
+        raise StackFailure(
+            "simulator_died",
+            f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}",
+        )
 
 
 @dataclass
@@ -466,15 +505,18 @@ class AttachedStack(LocalStack):
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if not self.endpoint:
             raise StackError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
-        self.bus = Bus(BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
-                       name=f"driver-{self.run_id}")
+        self.bus = Bus(
+            BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
+            name=f"driver-{self.run_id}",
+        )
         watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
         missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
-            raise StackError(f"run {self.run_id!r} on {self.endpoint}: not alive after "
-                             f"{self.startup_timeout_s:.0f} s: {names}")
+            raise StackError(
+                f"run {self.run_id!r} on {self.endpoint}: not alive after {self.startup_timeout_s:.0f} s: {names}"
+            )
         self.brain_name = self._wait_for_brain(watch)
         log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
 
@@ -487,12 +529,15 @@ class AttachedStack(LocalStack):
             if self.brain_name is None and len(brains) == 1:
                 return brains[0]
             if self.brain_name is None and len(brains) > 1:
-                raise StackError(f"run {self.run_id!r} has several brains alive ({', '.join(brains)}): "
-                                 f"choose one with --brain")
+                raise StackError(
+                    f"run {self.run_id!r} has several brains alive ({', '.join(brains)}): choose one with --brain"
+                )
             if time.monotonic() > deadline:
                 wanted = f"brain {self.brain_name!r}" if self.brain_name else "a brain"
-                raise StackError(f"run {self.run_id!r}: {wanted} not alive after {self.startup_timeout_s:.0f} s"
-                                 + (f" (alive: {', '.join(brains)})" if brains else ""))
+                raise StackError(
+                    f"run {self.run_id!r}: {wanted} not alive after {self.startup_timeout_s:.0f} s"
+                    + (f" (alive: {', '.join(brains)})" if brains else "")
+                )
             time.sleep(0.1)
 
     def close(self) -> None:

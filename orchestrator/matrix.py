@@ -96,8 +96,24 @@ from protocol.variations import (
 )
 from services.simulator.renderers import default_renderer
 
-TOP_LEVEL_KEYS = ("name", "brains", "circuits", "variations", "worlds", "perturbations", "repetitions", "limits",
-                  "camera", "seed", "realtime", "renderer", "shadows", "exclude", "include", "parts")
+TOP_LEVEL_KEYS = (
+    "name",
+    "brains",
+    "circuits",
+    "variations",
+    "worlds",
+    "perturbations",
+    "repetitions",
+    "limits",
+    "camera",
+    "seed",
+    "realtime",
+    "renderer",
+    "shadows",
+    "exclude",
+    "include",
+    "parts",
+)
 # What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
 PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
 BRAIN_KEYS = ("name", "weights", "label", "options")
@@ -143,9 +159,16 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
         variation_keys.update(dict.fromkeys(axis.key for axis in plan.axes))
     if len(episodes) > MAX_EPISODES:
         raise reader.error(top["parts"][0], f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})")
-    return Matrix(name=_name(reader, top, source), source=source, text=text, brains=plan.brains,
-                  shadows=plan.shadows, episodes=tuple(episodes), variation_keys=tuple(variation_keys),
-                  parts=tuple(part for part, _ in parts if part))
+    return Matrix(
+        name=_name(reader, top, source),
+        source=source,
+        text=text,
+        brains=plan.brains,
+        shadows=plan.shadows,
+        episodes=tuple(episodes),
+        variation_keys=tuple(variation_keys),
+        parts=tuple(part for part, _ in parts if part),
+    )
 
 
 def _check_one_world_form(reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
@@ -153,8 +176,9 @@ def _check_one_world_form(reader: NodeReader, entries: dict[str, tuple[yaml.Node
         raise reader.error(entries["worlds"][0], "give variations (a product) or worlds (a list), not both")
 
 
-def _parts(reader: NodeReader, root: yaml.Node,
-           top: dict[str, tuple[yaml.Node, yaml.Node]]) -> list[tuple[str, dict[str, tuple[yaml.Node, yaml.Node]]]]:
+def _parts(
+    reader: NodeReader, root: yaml.Node, top: dict[str, tuple[yaml.Node, yaml.Node]]
+) -> list[tuple[str, dict[str, tuple[yaml.Node, yaml.Node]]]]:
     """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
     if "parts" not in top:
         if "circuits" not in top:
@@ -191,10 +215,10 @@ def _name(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], sourc
 # -- brains ------------------------------------------------------------------------------------------------------
 
 
-def _brain_entries(reader: NodeReader, node: yaml.Node, *, what: str,
-                   base_dir: Path) -> list[tuple[BrainEntry, yaml.Node]]:
-    return [(_brain_entry(reader, item, what=what, base_dir=base_dir), item)
-            for item in reader.items(node, what=what)]
+def _brain_entries(
+    reader: NodeReader, node: yaml.Node, *, what: str, base_dir: Path
+) -> list[tuple[BrainEntry, yaml.Node]]:
+    return [(_brain_entry(reader, item, what=what, base_dir=base_dir), item) for item in reader.items(node, what=what)]
 
 
 def _brain_entry(reader: NodeReader, node: yaml.Node, *, what: str, base_dir: Path) -> BrainEntry:
@@ -228,8 +252,10 @@ def _weights(reader: NodeReader, node: yaml.Node, *, base_dir: Path) -> Path:
     except (OSError, ValueError, RuntimeError):  # a NUL byte, an unknown ~user, a symlink loop
         found = False
     if not found:
-        raise reader.error(node, f"weights file {written!r} not found (looked for {path}; relative paths start "
-                                 f"at the matrix file's folder)")
+        raise reader.error(
+            node,
+            f"weights file {written!r} not found (looked for {path}; relative paths start at the matrix file's folder)",
+        )
     return path
 
 
@@ -244,8 +270,9 @@ def _options(reader: NodeReader, node: yaml.Node) -> tuple[tuple[str, Any], ...]
         try:
             json.dumps(value, allow_nan=False)
         except (TypeError, ValueError):
-            raise reader.error(value_node, f"option {key!r} must be a JSON value (text, number, boolean, list, "
-                                           f"mapping), got {value!r}") from None
+            raise reader.error(
+                value_node, f"option {key!r} must be a JSON value (text, number, boolean, list, mapping), got {value!r}"
+            ) from None
         options.append((key, value))
     return tuple(options)
 
@@ -269,8 +296,11 @@ def _check_unique_labels(reader: NodeReader, entries: list[tuple[BrainEntry, yam
     first: dict[str, int] = {}
     for entry, node in entries:
         if entry.label in first:
-            raise reader.error(node, f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
-                                     f"labels of brains and shadows must differ: give one a `label`)")
+            raise reader.error(
+                node,
+                f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
+                f"labels of brains and shadows must differ: give one a `label`)",
+            )
         first[entry.label] = line_of(node)
 
 
@@ -280,8 +310,11 @@ def _check_unique_labels(reader: NodeReader, entries: list[tuple[BrainEntry, yam
 def _circuit(reader: NodeReader, node: yaml.Node) -> str:
     name = reader.text(node, what="a circuit")
     if not is_circuit_name(name):
-        raise reader.error(node, f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
-                                 f"or {GENERATED_NAMES}; see `drivebench circuits list`)")
+        raise reader.error(
+            node,
+            f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
+            f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
+        )
     return name
 
 
@@ -335,8 +368,9 @@ def _camera(reader: NodeReader, node: yaml.Node) -> CameraSpec:
     if isinstance(node, yaml.ScalarNode):
         match = _CAMERA_SIZE.fullmatch(str(reader.value(node)))
         if not match:
-            raise reader.error(node, f"camera must look like 320x240 or {{width_px: 320, height_px: 240}}, "
-                                     f"got {node.value!r}")
+            raise reader.error(
+                node, f"camera must look like 320x240 or {{width_px: 320, height_px: 240}}, got {node.value!r}"
+            )
         fields: dict[str, Any] = {"width_px": int(match[1]), "height_px": int(match[2])}
     else:
         fields = {}
@@ -367,8 +401,13 @@ class _Combination:
 
     def coordinates(self, repetition: int) -> dict[str, str]:
         """Axis -> label text, what exclude entries match against."""
-        return {"brain": self.brain.label, "circuit": self.circuit, "perturbation": self.perturbation.label,
-                "repetition": str(repetition), **self.world.texts}
+        return {
+            "brain": self.brain.label,
+            "circuit": self.circuit,
+            "perturbation": self.perturbation.label,
+            "repetition": str(repetition),
+            **self.world.texts,
+        }
 
     def key(self, repetition: int, *, part: str = "") -> str:
         prefix = f"{part}:" if part else ""
@@ -391,27 +430,39 @@ class _Plan:
     part: str = ""
 
     @classmethod
-    def read(cls, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path,
-             part: str = "") -> _Plan:
+    def read(
+        cls, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path, part: str = ""
+    ) -> _Plan:
         brains = _brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
-        shadows = (_brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir)
-                   if "shadows" in top else [])
+        shadows = (
+            _brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir) if "shadows" in top else []
+        )
         _check_unique_labels(reader, brains + shadows)
-        repetitions = reader.integer(top["repetitions"][1], what="repetitions", minimum=1) \
-            if "repetitions" in top else 1
+        repetitions = (
+            reader.integer(top["repetitions"][1], what="repetitions", minimum=1) if "repetitions" in top else 1
+        )
         seed = reader.integer(top["seed"][1], what="seed", minimum=0) if "seed" in top else 0
         if "worlds" in top:
             worlds, axes = read_listed_worlds(reader, top["worlds"][1])
         else:
             axes = read_axes(reader, _value_node(top, "variations"))
             worlds = read_worlds(axes)
-        return cls(brains=tuple(entry for entry, _ in brains), shadows=tuple(entry for entry, _ in shadows),
-                   circuits=_circuits(reader, top["circuits"][1]), axes=axes, worlds=worlds,
-                   perturbations=read_perturbations(reader, _value_node(top, "perturbations")),
-                   repetitions=repetitions, seed=seed, base=_base_spec(reader, top), part=part)
+        return cls(
+            brains=tuple(entry for entry, _ in brains),
+            shadows=tuple(entry for entry, _ in shadows),
+            circuits=_circuits(reader, top["circuits"][1]),
+            axes=axes,
+            worlds=worlds,
+            perturbations=read_perturbations(reader, _value_node(top, "perturbations")),
+            repetitions=repetitions,
+            seed=seed,
+            base=_base_spec(reader, top),
+            part=part,
+        )
 
-    def expand(self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *,
-               first_index: int = 0) -> list[PlannedEpisode]:
+    def expand(
+        self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, first_index: int = 0
+    ) -> list[PlannedEpisode]:
         self._check_size(reader, top)
         excludes = [self._exclude(reader, item) for item in _list_of(reader, top, "exclude")]
         planned: dict[str, tuple[_Combination, int]] = {}
@@ -428,19 +479,23 @@ class _Plan:
             where = top["exclude"][0] if "exclude" in top else None
             what = f"part {self.part!r}" if self.part else "the matrix"
             raise reader.error(where, f"{what} expands to no episodes (every combination is excluded)")
-        return [self._episode(reader, key, first_index + index, combination, repetition)
-                for index, (key, (combination, repetition)) in enumerate(planned.items())]
+        return [
+            self._episode(reader, key, first_index + index, combination, repetition)
+            for index, (key, (combination, repetition)) in enumerate(planned.items())
+        ]
 
     def _check_size(self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
         count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
         count *= len(self.worlds)
         if count > MAX_EPISODES:
-            raise reader.error(_value_node(top, "repetitions"),
-                               f"the matrix expands to {count} episodes (at most {MAX_EPISODES})")
+            raise reader.error(
+                _value_node(top, "repetitions"), f"the matrix expands to {count} episodes (at most {MAX_EPISODES})"
+            )
 
     def _product(self) -> Iterator[_Combination]:
-        for brain, circuit, world, perturbation in itertools.product(self.brains, self.circuits, self.worlds,
-                                                                     self.perturbations):
+        for brain, circuit, world, perturbation in itertools.product(
+            self.brains, self.circuits, self.worlds, self.perturbations
+        ):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
     def _exclude(self, reader: NodeReader, node: yaml.Node) -> dict[str, str]:
@@ -449,8 +504,10 @@ class _Plan:
         entries = reader.mapping(node, what="an exclude entry")
         for key, (key_node, _) in entries.items():
             if key in VARIATION_KEYS and key not in allowed:
-                raise reader.error(key_node, f"exclude key {key!r} is not a variation axis of this matrix (allowed: "
-                                             f"{', '.join(allowed)})")
+                raise reader.error(
+                    key_node,
+                    f"exclude key {key!r} is not a variation axis of this matrix (allowed: {', '.join(allowed)})",
+                )
             if key not in allowed:
                 raise reader.error(key_node, f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})")
         if not entries:
@@ -482,18 +539,27 @@ class _Plan:
         allowed = ("brain", "circuit", "perturbation", *VARIATION_KEYS)
         entries = reader.mapping(node, what="an include entry", allowed=allowed)
         if "brain" not in entries or "circuit" not in entries:
-            raise reader.error(node, "an include entry needs brain and circuit (other keys: perturbation, "
-                                     "variation keys)")
+            raise reader.error(
+                node, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
+            )
         brain_node = entries["brain"][1]
         label = reader.text(brain_node, what="include brain")
         brains = {brain.label: brain for brain in self.brains}
         if label not in brains:
-            raise reader.error(brain_node, f"include brain {label!r} is not a brain label of this matrix "
-                                           f"(labels: {', '.join(brains)})")
-        perturbation = (read_perturbation(reader, entries["perturbation"][1]) if "perturbation" in entries
-                        else Perturbation(label=NO_PERTURBATION, line=line_of(node)))
-        return _Combination(brain=brains[label], circuit=_circuit(reader, entries["circuit"][1]),
-                            world=self._include_world(reader, entries), perturbation=perturbation)
+            raise reader.error(
+                brain_node, f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})"
+            )
+        perturbation = (
+            read_perturbation(reader, entries["perturbation"][1])
+            if "perturbation" in entries
+            else Perturbation(label=NO_PERTURBATION, line=line_of(node))
+        )
+        return _Combination(
+            brain=brains[label],
+            circuit=_circuit(reader, entries["circuit"][1]),
+            world=self._include_world(reader, entries),
+            perturbation=perturbation,
+        )
 
     def _include_world(self, reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> World:
         # Matrix axes first, in their order, so an include of an existing combination has the same label.
@@ -502,22 +568,36 @@ class _Plan:
         keys += [key for key in entries if key in VARIATION_KEYS and key not in axis_keys]
         return read_world([(key, read_variation_value(reader, entries[key][1], key=key)) for key in keys])
 
-    def _episode(self, reader: NodeReader, key: str, index: int, combination: _Combination,
-                 repetition: int) -> PlannedEpisode:
-        spec = msgspec.structs.replace(self.base, circuit=combination.circuit, seed=self.seed + repetition,
-                                       active_brain=combination.brain.label,
-                                       noise=list(combination.perturbation.noise))
+    def _episode(
+        self, reader: NodeReader, key: str, index: int, combination: _Combination, repetition: int
+    ) -> PlannedEpisode:
+        spec = msgspec.structs.replace(
+            self.base,
+            circuit=combination.circuit,
+            seed=self.seed + repetition,
+            active_brain=combination.brain.label,
+            noise=list(combination.perturbation.noise),
+        )
         try:
             if combination.world.items:
                 spec = apply_variation(spec, dict(combination.world.items))
             for item_key, value in combination.perturbation.camera:  # one by one: presets add up
                 spec = apply_variation(spec, {item_key: value})
         except VariationError as error:
-            raise MatrixError(f"episode {key}: {error}", source=reader.source,
-                              line=combination.perturbation.line) from None
-        return PlannedEpisode(key=key, index=index, brain=combination.brain, circuit=combination.circuit,
-                              variation=combination.world.label, perturbation=combination.perturbation.label,
-                              repetition=repetition, spec=spec, part=self.part)
+            raise MatrixError(
+                f"episode {key}: {error}", source=reader.source, line=combination.perturbation.line
+            ) from None
+        return PlannedEpisode(
+            key=key,
+            index=index,
+            brain=combination.brain,
+            circuit=combination.circuit,
+            variation=combination.world.label,
+            perturbation=combination.perturbation.label,
+            repetition=repetition,
+            spec=spec,
+            part=self.part,
+        )
 
 
 def _value_node(top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> yaml.Node | None:
@@ -532,5 +612,16 @@ def _matches(exclude: dict[str, str], coordinates: dict[str, str]) -> bool:
     return all(coordinates.get(key) == text for key, text in exclude.items())
 
 
-__all__ = ["DEFAULT_VARIATION", "NO_PERTURBATION", "BrainEntry", "Matrix", "MatrixError", "PlannedEpisode",
-           "load_matrix", "parse_matrix", "part_of", "smoke_form", "with_renderer"]
+__all__ = [
+    "DEFAULT_VARIATION",
+    "NO_PERTURBATION",
+    "BrainEntry",
+    "Matrix",
+    "MatrixError",
+    "PlannedEpisode",
+    "load_matrix",
+    "parse_matrix",
+    "part_of",
+    "smoke_form",
+    "with_renderer",
+]

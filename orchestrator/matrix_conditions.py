@@ -98,8 +98,10 @@ def read_axes(reader: NodeReader, node: yaml.Node | None) -> list[Axis]:
 def read_worlds(axes: list[Axis]) -> list[World]:
     if not axes:
         return [World(label=DEFAULT_VARIATION)]
-    return [read_world([(axis.key, value) for axis, (_, value, _) in zip(axes, combination)])
-            for combination in itertools.product(*(axis.values for axis in axes))]
+    return [
+        read_world([(axis.key, value) for axis, (_, value, _) in zip(axes, combination)])
+        for combination in itertools.product(*(axis.values for axis in axes))
+    ]
 
 
 def read_listed_worlds(reader: NodeReader, node: yaml.Node) -> tuple[list[World], list[Axis]]:
@@ -150,11 +152,15 @@ def read_perturbation(reader: NodeReader, node: yaml.Node) -> Perturbation:
             _camera_item(reader, item_node, key, params)
             camera.append((key, params))
         else:
-            raise reader.error(item_node, f"unknown perturbation {key!r} (noise models: {', '.join(NOISE_MODEL_NAMES)}"
-                                          f"; camera keys: {', '.join(CAMERA_PERTURBATION_KEYS)}; or none)")
+            raise reader.error(
+                item_node,
+                f"unknown perturbation {key!r} (noise models: {', '.join(NOISE_MODEL_NAMES)}"
+                f"; camera keys: {', '.join(CAMERA_PERTURBATION_KEYS)}; or none)",
+            )
         labels.append(_item_label(key, params))
-    return Perturbation(label="+".join(labels) or NO_PERTURBATION, line=line_of(node), noise=tuple(noise),
-                         camera=tuple(camera))
+    return Perturbation(
+        label="+".join(labels) or NO_PERTURBATION, line=line_of(node), noise=tuple(noise), camera=tuple(camera)
+    )
 
 
 def _perturbation_items(reader: NodeReader, node: yaml.Node) -> Iterator[tuple[str, Any, yaml.Node]]:
@@ -172,8 +178,9 @@ def _perturbation_items(reader: NodeReader, node: yaml.Node) -> Iterator[tuple[s
     if value is None or (isinstance(value, str) and value.strip().lower() == NO_PERTURBATION):
         return
     if not isinstance(value, str):
-        raise reader.error(node, f"a perturbation is none, \"model=value\", \"camera=left\" or a mapping of them, "
-                                 f"got {value!r}")
+        raise reader.error(
+            node, f'a perturbation is none, "model=value", "camera=left" or a mapping of them, got {value!r}'
+        )
     for part in _ITEM_JOIN.split(value):
         yield (*_string_item(reader, node, part), node)
 
@@ -181,8 +188,10 @@ def _perturbation_items(reader: NodeReader, node: yaml.Node) -> Iterator[tuple[s
 def _string_item(reader: NodeReader, node: yaml.Node, text: str) -> tuple[str, Any]:
     match = _STRING_ITEM.fullmatch(text)
     if not match:
-        raise reader.error(node, f"bad perturbation item {text.strip()!r} (want model, model=value, "
-                                 f"model:key=value,... or camera=PRESET)")
+        raise reader.error(
+            node,
+            f"bad perturbation item {text.strip()!r} (want model, model=value, model:key=value,... or camera=PRESET)",
+        )
     key, separator, rest = match[1], match[2], match[3]
     if separator is None:
         return key, {}
@@ -236,5 +245,3 @@ def read_perturbations(reader: NodeReader, node: yaml.Node | None) -> list[Pertu
             raise reader.error(item, f"perturbation {perturbation.label!r} is listed twice (also on line {first})")
         perturbations[perturbation.label] = perturbation
     return list(perturbations.values())
-
-

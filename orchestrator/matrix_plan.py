@@ -53,8 +53,12 @@ class BrainEntry:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form: ``{"label", "brain", "weights" (absolute path or None), "options" (mapping)}``."""
-        return {"label": self.label, "brain": self.brain,
-                "weights": None if self.weights is None else str(self.weights), "options": dict(self.options)}
+        return {
+            "label": self.label,
+            "brain": self.brain,
+            "weights": None if self.weights is None else str(self.weights),
+            "options": dict(self.options),
+        }
 
 
 @dataclass(frozen=True)
@@ -120,8 +124,14 @@ def yaml_json(value: Any) -> str:
     return json.dumps(value)
 
 
-def smoke_form(matrix: Matrix, *, brains: Iterable[str] | None = None, cells_per_part: int = 2,
-               sim_seconds: float = 4.0, camera_wh: tuple[int, int] = (160, 120)) -> Matrix:
+def smoke_form(
+    matrix: Matrix,
+    *,
+    brains: Iterable[str] | None = None,
+    cells_per_part: int = 2,
+    sim_seconds: float = 4.0,
+    camera_wh: tuple[int, int] = (160, 120),
+) -> Matrix:
     """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
     first ``cells_per_part`` conditions of every part, repetition 0, ``sim_seconds`` of simulated time on a small
     camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
@@ -140,13 +150,19 @@ def smoke_form(matrix: Matrix, *, brains: Iterable[str] | None = None, cells_per
         camera = msgspec.structs.replace(episode.spec.camera, width_px=camera_wh[0], height_px=camera_wh[1])
         spec = msgspec.structs.replace(episode.spec, max_sim_seconds=sim_seconds, camera=camera)
         kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
-    return dataclasses.replace(matrix, name=f"{matrix.name}-smoke", episodes=tuple(kept),
-                               brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted))
+    return dataclasses.replace(
+        matrix,
+        name=f"{matrix.name}-smoke",
+        episodes=tuple(kept),
+        brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted),
+    )
 
 
 def with_renderer(matrix: Matrix, choose: Callable[[str], str]) -> Matrix:
     """``matrix`` with each episode's renderer replaced by ``choose(renderer)`` (the command line's choice, or
     "auto" resolved where the stacks run)."""
-    episodes = tuple(dataclasses.replace(episode, spec=msgspec.structs.replace(
-        episode.spec, renderer=choose(episode.spec.renderer))) for episode in matrix.episodes)
+    episodes = tuple(
+        dataclasses.replace(episode, spec=msgspec.structs.replace(episode.spec, renderer=choose(episode.spec.renderer)))
+        for episode in matrix.episodes
+    )
     return dataclasses.replace(matrix, episodes=episodes)

@@ -69,16 +69,38 @@ from protocol.messages import EpisodeMetrics
 
 __all__ = [
     # this module's own
-    "BASELINE_FACT", "CSV_FILE", "HTML_FILE", "MARKDOWN_FILE", "NO_PERTURBATION", "PAPER_FACT", "PAPER_MARKDOWN",
-    "PARQUET_FILE", "PLOTS_DIR", "ReportError", "ReportFiles", "episode_rows",
+    "BASELINE_FACT",
+    "CSV_FILE",
+    "HTML_FILE",
+    "MARKDOWN_FILE",
+    "NO_PERTURBATION",
+    "PAPER_FACT",
+    "PAPER_MARKDOWN",
+    "PARQUET_FILE",
+    "PLOTS_DIR",
+    "ReportError",
+    "ReportFiles",
+    "episode_rows",
     "write_report",
     # re-exported from the modules they moved to, for code that imported them from here
-    "FAIL_MARK", "Section", "Table", "baseline_variation", "grid_cell", "lap_seconds", "mean_std", "outcome",
+    "FAIL_MARK",
+    "Section",
+    "Table",
+    "baseline_variation",
+    "grid_cell",
+    "lap_seconds",
+    "mean_std",
+    "outcome",
     "reached_target",
 ]
 
 HTML_FILE, MARKDOWN_FILE, CSV_FILE, PARQUET_FILE, PLOTS_DIR = (
-    "report.html", "report.md", "episodes.csv", "episodes.parquet", "plots")
+    "report.html",
+    "report.md",
+    "episodes.csv",
+    "episodes.parquet",
+    "plots",
+)
 
 NO_PERTURBATION = "none"
 COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns become one table
@@ -138,7 +160,8 @@ class _Report(ReportPlots):
         self.variations = _ordered(r.variation for r in self.results)
         perturbations = _ordered(r.perturbation for r in self.results)
         self.perturbations = ([NO_PERTURBATION] if NO_PERTURBATION in perturbations else []) + [
-            p for p in perturbations if p != NO_PERTURBATION]
+            p for p in perturbations if p != NO_PERTURBATION
+        ]
         self.baseline_variation = baseline_variation(self.results, self.planned_baseline)
         self.notes: list[str] = []  # problems met while drawing (missing trajectories, unknown circuits)
         self._tracks: dict[str, _Track | None] = {}
@@ -165,13 +188,17 @@ class _Report(ReportPlots):
 
     def baseline(self) -> tuple[list[EpisodeResult], str]:
         """Episodes of the baseline condition and a sentence saying what it is."""
-        chosen = [r for r in self.results
-                  if r.perturbation == NO_PERTURBATION and r.variation == self.baseline_variation]
+        chosen = [
+            r for r in self.results if r.perturbation == NO_PERTURBATION and r.variation == self.baseline_variation
+        ]
         if chosen:
-            return chosen, (f"Baseline condition: variation `{self.baseline_variation}`, perturbation "
-                            f"`{NO_PERTURBATION}`.")
-        return list(self.results), ("The matrix has no episode in the baseline condition (first variation, no "
-                                    "perturbation): every episode is pooled.")
+            return chosen, (
+                f"Baseline condition: variation `{self.baseline_variation}`, perturbation `{NO_PERTURBATION}`."
+            )
+        return list(self.results), (
+            "The matrix has no episode in the baseline condition (first variation, no "
+            "perturbation): every episode is pooled."
+        )
 
     # -- sections --
 
@@ -194,26 +221,47 @@ class _Report(ReportPlots):
         episode_wall = sum(max(0.0, r.wall_s) for r in self.results)
         rows = [
             ["matrix", self.name],
-            ["episodes", f"{len(self.results)} recorded: {done} done, {failed} failed (stack); "
-                         f"{reached} reached their lap target"],
+            [
+                "episodes",
+                f"{len(self.results)} recorded: {done} done, {failed} failed (stack); "
+                f"{reached} reached their lap target",
+            ],
             ["brains", ", ".join(self.brains)],
             ["circuits", ", ".join(self.circuits)],
-            ["variations", ", ".join(self.variations)
-             + (f" (axes: {', '.join(map(str, self.variation_keys))}; baseline `{self.baseline_variation}`)"
-                if self.variation_keys else f" (baseline `{self.baseline_variation}`)")],
+            [
+                "variations",
+                ", ".join(self.variations)
+                + (
+                    f" (axes: {', '.join(map(str, self.variation_keys))}; baseline `{self.baseline_variation}`)"
+                    if self.variation_keys
+                    else f" (baseline `{self.baseline_variation}`)"
+                ),
+            ],
             ["perturbations", ", ".join(self.perturbations)],
-            ["wall time", f"{_duration(end - start)} from first start to last end "
-                          f"({_duration(episode_wall)} of episodes)"],
-            ["date", f"{_date(self.created_at) or _date(start)} (matrix created); ran "
-                     f"{_date(start)} – {_date(end)}"],
+            [
+                "wall time",
+                f"{_duration(end - start)} from first start to last end ({_duration(episode_wall)} of episodes)",
+            ],
+            ["date", f"{_date(self.created_at) or _date(start)} (matrix created); ran {_date(start)} – {_date(end)}"],
             ["report", f"{time.strftime('%Y-%m-%d %H:%M:%S')} from `{self.folder / DATABASE_NAME}`"],
         ]
         return Section(f"Matrix {self.name}", [Table(["", ""], rows)])
 
     def main_table(self) -> Section:
         episodes, sentence = self.baseline()
-        columns = ["Brain", "Circuit", "Episodes", "Lap (s)", "Position deviation (BM)", "Cross-track mean (m)",
-                   "Cross-track max (m)", "Avg speed (m/s)", "Completed (%)", "Laps", "Did not finish"]
+        columns = [
+            "Brain",
+            "Circuit",
+            "Episodes",
+            "Lap (s)",
+            "Position deviation (BM)",
+            "Cross-track mean (m)",
+            "Cross-track max (m)",
+            "Avg speed (m/s)",
+            "Completed (%)",
+            "Laps",
+            "Did not finish",
+        ]
         rows = []
         for brain in self.brains:
             for circuit in self.circuits:
@@ -223,17 +271,21 @@ class _Report(ReportPlots):
                 scored = _scored(group)
                 metrics = [r.score.metrics for r in scored]
                 laps_done = sum(min(m.completed_laps, r.spec.laps) for r, m in zip(scored, metrics))
-                rows.append([
-                    brain, circuit, str(len(group)),
-                    mean_std([t for t in (lap_seconds(r) for r in scored) if t is not None], 2),
-                    mean_std([m.position_deviation_mae for m in metrics], 2),
-                    mean_std([m.cross_track_mean_m for m in metrics], 3),
-                    mean_std([m.cross_track_max_m for m in metrics], 3),
-                    mean_std([m.average_speed_mps for m in metrics], 2),
-                    mean_std([m.percentage_completed for m in metrics], 1),
-                    f"{laps_done}/{sum(r.spec.laps for r in group)}",
-                    _failure_summary(group),
-                ])
+                rows.append(
+                    [
+                        brain,
+                        circuit,
+                        str(len(group)),
+                        mean_std([t for t in (lap_seconds(r) for r in scored) if t is not None], 2),
+                        mean_std([m.position_deviation_mae for m in metrics], 2),
+                        mean_std([m.cross_track_mean_m for m in metrics], 3),
+                        mean_std([m.cross_track_max_m for m in metrics], 3),
+                        mean_std([m.average_speed_mps for m in metrics], 2),
+                        mean_std([m.percentage_completed for m in metrics], 1),
+                        f"{laps_done}/{sum(r.spec.laps for r in group)}",
+                        _failure_summary(group),
+                    ]
+                )
         legend = (
             "Each figure is mean ± sample standard deviation over the repetitions (the mean alone for one). "
             "Lap (s): BM lap seconds (first lap), over the episodes that completed it only. Position deviation: "
@@ -243,18 +295,28 @@ class _Report(ReportPlots):
             "percentage completed (above 100 = lap completed). Laps: laps completed / laps targeted, summed over "
             "the episodes. Did not finish: how the episodes that fell short of their lap target ended (end reason, "
             "or the stack failure's kind); stack failures are "
-            "left out of every figure.")
-        return Section("Main table (baseline condition)",
-                       [sentence, Table(columns, rows, numeric=[False, False] + [True] * 8 + [False]), legend])
+            "left out of every figure."
+        )
+        return Section(
+            "Main table (baseline condition)",
+            [sentence, Table(columns, rows, numeric=[False, False] + [True] * 8 + [False]), legend],
+        )
 
-    def _grid(self, episodes: Sequence[EpisodeResult], conditions: Sequence[str], attribute: str, *,
-              with_completion: bool) -> list[Table]:
+    def _grid(
+        self, episodes: Sequence[EpisodeResult], conditions: Sequence[str], attribute: str, *, with_completion: bool
+    ) -> list[Table]:
         circuits = [c for c in self.circuits if any(r.circuit == c for r in episodes)]
         present = [v for v in conditions if any(getattr(r, attribute) == v for r in episodes)]
 
         def cell(brain: str, circuit: str, condition: str) -> str:
-            return grid_cell([r for r in episodes if r.brain == brain and r.circuit == circuit
-                              and getattr(r, attribute) == condition], with_completion=with_completion)
+            return grid_cell(
+                [
+                    r
+                    for r in episodes
+                    if r.brain == brain and r.circuit == circuit and getattr(r, attribute) == condition
+                ],
+                with_completion=with_completion,
+            )
 
         if len(circuits) * len(present) <= COMBINED_COLUMNS or len(circuits) == 1:
             if len(circuits) == 1:
@@ -264,8 +326,15 @@ class _Report(ReportPlots):
             rows = [[brain, *(cell(brain, c, v) for c in circuits for v in present)] for brain in self.brains]
             caption = f"circuit {circuits[0]}" if len(circuits) == 1 else ""
             return [Table(columns, rows, numeric=[False] + [True] * (len(columns) - 1), caption=caption)]
-        return [Table(["Brain", *present], [[brain, *(cell(brain, c, v) for v in present)] for brain in self.brains],
-                      numeric=[False] + [True] * len(present), caption=f"circuit {c}") for c in circuits]
+        return [
+            Table(
+                ["Brain", *present],
+                [[brain, *(cell(brain, c, v) for v in present)] for brain in self.brains],
+                numeric=[False] + [True] * len(present),
+                caption=f"circuit {c}",
+            )
+            for c in circuits
+        ]
 
     def generalisation(self) -> Section:
         section = Section("Generalisation (world variations)")
@@ -302,8 +371,9 @@ class _Report(ReportPlots):
             return None
         section = Section("Internal metrics (offline, from training)")
         if importlib.util.find_spec("torch") is None:
-            section.blocks.append("torch is not installed: the checkpoints' training metrics are not read "
-                                  "(`pip install drivebench[ml]`).")
+            section.blocks.append(
+                "torch is not installed: the checkpoints' training metrics are not read (`pip install drivebench[ml]`)."
+            )
             return section
         from brains.neural.checkpoint import CheckpointError, read_checkpoint
 
@@ -325,18 +395,42 @@ class _Report(ReportPlots):
             if not figures:
                 notes.append(f"{brain}: {path}: the checkpoint carries no MAE/MSE metrics")
                 continue
-            rows.append([brain, str(checkpoint.get("model", "?")), f"`{path.name}`", split,
-                         _opt(figures.get("mae_speed_mps"), 3), _opt(figures.get("mae_yaw_rate_radps"), 3),
-                         _opt(figures.get("mse_normalised"), 4), _opt(train.get("mse_normalised"), 4),
-                         str(metrics.get("best_epoch", "–"))])
+            rows.append(
+                [
+                    brain,
+                    str(checkpoint.get("model", "?")),
+                    f"`{path.name}`",
+                    split,
+                    _opt(figures.get("mae_speed_mps"), 3),
+                    _opt(figures.get("mae_yaw_rate_radps"), 3),
+                    _opt(figures.get("mse_normalised"), 4),
+                    _opt(train.get("mse_normalised"), 4),
+                    str(metrics.get("best_epoch", "–")),
+                ]
+            )
         if rows:
-            section.blocks.append(Table(
-                ["Brain", "Model", "Checkpoint", "Split", "MAE v (m/s)", "MAE w (rad/s)", "MSE (normalised)",
-                 "Train MSE (normalised)", "Best epoch"], rows,
-                numeric=[False, False, False, False, True, True, True, True, True]))
-            section.blocks.append("The paper's internal metrics on the held-out split (the training subset when the "
-                                  "dataset had no validation split): mean absolute error of speed and yaw rate in "
-                                  "physical units, and mean squared error of the normalised outputs.")
+            section.blocks.append(
+                Table(
+                    [
+                        "Brain",
+                        "Model",
+                        "Checkpoint",
+                        "Split",
+                        "MAE v (m/s)",
+                        "MAE w (rad/s)",
+                        "MSE (normalised)",
+                        "Train MSE (normalised)",
+                        "Best epoch",
+                    ],
+                    rows,
+                    numeric=[False, False, False, False, True, True, True, True, True],
+                )
+            )
+            section.blocks.append(
+                "The paper's internal metrics on the held-out split (the training subset when the "
+                "dataset had no validation split): mean absolute error of speed and yaw rate in "
+                "physical units, and mean squared error of the normalised outputs."
+            )
         section.blocks.extend(notes)
         return section
 
@@ -354,37 +448,72 @@ class _Report(ReportPlots):
             switches = list(getattr(r.score, "switches", None) or [])
             shadows = list(getattr(r.score, "shadows", None) or [])
             if switches or shadows:
-                rows.append([r.key, r.brain, str(len(switches)), _brief(switches), str(len(shadows)),
-                             _brief(shadows)])
+                rows.append([r.key, r.brain, str(len(switches)), _brief(switches), str(len(shadows)), _brief(shadows)])
         if not rows:
             return None
-        return Section("Brain switches and shadow brains", [Table(
-            ["Episode", "Brain", "Switches", "Switch details", "Shadows", "Shadow details"], rows,
-            numeric=[False, False, True, False, True, False])])
+        return Section(
+            "Brain switches and shadow brains",
+            [
+                Table(
+                    ["Episode", "Brain", "Switches", "Switch details", "Shadows", "Shadow details"],
+                    rows,
+                    numeric=[False, False, True, False, True, False],
+                )
+            ],
+        )
 
     def failures(self) -> Section:
         section = Section("Failures")
         failed = [r for r in self.results if r.status == "failed"]
         if failed:
-            section.blocks.append(f"{len(failed)} episode(s) failed because of the stack, not the brain (they are "
-                                  "run again by `--resume`).")
-            section.blocks.append(Table(
-                ["Episode", "Brain", "Circuit", "Condition", "Failure", "Logs"],
-                [[r.key, r.brain, r.circuit, f"{r.variation} / {r.perturbation}", r.failure or "–",
-                  f"`{r.logs}`" if r.logs else "–"] for r in failed]))
+            section.blocks.append(
+                f"{len(failed)} episode(s) failed because of the stack, not the brain (they are "
+                "run again by `--resume`)."
+            )
+            section.blocks.append(
+                Table(
+                    ["Episode", "Brain", "Circuit", "Condition", "Failure", "Logs"],
+                    [
+                        [
+                            r.key,
+                            r.brain,
+                            r.circuit,
+                            f"{r.variation} / {r.perturbation}",
+                            r.failure or "–",
+                            f"`{r.logs}`" if r.logs else "–",
+                        ]
+                        for r in failed
+                    ],
+                )
+            )
         else:
             section.blocks.append("No stack failure.")
         early = [r for r in self.results if r.status == "done" and not reached_target(r)]
         if early:
             shown = early[:MAX_EARLY_ROWS]
-            section.blocks.append(f"{len(early)} episode(s) ended before their lap target"
-                                  + (f" (the first {len(shown)} listed)" if len(shown) < len(early) else "") + ":")
-            section.blocks.append(Table(
-                ["Episode", "Brain", "Circuit", "Condition", "Ended by", "Completed (%)", "Sim time (s)"],
-                [[r.key, r.brain, r.circuit, f"{r.variation} / {r.perturbation}", outcome(r),
-                  _opt(r.score.metrics.percentage_completed if r.score else None, 1),
-                  _opt(r.score.metrics.sim_time_s if r.score else None, 1)] for r in shown],
-                numeric=[False, False, False, False, False, True, True]))
+            section.blocks.append(
+                f"{len(early)} episode(s) ended before their lap target"
+                + (f" (the first {len(shown)} listed)" if len(shown) < len(early) else "")
+                + ":"
+            )
+            section.blocks.append(
+                Table(
+                    ["Episode", "Brain", "Circuit", "Condition", "Ended by", "Completed (%)", "Sim time (s)"],
+                    [
+                        [
+                            r.key,
+                            r.brain,
+                            r.circuit,
+                            f"{r.variation} / {r.perturbation}",
+                            outcome(r),
+                            _opt(r.score.metrics.percentage_completed if r.score else None, 1),
+                            _opt(r.score.metrics.sim_time_s if r.score else None, 1),
+                        ]
+                        for r in shown
+                    ],
+                    numeric=[False, False, False, False, False, True, True],
+                )
+            )
         return section
 
     # -- assembling --
@@ -401,9 +530,11 @@ class _Report(ReportPlots):
         return sections
 
 
-_CELL_LEGEND = (f"A cell: the mean first-lap time (s) when every repetition reached its lap target; otherwise "
-                f"{FAIL_MARK} with the most common way the others ended (end reason, or the stack failure's kind) and "
-                "how many of the cell's episodes ended that way.")
+_CELL_LEGEND = (
+    f"A cell: the mean first-lap time (s) when every repetition reached its lap target; otherwise "
+    f"{FAIL_MARK} with the most common way the others ended (end reason, or the stack failure's kind) and "
+    "how many of the cell's episodes ended that way."
+)
 
 
 def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
@@ -411,9 +542,17 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
     rows = []
     for r in results:
         row: dict[str, Any] = {
-            "key": r.key, "brain": r.brain, "circuit": r.circuit, "variation": r.variation,
-            "perturbation": r.perturbation, "repetition": r.repetition, "seed": r.spec.seed,
-            "laps_target": r.spec.laps, "status": r.status, "reason": r.reason or "", "failure": r.failure or "",
+            "key": r.key,
+            "brain": r.brain,
+            "circuit": r.circuit,
+            "variation": r.variation,
+            "perturbation": r.perturbation,
+            "repetition": r.repetition,
+            "seed": r.spec.seed,
+            "laps_target": r.spec.laps,
+            "status": r.status,
+            "reason": r.reason or "",
+            "failure": r.failure or "",
             "wall_s": round(r.wall_s, 3),
         }
         metrics = r.score.metrics if r.score is not None else None
@@ -422,8 +561,15 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
             if name == "lap_times_s":
                 value = ";".join(repr(float(v)) for v in value) if value else ""
             row[name] = "" if value is None else value
-        row.update({"recording": r.recording or "", "trajectory": r.trajectory or "", "logs": r.logs or "",
-                    "node": r.node or "", "lost_attempts": len(r.lost_attempts)})
+        row.update(
+            {
+                "recording": r.recording or "",
+                "trajectory": r.trajectory or "",
+                "logs": r.logs or "",
+                "node": r.node or "",
+                "lost_attempts": len(r.lost_attempts),
+            }
+        )
         rows.append(row)
     return rows
 
@@ -467,5 +613,6 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     paper = output / PAPER_MARKDOWN if report.is_paper else None
     if paper is not None:
         paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
-    return ReportFiles(html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots),
-                       parquet=parquet, paper=paper)
+    return ReportFiles(
+        html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots), parquet=parquet, paper=paper
+    )

@@ -106,8 +106,14 @@ class MatrixProgress:
 class MatrixRunner:
     """Runs the planned episodes of one matrix into one output folder. ``run()`` returns the finished count."""
 
-    def __init__(self, matrix: Matrix, out_dir: Path, options: RunOptions, *,
-                 on_change: Callable[[MatrixProgress], None] | None = None):
+    def __init__(
+        self,
+        matrix: Matrix,
+        out_dir: Path,
+        options: RunOptions,
+        *,
+        on_change: Callable[[MatrixProgress], None] | None = None,
+    ):
         self.matrix = matrix
         self.out_dir = Path(out_dir)
         self.options = options
@@ -130,8 +136,11 @@ class MatrixRunner:
         store = ResultStore(self.out_dir)
         self._check_same_matrix(store)
         todo = self.pending(store)
-        progress = MatrixProgress(total=len(self.matrix.episodes), skipped=len(self.matrix.episodes) - len(todo),
-                                  workers=[WorkerState() for _ in range(self._lanes())])
+        progress = MatrixProgress(
+            total=len(self.matrix.episodes),
+            skipped=len(self.matrix.episodes) - len(todo),
+            workers=[WorkerState() for _ in range(self._lanes())],
+        )
         try:
             self._dispatch(todo, store, progress)
         finally:
@@ -152,9 +161,12 @@ class MatrixRunner:
         # One router for the whole matrix, embedded here; every episode's processes connect to it.
         router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
         endpoint = router.config.listen[0]
-        threads = [threading.Thread(target=self._work, args=(jobs, store, progress, state, endpoint),
-                                    name=f"matrix-worker-{i}", daemon=True)
-                   for i, state in enumerate(progress.workers)]
+        threads = [
+            threading.Thread(
+                target=self._work, args=(jobs, store, progress, state, endpoint), name=f"matrix-worker-{i}", daemon=True
+            )
+            for i, state in enumerate(progress.workers)
+        ]
         try:
             for thread in threads:
                 thread.start()
@@ -173,8 +185,9 @@ class MatrixRunner:
     def _check_same_matrix(self, store: ResultStore) -> None:
         previous = store.fact("source_text")
         if previous is not None and previous != self.matrix.text:
-            log.warning("%s holds results of a different version of the matrix file; episodes are matched by key",
-                        store.path)
+            log.warning(
+                "%s holds results of a different version of the matrix file; episodes are matched by key", store.path
+            )
         store.set_fact("name", self.matrix.name)
         store.set_fact("source_text", self.matrix.text)
         store.set_fact("variation_keys", list(self.matrix.variation_keys))
@@ -189,8 +202,9 @@ class MatrixRunner:
 
     # -- one worker: episodes one after another --
 
-    def _work(self, jobs: queue.Queue, store: ResultStore, progress: MatrixProgress, state: WorkerState,
-              endpoint: str) -> None:
+    def _work(
+        self, jobs: queue.Queue, store: ResultStore, progress: MatrixProgress, state: WorkerState, endpoint: str
+    ) -> None:
         while not self._stopping.is_set():
             try:
                 episode = jobs.get_nowait()
@@ -222,17 +236,25 @@ class MatrixRunner:
         started_at = time.time()
         trace = Trace()
         outcome: dict = {"status": "done", "score": None, "failure": None}
-        stack = self._make_stack(run_id=run_id, run_dir=folder, brains=self._launches(episode),
-                                 router_endpoint=endpoint, startup_timeout_s=self.options.startup_timeout_s,
-                                 record=folder / "recording.mcap" if self.options.record else None,
-                                 record_options=(f"image_format={self.options.record_images}",))
+        stack = self._make_stack(
+            run_id=run_id,
+            run_dir=folder,
+            brains=self._launches(episode),
+            router_endpoint=endpoint,
+            startup_timeout_s=self.options.startup_timeout_s,
+            record=folder / "recording.mcap" if self.options.record else None,
+            record_options=(f"image_format={self.options.record_images}",),
+        )
         self._write_config(folder, episode, run_id)
         try:
             stack.start()
             trace.attach(stack)
             outcome["score"] = stack.run_episode(
-                episode.spec, on_live=lambda live: self._on_live(state, trace, live), abort=self._stopping.is_set,
-                wall_timeout_s=episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S)
+                episode.spec,
+                on_live=lambda live: self._on_live(state, trace, live),
+                abort=self._stopping.is_set,
+                wall_timeout_s=episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S,
+            )
             if outcome["score"].reason == EndReason.BRAIN_LOST:  # scored, but the stack failed it
                 detail = stack.dead_child_reason() or "the active brain lost its liveliness token"
                 outcome.update(status="failed", failure=f"brain_died: {detail}")
@@ -249,7 +271,8 @@ class MatrixRunner:
             stack.close()
         if stack.recording_failure is not None:  # scored all the same; the recording beside it is incomplete
             (folder / "recording_failure.json").write_text(
-                json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n")
+                json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n"
+            )
         if self._stopping.is_set() and outcome["status"] == "failed":
             return None  # its processes were stopped under it: run it again on resume
         score: EpisodeScore | None = outcome["score"]
@@ -258,13 +281,27 @@ class MatrixRunner:
         trajectory = trace.save(folder / "trajectory.npz")
         recording = folder / "recording.mcap"
         return EpisodeResult(
-            key=episode.key, index=episode.index, brain=episode.brain.label, circuit=episode.circuit,
-            variation=episode.variation, perturbation=episode.perturbation, repetition=episode.repetition,
-            spec=episode.spec, brain_entry=episode.brain.to_dict(), status=outcome["status"], run_id=run_id,
-            started_at=started_at, ended_at=time.time(), reason=str(score.reason) if score is not None else None,
-            failure=outcome["failure"], score=score,
+            key=episode.key,
+            index=episode.index,
+            brain=episode.brain.label,
+            circuit=episode.circuit,
+            variation=episode.variation,
+            perturbation=episode.perturbation,
+            repetition=episode.repetition,
+            spec=episode.spec,
+            brain_entry=episode.brain.to_dict(),
+            status=outcome["status"],
+            run_id=run_id,
+            started_at=started_at,
+            ended_at=time.time(),
+            reason=str(score.reason) if score is not None else None,
+            failure=outcome["failure"],
+            score=score,
             recording=self._relative(recording) if recording.is_file() else None,
-            trajectory=self._relative(trajectory), logs=self._relative(folder / "logs"), node=self._node_name())
+            trajectory=self._relative(trajectory),
+            logs=self._relative(folder / "logs"),
+            node=self._node_name(),
+        )
 
     def _make_stack(self, **settings) -> LocalStack:
         """The stack of one episode (a hook: a Ray task puts its processes in one process group)."""
@@ -285,11 +322,19 @@ class MatrixRunner:
         return [brain_launch(episode.brain), *(brain_launch(shadow) for shadow in self.matrix.shadows)]
 
     def _write_config(self, folder: Path, episode: PlannedEpisode, run_id: str) -> None:
-        (folder / "config.yaml").write_text(yaml.safe_dump({
-            "run_id": run_id, "matrix": self.matrix.name, "key": episode.key,
-            "episode": msgspec.to_builtins(episode.spec),
-            "brains": [entry.to_dict() for entry in (episode.brain, *self.matrix.shadows)],
-        }, sort_keys=False, default_flow_style=None))
+        (folder / "config.yaml").write_text(
+            yaml.safe_dump(
+                {
+                    "run_id": run_id,
+                    "matrix": self.matrix.name,
+                    "key": episode.key,
+                    "episode": msgspec.to_builtins(episode.spec),
+                    "brains": [entry.to_dict() for entry in (episode.brain, *self.matrix.shadows)],
+                },
+                sort_keys=False,
+                default_flow_style=None,
+            )
+        )
 
     @staticmethod
     def _on_live(state: WorkerState, trace: Trace, live: LiveMetrics) -> None:
@@ -322,12 +367,22 @@ class Trace:
 
     def save(self, path: Path) -> Path:
         poses = sorted({p.message.header.seq: p.message for p in self._poses.drain()}.items())
-        rows = np.array([(pose.header.stamp_ns / 1e9, pose.x_m, pose.y_m, pose.yaw_rad, pose.speed_mps)
-                         for _, pose in poses], dtype=np.float64).reshape(-1, 5)
+        rows = np.array(
+            [(pose.header.stamp_ns / 1e9, pose.x_m, pose.y_m, pose.yaw_rad, pose.speed_mps) for _, pose in poses],
+            dtype=np.float64,
+        ).reshape(-1, 5)
         live = np.array(self._live, dtype=np.float64).reshape(-1, 3)
-        np.savez_compressed(path, stamp_s=rows[:, 0], x_m=rows[:, 1], y_m=rows[:, 2], yaw_rad=rows[:, 3],
-                            speed_mps=rows[:, 4], live_sim_time_s=live[:, 0], live_progress_laps=live[:, 1],
-                            live_cross_track_m=live[:, 2])
+        np.savez_compressed(
+            path,
+            stamp_s=rows[:, 0],
+            x_m=rows[:, 1],
+            y_m=rows[:, 2],
+            yaw_rad=rows[:, 3],
+            speed_mps=rows[:, 4],
+            live_sim_time_s=live[:, 0],
+            live_progress_laps=live[:, 1],
+            live_cross_track_m=live[:, 2],
+        )
         return path
 
 
@@ -350,22 +405,40 @@ class ProgressDisplay:
         from tqdm import tqdm
 
         bars = self._enabled and self._tty
-        self._main = tqdm(total=progress.total, initial=progress.skipped, unit="episode", file=sys.stderr,
-                          disable=not bars, dynamic_ncols=True, smoothing=0.0, desc="matrix")
-        self._lanes = [tqdm(total=100, file=sys.stderr, position=i + 1, leave=False, dynamic_ncols=True,
-                            disable=not bars, bar_format="  {desc} {percentage:3.0f}%|{bar}|")
-                       for i in range(len(progress.workers))]
+        self._main = tqdm(
+            total=progress.total,
+            initial=progress.skipped,
+            unit="episode",
+            file=sys.stderr,
+            disable=not bars,
+            dynamic_ncols=True,
+            smoothing=0.0,
+            desc="matrix",
+        )
+        self._lanes = [
+            tqdm(
+                total=100,
+                file=sys.stderr,
+                position=i + 1,
+                leave=False,
+                dynamic_ncols=True,
+                disable=not bars,
+                bar_format="  {desc} {percentage:3.0f}%|{bar}|",
+            )
+            for i in range(len(progress.workers))
+        ]
 
     def update(self, progress: MatrixProgress) -> None:
         if self._main is None:
             self._make(progress)
         with progress.lock:
             finished = progress.skipped + progress.done + progress.failed
-            new_results = progress.finished[self._reported:]
+            new_results = progress.finished[self._reported :]
             self._reported = len(progress.finished)
             lanes = [(worker.episode, worker.live) for worker in progress.workers]
-            counts = (f"done {progress.done}, running {progress.running}, failed {progress.failed}"
-                      + (f", resumed past {progress.skipped}" if progress.skipped else ""))
+            counts = f"done {progress.done}, running {progress.running}, failed {progress.failed}" + (
+                f", resumed past {progress.skipped}" if progress.skipped else ""
+            )
         for number, result in enumerate(new_results, start=finished - len(new_results) + 1):
             if self._enabled:
                 self._main.write(f"[{number}/{progress.total}] {_result_line(result)}", file=sys.stderr)
@@ -402,15 +475,19 @@ def _result_line(result: EpisodeResult) -> str:
         return f"{result.key}: FAILED {result.failure} {wall}"
     metrics = result.score.metrics
     lap = f", lap {metrics.lap_times_s[0]:.2f} s" if metrics.lap_times_s else ""
-    return (f"{result.key}: {result.reason}{lap}, {metrics.percentage_completed:.0f} % of a lap in "
-            f"{metrics.sim_time_s:.1f} s sim {wall}")
+    return (
+        f"{result.key}: {result.reason}{lap}, {metrics.percentage_completed:.0f} % of a lap in "
+        f"{metrics.sim_time_s:.1f} s sim {wall}"
+    )
 
 
 def summary_line(progress: MatrixProgress, out_dir: Path) -> str:
     ran = progress.done + progress.failed
-    return (f"{ran} episode(s) run ({progress.done} done, {progress.failed} failed)"
-            + (f", {progress.skipped} already in the results" if progress.skipped else "")
-            + f"; results in {out_dir / 'results.sqlite'}")
+    return (
+        f"{ran} episode(s) run ({progress.done} done, {progress.failed} failed)"
+        + (f", {progress.skipped} already in the results" if progress.skipped else "")
+        + f"; results in {out_dir / 'results.sqlite'}"
+    )
 
 
 def plan_table(matrix: Matrix) -> str:

@@ -70,8 +70,12 @@ TABLE3: dict[str, tuple[float, float, float]] = {
 }
 # Table 4, simple: lap s or FAIL per world (line, road, walls); the paper drove every world forward only.
 TABLE4_WORLDS: tuple[tuple[str, str, bool], ...] = (
-    ("red", "grey", True), ("red", "white", True), ("white", "grey", True),
-    ("none", "grey", True), ("none", "white", True), ("none", "grey", False),
+    ("red", "grey", True),
+    ("red", "white", True),
+    ("white", "grey", True),
+    ("none", "grey", True),
+    ("none", "white", True),
+    ("none", "grey", False),
 )
 TABLE4: dict[str, tuple[Any, ...]] = {
     "explicit": ("50-61", 50, FAIL, FAIL, FAIL, FAIL),
@@ -171,16 +175,19 @@ def table3(results: Sequence[EpisodeResult]) -> Table:
         paper = TABLE3.get(brain, (None, None, None))
         if lapped:
             metrics = [r.score.metrics for r in lapped]
-            ours = [f"{statistics.fmean(t for t in map(lap_seconds, lapped) if t is not None):.1f}",
-                    f"{statistics.fmean(m.position_deviation_mae for m in metrics):.2f}",
-                    f"{statistics.fmean(m.average_speed_mps for m in metrics):.2f}"]
+            ours = [
+                f"{statistics.fmean(t for t in map(lap_seconds, lapped) if t is not None):.1f}",
+                f"{statistics.fmean(m.position_deviation_mae for m in metrics):.2f}",
+                f"{statistics.fmean(m.average_speed_mps for m in metrics):.2f}",
+            ]
         else:
             ours = [our_lap_cell(group), PAPER_ONLY, PAPER_ONLY]
         laps = f"{len(lapped)}/{len(group)}"
         rows.append([_name(brain), laps, *(item for pair in zip(ours, map(paper_text, paper)) for item in pair)])
     columns = ["Brain", "Lapped", "Lap (s)", "paper", "Position deviation", "paper", "Avg speed (m/s)", "paper"]
-    return Table(columns, rows, numeric=[False] + [True] * 7,
-                 caption="Table 3: Montmeló, mean over the repetitions that lapped")
+    return Table(
+        columns, rows, numeric=[False] + [True] * 7, caption="Table 3: Montmeló, mean over the repetitions that lapped"
+    )
 
 
 def table4(results: Sequence[EpisodeResult]) -> Table:
@@ -190,8 +197,9 @@ def table4(results: Sequence[EpisodeResult]) -> Table:
 
     def paper_index(world: str) -> int | None:
         spec = by_world[world]
-        default_mount = msgspec.structs.replace(type(spec.camera)(), width_px=spec.camera.width_px,
-                                                height_px=spec.camera.height_px)
+        default_mount = msgspec.structs.replace(
+            type(spec.camera)(), width_px=spec.camera.width_px, height_px=spec.camera.height_px
+        )
         if spec.direction != "forward" or spec.camera != default_mount or spec.world.lighting != "sun":
             return None  # a world the paper did not drive
         key = (spec.world.line, spec.world.road, spec.world.walls)
@@ -208,8 +216,12 @@ def table4(results: Sequence[EpisodeResult]) -> Table:
             ours = our_lap_cell([r for r in results if r.brain == brain and r.variation == world])
             row.append(cell(ours, paper_text(theirs, " s")))
         rows.append(row)
-    return Table(["Brain", *(_world_title(by_world[w]) for w in worlds)], rows, numeric=[False] + [True] * len(worlds),
-                 caption="Table 4: simple, lap time or ✗ per world (line / road / walls), ours / paper")
+    return Table(
+        ["Brain", *(_world_title(by_world[w]) for w in worlds)],
+        rows,
+        numeric=[False] + [True] * len(worlds),
+        caption="Table 4: simple, lap time or ✗ per world (line / road / walls), ours / paper",
+    )
 
 
 def _world_title(spec) -> str:
@@ -217,8 +229,15 @@ def _world_title(spec) -> str:
     return title + (" / reverse" if spec.direction == "reverse" else "")
 
 
-def _perturbation_table(results: Sequence[EpisodeResult], *, paper: dict[str, tuple[Any, ...]],
-                        labels: Sequence[str], titles: Sequence[str], with_deviation: bool, caption: str) -> Table:
+def _perturbation_table(
+    results: Sequence[EpisodeResult],
+    *,
+    paper: dict[str, tuple[Any, ...]],
+    labels: Sequence[str],
+    titles: Sequence[str],
+    with_deviation: bool,
+    caption: str,
+) -> Table:
     present = list(dict.fromkeys(r.perturbation for r in results))
     columns = [p for p in labels if p in present] + [p for p in present if p not in labels]
     rows = []
@@ -226,8 +245,9 @@ def _perturbation_table(results: Sequence[EpisodeResult], *, paper: dict[str, tu
         row = [_name(brain)]
         for label in columns:
             theirs = paper[brain][labels.index(label)] if brain in paper and label in labels else None
-            ours = our_lap_cell([r for r in results if r.brain == brain and r.perturbation == label],
-                                with_deviation=with_deviation)
+            ours = our_lap_cell(
+                [r for r in results if r.brain == brain and r.perturbation == label], with_deviation=with_deviation
+            )
             row.append(cell(ours, paper_text(theirs, " s")))
         rows.append(row)
     header = [titles[labels.index(c)] if c in labels else c for c in columns]
@@ -237,19 +257,27 @@ def _perturbation_table(results: Sequence[EpisodeResult], *, paper: dict[str, tu
 def table5(results: Sequence[EpisodeResult]) -> Table:
     circuit = results[0].circuit if results else "?"
     return _perturbation_table(
-        results, paper=TABLE5, labels=[f"camera={c}" for c in TABLE5_CAMERAS],
-        titles=["camera moved left", "camera moved right", "camera rotated down"], with_deviation=True,
+        results,
+        paper=TABLE5,
+        labels=[f"camera={c}" for c in TABLE5_CAMERAS],
+        titles=["camera moved left", "camera moved right", "camera rotated down"],
+        with_deviation=True,
         caption=f"Table 5: {circuit}, moved cameras: lap time, position deviation; ours / paper (their held-out "
-                "circuit)")
+        "circuit)",
+    )
 
 
 def table6(results: Sequence[EpisodeResult]) -> Table:
     circuit = results[0].circuit if results else "?"
     return _perturbation_table(
-        results, paper=TABLE6, labels=[f"salt_pepper={p:g}" for p in TABLE6_LEVELS],
-        titles=[f"salt and pepper {p:g}" for p in TABLE6_LEVELS], with_deviation=False,
+        results,
+        paper=TABLE6,
+        labels=[f"salt_pepper={p:g}" for p in TABLE6_LEVELS],
+        titles=[f"salt and pepper {p:g}" for p in TABLE6_LEVELS],
+        with_deviation=False,
         caption=f"Table 6: {circuit}, salt and pepper noise on the brain's camera: lap time; ours / paper (their "
-                "held-out circuit)")
+        "held-out circuit)",
+    )
 
 
 # -- tables 1 and 2: from the checkpoints ----------------------------------------------------------------------------
@@ -277,9 +305,14 @@ def checkpoint_facts(path: Path) -> CheckpointFacts:
     metrics = ckpt.metrics or {}
     spec = ckpt.input
     return CheckpointFacts(
-        model=ckpt.model, parameters=parameters, input_size=f"{spec.width_px}x{spec.height_px}",
-        frames=len(spec.offsets_frames), crop=f"{spec.crop_top_fraction:g}..{spec.crop_bottom_fraction:g}",
-        train=_paper_metrics(metrics.get("train")), val=_paper_metrics(metrics.get("val")))
+        model=ckpt.model,
+        parameters=parameters,
+        input_size=f"{spec.width_px}x{spec.height_px}",
+        frames=len(spec.offsets_frames),
+        crop=f"{spec.crop_top_fraction:g}..{spec.crop_bottom_fraction:g}",
+        train=_paper_metrics(metrics.get("train")),
+        val=_paper_metrics(metrics.get("val")),
+    )
 
 
 def _paper_metrics(figures: Any) -> dict[str, float]:
@@ -324,18 +357,38 @@ def checkpoint_tables(results: Sequence[EpisodeResult], folder: Path) -> list[Ta
             notes.append(f"{_name(brain)}: {error}")
             continue
         paper1 = TABLE1.get(brain, (None,) * 4)
-        ours1 = [facts.train.get("mae_paper"), facts.val.get("mae_paper"), facts.train.get("mse_paper"),
-                 facts.val.get("mse_paper")]
+        ours1 = [
+            facts.train.get("mae_paper"),
+            facts.val.get("mae_paper"),
+            facts.train.get("mse_paper"),
+            facts.val.get("mse_paper"),
+        ]
         rows1.append([_name(brain), *(cell(_figure(o), paper_text(p)) for o, p in zip(ours1, paper1))])
         paper2 = TABLE2.get(brain, (None, None))
-        rows2.append([_name(brain), facts.model, cell(_count_text(facts.parameters), paper_text(paper2[0])),
-                      cell(facts.input_size, paper_text(paper2[1])), str(facts.frames), facts.crop])
+        rows2.append(
+            [
+                _name(brain),
+                facts.model,
+                cell(_count_text(facts.parameters), paper_text(paper2[0])),
+                cell(facts.input_size, paper_text(paper2[1])),
+                str(facts.frames),
+                facts.crop,
+            ]
+        )
     blocks: list[Table | str] = [
-        Table(["Brain", "MAE train", "MAE val", "MSE train", "MSE val"], rows1, numeric=[False] + [True] * 4,
-              caption="Table 1: internal metrics, both outputs in the paper's normalisation (v / 17.5, w / 14.2); "
-                      "ours / paper"),
-        Table(["Brain", "Model", "Parameters", "Input (W x H)", "Frames", "Rows kept"], rows2,
-              numeric=[False, False, True, True, True, True], caption="Table 2: size and input; ours / paper"),
+        Table(
+            ["Brain", "MAE train", "MAE val", "MSE train", "MSE val"],
+            rows1,
+            numeric=[False] + [True] * 4,
+            caption="Table 1: internal metrics, both outputs in the paper's normalisation (v / 17.5, w / 14.2); "
+            "ours / paper",
+        ),
+        Table(
+            ["Brain", "Model", "Parameters", "Input (W x H)", "Frames", "Rows kept"],
+            rows2,
+            numeric=[False, False, True, True, True, True],
+            caption="Table 2: size and input; ours / paper",
+        ),
     ]
     return blocks + notes
 
@@ -349,10 +402,12 @@ def _figure(value: float | None) -> str:
 
 def paper_sections(results: Sequence[EpisodeResult], folder: Path) -> list[Section]:
     """The six tables as report sections (tables 3-6 from the parts that ran, 1-2 from the checkpoints)."""
-    legend = ("Each cell: ours / the paper's. A lap time is the mean first-lap time (BM lap seconds) when every "
-              f"repetition lapped; {FAIL_MARK} with how the others ended and how many otherwise. Position deviation "
-              "is Behavior Metrics' mean of 1000^d (1 on the path, 31.6 at 0.5 m off), not metres. The paper ran "
-              "Gazebo at 640x480 on its own circuits; see docs/paper.md for what compares and what does not.")
+    legend = (
+        "Each cell: ours / the paper's. A lap time is the mean first-lap time (BM lap seconds) when every "
+        f"repetition lapped; {FAIL_MARK} with how the others ended and how many otherwise. Position deviation "
+        "is Behavior Metrics' mean of 1000^d (1 on the path, 31.6 at 0.5 m off), not metres. The paper ran "
+        "Gazebo at 640x480 on its own circuits; see docs/paper.md for what compares and what does not."
+    )
     section = Section("The paper's tables", [legend])
     section.blocks.extend(checkpoint_tables(results, folder))
     for part, number in PARTS.items():
@@ -369,12 +424,23 @@ def paper_sections(results: Sequence[EpisodeResult], folder: Path) -> list[Secti
 def circuits_table(results: Sequence[EpisodeResult]) -> Table:
     """Beyond the paper: one lap of each circuit, per direction; lap time or how it failed."""
     cells = list(dict.fromkeys((r.circuit, r.spec.direction) for r in results))
-    rows = [[_name(brain), *(our_lap_cell([r for r in results if r.brain == brain
-                                           and (r.circuit, r.spec.direction) == c]) for c in cells)]
-            for brain in _brains(results)]
+    rows = [
+        [
+            _name(brain),
+            *(
+                our_lap_cell([r for r in results if r.brain == brain and (r.circuit, r.spec.direction) == c])
+                for c in cells
+            ),
+        ]
+        for brain in _brains(results)
+    ]
     titles = [circuit + (" (reverse)" if direction == "reverse" else "") for circuit, direction in cells]
-    return Table(["Brain", *titles], rows, numeric=[False] + [True] * len(cells),
-                 caption="Every circuit, one lap each way: lap time or ✗ (beyond the paper)")
+    return Table(
+        ["Brain", *titles],
+        rows,
+        numeric=[False] + [True] * len(cells),
+        caption="Every circuit, one lap each way: lap time or ✗ (beyond the paper)",
+    )
 
 
 # -- smoke form ------------------------------------------------------------------------------------------------------
@@ -386,8 +452,13 @@ def smoke_matrix(matrix):
     its table's cell."""
     from orchestrator.matrix import smoke_form
 
-    return smoke_form(matrix, brains=SMOKE_BRAINS, cells_per_part=SMOKE_CELLS_PER_PART,
-                      sim_seconds=SMOKE_SIM_SECONDS, camera_wh=SMOKE_CAMERA)
+    return smoke_form(
+        matrix,
+        brains=SMOKE_BRAINS,
+        cells_per_part=SMOKE_CELLS_PER_PART,
+        sim_seconds=SMOKE_SIM_SECONDS,
+        camera_wh=SMOKE_CAMERA,
+    )
 
 
 # -- command line ----------------------------------------------------------------------------------------------------

@@ -18,15 +18,22 @@ log = logging.getLogger("drivebench.processes")
 LOG_LINE_CHARS = 200  # a dead process's last log line, quoted in its failure (a simulator's may hold a whole spec)
 
 
-def spawn(argv: Sequence[str], *, log_path: Path, env: Mapping[str, str],
-          process_group: int | None = None) -> subprocess.Popen:
+def spawn(
+    argv: Sequence[str], *, log_path: Path, env: Mapping[str, str], process_group: int | None = None
+) -> subprocess.Popen:
     """Start ``argv`` with its output appended to ``log_path``: in its own session, or with ``process_group`` in
     that process group (0: a new one led by this process; a Ray episode kills its whole stack as one group)."""
     log_path.parent.mkdir(parents=True, exist_ok=True)
     group: dict = {"start_new_session": True} if process_group is None else {"process_group": process_group}
     with open(log_path, "ab") as log_file:
-        return subprocess.Popen(list(argv), stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env={**env, "PYTHONUNBUFFERED": "1"}, **group)
+        return subprocess.Popen(
+            list(argv),
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env={**env, "PYTHONUNBUFFERED": "1"},
+            **group,
+        )
 
 
 def last_log_line(log_path: Path) -> str:
@@ -36,7 +43,7 @@ def last_log_line(log_path: Path) -> str:
     except OSError:
         return ""
     line = lines[-1] if lines else ""
-    return line[:LOG_LINE_CHARS - 3] + "..." if len(line) > LOG_LINE_CHARS else line
+    return line[: LOG_LINE_CHARS - 3] + "..." if len(line) > LOG_LINE_CHARS else line
 
 
 def describe_exit(code: int) -> str:

@@ -63,6 +63,7 @@ LIVE_PERIOD_S = 0.5  # how often a running episode sends its live metrics to the
 
 # -- the cluster --
 
+
 def connect(address: str) -> None:
     """Join the cluster at ``address`` as a driver (nothing when this process already is one)."""
     ray = import_ray()
@@ -88,8 +89,9 @@ def _probe(address: str, *, timeout_s: float = 5.0) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
     except OSError as error:
-        raise ClusterError(f"no Ray cluster at {address!r}: nothing answers there ({error.strerror or error})") \
-            from None
+        raise ClusterError(
+            f"no Ray cluster at {address!r}: nothing answers there ({error.strerror or error})"
+        ) from None
 
 
 def alive_nodes() -> list[dict]:
@@ -109,17 +111,23 @@ def capacity(resources: dict) -> int:
     if total < 1:
         wanted = ", ".join(f"{name}={amount:g}" for name, amount in resources.items())
         offered = "; ".join(_offer(node) for node in nodes) or "no node alive"
-        raise ClusterError(f"no node of the Ray cluster has what one episode asks for ({wanted}); the nodes offer: "
-                           f"{offered} (start workers with `ray start --address HEAD:6379 --resources "
-                           f"'{{\"{EPISODE_SLOT}\": N}}'`)")
+        raise ClusterError(
+            f"no node of the Ray cluster has what one episode asks for ({wanted}); the nodes offer: "
+            f"{offered} (start workers with `ray start --address HEAD:6379 --resources "
+            f"'{{\"{EPISODE_SLOT}\": N}}'`)"
+        )
     return total
 
 
 def _offer(node: dict) -> str:
-    shown = {name: amount for name, amount in node.get("Resources", {}).items()
-             if not name.startswith(("node:", "memory", "object_store_memory", "accelerator_type"))}
+    shown = {
+        name: amount
+        for name, amount in node.get("Resources", {}).items()
+        if not name.startswith(("node:", "memory", "object_store_memory", "accelerator_type"))
+    }
     return f"{node.get('NodeManagerAddress', '?')} " + (
-        ", ".join(f"{name}={amount:g}" for name, amount in sorted(shown.items())) or "nothing")
+        ", ".join(f"{name}={amount:g}" for name, amount in sorted(shown.items())) or "nothing"
+    )
 
 
 def task_resources(resources: dict) -> dict:
@@ -137,11 +145,11 @@ def node_label(*, ip: str, node_id: str) -> str:
 
 # -- the driver --
 
+
 class RayMatrixRunner(MatrixRunner):
     """A :class:`MatrixRunner` whose episodes run as Ray tasks; results, resume and progress are the local ones."""
 
-    def __init__(self, matrix: Matrix, out_dir: Path, options: RunOptions, *, ray_options: RayOptions,
-                 on_change=None):
+    def __init__(self, matrix: Matrix, out_dir: Path, options: RunOptions, *, ray_options: RayOptions, on_change=None):
         super().__init__(matrix, out_dir, options, on_change=on_change)
         self.ray_options = ray_options
         self._capacity = 1
@@ -157,8 +165,10 @@ class RayMatrixRunner(MatrixRunner):
     def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
         ray = import_ray()
         task = ray.remote(run_episode_task).options(
-            **task_resources(self.ray_options.resources), max_retries=0,  # node deaths: retried here, recorded
-            name="drivebench-episode")
+            **task_resources(self.ray_options.resources),
+            max_retries=0,  # node deaths: retried here, recorded
+            name="drivebench-episode",
+        )
         shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a task needs: name and shadows
         waiting = collections.deque((episode, ()) for episode in todo)
         running: dict = {}  # ObjectRefGenerator -> (episode, lost attempts so far, lane)
@@ -168,8 +178,9 @@ class RayMatrixRunner(MatrixRunner):
                 while waiting and free_lanes and len(running) < self._window():
                     episode, lost = waiting.popleft()
                     lane = free_lanes.pop(0)
-                    stream = task.remote(matrix=shared, episode=episode, options=self.options,
-                                         artifacts=self._artifacts_text())
+                    stream = task.remote(
+                        matrix=shared, episode=episode, options=self.options, artifacts=self._artifacts_text()
+                    )
                     running[stream] = (episode, lost, lane)
                     with progress.lock:
                         progress.workers[lane].episode, progress.workers[lane].live = episode, None
@@ -223,8 +234,9 @@ class RayMatrixRunner(MatrixRunner):
             return {"live": codec.decode(value["live"], LiveMetrics)}
         return value
 
-    def _collect(self, item: dict, episode: PlannedEpisode, lost: tuple,
-                 waiting: collections.deque) -> EpisodeResult | None:
+    def _collect(
+        self, item: dict, episode: PlannedEpisode, lost: tuple, waiting: collections.deque
+    ) -> EpisodeResult | None:
         """The result of a finished task; None when its node was lost and it is submitted again."""
         ray = import_ray()
         try:
@@ -270,17 +282,37 @@ class RayMatrixRunner(MatrixRunner):
         if failure is None:
             failure = f"node_died: lost {len(lost)} time(s), last: {lost[-1]['error']}"
         return EpisodeResult(
-            key=episode.key, index=episode.index, brain=episode.brain.label, circuit=episode.circuit,
-            variation=episode.variation, perturbation=episode.perturbation, repetition=episode.repetition,
-            spec=episode.spec, brain_entry=episode.brain.to_dict(), status="failed", run_id="-", started_at=now,
-            ended_at=now, failure=failure, node=lost[-1]["node"] if lost else None, lost_attempts=lost)
+            key=episode.key,
+            index=episode.index,
+            brain=episode.brain.label,
+            circuit=episode.circuit,
+            variation=episode.variation,
+            perturbation=episode.perturbation,
+            repetition=episode.repetition,
+            spec=episode.spec,
+            brain_entry=episode.brain.to_dict(),
+            status="failed",
+            run_id="-",
+            started_at=now,
+            ended_at=now,
+            failure=failure,
+            node=lost[-1]["node"] if lost else None,
+            lost_attempts=lost,
+        )
 
 
 def _lost_errors() -> tuple[type, ...]:
     """Ray's errors for a task lost with its node or worker process (infrastructure, not the episode)."""
     exceptions = import_ray().exceptions
-    names = ("NodeDiedError", "WorkerCrashedError", "ObjectLostError", "LocalRayletDiedError", "OutOfMemoryError",
-             "TaskUnschedulableError", "RaySystemError")
+    names = (
+        "NodeDiedError",
+        "WorkerCrashedError",
+        "ObjectLostError",
+        "LocalRayletDiedError",
+        "OutOfMemoryError",
+        "TaskUnschedulableError",
+        "RaySystemError",
+    )
     return tuple(getattr(exceptions, name) for name in names if hasattr(exceptions, name))
 
 
@@ -304,6 +336,7 @@ def _same_folder(artifacts: Path | None, out_dir: Path) -> bool:
 
 
 # -- one episode, on a node --
+
 
 class _NodeRunner(MatrixRunner):
     """The local runner's episode code (:meth:`MatrixRunner._run_one`), run inside a Ray task: the stack in one
@@ -333,8 +366,9 @@ class _NodeRunner(MatrixRunner):
                 pass  # every member already gone
 
 
-def run_episode_task(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions,
-                     artifacts: str | None) -> Iterator[dict]:
+def run_episode_task(
+    *, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, artifacts: str | None
+) -> Iterator[dict]:
     """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` twice a
     second while it drives (the driver's progress lanes), then ``{"result": EpisodeResult, "files": {path: bytes}}``.
 
@@ -361,8 +395,12 @@ def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node
     from protocol.bus import Bus, BusConfig
 
     runner = _NodeRunner(matrix, work, options, node=node)
-    guard_s = (options.startup_timeout_s + episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S
-               + WATCHDOG_SLACK_S)
+    guard_s = (
+        options.startup_timeout_s
+        + episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND
+        + WALL_SLACK_S
+        + WATCHDOG_SLACK_S
+    )
     fired = threading.Event()
 
     def watchdog() -> None:  # the stack's own guards failed to end it: abandon it and kill its processes
@@ -408,16 +446,29 @@ def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node
     yield {"result": result, "files": _small_files(work / "episodes" / f"{episode.index:04d}")}
 
 
-def _timed_out(episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float,
-               result: EpisodeResult | None) -> EpisodeResult:
+def _timed_out(
+    episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float, result: EpisodeResult | None
+) -> EpisodeResult:
     failure = f"wall_timeout: the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
     if result is not None:
         return dataclasses.replace(result, status="failed", failure=failure)
     return EpisodeResult(
-        key=episode.key, index=episode.index, brain=episode.brain.label, circuit=episode.circuit,
-        variation=episode.variation, perturbation=episode.perturbation, repetition=episode.repetition,
-        spec=episode.spec, brain_entry=episode.brain.to_dict(), status="failed", run_id="-", started_at=started_at,
-        ended_at=time.time(), failure=failure, node=node)
+        key=episode.key,
+        index=episode.index,
+        brain=episode.brain.label,
+        circuit=episode.circuit,
+        variation=episode.variation,
+        perturbation=episode.perturbation,
+        repetition=episode.repetition,
+        spec=episode.spec,
+        brain_entry=episode.brain.to_dict(),
+        status="failed",
+        run_id="-",
+        started_at=started_at,
+        ended_at=time.time(),
+        failure=failure,
+        node=node,
+    )
 
 
 def _small_files(folder: Path) -> dict[str, bytes]:

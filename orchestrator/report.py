@@ -19,14 +19,19 @@ def metrics_table(score: EpisodeScore) -> str:
     spec = score.spec
     laps = ", ".join(f"{t:.2f}" for t in m.lap_times_s) or "-"
     rows = [
-        ("episode", f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}, "
-                    f"{spec.laps} lap(s), seed {spec.seed}"),
+        (
+            "episode",
+            f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}, "
+            f"{spec.laps} lap(s), seed {spec.seed}",
+        ),
         ("ended by", str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),
         ("lap times", f"{laps} s"),
         ("progress", f"{_fmt(m.progress_m, ' m', 1)} ({_fmt(m.progress_laps * 100, ' %', 1)})"),
-        ("cross-track |e| mean / rms / max", f"{m.cross_track_mean_m:.3f} / {m.cross_track_rms_m:.3f} / "
-                                             f"{m.cross_track_max_m:.3f} m"),
+        (
+            "cross-track |e| mean / rms / max",
+            f"{m.cross_track_mean_m:.3f} / {m.cross_track_rms_m:.3f} / {m.cross_track_max_m:.3f} m",
+        ),
         ("off-track events", _fmt(m.off_track_events)),
         ("BM percentage completed", _fmt(m.percentage_completed, " %", 1)),
         ("BM lap seconds", _fmt(m.bm_lap_seconds, " s")),
@@ -36,8 +41,12 @@ def metrics_table(score: EpisodeScore) -> str:
         ("BM suddenness", _fmt(m.suddenness_distance, "", 4)),
         ("BM mean inference time", _fmt(m.mean_inference_time_s * 1e3, " ms")),
         ("command rate", _fmt(m.command_rate_hz, " Hz", 1)),
-        ("frame-to-command latency p50 / p95", "not measured" if m.command_latency_p50_ms is None
-         else f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms"),
+        (
+            "frame-to-command latency p50 / p95",
+            "not measured"
+            if m.command_latency_p50_ms is None
+            else f"{m.command_latency_p50_ms:.2f} / {m.command_latency_p95_ms:.2f} ms",
+        ),
         ("sim time / wall time", f"{m.sim_time_s:.2f} s / {m.wall_time_s:.2f} s (RTF {m.real_time_factor:.2f}x)"),
     ]
     rows += switch_rows(score) + shadow_rows(score)
@@ -47,13 +56,23 @@ def metrics_table(score: EpisodeScore) -> str:
 
 def switch_rows(score: EpisodeScore) -> list[tuple[str, str]]:
     """One row per live brain switch: who took over from whom, at which frame and sim time."""
-    return [("brain switch", f"{switch.from_brain} -> {switch.to_brain} at frame {switch.seq} "
-                             f"({switch.stamp_ns / 1e9:.2f} s)") for switch in score.switches]
+    return [
+        (
+            "brain switch",
+            f"{switch.from_brain} -> {switch.to_brain} at frame {switch.seq} ({switch.stamp_ns / 1e9:.2f} s)",
+        )
+        for switch in score.switches
+    ]
 
 
 def shadow_rows(score: EpisodeScore) -> list[tuple[str, str]]:
     """One row per shadow brain: its distance to the driving brain's commands over the frames both answered."""
-    return [(f"shadow {shadow.brain} vs driver",
-             f"|dv| mean {shadow.speed_mae_mps:.3f} m/s, |dw| mean / rms / max {shadow.yaw_rate_mae_radps:.3f} / "
-             f"{shadow.yaw_rate_rmse_radps:.3f} / {shadow.yaw_rate_max_abs_radps:.3f} rad/s over {shadow.frames} "
-             f"frames") for shadow in score.shadows]
+    return [
+        (
+            f"shadow {shadow.brain} vs driver",
+            f"|dv| mean {shadow.speed_mae_mps:.3f} m/s, |dw| mean / rms / max {shadow.yaw_rate_mae_radps:.3f} / "
+            f"{shadow.yaw_rate_rmse_radps:.3f} / {shadow.yaw_rate_max_abs_radps:.3f} rad/s over {shadow.frames} "
+            f"frames",
+        )
+        for shadow in score.shadows
+    ]

@@ -63,8 +63,9 @@ def lap_seconds(result: EpisodeResult) -> float | None:
 
 def reached_target(result: EpisodeResult) -> bool:
     """Ran and was scored, and completed its lap target."""
-    return (result.status == "done" and result.score is not None
-            and result.score.metrics.completed_laps >= result.spec.laps)
+    return (
+        result.status == "done" and result.score is not None and result.score.metrics.completed_laps >= result.spec.laps
+    )
 
 
 def outcome(result: EpisodeResult) -> str:
@@ -146,7 +147,7 @@ def _brief(items: Sequence[Any], limit: int = 160) -> str:
         else:
             parts.append(_short(item))
     text = "; ".join(parts)
-    return text if len(text) <= limit else text[:limit - 1] + "…"
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _short(value: Any) -> str:

@@ -96,8 +96,16 @@ def _inline(text: str) -> str:
 
 
 def render_html(sections: Sequence[Section], title: str) -> str:
-    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
-           f"<title>{html.escape(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>"]
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title>",
+        f"<style>{_CSS}</style>",
+        "</head>",
+        "<body>",
+    ]
     for level, section in enumerate(sections):
         tag = "h1" if level == 0 else "h2"
         out.append(f"<{tag}>{html.escape(section.title)}</{tag}>")
@@ -108,8 +116,9 @@ def render_html(sections: Sequence[Section], title: str) -> str:
                 if block.caption:
                     out.append(f"<caption>{html.escape(block.caption)}</caption>")
                 if not facts:
-                    out.append("<thead><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in block.columns)
-                               + "</tr></thead>")
+                    out.append(
+                        "<thead><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in block.columns) + "</tr></thead>"
+                    )
                 out.append("<tbody>")
                 numeric = block.numeric or [False] * len(block.columns)
                 for row in block.rows:
@@ -122,9 +131,11 @@ def render_html(sections: Sequence[Section], title: str) -> str:
                 out.append("</tbody></table>")
             elif isinstance(block, Plot):
                 encoded = base64.b64encode(block.path.read_bytes()).decode("ascii")
-                out.append(f'<figure><img alt="{html.escape(block.path.name)}" '
-                           f'src="data:image/png;base64,{encoded}">'
-                           f"<figcaption>{_inline(block.caption)}</figcaption></figure>")
+                out.append(
+                    f'<figure><img alt="{html.escape(block.path.name)}" '
+                    f'src="data:image/png;base64,{encoded}">'
+                    f"<figcaption>{_inline(block.caption)}</figcaption></figure>"
+                )
             else:
                 out.append(f'<p class="note">{_inline(block)}</p>')
     out += ["</body>", "</html>"]

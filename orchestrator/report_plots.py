@@ -50,12 +50,16 @@ class ReportPlots:
             for stale in self.plots_dir.glob(pattern):
                 stale.unlink(missing_ok=True)
         sections = []
-        trajectories = Section("Trajectories", [
-            "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start and "
-            "driving direction), one panel per brain and condition with the repetitions overlaid; ✕ where an "
-            "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
-            "target. Colours: "
-            "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."])
+        trajectories = Section(
+            "Trajectories",
+            [
+                "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start and "
+                "driving direction), one panel per brain and condition with the repetitions overlaid; ✕ where an "
+                "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
+                "target. Colours: "
+                "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."
+            ],
+        )
         for circuit in self.circuits:
             for plot in self._trajectory_figures(circuit):
                 trajectories.blocks.append(plot)
@@ -90,8 +94,10 @@ class ReportPlots:
         unreadable = [r for r, t in loaded if r.trajectory and (t is None or len(t["x_m"]) < 2)]
         unrecorded = [r for r in episodes if r.status == "done" and not r.trajectory]
         if unreadable:
-            self.notes.append(f"{circuit}: {len(unreadable)} episode(s) have no readable trajectory file (missing, "
-                              f"damaged or empty), e.g. `{unreadable[0].trajectory}`")
+            self.notes.append(
+                f"{circuit}: {len(unreadable)} episode(s) have no readable trajectory file (missing, "
+                f"damaged or empty), e.g. `{unreadable[0].trajectory}`"
+            )
         if unrecorded:
             self.notes.append(f"{circuit}: {len(unrecorded)} episode(s) ran without a trajectory file")
         loaded = [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
@@ -100,6 +106,7 @@ class ReportPlots:
         track = self.track(circuit)
         # One panel per brain and condition; when that makes too many panels, coarser groups (conditions overlaid).
         for fields in (("brain", "variation", "perturbation"), ("brain", "variation"), ("brain",)):
+
             def group_of(r: EpisodeResult, fields=fields) -> tuple[str, ...]:
                 return tuple(getattr(r, name) for name in fields)
 
@@ -112,11 +119,15 @@ class ReportPlots:
             groups.setdefault(group_of(r), []).append((r, t))
         keys = list(groups)
         if len(fields) < 3:
-            self.notes.append(f"{circuit}: trajectories drawn per {', '.join(fields)} (every other condition "
-                              f"overlaid), to keep to {MAX_SUBPLOTS} panels")
+            self.notes.append(
+                f"{circuit}: trajectories drawn per {', '.join(fields)} (every other condition "
+                f"overlaid), to keep to {MAX_SUBPLOTS} panels"
+            )
         if len(keys) > MAX_SUBPLOTS:
-            self.notes.append(f"{circuit}: trajectories of {len(keys) - MAX_SUBPLOTS} of {len(keys)} brains not "
-                              f"drawn (at most {MAX_SUBPLOTS} panels per figure)")
+            self.notes.append(
+                f"{circuit}: trajectories of {len(keys) - MAX_SUBPLOTS} of {len(keys)} brains not "
+                f"drawn (at most {MAX_SUBPLOTS} panels per figure)"
+            )
             keys = keys[:MAX_SUBPLOTS]
 
         # Colour data per episode (decimated): speed, and |cross-track error| from the circuit's centreline.
@@ -161,10 +172,16 @@ class ReportPlots:
             else:
                 norm, cmap, label = Normalize(0.0, max(top_value, 1e-3)), "viridis", "speed (m/s)"
             fig = plt.figure(figsize=(fig_w, fig_h))
-            grid = fig.add_gridspec(nrows, ncols, left=left / fig_w,
-                                    right=(left + ncols * panel_w + (ncols - 1) * wgap) / fig_w,
-                                    bottom=bottom / fig_h, top=1 - top / fig_h, wspace=wgap / panel_w,
-                                    hspace=hgap / map_h)
+            grid = fig.add_gridspec(
+                nrows,
+                ncols,
+                left=left / fig_w,
+                right=(left + ncols * panel_w + (ncols - 1) * wgap) / fig_w,
+                bottom=bottom / fig_h,
+                top=1 - top / fig_h,
+                wspace=wgap / panel_w,
+                hspace=hgap / map_h,
+            )
             axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
             for ax, key in zip(axes.flat, keys):
                 if track is not None:
@@ -175,10 +192,13 @@ class ReportPlots:
                     ax.plot(centre[:, 0], centre[:, 1], color="0.75", lw=0.6, ls=(0, (4, 3)), zorder=1)
                     sx, sy, heading = track.circuit.centreline.pose_at(0.0)
                     arrow = 0.06 * max(x1 - x0, y1 - y0)  # the driving direction at the start
-                    ax.annotate("", xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
-                                xytext=(sx, sy), zorder=4,
-                                arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0,
-                                            "shrinkB": 0})
+                    ax.annotate(
+                        "",
+                        xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
+                        xytext=(sx, sy),
+                        zorder=4,
+                        arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
+                    )
                     ax.plot([sx], [sy], marker="o", ms=5, mfc="white", mec="0.3", zorder=4)
                 for r, _ in groups[key]:
                     x, y, speed, xte = data[r.key]
@@ -213,8 +233,7 @@ class ReportPlots:
             colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, bar_w / fig_w, bar_height))
             fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
             title = "speed" if colour_by == "speed" else "cross-track error"
-            fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / fig_h,
-                         va="top")
+            fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / fig_h, va="top")
             path = self._save(fig, f"trajectories_{colour_by}_{_slug(circuit)}.png")
             plots.append(Plot(path, f"{circuit}, coloured by {title}."))
         return plots
@@ -229,48 +248,89 @@ class ReportPlots:
             return None
         circuits = self._at_most(circuits, MAX_BOX_CIRCUITS, what="box plots")
         colours = _brain_colours(self.brains)
-        fig, axes = plt.subplots(2, len(circuits), figsize=(max(3.8, 0.75 * len(self.brains) + 1.8) * len(circuits),
-                                                            7.0), squeeze=False, layout="constrained")
+        fig, axes = plt.subplots(
+            2,
+            len(circuits),
+            figsize=(max(3.8, 0.75 * len(self.brains) + 1.8) * len(circuits), 7.0),
+            squeeze=False,
+            layout="constrained",
+        )
         rng = np.random.default_rng(0)
         for column, circuit in enumerate(circuits):
-            for row, (metric, label) in enumerate(((lap_seconds, "lap time (s)"),
-                                                   (lambda r: r.score.metrics.position_deviation_mae,
-                                                    "position deviation (BM, mean 1000^d)"))):
+            for row, (metric, label) in enumerate(
+                (
+                    (lap_seconds, "lap time (s)"),
+                    (lambda r: r.score.metrics.position_deviation_mae, "position deviation (BM, mean 1000^d)"),
+                )
+            ):
                 ax = axes[row][column]
-                series = [[v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit)
-                           if v is not None] for b in self.brains]
+                series = [
+                    [v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit) if v is not None]
+                    for b in self.brains
+                ]
                 positions = [i + 1 for i, s in enumerate(series) if s]
                 if positions:
-                    box = ax.boxplot([s for s in series if s], positions=positions, widths=0.55,
-                                     patch_artist=True, showfliers=False, medianprops={"color": "black"})
+                    box = ax.boxplot(
+                        [s for s in series if s],
+                        positions=positions,
+                        widths=0.55,
+                        patch_artist=True,
+                        showfliers=False,
+                        medianprops={"color": "black"},
+                    )
                     for patch, position in zip(box["boxes"], positions):
                         patch.set_facecolor(colours[self.brains[position - 1]])
                         patch.set_alpha(0.35)
                     for position in positions:
                         values = series[position - 1]
                         jitter = rng.uniform(-0.12, 0.12, len(values))
-                        ax.scatter(np.full(len(values), position) + jitter, values, s=16, zorder=3,
-                                   color=colours[self.brains[position - 1]], edgecolor="white", linewidth=0.5)
+                        ax.scatter(
+                            np.full(len(values), position) + jitter,
+                            values,
+                            s=16,
+                            zorder=3,
+                            color=colours[self.brains[position - 1]],
+                            edgecolor="white",
+                            linewidth=0.5,
+                        )
                     flat = [v for s in series for v in s]
                     if row == 1 and min(flat) > 0 and max(flat) / min(flat) > 100:
                         ax.set_yscale("log")
                 for i, s in enumerate(series):
                     if not s:
-                        ax.text(i + 1, 0.5, "no lap" if row == 0 else "–", transform=ax.get_xaxis_transform(),
-                                ha="center", va="center", color="0.5", fontsize=8)
-                ax.set_xticks(range(1, len(self.brains) + 1), self.brains, rotation=20 if len(self.brains) > 3 else 0,
-                              ha="right" if len(self.brains) > 3 else "center", fontsize=8)
+                        ax.text(
+                            i + 1,
+                            0.5,
+                            "no lap" if row == 0 else "–",
+                            transform=ax.get_xaxis_transform(),
+                            ha="center",
+                            va="center",
+                            color="0.5",
+                            fontsize=8,
+                        )
+                ax.set_xticks(
+                    range(1, len(self.brains) + 1),
+                    self.brains,
+                    rotation=20 if len(self.brains) > 3 else 0,
+                    ha="right" if len(self.brains) > 3 else "center",
+                    fontsize=8,
+                )
                 ax.set_xlim(0.4, len(self.brains) + 0.6)
                 ax.set_ylabel(label, fontsize=8.5)
                 ax.tick_params(axis="y", labelsize=8)
                 ax.grid(True, axis="y", color="0.92")
                 if row == 0:
                     ax.set_title(circuit, fontsize=10)
-        fig.suptitle("Baseline condition, per brain: lap time (episodes that completed the lap) and BM position "
-                     "deviation", fontsize=10.5)
+        fig.suptitle(
+            "Baseline condition, per brain: lap time (episodes that completed the lap) and BM position deviation",
+            fontsize=10.5,
+        )
         path = self._save(fig, "boxplots.png")
-        return Plot(path, "Box plots over the repetitions of the baseline condition (dots: single episodes). "
-                          "Position deviation is BM's mean of 1000^d, not metres (1 = on the reference path).")
+        return Plot(
+            path,
+            "Box plots over the repetitions of the baseline condition (dots: single episodes). "
+            "Position deviation is BM's mean of 1000^d, not metres (1 = on the reference path).",
+        )
 
     def _progress_plot(self) -> Plot | None:
         import matplotlib.pyplot as plt
@@ -293,8 +353,9 @@ class ReportPlots:
         colours = _brain_colours(self.brains)
         ncols = min(len(circuits), 3)
         nrows = math.ceil(len(circuits) / ncols)
-        fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows + 0.6), squeeze=False,
-                                 layout="constrained")
+        fig, axes = plt.subplots(
+            nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows + 0.6), squeeze=False, layout="constrained"
+        )
         alpha = 0.85 if max(len(v) for v in curves.values()) <= 20 else 0.45
         for ax, circuit in zip(axes.flat, circuits):
             targets = set()
@@ -302,8 +363,16 @@ class ReportPlots:
                 ax.plot(time_s, progress, color=colours[r.brain], lw=1.2, alpha=alpha)
                 targets.add(r.spec.laps)
                 if not reached_target(r):
-                    ax.plot([time_s[-1]], [progress[-1]], marker="X", ms=7, color=colours[r.brain], mec="black",
-                            mew=0.6, zorder=4)
+                    ax.plot(
+                        [time_s[-1]],
+                        [progress[-1]],
+                        marker="X",
+                        ms=7,
+                        color=colours[r.brain],
+                        mec="black",
+                        mew=0.6,
+                        zorder=4,
+                    )
             for target in targets:
                 ax.axhline(target, color="0.6", lw=0.8, ls="--")
             ax.set_title(circuit, fontsize=10)
@@ -312,16 +381,18 @@ class ReportPlots:
             ax.set_xlim(left=0)
             ax.grid(True, color="0.92")
             ax.tick_params(labelsize=8)
-        for ax in list(axes.flat)[len(circuits):]:
+        for ax in list(axes.flat)[len(circuits) :]:
             ax.set_visible(False)
         handles = [Line2D([], [], color=colours[b], lw=2, label=b) for b in self.brains]
         handles.append(Line2D([], [], color="0.4", marker="X", ls="", label="ended short of its target"))
-        fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6), fontsize=8.5,
-                   frameon=False)
+        fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6), fontsize=8.5, frameon=False)
         fig.suptitle("Lap progress over simulated time, one line per episode", fontsize=10.5)
         path = self._save(fig, "progress.png")
-        return Plot(path, "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
-                          "target; ✕: an episode that ended before it.")
+        return Plot(
+            path,
+            "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
+            "target; ✕: an episode that ended before it.",
+        )
 
     def _at_most(self, circuits: list[str], limit: int, *, what: str) -> list[str]:
         """The first ``limit`` circuits; a note in the report says how many a figure left out."""

@@ -14,8 +14,16 @@ import numpy as np
 # -- trajectories and circuits ----------------------------------------------------------------------------------------
 
 
-TRAJECTORY_ARRAYS = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps", "live_sim_time_s", "live_progress_laps",
-                     "live_cross_track_m")
+TRAJECTORY_ARRAYS = (
+    "stamp_s",
+    "x_m",
+    "y_m",
+    "yaw_rad",
+    "speed_mps",
+    "live_sim_time_s",
+    "live_progress_laps",
+    "live_cross_track_m",
+)
 
 
 def load_trajectory(folder: Path, relative: str | None) -> dict[str, np.ndarray] | None:
@@ -28,8 +36,10 @@ def load_trajectory(folder: Path, relative: str | None) -> dict[str, np.ndarray]
         return None
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {name: np.asarray(data[name], dtype=float).ravel() if name in data.files else np.zeros(0)
-                      for name in TRAJECTORY_ARRAYS}
+            arrays = {
+                name: np.asarray(data[name], dtype=float).ravel() if name in data.files else np.zeros(0)
+                for name in TRAJECTORY_ARRAYS
+            }
     except Exception:  # a damaged file (BadZipFile, ValueError, OSError...) only loses its plot
         return None
     n = min(len(arrays["x_m"]), len(arrays["y_m"]))
@@ -49,8 +59,12 @@ class _Track:
         self.right_edge = self.points - half * normals
         self.half_width_m = half
         margin = half + 3.0
-        self.extent = (float(self.points[:, 0].min() - margin), float(self.points[:, 0].max() + margin),
-                       float(self.points[:, 1].min() - margin), float(self.points[:, 1].max() + margin))
+        self.extent = (
+            float(self.points[:, 0].min() - margin),
+            float(self.points[:, 0].max() + margin),
+            float(self.points[:, 1].min() - margin),
+            float(self.points[:, 1].max() + margin),
+        )
 
     def lateral_m(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
         """Signed distance (+ left) of each point to the centreline, for colouring a plot."""

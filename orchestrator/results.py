@@ -68,8 +68,10 @@ CREATE TABLE IF NOT EXISTS episodes (
 """
 # Columns added after the first release: a results file written before them gets them (NULL) when opened.
 _ADDED_COLUMNS = {"node": "TEXT", "lost_attempts": "TEXT"}
-_COLUMNS = ("key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
-            "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts")
+_COLUMNS = (
+    "key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
+    "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts"
+)
 
 
 @dataclass(frozen=True)
@@ -159,11 +161,30 @@ class ResultStore:
         """Store (or replace) one finished episode; committed before this returns."""
         self._db.execute(
             f"INSERT OR REPLACE INTO episodes ({_COLUMNS}) VALUES ({', '.join('?' * 21)})",
-            (result.key, result.index, result.brain, result.circuit, result.variation, result.perturbation,
-             result.repetition, codec.to_json(result.spec), json.dumps(result.brain_entry), result.status,
-             result.reason, result.failure, codec.to_json(result.score) if result.score is not None else None,
-             result.run_id, result.started_at, result.ended_at, result.recording, result.trajectory, result.logs,
-             result.node, json.dumps(list(result.lost_attempts)) if result.lost_attempts else None))
+            (
+                result.key,
+                result.index,
+                result.brain,
+                result.circuit,
+                result.variation,
+                result.perturbation,
+                result.repetition,
+                codec.to_json(result.spec),
+                json.dumps(result.brain_entry),
+                result.status,
+                result.reason,
+                result.failure,
+                codec.to_json(result.score) if result.score is not None else None,
+                result.run_id,
+                result.started_at,
+                result.ended_at,
+                result.recording,
+                result.trajectory,
+                result.logs,
+                result.node,
+                json.dumps(list(result.lost_attempts)) if result.lost_attempts else None,
+            ),
+        )
 
     def finished_keys(self, *, include_failed: bool = True) -> set[str]:
         query = "SELECT key FROM episodes" + ("" if include_failed else " WHERE status = 'done'")
@@ -175,19 +196,57 @@ class ResultStore:
         return [self._result(row) for row in rows]
 
     def _result(self, row: tuple) -> EpisodeResult:
-        (key, index, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason,
-         failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts) = row
+        (
+            key,
+            index,
+            brain,
+            circuit,
+            variation,
+            perturbation,
+            repetition,
+            spec_json,
+            brain_json,
+            status,
+            reason,
+            failure,
+            score_json,
+            run_id,
+            started_at,
+            ended_at,
+            recording,
+            trajectory,
+            logs,
+            node,
+            lost_attempts,
+        ) = row
         try:
             spec = _from_json(spec_json, EpisodeSpec)
             score = _from_json(score_json, EpisodeScore) if score_json else None
         except ValueError as error:
             raise ResultsError(f"{self.path}: episode {key!r} is damaged ({error})") from None
-        return EpisodeResult(key=key, index=index, brain=brain, circuit=circuit, variation=variation,
-                             perturbation=perturbation, repetition=repetition, spec=spec,
-                             brain_entry=json.loads(brain_json), status=status, run_id=run_id, started_at=started_at,
-                             ended_at=ended_at, reason=reason, failure=failure, score=score, recording=recording,
-                             trajectory=trajectory, logs=logs, node=node,
-                             lost_attempts=tuple(json.loads(lost_attempts)) if lost_attempts else ())
+        return EpisodeResult(
+            key=key,
+            index=index,
+            brain=brain,
+            circuit=circuit,
+            variation=variation,
+            perturbation=perturbation,
+            repetition=repetition,
+            spec=spec,
+            brain_entry=json.loads(brain_json),
+            status=status,
+            run_id=run_id,
+            started_at=started_at,
+            ended_at=ended_at,
+            reason=reason,
+            failure=failure,
+            score=score,
+            recording=recording,
+            trajectory=trajectory,
+            logs=logs,
+            node=node,
+            lost_attempts=tuple(json.loads(lost_attempts)) if lost_attempts else (),
+        )
 
 
 def _from_json(text: str, message_type: type):

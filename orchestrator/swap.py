@@ -79,19 +79,32 @@ class SwapResult:
     def summary(self) -> str:
         """One line for the user."""
         if not self.switched:
-            return (f"drivebench: run {self.run_id}: no episode is running; brain {self.name} ({self.brain}, pid "
-                    f"{self.pid}) is up for the next episode, {self.old_brain or 'the old brain'} kept; log "
-                    f"{self.log_path}")
+            return (
+                f"drivebench: run {self.run_id}: no episode is running; brain {self.name} ({self.brain}, pid "
+                f"{self.pid}) is up for the next episode, {self.old_brain or 'the old brain'} kept; log "
+                f"{self.log_path}"
+            )
         old = ("stopped" if self.old_stopped else "kept running") if self.old_brain else "unknown"
-        return (f"drivebench: run {self.run_id}: {self.name} ({self.brain}, pid {self.pid}) drives episode "
-                f"{self.episode} in place of {self.old_brain} ({old}); log {self.log_path}")
+        return (
+            f"drivebench: run {self.run_id}: {self.name} ({self.brain}, pid {self.pid}) drives episode "
+            f"{self.episode} in place of {self.old_brain} ({old}); log {self.log_path}"
+        )
 
 
 # -- the swap ----------------------------------------------------------------------------------------------------------
 
 
-def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, options: tuple[str, ...],
-               log_path: Path | None, timeout_s: float = DEFAULT_TIMEOUT_S, keep_old: bool = False) -> SwapResult:
+def swap_brain(
+    *,
+    router: str,
+    run_id: str,
+    brain: str,
+    name: str | None,
+    options: tuple[str, ...],
+    log_path: Path | None,
+    timeout_s: float = DEFAULT_TIMEOUT_S,
+    keep_old: bool = False,
+) -> SwapResult:
     """Start brain ``brain`` as ``name`` on the stack at ``router`` / ``run_id`` and make it the driving brain.
 
     options: constructor options as ``key=value`` YAML overrides (``weights="/abs/ckpt"`` for neural brains).
@@ -112,37 +125,75 @@ def swap_brain(*, router: str, run_id: str, brain: str, name: str | None, option
             log_path = Path(tempfile.gettempdir()) / f"drivebench-{run_id}-brain-{name}.log"
         elif log_path.is_dir():
             log_path = log_path / f"brain-{name}.log"
-        process = _start_brain(router=router, run_id=run_id, brain=brain, name=name, options=options,
-                               log_path=log_path)
+        process = _start_brain(router=router, run_id=run_id, brain=brain, name=name, options=options, log_path=log_path)
         try:
-            return _take_over(bus, status, run_id=run_id, brain=brain, name=name, process=process,
-                              log_path=log_path, timeout_s=timeout_s, keep_old=keep_old)
+            return _take_over(
+                bus,
+                status,
+                run_id=run_id,
+                brain=brain,
+                name=name,
+                process=process,
+                log_path=log_path,
+                timeout_s=timeout_s,
+                keep_old=keep_old,
+            )
         except BaseException:
             _terminate(process)
             raise
 
 
-def _take_over(bus: Bus, status: ControlReply, *, run_id: str, brain: str, name: str, process: subprocess.Popen,
-               log_path: Path, timeout_s: float, keep_old: bool) -> SwapResult:
+def _take_over(
+    bus: Bus,
+    status: ControlReply,
+    *,
+    run_id: str,
+    brain: str,
+    name: str,
+    process: subprocess.Popen,
+    log_path: Path,
+    timeout_s: float,
+    keep_old: bool,
+) -> SwapResult:
     """Wait until the new brain is up and answering, switch to it, stop the old one."""
     deadline = time.monotonic() + timeout_s
     _wait_alive(bus, run_id, name, process=process, log_path=log_path, deadline=deadline)
     episode = status.episode if status.state == "running" else -1
-    if episode >= 0 and not _wait_first_answer(bus, run_id, name, episode, process=process, log_path=log_path,
-                                               deadline=deadline):
+    if episode >= 0 and not _wait_first_answer(
+        bus, run_id, name, episode, process=process, log_path=log_path, deadline=deadline
+    ):
         episode = -1  # it ended meanwhile
     old = _sim_status(bus, run_id).active_brain if episode >= 0 else status.active_brain
-    result = SwapResult(run_id=run_id, brain=brain, name=name, old_brain=old, switched=False, old_stopped=False,
-                        episode=episode, log_path=log_path, process=process)
+    result = SwapResult(
+        run_id=run_id,
+        brain=brain,
+        name=name,
+        old_brain=old,
+        switched=False,
+        old_stopped=False,
+        episode=episode,
+        log_path=log_path,
+        process=process,
+    )
     if episode < 0:
         return result
     reply = _request(bus, keys.sim_control(run_id), ControlRequest(action="switch", brain=name))
     if reply is None or not reply.ok:
-        raise SwapError(f"the simulator refused the switch to {name}: "
-                        f"{reply.detail if reply is not None else 'no answer'}")
+        raise SwapError(
+            f"the simulator refused the switch to {name}: {reply.detail if reply is not None else 'no answer'}"
+        )
     stopped = not keep_old and bool(old) and _stop_brain(bus, run_id, old)
-    return SwapResult(run_id=run_id, brain=brain, name=name, old_brain=old, switched=True, old_stopped=stopped,
-                      episode=episode, log_path=log_path, process=process)
+    return SwapResult(
+        run_id=run_id,
+        brain=brain,
+        name=name,
+        old_brain=old,
+        switched=True,
+        old_stopped=stopped,
+        episode=episode,
+        log_path=log_path,
+        process=process,
+    )
 
 
 def _check_brain(brain: str) -> None:
@@ -216,12 +267,26 @@ def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) ->
     return next(candidate for candidate in candidates if candidate not in alive)
 
 
-def _start_brain(*, router: str, run_id: str, brain: str, name: str, options: tuple[str, ...],
-                 log_path: Path) -> subprocess.Popen:
+def _start_brain(
+    *, router: str, run_id: str, brain: str, name: str, options: tuple[str, ...], log_path: Path
+) -> subprocess.Popen:
     """The brain host, detached: its own session, and no parent watch (DRIVEBENCH_PARENT_PID), so that it lives on
     after this command; the stack stops it (over its control key) when the stack closes."""
-    argv = [sys.executable, "-m", "brains", "--router", router, "--run-id", run_id, "--brain", brain, "--name", name,
-            "--set", f"orphan_timeout_s={ORPHAN_TIMEOUT_S}"]  # it watches no parent: it ends when its stack does
+    argv = [
+        sys.executable,
+        "-m",
+        "brains",
+        "--router",
+        router,
+        "--run-id",
+        run_id,
+        "--brain",
+        brain,
+        "--name",
+        name,
+        "--set",
+        f"orphan_timeout_s={ORPHAN_TIMEOUT_S}",
+    ]  # it watches no parent: it ends when its stack does
     for option in options:
         argv += ["--set", f"options.{option}"]
     env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_PARENT_PID"}
@@ -233,12 +298,16 @@ def _died(process: subprocess.Popen, name: str, log_path: Path) -> str | None:
     return processes.exit_reason(process, what=f"brain {name!r}", log_path=log_path)
 
 
-def _wait_alive(bus: Bus, run_id: str, name: str, *, process: subprocess.Popen, log_path: Path,
-                deadline: float) -> None:
+def _wait_alive(
+    bus: Bus, run_id: str, name: str, *, process: subprocess.Popen, log_path: Path, deadline: float
+) -> None:
     watch = bus.watch_alive(keys.alive(run_id, "brain", name))
     try:
-        missing = watch.wait_for({keys.alive(run_id, "brain", name)}, timeout_s=max(0.0, deadline - time.monotonic()),
-                                 abort=lambda: _died(process, name, log_path))
+        missing = watch.wait_for(
+            {keys.alive(run_id, "brain", name)},
+            timeout_s=max(0.0, deadline - time.monotonic()),
+            abort=lambda: _died(process, name, log_path),
+        )
     finally:
         watch.close()
     if (dead := _died(process, name, log_path)) is not None:
@@ -247,8 +316,9 @@ def _wait_alive(bus: Bus, run_id: str, name: str, *, process: subprocess.Popen, 
         raise SwapError(f"brain {name!r} not alive on run {run_id} in time (log {log_path})")
 
 
-def _wait_first_answer(bus: Bus, run_id: str, name: str, episode: int, *, process: subprocess.Popen,
-                       log_path: Path, deadline: float) -> bool:
+def _wait_first_answer(
+    bus: Bus, run_id: str, name: str, episode: int, *, process: subprocess.Popen, log_path: Path, deadline: float
+) -> bool:
     """Wait for the new brain's first command of ``episode``: True, or False if the episode ended meanwhile."""
     commands = bus.subscribe(keys.command(run_id, name), Command)
     try:
@@ -311,8 +381,12 @@ def running_stacks(runs_dir: Path) -> list[StackInfo]:
             mtime = path.stat().st_mtime
         except (OSError, ValueError):
             continue
-        if (isinstance(info, dict) and _pid_alive(info.get("pid")) and isinstance(info.get("router"), str)
-                and isinstance(info.get("run_id"), str)):
+        if (
+            isinstance(info, dict)
+            and _pid_alive(info.get("pid"))
+            and isinstance(info.get("router"), str)
+            and isinstance(info.get("run_id"), str)
+        ):
             found.append((mtime, StackInfo(router=info["router"], run_id=info["run_id"], run_dir=path.parent)))
     return [info for _, info in sorted(found, key=lambda item: item[0], reverse=True)]
 
@@ -324,6 +398,8 @@ def locate_stack(*, runs_dir: Path, run_id: str | None, router: str | None) -> S
         return StackInfo(router=router, run_id=run_id, run_dir=stacks[0].run_dir if stacks else None)
     if not stacks:
         which = f"run {run_id}" if run_id else "stack"
-        raise SwapError(f"no running {which} found under {runs_dir} (start one with drivebench run, or pass "
-                        f"--router EP --run RUN_ID)")
+        raise SwapError(
+            f"no running {which} found under {runs_dir} (start one with drivebench run, or pass "
+            f"--router EP --run RUN_ID)"
+        )
     return StackInfo(router=router or stacks[0].router, run_id=stacks[0].run_id, run_dir=stacks[0].run_dir)

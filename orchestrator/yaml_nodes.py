@@ -35,8 +35,9 @@ class NodeReader:
     """Turns YAML nodes into values, raising ``error_type`` at the node's line. ``top_level_keys`` are named when
     the file is not a mapping."""
 
-    def __init__(self, source: str, *, error_type: type[FileError] = FileError,
-                 top_level_keys: Iterable[str] = ()) -> None:
+    def __init__(
+        self, source: str, *, error_type: type[FileError] = FileError, top_level_keys: Iterable[str] = ()
+    ) -> None:
         self.source = source
         self.error_type = error_type
         self.top_level_keys = tuple(top_level_keys)
@@ -50,15 +51,19 @@ class NodeReader:
         except yaml.MarkedYAMLError as error:
             mark = error.problem_mark or error.context_mark
             line = 1 if mark is None else mark.line + 1
-            raise self.error_type(f"invalid YAML: {error.problem or error.context}", source=self.source,
-                              line=line) from None
+            raise self.error_type(
+                f"invalid YAML: {error.problem or error.context}", source=self.source, line=line
+            ) from None
         except yaml.YAMLError as error:  # a character YAML does not allow: a position, no mark
             position = getattr(error, "position", None)
             line = 1 if position is None else text.count("\n", 0, position) + 1
             raise self.error_type(f"invalid YAML: {error}", source=self.source, line=line) from None
         if not isinstance(root, yaml.MappingNode):
-            raise self.error_type("the top level must be a mapping (keys: " + ", ".join(self.top_level_keys) + ")",
-                              source=self.source, line=1 if root is None else line_of(root))
+            raise self.error_type(
+                "the top level must be a mapping (keys: " + ", ".join(self.top_level_keys) + ")",
+                source=self.source,
+                line=1 if root is None else line_of(root),
+            )
         self._check_duplicates(root, seen=set())
         return root
 
@@ -78,8 +83,9 @@ class NodeReader:
             for item in node.value:
                 self._check_duplicates(item, seen=seen)
 
-    def mapping(self, node: yaml.Node, *, what: str,
-                allowed: Iterable[str] | None = None) -> dict[str, tuple[yaml.Node, yaml.Node]]:
+    def mapping(
+        self, node: yaml.Node, *, what: str, allowed: Iterable[str] | None = None
+    ) -> dict[str, tuple[yaml.Node, yaml.Node]]:
         """key -> (key node, value node), in written order; keys must be text (and within ``allowed``)."""
         if not isinstance(node, yaml.MappingNode):
             raise self.error(node, f"{what} must be a mapping, got {describe(node)}")

@@ -58,15 +58,42 @@ from protocol.bus_config import (
 )
 
 # How to join the bus is protocol.bus_config's; its names are this module's too (the bus's one public face).
-__all__ = ["BUS_ENV", "DEFAULT_ROUTER_LISTEN", "LISTEN_ENV", "MODE_ENV", "OBSERVER_BUS", "PASSWORD_ENV", "ROUTER_ENV",
-           "SECURE_CONNECT_TIMEOUT_MS", "TLS_CERT_ENV", "TLS_KEY_ENV", "TLS_ROOT_CA_ENV", "USER_ENV", "Bus",
-           "BusConfig", "BusError", "Inbox", "LivelinessWatch", "Publisher", "Received", "RejectCounter",
-           "ResolvedBus", "Subscription", "Traffic", "probe_router", "resolve_bus", "router_address", "zenoh_config",
-           "zenoh_section", "zenoh_settings"]
+__all__ = [
+    "BUS_ENV",
+    "DEFAULT_ROUTER_LISTEN",
+    "LISTEN_ENV",
+    "MODE_ENV",
+    "OBSERVER_BUS",
+    "PASSWORD_ENV",
+    "ROUTER_ENV",
+    "SECURE_CONNECT_TIMEOUT_MS",
+    "TLS_CERT_ENV",
+    "TLS_KEY_ENV",
+    "TLS_ROOT_CA_ENV",
+    "USER_ENV",
+    "Bus",
+    "BusConfig",
+    "BusError",
+    "Inbox",
+    "LivelinessWatch",
+    "Publisher",
+    "Received",
+    "RejectCounter",
+    "ResolvedBus",
+    "Subscription",
+    "Traffic",
+    "probe_router",
+    "resolve_bus",
+    "router_address",
+    "zenoh_config",
+    "zenoh_section",
+    "zenoh_settings",
+]
 
 log = logging.getLogger("drivebench.bus")
 
 T = TypeVar("T", bound=msgspec.Struct)
+
 
 class Traffic(enum.Enum):
     """Traffic classes, each with its own QoS (``reference/transport.md`` §10)."""
@@ -82,8 +109,9 @@ class Traffic(enum.Enum):
 _QOS: dict[Traffic, dict[str, Any]] = {
     Traffic.FRAMES: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA),
     Traffic.FRAMES_LOSSLESS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),
-    Traffic.COMMANDS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME,
-                           express=True),
+    Traffic.COMMANDS: dict(
+        congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME, express=True
+    ),
     Traffic.EVENTS: dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA),
     Traffic.METRICS: dict(congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_LOW),
 }
@@ -181,8 +209,7 @@ class Inbox:
 class Subscription(Generic[T]):
     """Decodes messages of one type on one key expression into an :class:`Inbox`."""
 
-    def __init__(self, session: zenoh.Session, key: str, message_type: type[T], rejects: RejectCounter,
-                 inbox: Inbox):
+    def __init__(self, session: zenoh.Session, key: str, message_type: type[T], rejects: RejectCounter, inbox: Inbox):
         self.key = key
         self.inbox = inbox
         self._type = message_type
@@ -256,8 +283,14 @@ class Bus:
     ``resolved`` is the config with the environment applied.
     """
 
-    def __init__(self, config: BusConfig, *, name: str, extra: Mapping[str, Any] | None = None,
-                 env: Mapping[str, str] | None = None):
+    def __init__(
+        self,
+        config: BusConfig,
+        *,
+        name: str,
+        extra: Mapping[str, Any] | None = None,
+        env: Mapping[str, str] | None = None,
+    ):
         self.name = name
         self.config = config
         self.rejects = RejectCounter()
@@ -271,9 +304,11 @@ class Bus:
             hint = ""
             if self.resolved.secure and self.resolved.mode != "router":
                 # Zenoh reports a refused certificate or password exactly like an absent router: a timeout.
-                hint = (" - with TLS or credentials set, this is also what a refused or missing certificate, a "
-                        "certificate name that does not match the endpoint's host, an unknown CA or a wrong "
-                        "user/password look like (the router says which with RUST_LOG=warn)")
+                hint = (
+                    " - with TLS or credentials set, this is also what a refused or missing certificate, a "
+                    "certificate name that does not match the endpoint's host, an unknown CA or a wrong "
+                    "user/password look like (the router says which with RUST_LOG=warn)"
+                )
             raise BusError(f"cannot open the bus ({self.resolved.describe()}): {zenoh_message(error)}{hint}") from None
         self._tokens: list[zenoh.LivelinessToken] = []
         self._queryables: list[zenoh.Queryable] = []
@@ -288,8 +323,9 @@ class Bus:
         del message_type  # documents the type at the call site; the codec encodes any struct
         return Publisher(self.session, key, traffic)
 
-    def subscribe(self, key: str, message_type: type[T], *, keep_last: int | None = None,
-                  inbox: Inbox | None = None) -> Subscription[T]:
+    def subscribe(
+        self, key: str, message_type: type[T], *, keep_last: int | None = None, inbox: Inbox | None = None
+    ) -> Subscription[T]:
         """Messages of ``message_type`` on ``key`` into ``inbox`` (a new one with ``keep_last`` if not given)."""
         return Subscription(self.session, key, message_type, self.rejects, inbox or Inbox(keep_last=keep_last))
 

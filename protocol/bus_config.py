@@ -42,8 +42,10 @@ class BusError(RuntimeError):
 def _check_endpoint(endpoint: str, *, where: str) -> str:
     protocol, slash, address = endpoint.partition("/")
     if not slash or not address or protocol not in _PROTOCOLS:
-        raise ValueError(f"{where}: {endpoint!r} is not an endpoint like tcp/HOST:PORT or tls/HOST:PORT "
-                         f"(protocols: {', '.join(_PROTOCOLS)})")
+        raise ValueError(
+            f"{where}: {endpoint!r} is not an endpoint like tcp/HOST:PORT or tls/HOST:PORT "
+            f"(protocols: {', '.join(_PROTOCOLS)})"
+        )
     return endpoint
 
 
@@ -185,8 +187,10 @@ def resolve_bus(config: BusConfig, env: Mapping[str, str] | None = None) -> Reso
         if path:
             _readable_file(path, where=where)
     if bool(cert) != bool(key):
-        raise BusError(f"{cert_from if cert else key_from} is set but not its pair: a certificate needs its private "
-                       f"key (bus.tls_cert and bus.tls_key, or {TLS_CERT_ENV} and {TLS_KEY_ENV})")
+        raise BusError(
+            f"{cert_from if cert else key_from} is set but not its pair: a certificate needs its private "
+            f"key (bus.tls_cert and bus.tls_key, or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
+        )
     if config.password_file:
         _readable_file(config.password_file, where="bus.password_file")
         with open(config.password_file, encoding="utf-8", errors="replace") as file:
@@ -221,22 +225,38 @@ def resolve_bus(config: BusConfig, env: Mapping[str, str] | None = None) -> Reso
         listen = ["tcp/127.0.0.1:0"] if local else ["tcp/0.0.0.0:0"]
 
     if secure and mode == "peer":
-        raise BusError(f"{mode_from} is peer, but TLS or credentials are set: a secure process must be a client of "
-                       f"the router, which enforces access control; a peer's direct links to other peers would bypass "
-                       f"it (leave the mode empty: it is then client)")
+        raise BusError(
+            f"{mode_from} is peer, but TLS or credentials are set: a secure process must be a client of "
+            f"the router, which enforces access control; a peer's direct links to other peers would bypass "
+            f"it (leave the mode empty: it is then client)"
+        )
     if secure and mode == "client" and listen:
-        raise BusError(f"bus.listen is {listen}, but TLS or credentials are set: a secure client must not listen "
-                       f"(everything goes through the router, which enforces access control)")
+        raise BusError(
+            f"bus.listen is {listen}, but TLS or credentials are set: a secure client must not listen "
+            f"(everything goes through the router, which enforces access control)"
+        )
     if mode == "router" and any(e.split("/", 1)[0] in _SECURE_PROTOCOLS for e in listen) and not cert:
-        raise BusError(f"listening on {[e for e in listen if e.split('/', 1)[0] in _SECURE_PROTOCOLS]} needs the "
-                       f"router's certificate: bus.tls_cert and bus.tls_key (or {TLS_CERT_ENV} and {TLS_KEY_ENV})")
+        raise BusError(
+            f"listening on {[e for e in listen if e.split('/', 1)[0] in _SECURE_PROTOCOLS]} needs the "
+            f"router's certificate: bus.tls_cert and bus.tls_key (or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
+        )
     if config.connect_timeout_ms is not None:
         timeout_ms = config.connect_timeout_ms
     else:
         timeout_ms = SECURE_CONNECT_TIMEOUT_MS if secure and mode != "router" else -1
-    return ResolvedBus(mode=mode, connect=tuple(connect), listen=tuple(listen), lease_ms=config.lease_ms,
-                       shared_memory=config.shared_memory, connect_timeout_ms=timeout_ms, tls_root_ca=root_ca,
-                       tls_cert=cert, tls_key=key, user=user, password=password)
+    return ResolvedBus(
+        mode=mode,
+        connect=tuple(connect),
+        listen=tuple(listen),
+        lease_ms=config.lease_ms,
+        shared_memory=config.shared_memory,
+        connect_timeout_ms=timeout_ms,
+        tls_root_ca=root_ca,
+        tls_cert=cert,
+        tls_key=key,
+        user=user,
+        password=password,
+    )
 
 
 def zenoh_settings(bus: ResolvedBus, *, name: str) -> dict[str, Any]:
@@ -289,8 +309,9 @@ def merge_settings(base: dict[str, Any], extra: Mapping[str, Any]) -> None:
             node[last] = value
 
 
-def zenoh_config(config: BusConfig, *, name: str, extra: Mapping[str, Any] | None = None,
-                 env: Mapping[str, str] | None = None) -> zenoh.Config:
+def zenoh_config(
+    config: BusConfig, *, name: str, extra: Mapping[str, Any] | None = None, env: Mapping[str, str] | None = None
+) -> zenoh.Config:
     """The Zenoh config for one process; ``extra`` adds or replaces settings (the router's security)."""
     settings = zenoh_settings(resolve_bus(config, env), name=name)
     merge_settings(settings, extra or {})

@@ -62,8 +62,13 @@ def read_yaml_mapping(path: Path) -> dict[str, Any]:
     return data
 
 
-def load_config(config_type: type[T], *, path: str | Path | None = None, overrides: Iterable[str] = (),
-                base: dict[str, Any] | None = None) -> T:
+def load_config(
+    config_type: type[T],
+    *,
+    path: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    base: dict[str, Any] | None = None,
+) -> T:
     """Build ``config_type`` from ``base`` <- the YAML file at ``path`` <- ``overrides`` (later wins)."""
     data: dict[str, Any] = dict(base or {})
     source = "command line"

@@ -24,8 +24,9 @@ def running_spec(bus: Bus, run_id: str, episode: int) -> EpisodeSpec | None:
     """
     try:
         # The read-only status key, not sim/control: access control lets only the orchestrator use that one.
-        payload = bus.request(keys.sim_status(run_id), codec.encode(ControlRequest(action="status")),
-                              timeout_s=STATUS_TIMEOUT_S)
+        payload = bus.request(
+            keys.sim_status(run_id), codec.encode(ControlRequest(action="status")), timeout_s=STATUS_TIMEOUT_S
+        )
         reply = codec.decode(payload, ControlReply) if payload is not None else None
     except (BusError, codec.DecodeError) as error:
         log.warning("cannot ask the simulator for episode %d's spec: %s", episode, error)
@@ -39,8 +40,9 @@ def running_spec(bus: Bus, run_id: str, episode: int) -> EpisodeSpec | None:
 
 def start_event(run_id: str, episode: int, spec: EpisodeSpec) -> EpisodeEvent:
     """The START event of an episode, exactly as the simulator publishes it."""
-    return EpisodeEvent(header=Header(run_id=run_id, episode=episode, seq=0, stamp_ns=0), kind=EventKind.START,
-                        spec=spec)
+    return EpisodeEvent(
+        header=Header(run_id=run_id, episode=episode, seq=0, stamp_ns=0), kind=EventKind.START, spec=spec
+    )
 
 
 class EpisodeStarts:

@@ -18,8 +18,9 @@ def frame_image(frame: CameraFrame) -> np.ndarray:
         raise ValueError(f"unsupported camera encoding {frame.encoding!r} (expected rgb8)")
     expected = frame.width_px * frame.height_px * 3
     if frame.width_px <= 0 or frame.height_px <= 0 or len(frame.data) != expected:
-        raise ValueError(f"camera frame of {frame.width_px}x{frame.height_px} rgb8 needs {expected} bytes, "
-                         f"got {len(frame.data)}")
+        raise ValueError(
+            f"camera frame of {frame.width_px}x{frame.height_px} rgb8 needs {expected} bytes, got {len(frame.data)}"
+        )
     return np.frombuffer(frame.data, dtype=np.uint8).reshape(frame.height_px, frame.width_px, 3)
 
 

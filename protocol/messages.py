@@ -74,8 +74,11 @@ class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     lighting: str = "sun"
 
     def __post_init__(self) -> None:
-        for field_name, allowed in (("line", ("red", "white", "none")), ("road", ("grey", "white")),
-                                    ("lighting", ("sun", "no_sun"))):
+        for field_name, allowed in (
+            ("line", ("red", "white", "none")),
+            ("road", ("grey", "white")),
+            ("lighting", ("sun", "no_sun")),
+        ):
             if getattr(self, field_name) not in allowed:
                 raise ValueError(f"{field_name} must be one of {', '.join(allowed)}, got {getattr(self, field_name)!r}")
 
@@ -133,8 +136,9 @@ class Brightness(_Noise, tag="brightness", frozen=True):
 
     def __post_init__(self) -> None:
         if not (-1.0 <= self.brightness <= 1.0 and 0 <= self.contrast < float("inf")):
-            raise ValueError(f"brightness must be within -1..1 and contrast >= 0, "
-                             f"got {self.brightness}, {self.contrast}")
+            raise ValueError(
+                f"brightness must be within -1..1 and contrast >= 0, got {self.brightness}, {self.contrast}"
+            )
 
 
 class Occlusion(_Noise, tag="occlusion", frozen=True):
@@ -148,8 +152,10 @@ class Occlusion(_Noise, tag="occlusion", frozen=True):
     def __post_init__(self) -> None:
         _check_probability("occlusion probability", self.probability)
         if not 0 <= self.patches <= MAX_OCCLUSION_PATCHES or not 0.0 < self.size_fraction <= 1.0:
-            raise ValueError(f"occlusion needs patches >= 0 and size_fraction within (0, 1], got {self.patches}, "
-                             f"{self.size_fraction}")
+            raise ValueError(
+                f"occlusion needs patches >= 0 and size_fraction within (0, 1], got {self.patches}, "
+                f"{self.size_fraction}"
+            )
 
 
 class Jpeg(_Noise, tag="jpeg", frozen=True):
@@ -438,8 +444,9 @@ class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Ep
     shadows: list[ShadowDistance] = []
 
 
-class ControlRequest(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlRequest.v1",
-                     tag_field=TAG_FIELD):
+class ControlRequest(
+    msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlRequest.v1", tag_field=TAG_FIELD
+):
     """Run control, sent as a query to the simulator (``keys.sim_control``) or to one brain host
     (``keys.brain_control``).
 
@@ -475,5 +482,12 @@ class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Co
 
 
 BUS_MESSAGES: tuple[type[msgspec.Struct], ...] = (
-    CameraFrame, Pose, Command, EpisodeEvent, LiveMetrics, EpisodeScore, ControlRequest, ControlReply,
+    CameraFrame,
+    Pose,
+    Command,
+    EpisodeEvent,
+    LiveMetrics,
+    EpisodeScore,
+    ControlRequest,
+    ControlReply,
 )

@@ -38,8 +38,14 @@ TYPE_METADATA = "drivebench.type"
 IMAGE_FORMATS = ("raw", "jpeg")
 
 # Messages that travel on run keys and are recorded (the control query/reply pair is not published).
-RECORDED_MESSAGES: tuple[type[msgspec.Struct], ...] = (CameraFrame, Pose, Command, EpisodeEvent, LiveMetrics,
-                                                       EpisodeScore)
+RECORDED_MESSAGES: tuple[type[msgspec.Struct], ...] = (
+    CameraFrame,
+    Pose,
+    Command,
+    EpisodeEvent,
+    LiveMetrics,
+    EpisodeScore,
+)
 
 
 class RecordFormatError(ValueError):
@@ -77,8 +83,9 @@ def channel_layout(key: str, message_type: type[msgspec.Struct], *, image_format
     topic = topic_of_key(key)
     if message_type is CameraFrame:
         check_image_format(image_format)
-        return ChannelLayout(topic=topic, message_encoding="protobuf", schema=_image_schema(image_format),
-                             metadata=metadata)
+        return ChannelLayout(
+            topic=topic, message_encoding="protobuf", schema=_image_schema(image_format), metadata=metadata
+        )
     return ChannelLayout(topic=topic, message_encoding="json", schema=_json_schema(message_type), metadata=metadata)
 
 
@@ -170,8 +177,9 @@ def _image_types(image_format: str) -> tuple[Schema, type]:
     stock.DESCRIPTOR.file.CopyToProto(image_file)
     image_file.name = f"drivebench/{stock.DESCRIPTOR.name}.proto"  # not Foxglove's file: it has more fields
     for name, number, field_type in _EXTRA_FIELDS:
-        image_file.message_type[0].field.add(name=name, number=number, type=field_type,
-                                             label=descriptor_pb2.FieldDescriptorProto.LABEL_OPTIONAL)
+        image_file.message_type[0].field.add(
+            name=name, number=number, type=field_type, label=descriptor_pb2.FieldDescriptorProto.LABEL_OPTIONAL
+        )
     # A private pool: the stock foxglove.RawImage lives in the default pool under the same full name.
     pool = descriptor_pool.DescriptorPool()
     pool.Add(timestamp_file)
@@ -221,11 +229,21 @@ def _frame_from_record(data: bytes, *, schema_name: str) -> CameraFrame:
         image.ParseFromString(data)
     except ProtobufDecodeError as error:
         raise RecordFormatError(f"not a valid {schema_name}: {error}") from None
-    header = Header(run_id=image.drivebench_run_id, episode=image.drivebench_episode, seq=image.drivebench_seq,
-                    stamp_ns=image.timestamp.seconds * 1_000_000_000 + image.timestamp.nanos)
+    header = Header(
+        run_id=image.drivebench_run_id,
+        episode=image.drivebench_episode,
+        seq=image.drivebench_seq,
+        stamp_ns=image.timestamp.seconds * 1_000_000_000 + image.timestamp.nanos,
+    )
     if image_format == "raw":
-        return CameraFrame(header=header, width_px=image.width, height_px=image.height, encoding=image.encoding,
-                           data=image.data, dropped=image.drivebench_dropped)
+        return CameraFrame(
+            header=header,
+            width_px=image.width,
+            height_px=image.height,
+            encoding=image.encoding,
+            data=image.data,
+            dropped=image.drivebench_dropped,
+        )
     return _frame_from_jpeg(header, image.data, dropped=image.drivebench_dropped)
 
 
@@ -236,8 +254,9 @@ def _frame_from_jpeg(header: Header, jpeg: bytes, *, dropped: bool) -> CameraFra
     if bgr is None:
         raise RecordFormatError("a camera image that is not a valid JPEG")
     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    return CameraFrame(header=header, width_px=rgb.shape[1], height_px=rgb.shape[0], data=rgb.tobytes(),
-                       dropped=dropped)
+    return CameraFrame(
+        header=header, width_px=rgb.shape[1], height_px=rgb.shape[0], data=rgb.tobytes(), dropped=dropped
+    )
 
 
 # Episodes' stamps restart at 0: each (run, episode) gets a base log time, one gap after the latest time logged.

@@ -52,8 +52,12 @@ class UsageError(UserError):
 
 def setup_logging(name: str, *, level: str | None = None) -> None:
     level = level or os.environ.get("DRIVEBENCH_LOG", "INFO")
-    logging.basicConfig(level=level.upper(), stream=sys.stderr,
-                        format=f"%(asctime)s {name} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(
+        level=level.upper(),
+        stream=sys.stderr,
+        format=f"%(asctime)s {name} %(levelname)s %(message)s",
+        datefmt="%H:%M:%S",
+    )
 
 
 def exit_on_sigterm() -> None:
@@ -101,8 +105,13 @@ def stop_exit_code() -> int:
 def service_parser(description: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--config", help="YAML config file")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one config field, e.g. --set bus.lease_ms=2000 (repeatable)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one config field, e.g. --set bus.lease_ms=2000 (repeatable)",
+    )
     parser.add_argument("--router", help="router endpoint to connect to, e.g. tcp/127.0.0.1:7447")
     parser.add_argument("--run-id", help=f"run id (every key of the run carries it; default: ${RUN_ID_ENV})")
     return parser
@@ -162,8 +171,13 @@ class Service(Protocol):
     def serve_forever(self) -> None: ...
 
 
-def service_main(role: str, description: str, config_type: type[C], make_service: Callable[[C, Bus], Service],
-                 argv: list[str] | None = None) -> int:
+def service_main(
+    role: str,
+    description: str,
+    config_type: type[C],
+    make_service: Callable[[C, Bus], Service],
+    argv: list[str] | None = None,
+) -> int:
     """The whole ``main`` of a service: parse, load and log the config, open the bus, serve until stopped.
 
     ``config_type`` needs ``bus`` and ``name`` fields. A service with a ``close()`` method has it called on exit.

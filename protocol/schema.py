@@ -20,23 +20,35 @@ from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest
 
 # What a brain process reads (frames; events for the seed; ground truth for privileged brains; control requests)
 # and writes (commands; control replies).
-BRAIN_MESSAGES: tuple[type[msgspec.Struct], ...] = (CameraFrame, Command, EpisodeEvent, ControlRequest, ControlReply,
-                                                    Pose)
+BRAIN_MESSAGES: tuple[type[msgspec.Struct], ...] = (
+    CameraFrame,
+    Command,
+    EpisodeEvent,
+    ControlRequest,
+    ControlReply,
+    Pose,
+)
 
 
 def message_schema(message_type: type[msgspec.Struct]) -> dict[str, Any]:
     """The JSON Schema of one message type, as its MessagePack map (``bytes`` fields marked as msgpack bin)."""
     schema = msgspec.json.schema(message_type)
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
-              "$id": f"https://drivebench.dev/protocol/{message_type.__name__}.schema.json", **schema}
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": f"https://drivebench.dev/protocol/{message_type.__name__}.schema.json",
+        **schema,
+    }
     return _mark_bin(schema)
 
 
 def _mark_bin(node: Any) -> Any:
     if isinstance(node, dict):
         if node.get("contentEncoding") == "base64":
-            return {**node, "x-msgpack": "bin", "description": "raw bytes: MessagePack bin on the wire (base64 only "
-                                                                "in JSON)"}
+            return {
+                **node,
+                "x-msgpack": "bin",
+                "description": "raw bytes: MessagePack bin on the wire (base64 only in JSON)",
+            }
         return {key: _mark_bin(value) for key, value in node.items()}
     if isinstance(node, list):
         return [_mark_bin(item) for item in node]
@@ -45,8 +57,10 @@ def _mark_bin(node: Any) -> Any:
 
 def schema_files() -> dict[str, str]:
     """File name -> text of every brain message's schema."""
-    return {f"{message.__name__}.schema.json": json.dumps(message_schema(message), indent=2) + "\n"
-            for message in BRAIN_MESSAGES}
+    return {
+        f"{message.__name__}.schema.json": json.dumps(message_schema(message), indent=2) + "\n"
+        for message in BRAIN_MESSAGES
+    }
 
 
 def write_schemas(folder: Path) -> list[Path]:

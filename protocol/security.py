@@ -140,8 +140,15 @@ def build_access_control(roles: RoleMap) -> dict[str, Any]:
         ids = []
         for index, (flow, messages, key_exprs) in enumerate(grants):
             rule_id = f"{name}-{index}"
-            rules.append({"id": rule_id, "messages": list(messages), "flows": [flow], "permission": "allow",
-                          "key_exprs": list(key_exprs)})
+            rules.append(
+                {
+                    "id": rule_id,
+                    "messages": list(messages),
+                    "flows": [flow],
+                    "permission": "allow",
+                    "key_exprs": list(key_exprs),
+                }
+            )
             ids.append(rule_id)
         return ids
 
@@ -151,8 +158,7 @@ def build_access_control(roles: RoleMap) -> dict[str, Any]:
     for role, ids in role_subjects.items():
         if ids and ROLES[role]:
             policies.append({"id": f"role-{role}", "rules": add_rules(role, ROLES[role]), "subjects": ids})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 def check_users_file(path: str) -> str:
@@ -201,8 +207,16 @@ def load_access_control_file(path: str) -> dict[str, Any]:
     return section
 
 
-def router_settings(*, mtls: bool, tls_root_ca: str, tls_cert: str, listen: Iterable[str], users_file: str,
-                    roles: RoleMap, access_control_file: str) -> dict[str, Any]:
+def router_settings(
+    *,
+    mtls: bool,
+    tls_root_ca: str,
+    tls_cert: str,
+    listen: Iterable[str],
+    users_file: str,
+    roles: RoleMap,
+    access_control_file: str,
+) -> dict[str, Any]:
     """The Zenoh settings a secure router adds to its bus (``protocol.bus.Bus(extra=...)``); {} for a plain one.
 
     ``tls_root_ca`` and ``tls_cert``: the router bus's resolved ones (the environment applied). Raises ConfigError
@@ -212,8 +226,10 @@ def router_settings(*, mtls: bool, tls_root_ca: str, tls_cert: str, listen: Iter
     secure_listeners = [e for e in listen if e.split("/", 1)[0] in ("tls", "quic")]
     if mtls:
         if not tls_root_ca:
-            raise ConfigError("mtls: true needs the CA that signed the clients' certificates: bus.tls_root_ca "
-                              "(or DRIVEBENCH_TLS_ROOT_CA)")
+            raise ConfigError(
+                "mtls: true needs the CA that signed the clients' certificates: bus.tls_root_ca "
+                "(or DRIVEBENCH_TLS_ROOT_CA)"
+            )
         if not secure_listeners:
             raise ConfigError(f"mtls: true needs a tls/ or quic/ endpoint in bus.listen, got {list(listen)}")
     if tls_cert:
@@ -226,8 +242,10 @@ def router_settings(*, mtls: bool, tls_root_ca: str, tls_cert: str, listen: Iter
         raise ConfigError("roles and access_control_file are alternatives: give one")
     if roles:
         if not (mtls or users_file):
-            raise ConfigError("roles need identities to match: set mtls: true (certificate common names) and/or "
-                              "users_file (user names)")
+            raise ConfigError(
+                "roles need identities to match: set mtls: true (certificate common names) and/or "
+                "users_file (user names)"
+            )
         settings["access_control"] = build_access_control(roles)
     elif access_control_file:
         settings["access_control"] = load_access_control_file(access_control_file)

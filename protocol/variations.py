@@ -32,8 +32,13 @@ CAMERA_PRESETS: dict[str, dict[str, float]] = {
 }
 
 # variation key -> CameraSpec field, for explicit camera values
-_CAMERA_KEYS = {"camera_offset_m": "lateral_offset_m", "camera_height_m": "height_m",
-                "camera_pitch_rad": "pitch_down_rad", "camera_yaw_rad": "yaw_rad", "camera_hfov_rad": "hfov_rad"}
+_CAMERA_KEYS = {
+    "camera_offset_m": "lateral_offset_m",
+    "camera_height_m": "height_m",
+    "camera_pitch_rad": "pitch_down_rad",
+    "camera_yaw_rad": "yaw_rad",
+    "camera_hfov_rad": "hfov_rad",
+}
 _WORLD_KEYS = ("line", "road", "walls", "lighting")
 WORLD_KEYS: tuple[str, ...] = _WORLD_KEYS  # variation keys that change the world
 CAMERA_KEYS: tuple[str, ...] = ("camera", *_CAMERA_KEYS)  # variation keys that move the camera
@@ -41,8 +46,16 @@ ROUTE_KEYS: tuple[str, ...] = ("direction",)  # variation keys that change the r
 _BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True, "no": False}
 
 # The parameter a bare ``model=value`` sets.
-_PRIMARY = {"salt_pepper": "probability", "gaussian": "sigma", "blur": "kernel_px", "brightness": "brightness",
-            "occlusion": "patches", "jpeg": "quality", "delay": "frames", "drop": "probability"}
+_PRIMARY = {
+    "salt_pepper": "probability",
+    "gaussian": "sigma",
+    "blur": "kernel_px",
+    "brightness": "brightness",
+    "occlusion": "patches",
+    "jpeg": "quality",
+    "delay": "frames",
+    "drop": "probability",
+}
 _MODELS: dict[str, Any] = {str(model.__struct_config__.tag): model for model in NOISE_MODELS}
 
 
@@ -84,11 +97,16 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
         elif key in _CAMERA_KEYS:
             camera[_CAMERA_KEYS[key]] = _number(key, value)
         else:
-            raise VariationError(f"unknown variation {key!r} (known: "
-                                 f"{', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS, *ROUTE_KEYS])})")
+            raise VariationError(
+                f"unknown variation {key!r} (known: {', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS, *ROUTE_KEYS])})"
+            )
     try:
-        return msgspec.structs.replace(spec, direction=direction, world=msgspec.convert(world, WorldVariation),
-                                       camera=msgspec.convert(camera, type(spec.camera)))
+        return msgspec.structs.replace(
+            spec,
+            direction=direction,
+            world=msgspec.convert(world, WorldVariation),
+            camera=msgspec.convert(camera, type(spec.camera)),
+        )
     except msgspec.ValidationError as error:
         raise VariationError(str(error)) from None
 
@@ -106,7 +124,7 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
         item = {model.strip(): params}
     if not isinstance(item, dict) or len(item) != 1:
         raise VariationError(f"a noise stage is one model with its parameters, got {item!r}")
-    (model, params), = item.items()
+    ((model, params),) = item.items()
     if model not in _MODELS:
         raise VariationError(f"unknown noise model {model!r} (known: {', '.join(_MODELS)})")
     if not isinstance(params, dict):

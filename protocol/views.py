@@ -52,8 +52,11 @@ def protobuf_schema(message_class: type[Message]) -> Schema:
         files.append(proto)
 
     add(message_class.DESCRIPTOR.file)
-    return Schema(name=message_class.DESCRIPTOR.full_name, encoding="protobuf",
-                  data=descriptor_pb2.FileDescriptorSet(file=files).SerializeToString())
+    return Schema(
+        name=message_class.DESCRIPTOR.full_name,
+        encoding="protobuf",
+        data=descriptor_pb2.FileDescriptorSet(file=files).SerializeToString(),
+    )
 
 
 class ViewMaker:
@@ -83,9 +86,10 @@ class ViewMaker:
             views += self._pose_views(message, log_time_ns)
         if isinstance(message, EpisodeEvent):
             views.append(self._view("episode_log", _event_log(message, log_time_ns=log_time_ns), log_time_ns))
-        if self._track is not None and (self._track_sent_ns is None
-                                        or (self._track_resend_ns is not None
-                                            and log_time_ns - self._track_sent_ns >= self._track_resend_ns)):
+        if self._track is not None and (
+            self._track_sent_ns is None
+            or (self._track_resend_ns is not None and log_time_ns - self._track_sent_ns >= self._track_resend_ns)
+        ):
             self._track_sent_ns = log_time_ns
             views.append(self._view("track", self._track, log_time_ns))
         return views
@@ -108,8 +112,9 @@ class ViewMaker:
 
     def _view(self, name: str, message: Message, log_time_ns: int) -> ViewMessage:
         schema = protobuf_schema(type(message))  # type: ignore[arg-type]  # protobuf's stub: classes unhashable
-        return ViewMessage(topic=view_topic(name), schema=schema, message=message,
-                           log_time_ns=log_time_ns, run_id=self.run_id)
+        return ViewMessage(
+            topic=view_topic(name), schema=schema, message=message, log_time_ns=log_time_ns, run_id=self.run_id
+        )
 
 
 def _event_log(event: EpisodeEvent, *, log_time_ns: int):

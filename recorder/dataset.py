@@ -99,11 +99,14 @@ class DatasetOptions:
     def __post_init__(self) -> None:
         object.__setattr__(self, "offsets_frames", check_offsets(self.offsets_frames))
         if not (1 <= self.width_px <= 4096 and 1 <= self.height_px <= 4096):
-            raise DatasetError(f"bad options: image size must be 1..4096 px per side, got "
-                               f"{self.width_px}x{self.height_px}")
+            raise DatasetError(
+                f"bad options: image size must be 1..4096 px per side, got {self.width_px}x{self.height_px}"
+            )
         if not 0.0 <= self.crop_top_fraction < self.crop_bottom_fraction <= 1.0:
-            raise DatasetError(f"bad options: need 0 <= crop_top_fraction < crop_bottom_fraction <= 1, got "
-                               f"{self.crop_top_fraction} and {self.crop_bottom_fraction}")
+            raise DatasetError(
+                f"bad options: need 0 <= crop_top_fraction < crop_bottom_fraction <= 1, got "
+                f"{self.crop_top_fraction} and {self.crop_bottom_fraction}"
+            )
         if self.camera not in ("perturbed", "truth"):
             raise DatasetError(f"bad options: camera must be 'perturbed' or 'truth', got {self.camera!r}")
         if self.brain is not None:
@@ -121,8 +124,9 @@ def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
     """("none", None), ("episode", fraction) or ("circuit", names); DatasetError for anything else."""
     match = _SPLIT.match(split)
     if match is None:
-        raise DatasetError(f"bad options: split must be 'episode:FRACTION', 'circuit:NAME,NAME' or 'none', "
-                           f"got {split!r}")
+        raise DatasetError(
+            f"bad options: split must be 'episode:FRACTION', 'circuit:NAME,NAME' or 'none', got {split!r}"
+        )
     if match["fraction"] is not None:
         try:
             fraction = float(match["fraction"])
@@ -155,9 +159,14 @@ class _NpyAppender:
         self._header_bytes = self._file.tell()
 
     def _write_header(self) -> None:
-        np.lib.format.write_array_header_1_0(self._file, {
-            "descr": np.lib.format.dtype_to_descr(self._dtype), "fortran_order": False,
-            "shape": (self.rows, *self._row_shape)})
+        np.lib.format.write_array_header_1_0(
+            self._file,
+            {
+                "descr": np.lib.format.dtype_to_descr(self._dtype),
+                "fortran_order": False,
+                "shape": (self.rows, *self._row_shape),
+            },
+        )
 
     def append(self, row: Any) -> None:
         self._file.write(np.asarray(row, dtype=self._dtype).tobytes())
@@ -208,8 +217,10 @@ class _FrameShaper:
         top = round(self._options.crop_top_fraction * height)
         bottom = round(self._options.crop_bottom_fraction * height)
         if bottom <= top:
-            raise DatasetError(f"crop {self._options.crop_top_fraction}..{self._options.crop_bottom_fraction} keeps "
-                               f"no row of a {frame.width_px}x{frame.height_px} frame")
+            raise DatasetError(
+                f"crop {self._options.crop_top_fraction}..{self._options.crop_bottom_fraction} keeps "
+                f"no row of a {frame.width_px}x{frame.height_px} frame"
+            )
         size = (self._options.width_px, self._options.height_px)
         return cv2.resize(image[top:bottom], size, interpolation=cv2.INTER_AREA)
 
@@ -253,12 +264,24 @@ class _Episode:
 
     def info(self) -> dict[str, Any]:
         spec = self.spec
-        return dict(index=self.index, run_id=self.run_id, episode=self.number, circuit=spec.circuit,
-                    world=msgspec.to_builtins(spec.world), noise=msgspec.to_builtins(spec.noise),
-                    camera_width_px=spec.camera.width_px, camera_height_px=spec.camera.height_px,
-                    step_s=spec.step_s, seed=spec.seed, active_brain=spec.active_brain,
-                    label_brains=dict(self.label_brains), commands_ignored=dict(self.ignored),
-                    end_reason=self.end_reason, frames_kept=self.kept, frames_skipped=dict(self.skipped))
+        return dict(
+            index=self.index,
+            run_id=self.run_id,
+            episode=self.number,
+            circuit=spec.circuit,
+            world=msgspec.to_builtins(spec.world),
+            noise=msgspec.to_builtins(spec.noise),
+            camera_width_px=spec.camera.width_px,
+            camera_height_px=spec.camera.height_px,
+            step_s=spec.step_s,
+            seed=spec.seed,
+            active_brain=spec.active_brain,
+            label_brains=dict(self.label_brains),
+            commands_ignored=dict(self.ignored),
+            end_reason=self.end_reason,
+            frames_kept=self.kept,
+            frames_skipped=dict(self.skipped),
+        )
 
 
 class _SourcePairer:
@@ -381,8 +404,9 @@ class _SourcePairer:
         self.on_pair()
 
 
-def _read_source(name: str, open_stream: Callable[[], Iterable[Recorded]], pairer: _SourcePairer,
-                 progress: bool) -> None:
+def _read_source(
+    name: str, open_stream: Callable[[], Iterable[Recorded]], pairer: _SourcePairer, progress: bool
+) -> None:
     """Stream one source through ``pairer``; a stream that fails becomes a DatasetError naming the source."""
     with tqdm(desc=name, unit=" pairs", disable=not progress, file=sys.stderr, leave=True) as bar:
         pairer.on_pair = lambda: bar.update(1)
@@ -396,8 +420,9 @@ def _read_source(name: str, open_stream: Callable[[], Iterable[Recorded]], paire
             except StopIteration:
                 break
             except Exception as error:
-                raise DatasetError(f"source {name}: reading failed after {pairer.messages} messages: "
-                                   f"{one_line(error)}") from error
+                raise DatasetError(
+                    f"source {name}: reading failed after {pairer.messages} messages: {one_line(error)}"
+                ) from error
             try:
                 pairer.feed(record)
             except DatasetError as error:
@@ -417,14 +442,18 @@ def _choose_val_episodes(options: DatasetOptions, used: list[dict[str, Any]]) ->
     if kind == "circuit":
         circuits = {info["circuit"] for info in used}
         if missing := [name for name in value if name not in circuits]:
-            raise DatasetError(f"split {options.split!r}: no episode with samples on circuit(s) {', '.join(missing)} "
-                               f"(circuits present: {', '.join(sorted(circuits))})")
+            raise DatasetError(
+                f"split {options.split!r}: no episode with samples on circuit(s) {', '.join(missing)} "
+                f"(circuits present: {', '.join(sorted(circuits))})"
+            )
         val = {info["index"] for info in used if info["circuit"] in value}
     else:
         n_val = max(1, round(value * len(indices)))
         if n_val >= len(indices):
-            raise DatasetError(f"split {options.split!r}: {len(indices)} episode(s) with samples cannot be split into "
-                               f"train and val (use 'episode:0' or 'none' for no validation)")
+            raise DatasetError(
+                f"split {options.split!r}: {len(indices)} episode(s) with samples cannot be split into "
+                f"train and val (use 'episode:0' or 'none' for no validation)"
+            )
         chosen = np.random.default_rng(options.seed).choice(len(indices), size=n_val, replace=False)
         val = {indices[i] for i in chosen}
     if len(val) == len(indices):
@@ -434,9 +463,17 @@ def _choose_val_episodes(options: DatasetOptions, used: list[dict[str, Any]]) ->
 
 def _label_stats(values: np.ndarray) -> LabelStats:
     q01, q10, q50, q90, q99 = np.quantile(values, (0.01, 0.10, 0.50, 0.90, 0.99))
-    return LabelStats(mean=float(values.mean()), std=float(values.std()), min=float(values.min()),
-                      max=float(values.max()), q01=float(q01), q10=float(q10), q50=float(q50), q90=float(q90),
-                      q99=float(q99))
+    return LabelStats(
+        mean=float(values.mean()),
+        std=float(values.std()),
+        min=float(values.min()),
+        max=float(values.max()),
+        q01=float(q01),
+        q10=float(q10),
+        q50=float(q50),
+        q90=float(q90),
+        q99=float(q99),
+    )
 
 
 def train_label_stats(labels: np.ndarray) -> TrainStats:
@@ -445,10 +482,12 @@ def train_label_stats(labels: np.ndarray) -> TrainStats:
     edges = np.array(ABS_YAW_RATE_EDGES_RADPS)
     bins = np.searchsorted(edges, np.abs(values[:, 1]), side="right") - 1
     counts = np.bincount(bins, minlength=len(edges))
-    return TrainStats(samples=len(values), speed_mps=_label_stats(values[:, 0]),
-                      yaw_rate_radps=_label_stats(values[:, 1]),
-                      abs_yaw_rate_histogram=Histogram(edges_radps=list(ABS_YAW_RATE_EDGES_RADPS),
-                                                       counts=[int(c) for c in counts]))
+    return TrainStats(
+        samples=len(values),
+        speed_mps=_label_stats(values[:, 0]),
+        yaw_rate_radps=_label_stats(values[:, 1]),
+        abs_yaw_rate_histogram=Histogram(edges_radps=list(ABS_YAW_RATE_EDGES_RADPS), counts=[int(c) for c in counts]),
+    )
 
 
 def _common_step_s(used: list[dict[str, Any]], offsets: tuple[int, ...]) -> float | None:
@@ -456,8 +495,10 @@ def _common_step_s(used: list[dict[str, Any]], offsets: tuple[int, ...]) -> floa
     if len(steps) == 1:
         return steps[0]
     if len(offsets) > 1:
-        raise DatasetError(f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {offsets} "
-                           f"would span different times; build one dataset per step_s")
+        raise DatasetError(
+            f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {offsets} "
+            f"would span different times; build one dataset per step_s"
+        )
     return None
 
 
@@ -470,10 +511,9 @@ def _group_by_episode(folder: Path) -> None:
     order = np.argsort(episode, kind="stable")
     for name in ARRAY_FILES:
         source = np.load(folder / name, mmap_mode="r")
-        target = np.lib.format.open_memmap(folder / f"sorted-{name}", mode="w+", dtype=source.dtype,
-                                           shape=source.shape)
+        target = np.lib.format.open_memmap(folder / f"sorted-{name}", mode="w+", dtype=source.dtype, shape=source.shape)
         for start in range(0, len(order), 4096):  # bounded memory for frames
-            target[start:start + 4096] = source[order[start:start + 4096]]
+            target[start : start + 4096] = source[order[start : start + 4096]]
         target.flush()
         del source, target
         (folder / f"sorted-{name}").replace(folder / name)
@@ -482,8 +522,14 @@ def _group_by_episode(folder: Path) -> None:
 # -- build -----------------------------------------------------------------------------------------------------------
 
 
-def build_dataset(sources: Sequence[tuple[str, Callable[[], Iterable[Recorded]]]], *, out_dir: Path,
-                  options: DatasetOptions, progress: bool = True, overwrite: bool = False) -> DatasetManifest:
+def build_dataset(
+    sources: Sequence[tuple[str, Callable[[], Iterable[Recorded]]]],
+    *,
+    out_dir: Path,
+    options: DatasetOptions,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> DatasetManifest:
     """Pair camera frames with the commands that answered them, over every source, into the folder ``out_dir``.
 
     sources: (name, open) pairs; ``open()`` returns a fresh iterable of one recording's decoded messages. Each source
@@ -523,8 +569,12 @@ def _move_into_place(partial: Path, out_dir: Path) -> None:
         partial.rename(out_dir)
 
 
-def _build_into(folder: Path, sources: Sequence[tuple[str, Callable[[], Iterable[Recorded]]]],
-                options: DatasetOptions, progress: bool) -> DatasetManifest:
+def _build_into(
+    folder: Path,
+    sources: Sequence[tuple[str, Callable[[], Iterable[Recorded]]]],
+    options: DatasetOptions,
+    progress: bool,
+) -> DatasetManifest:
     if not sources:
         raise DatasetError("no sources given")
     writer = _SampleWriter(folder, options.height_px, options.width_px)
@@ -549,14 +599,16 @@ def _no_pairs_message(options: DatasetOptions, pairers: list[tuple[str, _SourceP
     parts = []
     for name, pairer in pairers:
         skipped = sum((episode.skipped for episode in pairer.episodes), Counter())
-        parts.append(f"{name}: {len(pairer.episodes)} episode(s), frames skipped {dict(skipped)}, "
-                     f"{pairer.frames_outside} frame(s) of episodes without a START event")
-    return (f"no {options.camera} camera frame was paired with a command of {brain} in any source "
-            f"({'; '.join(parts)})")
+        parts.append(
+            f"{name}: {len(pairer.episodes)} episode(s), frames skipped {dict(skipped)}, "
+            f"{pairer.frames_outside} frame(s) of episodes without a START event"
+        )
+    return f"no {options.camera} camera frame was paired with a command of {brain} in any source ({'; '.join(parts)})"
 
 
-def _finish(folder: Path, options: DatasetOptions, pairers: list[tuple[str, _SourcePairer]],
-            samples: int) -> DatasetManifest:
+def _finish(
+    folder: Path, options: DatasetOptions, pairers: list[tuple[str, _SourcePairer]], samples: int
+) -> DatasetManifest:
     episode = np.load(folder / "episode.npy")
     windows = valid_windows(episode, np.load(folder / "frame_seq.npy"), options.offsets_frames)
     infos = [(name, pairer, [e.info() for e in pairer.episodes]) for name, pairer in pairers]
@@ -570,8 +622,17 @@ def _finish(folder: Path, options: DatasetOptions, pairers: list[tuple[str, _Sou
     np.save(folder / INDEX_FILES["train"], train_index)
     np.save(folder / INDEX_FILES["val"], val_index)
     _annotate_episodes([info for _, _, episodes in infos for info in episodes], episode[windows], val_episodes)
-    manifest = _manifest(options, infos, samples, step_s, train_index, val_index, train_episodes, val_episodes,
-                         np.load(folder / "labels.npy")[train_index])
+    manifest = _manifest(
+        options,
+        infos,
+        samples,
+        step_s,
+        train_index,
+        val_index,
+        train_episodes,
+        val_episodes,
+        np.load(folder / "labels.npy")[train_index],
+    )
     (folder / MANIFEST_FILE).write_bytes(msgspec.json.format(msgspec.json.encode(manifest), indent=2))
     return manifest
 
@@ -584,42 +645,90 @@ def _annotate_episodes(infos: list[dict[str, Any]], window_episodes: np.ndarray,
         info["split"] = "unused" if info["frames_kept"] == 0 else "val" if info["index"] in val_episodes else "train"
 
 
-def _check_split_sides(options: DatasetOptions, train_index: np.ndarray, val_index: np.ndarray,
-                       val_episodes: set[int]) -> None:
+def _check_split_sides(
+    options: DatasetOptions, train_index: np.ndarray, val_index: np.ndarray, val_episodes: set[int]
+) -> None:
     window = f"offsets {options.offsets_frames}"
     if len(train_index) == 0:
         raise DatasetError(f"split {options.split!r}: no training sample has a complete window for {window}")
     if val_episodes and len(val_index) == 0:
-        raise DatasetError(f"split {options.split!r}: validation episodes {sorted(val_episodes)} have no complete "
-                           f"window for {window}")
+        raise DatasetError(
+            f"split {options.split!r}: validation episodes {sorted(val_episodes)} have no complete window for {window}"
+        )
 
 
-def _manifest(options: DatasetOptions, infos, samples: int, step_s: float | None, train_index: np.ndarray,
-              val_index: np.ndarray, train_episodes: set[int], val_episodes: set[int],
-              train_labels: np.ndarray) -> DatasetManifest:
-    sources = [SourceInfo(name=name, run_ids=list(pairer.run_ids), messages=pairer.messages,
-                          frames_outside_episodes=pairer.frames_outside,
-                          episodes=[msgspec.convert(info, EpisodeInfo) for info in episodes])
-               for name, pairer, episodes in infos]
+def _manifest(
+    options: DatasetOptions,
+    infos,
+    samples: int,
+    step_s: float | None,
+    train_index: np.ndarray,
+    val_index: np.ndarray,
+    train_episodes: set[int],
+    val_episodes: set[int],
+    train_labels: np.ndarray,
+) -> DatasetManifest:
+    sources = [
+        SourceInfo(
+            name=name,
+            run_ids=list(pairer.run_ids),
+            messages=pairer.messages,
+            frames_outside_episodes=pairer.frames_outside,
+            episodes=[msgspec.convert(info, EpisodeInfo) for info in episodes],
+        )
+        for name, pairer, episodes in infos
+    ]
     skipped: Counter[str] = Counter()
     for _, pairer, _ in infos:
         for episode in pairer.episodes:
             skipped.update(episode.skipped)
     return DatasetManifest(
-        format_version=FORMAT_VERSION, created_utc=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        options=options.to_dict(), image_width_px=options.width_px, image_height_px=options.height_px,
-        label_names=list(LABEL_NAMES), offsets_frames=list(options.offsets_frames), step_s=step_s,
+        format_version=FORMAT_VERSION,
+        created_utc=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        options=options.to_dict(),
+        image_width_px=options.width_px,
+        image_height_px=options.height_px,
+        label_names=list(LABEL_NAMES),
+        offsets_frames=list(options.offsets_frames),
+        step_s=step_s,
         offsets_s=None if step_s is None else [round(o * step_s, 9) for o in options.offsets_frames],
-        sources=sources, totals=Totals(samples=samples, episodes=sum(len(s.episodes) for s in sources),
-                                       frames_skipped=dict(skipped)),
-        split=SplitInfo(rule=options.split, seed=options.seed, train_episodes=sorted(train_episodes),
-                        val_episodes=sorted(val_episodes), train_samples=len(train_index),
-                        val_samples=len(val_index)),
-        train_label_stats=train_label_stats(train_labels))
+        sources=sources,
+        totals=Totals(samples=samples, episodes=sum(len(s.episodes) for s in sources), frames_skipped=dict(skipped)),
+        split=SplitInfo(
+            rule=options.split,
+            seed=options.seed,
+            train_episodes=sorted(train_episodes),
+            val_episodes=sorted(val_episodes),
+            train_samples=len(train_index),
+            val_samples=len(val_index),
+        ),
+        train_label_stats=train_label_stats(train_labels),
+    )
 
 
 # Building is this module's; the format and the reader are re-exported so that ``recorder.dataset`` is the one name.
-__all__ = ["ABS_YAW_RATE_EDGES_RADPS", "ARRAY_FILES", "FORMAT_VERSION", "INDEX_FILES", "LABEL_NAMES", "MANIFEST_FILE",
-           "DatasetError", "DatasetManifest", "DatasetOptions", "DrivingDataset", "EpisodeInfo", "Histogram",
-           "LabelStats", "SourceInfo", "SplitInfo", "Totals", "TrainStats", "build_dataset", "check_offsets",
-           "parse_split", "samples_per_second", "train_label_stats", "valid_windows"]
+__all__ = [
+    "ABS_YAW_RATE_EDGES_RADPS",
+    "ARRAY_FILES",
+    "FORMAT_VERSION",
+    "INDEX_FILES",
+    "LABEL_NAMES",
+    "MANIFEST_FILE",
+    "DatasetError",
+    "DatasetManifest",
+    "DatasetOptions",
+    "DrivingDataset",
+    "EpisodeInfo",
+    "Histogram",
+    "LabelStats",
+    "SourceInfo",
+    "SplitInfo",
+    "Totals",
+    "TrainStats",
+    "build_dataset",
+    "check_offsets",
+    "parse_split",
+    "samples_per_second",
+    "train_label_stats",
+    "valid_windows",
+]

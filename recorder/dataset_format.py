@@ -20,6 +20,7 @@ ABS_YAW_RATE_EDGES_RADPS = (0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4
 # Unanswered frames held per episode at most: a brain that skips frames (real-time mode) or never answers must not
 # grow memory; a lock-step answer comes one frame later, so this is generous (~7.5 MB at 100x50).
 
+
 class DatasetError(RuntimeError):
     """A dataset that cannot be built or opened: one line naming the source or folder and what is wrong."""
 

@@ -56,8 +56,11 @@ class DrivingDataset:
 
     def _recomputed_index(self) -> np.ndarray:
         split = self._typed.split
-        episodes = {"train": split.train_episodes, "val": split.val_episodes,
-                    "all": split.train_episodes + split.val_episodes}[self.split]
+        episodes = {
+            "train": split.train_episodes,
+            "val": split.val_episodes,
+            "all": split.train_episodes + split.val_episodes,
+        }[self.split]
         windows = valid_windows(self.episode, self.frame_seq, self.offsets_frames)
         return windows[np.isin(self.episode[windows], episodes)]
 
@@ -94,8 +97,9 @@ def _load_manifest(path: Path) -> DatasetManifest:
     except (ValueError, AttributeError) as error:
         raise DatasetError(f"dataset {path}: {MANIFEST_FILE} is not a JSON object: {one_line(error)}") from None
     if version != FORMAT_VERSION:
-        raise DatasetError(f"dataset {path}: {MANIFEST_FILE} format_version {version!r}, this reader knows "
-                           f"{FORMAT_VERSION}")
+        raise DatasetError(
+            f"dataset {path}: {MANIFEST_FILE} format_version {version!r}, this reader knows {FORMAT_VERSION}"
+        )
     try:
         return msgspec.json.decode(raw, type=DatasetManifest)
     except (msgspec.ValidationError, msgspec.DecodeError) as error:
@@ -106,15 +110,20 @@ def _load_arrays(path: Path, manifest: DatasetManifest) -> tuple[np.ndarray, ...
     if missing := [name for name in (*ARRAY_FILES, *INDEX_FILES.values()) if not (path / name).is_file()]:
         raise DatasetError(f"dataset {path}: missing {', '.join(missing)}")
     n = manifest.totals.samples
-    expected = {"frames.npy": (np.uint8, (n, manifest.image_height_px, manifest.image_width_px, 3)),
-                "labels.npy": (np.float32, (n, 2)), "episode.npy": (np.int32, (n,)),
-                "frame_seq.npy": (np.int32, (n,)), "stamp_ns.npy": (np.int64, (n,))}
+    expected = {
+        "frames.npy": (np.uint8, (n, manifest.image_height_px, manifest.image_width_px, 3)),
+        "labels.npy": (np.float32, (n, 2)),
+        "episode.npy": (np.int32, (n,)),
+        "frame_seq.npy": (np.int32, (n,)),
+        "stamp_ns.npy": (np.int64, (n,)),
+    }
     arrays = []
     for name, (dtype, shape) in expected.items():
         array = _load_npy(path, name, mmap=name == "frames.npy")
         if array.dtype != dtype or array.shape != shape:
-            raise DatasetError(f"dataset {path}: {name} is {array.dtype} {array.shape}, the manifest says "
-                               f"{np.dtype(dtype)} {shape}")
+            raise DatasetError(
+                f"dataset {path}: {name} is {array.dtype} {array.shape}, the manifest says {np.dtype(dtype)} {shape}"
+            )
         arrays.append(array)
     return tuple(arrays)
 

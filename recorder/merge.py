@@ -75,8 +75,9 @@ def check_namespaces(sources: Sequence[Path], names: Sequence[str] | None) -> li
     return list(names)
 
 
-def merge(sources: Sequence[Path], *, output: Path, names: Sequence[str] | None = None,
-          overwrite: bool = False) -> MergeReport:
+def merge(
+    sources: Sequence[Path], *, output: Path, names: Sequence[str] | None = None, overwrite: bool = False
+) -> MergeReport:
     """Write ``output`` holding every message of ``sources``, each source under its own namespace."""
     sources = [Path(s) for s in sources]
     output = Path(output)
@@ -105,8 +106,9 @@ def merge(sources: Sequence[Path], *, output: Path, names: Sequence[str] | None 
 
 
 def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Path) -> MergeReport:
-    writer = Writer(sink, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD, enable_crcs=True,
-                    enable_data_crcs=True)
+    writer = Writer(
+        sink, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True
+    )
     writer.start(profile="", library=LIBRARY)
     schema_ids: dict[tuple[str, str, bytes], int] = {}
     channels: dict[tuple[int, int], tuple[int, _Rewrite | None]] = {}  # (source, channel id) -> (new id, rewrite)
@@ -128,27 +130,46 @@ def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Pa
                 run_ids.setdefault(namespace, [])
                 if run_id not in run_ids[namespace]:
                     run_ids[namespace].append(run_id)
-            new_id = writer.register_channel(_namespaced_topic(channel.topic, namespace), channel.message_encoding,
-                                             schema_id, metadata)
-            rewrite = (_Rewrite(schema.name, schema.data, namespace, index)
-                       if schema is not None and schema.encoding == "protobuf" else None)
+            new_id = writer.register_channel(
+                _namespaced_topic(channel.topic, namespace), channel.message_encoding, schema_id, metadata
+            )
+            rewrite = (
+                _Rewrite(schema.name, schema.data, namespace, index)
+                if schema is not None and schema.encoding == "protobuf"
+                else None
+            )
             channels[(index, channel.id)] = (new_id, rewrite)
         _copy_metadata(reader, source, namespace, writer)
     messages = 0
     for index, channel_id, record in _in_log_time_order(readers, sources):
         new_id, rewrite = channels[(index, channel_id)]
         data = rewrite(record.data) if rewrite is not None else record.data
-        writer.add_message(new_id, log_time=record.log_time, data=data, publish_time=record.publish_time,
-                           sequence=record.sequence)
+        writer.add_message(
+            new_id, log_time=record.log_time, data=data, publish_time=record.publish_time, sequence=record.sequence
+        )
         messages += 1
-    writer.add_metadata(MERGE_METADATA, {
-        "namespaces": json.dumps(namespaces), "sources": json.dumps([s.name for s in sources]),
-        "run_ids": json.dumps(run_ids, sort_keys=True)})
+    writer.add_metadata(
+        MERGE_METADATA,
+        {
+            "namespaces": json.dumps(namespaces),
+            "sources": json.dumps([s.name for s in sources]),
+            "run_ids": json.dumps(run_ids, sort_keys=True),
+        },
+    )
     writer.finish()
-    merged_topics = sorted({_namespaced_topic(c.topic, ns) for reader, ns in zip(readers, namespaces, strict=True)
-                            for c in reader.get_summary().channels.values()})
-    return MergeReport(output=output, namespaces=dict(zip(namespaces, [str(s) for s in sources], strict=True)),
-                       messages=messages, topics=merged_topics)
+    merged_topics = sorted(
+        {
+            _namespaced_topic(c.topic, ns)
+            for reader, ns in zip(readers, namespaces, strict=True)
+            for c in reader.get_summary().channels.values()
+        }
+    )
+    return MergeReport(
+        output=output,
+        namespaces=dict(zip(namespaces, [str(s) for s in sources], strict=True)),
+        messages=messages,
+        topics=merged_topics,
+    )
 
 
 def _namespaced_topic(topic: str, namespace: str) -> str:
@@ -172,24 +193,33 @@ def _copy_metadata(reader, source: Path, namespace: str, writer: Writer) -> None
         for record in reader.iter_metadata():
             writer.add_metadata(f"{namespace}/{record.name}", dict(record.metadata))
         for attachment in reader.iter_attachments():
-            writer.add_attachment(attachment.create_time, attachment.log_time, f"{namespace}/{attachment.name}",
-                                  attachment.media_type, attachment.data)
+            writer.add_attachment(
+                attachment.create_time,
+                attachment.log_time,
+                f"{namespace}/{attachment.name}",
+                attachment.media_type,
+                attachment.data,
+            )
     except MCAP_ERRORS as error:
         raise MergeError(f"{source}: corrupted metadata ({describe_error(error)})") from None
 
 
 def _in_log_time_order(readers, sources: list[Path]) -> Iterator[tuple[int, int, object]]:
     """(source index, channel id, message record) of every source, merged by log time."""
+
     def stream(index: int) -> Iterator[tuple[int, int, int, object]]:
         try:
             for _, channel, record in readers[index].iter_messages(log_time_order=True):
                 yield record.log_time, index, channel.id, record
         except MCAP_ERRORS as error:
-            raise MergeError(f"{sources[index]}: corrupted ({describe_error(error)}); "
-                             f"try `drivebench recorder repair {sources[index]}`") from None
+            raise MergeError(
+                f"{sources[index]}: corrupted ({describe_error(error)}); "
+                f"try `drivebench recorder repair {sources[index]}`"
+            ) from None
 
-    for _, index, channel_id, record in heapq.merge(*(stream(i) for i in range(len(readers))),
-                                                     key=lambda item: (item[0], item[1])):
+    for _, index, channel_id, record in heapq.merge(
+        *(stream(i) for i in range(len(readers))), key=lambda item: (item[0], item[1])
+    ):
         yield index, channel_id, record
 
 
@@ -250,7 +280,7 @@ def _rename_frames(message: Message, namespace: str) -> bool:
     changed = False
     for field, value in message.ListFields():
         if field.type == field.TYPE_MESSAGE:
-            for item in (value if _repeated(field) else [value]):
+            for item in value if _repeated(field) else [value]:
                 changed |= _rename_frames(item, namespace)
         elif field.name in _FRAME_FIELDS and field.type == field.TYPE_STRING and not _repeated(field):
             renamed = topics.namespaced_frame(value, namespace)

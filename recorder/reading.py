@@ -21,8 +21,19 @@ from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
-MCAP_ERRORS = (McapError, CRCValidationError, struct.error, EOFError, ValueError, KeyError, IndexError, zlib.error,
-               UnicodeDecodeError, MemoryError, zstandard.ZstdError)
+MCAP_ERRORS = (
+    McapError,
+    CRCValidationError,
+    struct.error,
+    EOFError,
+    ValueError,
+    KeyError,
+    IndexError,
+    zlib.error,
+    UnicodeDecodeError,
+    MemoryError,
+    zstandard.ZstdError,
+)
 
 
 class RecordingError(RuntimeError):
@@ -56,8 +67,12 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
         summary = reader.get_summary()
         # Selected by bus key (channel metadata), not topic: topics are stable names shared by every run
         # (protocol.topics), and files recorded before them used the key as topic; both read the same way.
-        selected = {c.id for c in summary.channels.values() if is_bus_channel(dict(c.metadata))
-                    and (keys_glob is None or fnmatch.fnmatchcase(c.metadata[KEY_METADATA], keys_glob))}
+        selected = {
+            c.id
+            for c in summary.channels.values()
+            if is_bus_channel(dict(c.metadata))
+            and (keys_glob is None or fnmatch.fnmatchcase(c.metadata[KEY_METADATA], keys_glob))
+        }
         if not selected:
             return
         _check_keys_unique(path, [summary.channels[i] for i in selected])
@@ -66,12 +81,15 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
             for schema, channel, record in reader.iter_messages(topics=topics, log_time_order=True):
                 if channel.id not in selected:
                     continue  # another run's channel of the same topic, outside keys_glob
-                yield Recorded(key=channel.metadata[KEY_METADATA],
-                               message=_decode(record.data, schema, channel, path, record.sequence),
-                               log_time_ns=record.log_time)
+                yield Recorded(
+                    key=channel.metadata[KEY_METADATA],
+                    message=_decode(record.data, schema, channel, path, record.sequence),
+                    log_time_ns=record.log_time,
+                )
         except MCAP_ERRORS as error:
-            raise RecordingError(f"{path}: corrupted ({describe_error(error)}); "
-                                 f"try `drivebench recorder repair {path}`") from None
+            raise RecordingError(
+                f"{path}: corrupted ({describe_error(error)}); try `drivebench recorder repair {path}`"
+            ) from None
 
 
 @dataclass(frozen=True)
@@ -110,19 +128,30 @@ def recording_info(path: Path) -> RecordingInfo:
         summary = reader.get_summary()
         statistics = summary.statistics
         counts = statistics.channel_message_counts if statistics else {}
-        channels = [ChannelInfo(topic=c.topic, schema=summary.schemas[c.schema_id].name if c.schema_id else "",
-                                message_encoding=c.message_encoding, messages=counts.get(c.id, 0),
-                                bus_key=is_bus_channel(dict(c.metadata)), key=c.metadata.get(KEY_METADATA, ""),
-                                run_id=_run_id(dict(c.metadata)))
-                    for c in summary.channels.values()]
+        channels = [
+            ChannelInfo(
+                topic=c.topic,
+                schema=summary.schemas[c.schema_id].name if c.schema_id else "",
+                message_encoding=c.message_encoding,
+                messages=counts.get(c.id, 0),
+                bus_key=is_bus_channel(dict(c.metadata)),
+                key=c.metadata.get(KEY_METADATA, ""),
+                run_id=_run_id(dict(c.metadata)),
+            )
+            for c in summary.channels.values()
+        ]
         try:
             metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         except MCAP_ERRORS as error:
             raise RecordingError(f"{path}: corrupted metadata ({describe_error(error)})") from None
-        return RecordingInfo(path=path, messages=statistics.message_count if statistics else 0,
-                             start_ns=statistics.message_start_time if statistics else 0,
-                             end_ns=statistics.message_end_time if statistics else 0,
-                             channels=channels, metadata=metadata)
+        return RecordingInfo(
+            path=path,
+            messages=statistics.message_count if statistics else 0,
+            start_ns=statistics.message_start_time if statistics else 0,
+            end_ns=statistics.message_end_time if statistics else 0,
+            channels=channels,
+            metadata=metadata,
+        )
 
 
 def _check_keys_unique(path: Path, channels) -> None:
@@ -132,8 +161,10 @@ def _check_keys_unique(path: Path, channels) -> None:
     for channel in channels:
         key, namespace = channel.metadata[KEY_METADATA], channel.metadata.get(NAMESPACE_METADATA, "")
         if namespaces.setdefault(key, namespace) != namespace:
-            raise RecordingError(f"{path}: a merged file whose runs /{namespaces[key]} and /{namespace} share the run "
-                                 f"id {keys.run_of_key(key)!r}; replay or build datasets from the original recordings")
+            raise RecordingError(
+                f"{path}: a merged file whose runs /{namespaces[key]} and /{namespace} share the run "
+                f"id {keys.run_of_key(key)!r}; replay or build datasets from the original recordings"
+            )
 
 
 def _run_id(metadata: dict[str, str]) -> str:
@@ -170,8 +201,9 @@ def _indexed_reader(stream, path: Path) -> SeekingReader:
         detail = "no summary"
     if summary is None:
         # A recorder killed before it finished: the data is there, the index is not.
-        raise RecordingError(f"{path}: incomplete or truncated ({detail}); "
-                             f"recover it with `drivebench recorder repair {path}`")
+        raise RecordingError(
+            f"{path}: incomplete or truncated ({detail}); recover it with `drivebench recorder repair {path}`"
+        )
     return reader
 
 

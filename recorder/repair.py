@@ -47,8 +47,9 @@ def repair(source: Path, *, output: Path | None = None, overwrite: bool = False)
         raise RecordingError(f"{output} already exists (remove it or pass --overwrite)")
     temporary = output.with_name(output.name + ".repairing")
     with open(source, "rb") as stream, open(temporary, "wb") as sink:
-        writer = Writer(sink, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD, enable_crcs=True,
-                        enable_data_crcs=True)
+        writer = Writer(
+            sink, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True
+        )
         writer.start(profile="", library=LIBRARY)
         messages, stopped_at = _copy(StreamReader(stream, validate_crcs=True), writer)
         writer.finish()
@@ -60,8 +61,13 @@ def repair(source: Path, *, output: Path | None = None, overwrite: bool = False)
     os.replace(temporary, output)
     if source.name.endswith(PART_SUFFIX):
         source.unlink()
-    log.info("repaired %s -> %s: %d messages%s", source, output, messages,
-             f" (stopped at {stopped_at})" if stopped_at else "")
+    log.info(
+        "repaired %s -> %s: %d messages%s",
+        source,
+        output,
+        messages,
+        f" (stopped at {stopped_at})" if stopped_at else "",
+    )
     return RepairReport(source=source, output=output, messages=messages, stopped_at=stopped_at)
 
 
@@ -75,10 +81,16 @@ def _copy(reader: StreamReader, writer: Writer) -> tuple[int, str]:
                 schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
             elif isinstance(record, Channel) and record.id not in channel_ids:
                 channel_ids[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
+                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata)
+                )
             elif isinstance(record, Message) and record.channel_id in channel_ids:
-                writer.add_message(channel_ids[record.channel_id], log_time=record.log_time, data=record.data,
-                                   publish_time=record.publish_time, sequence=record.sequence)
+                writer.add_message(
+                    channel_ids[record.channel_id],
+                    log_time=record.log_time,
+                    data=record.data,
+                    publish_time=record.publish_time,
+                    sequence=record.sequence,
+                )
                 messages += 1
             elif isinstance(record, Metadata):
                 writer.add_metadata(record.name, dict(record.metadata))

@@ -37,8 +37,15 @@ def rebased(message: msgspec.Struct, run_id: str) -> msgspec.Struct:
     return msgspec.structs.replace(message, header=msgspec.structs.replace(message.header, run_id=run_id))
 
 
-def replay(path: Path, bus: Bus, *, rate: float | None = 1.0, run_id: str | None = None,
-           keys_glob: str | None = None, progress: bool = False) -> ReplayReport:
+def replay(
+    path: Path,
+    bus: Bus,
+    *,
+    rate: float | None = 1.0,
+    run_id: str | None = None,
+    keys_glob: str | None = None,
+    progress: bool = False,
+) -> ReplayReport:
     """Publish a recording's messages in log-time order.
 
     rate: 1.0 = the recorded pace, 2.0 = twice as fast, None = as fast as the bus takes them.
@@ -76,9 +83,10 @@ def replay(path: Path, bus: Bus, *, rate: float | None = 1.0, run_id: str | None
 
 def _publishers(bus: Bus, recorded_keys: list[str], run_id: str | None) -> dict[str, Publisher]:
     """One publisher per recorded key, declared before the first message so none races its declaration."""
-    return {key: bus.publisher(key if run_id is None else keys.with_run_id(key, run_id), msgspec.Struct,
-                               Traffic.EVENTS)
-            for key in recorded_keys}
+    return {
+        key: bus.publisher(key if run_id is None else keys.with_run_id(key, run_id), msgspec.Struct, Traffic.EVENTS)
+        for key in recorded_keys
+    }
 
 
 def _progress_bar(total: int, *, enabled: bool):

@@ -76,10 +76,16 @@ class RecorderService:
         if path.suffix != ".mcap":
             raise UserError(f"recorder output must end in .mcap, got {path}")
         for report in repair_leftovers(path.parent):
-            log.warning("repaired a recording left by a killed recorder: %s (%d messages)", report.output,
-                        report.messages)
-        self.writer = RecordingWriter(path, image_format=config.image_format, jpeg_quality=config.jpeg_quality,
-                                      views=config.views, flush_interval_s=config.flush_interval_s)
+            log.warning(
+                "repaired a recording left by a killed recorder: %s (%d messages)", report.output, report.messages
+            )
+        self.writer = RecordingWriter(
+            path,
+            image_format=config.image_format,
+            jpeg_quality=config.jpeg_quality,
+            views=config.views,
+            flush_interval_s=config.flush_interval_s,
+        )
         self.writer.add_metadata("drivebench.run", _run_metadata(config))
         for name in config.attach:
             self._attach(Path(name))
@@ -138,8 +144,9 @@ class RecorderService:
         self.writer.write(key, message)
         if is_start:
             self._started.add(episode)
-            self.writer.add_metadata(f"episode:{episode}", {
-                "run_id": message.header.run_id, "spec": codec.to_json(message.spec)})
+            self.writer.add_metadata(
+                f"episode:{episode}", {"run_id": message.header.run_id, "spec": codec.to_json(message.spec)}
+            )
 
     def _recover_start(self, episode: int) -> None:
         """An episode's messages arrive without its START: we joined late, or the simulator published START before
@@ -161,14 +168,20 @@ class RecorderService:
 
 
 def _run_metadata(config: RecorderConfig) -> dict[str, str]:
-    return {"run_id": config.run_id, "format": FORMAT_VERSION, "git_sha": _git_sha(),
-            "started_unix_s": f"{time.time():.3f}", "recorder_config": json.dumps(msgspec.to_builtins(config))}
+    return {
+        "run_id": config.run_id,
+        "format": FORMAT_VERSION,
+        "git_sha": _git_sha(),
+        "started_unix_s": f"{time.time():.3f}",
+        "recorder_config": json.dumps(msgspec.to_builtins(config)),
+    }
 
 
 def _git_sha() -> str:
     try:
-        result = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                                cwd=Path(__file__).resolve().parent)
+        result = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=Path(__file__).resolve().parent
+        )
     except (OSError, subprocess.SubprocessError):
         return ""
     return result.stdout.strip() if result.returncode == 0 else ""
@@ -177,5 +190,10 @@ def _git_sha() -> str:
 def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import service_main
 
-    return service_main("recorder", "drivebench recorder: every message of one run to an MCAP file",
-                        RecorderConfig, RecorderService, argv)
+    return service_main(
+        "recorder",
+        "drivebench recorder: every message of one run to an MCAP file",
+        RecorderConfig,
+        RecorderService,
+        argv,
+    )

@@ -68,8 +68,15 @@ class RecordingWriter:
     (``foxglove.CompressedImage``); views: add the Foxglove pose / transform / track channels.
     """
 
-    def __init__(self, path: Path, *, image_format: str = "raw", jpeg_quality: int = 90, views: bool = True,
-                 flush_interval_s: float = 1.0):
+    def __init__(
+        self,
+        path: Path,
+        *,
+        image_format: str = "raw",
+        jpeg_quality: int = 90,
+        views: bool = True,
+        flush_interval_s: float = 1.0,
+    ):
         self.path = Path(path)
         self.image_format = check_image_format(image_format)
         self.jpeg_quality = jpeg_quality
@@ -82,8 +89,13 @@ class RecordingWriter:
         self._file = open(part_path(self.path), "wb")
         # Held while writing: a recorder starting on the same folder repairs only .part files nobody holds.
         fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD,
-                              enable_crcs=True, enable_data_crcs=True)
+        self._writer = Writer(
+            self._file,
+            chunk_size=CHUNK_SIZE_BYTES,
+            compression=CompressionType.ZSTD,
+            enable_crcs=True,
+            enable_data_crcs=True,
+        )
         # Profile "" on purpose: "ros1"/"ros2" are the only well-known profiles and tools key on them.
         self._writer.start(profile="", library=LIBRARY)
         self._schemas: dict[tuple[str, str], int] = {}
@@ -106,8 +118,10 @@ class RecordingWriter:
         """Write one bus message published on ``key``; returns its log time (ns)."""
         header = message.header
         log_time = self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
-        channel = self._channel(channel_layout(key, type(message), image_format=self.image_format)
-                                if key not in self._channels else None, key)
+        channel = self._channel(
+            channel_layout(key, type(message), image_format=self.image_format) if key not in self._channels else None,
+            key,
+        )
         publish_time, sequence = record_stamps(message)
         data = to_record(message, image_format=self.image_format, jpeg_quality=self.jpeg_quality)
         self._writer.add_message(channel, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
@@ -125,33 +139,50 @@ class RecordingWriter:
         last = self._last_seq.get(stream, -1)
         if header.seq > last + 1:
             self.missing[key] += header.seq - last - 1
-            log.warning("%s episode %d: %d message(s) missing before seq %d (never received)", key, header.episode,
-                        header.seq - last - 1, header.seq)
+            log.warning(
+                "%s episode %d: %d message(s) missing before seq %d (never received)",
+                key,
+                header.episode,
+                header.seq - last - 1,
+                header.seq,
+            )
         self._last_seq[stream] = max(last, header.seq)
 
     def _write_view(self, view: ViewMessage) -> None:
         # One channel per run and view: the topic is the same in every run (protocol.topics).
         channel_key = f"{view.run_id}:{view.topic}"
         if channel_key not in self._channels:
-            layout = ChannelLayout(topic=view.topic, message_encoding="protobuf", schema=view.schema,
-                                   metadata={VIEW_METADATA: "1", RUN_ID_METADATA: view.run_id})
+            layout = ChannelLayout(
+                topic=view.topic,
+                message_encoding="protobuf",
+                schema=view.schema,
+                metadata={VIEW_METADATA: "1", RUN_ID_METADATA: view.run_id},
+            )
             self._channel(layout, channel_key)
-        self._writer.add_message(self._channels[channel_key], log_time=view.log_time_ns,
-                                 data=view.message.SerializeToString(), publish_time=view.log_time_ns)
+        self._writer.add_message(
+            self._channels[channel_key],
+            log_time=view.log_time_ns,
+            data=view.message.SerializeToString(),
+            publish_time=view.log_time_ns,
+        )
 
     def _channel(self, layout: ChannelLayout | None, topic: str) -> int:
         if layout is not None:
             schema_id = self._schema(layout.schema)
             self._channels[topic] = self._writer.register_channel(
-                topic=layout.topic, message_encoding=layout.message_encoding, schema_id=schema_id,
-                metadata=layout.metadata)
+                topic=layout.topic,
+                message_encoding=layout.message_encoding,
+                schema_id=schema_id,
+                metadata=layout.metadata,
+            )
         return self._channels[topic]
 
     def _schema(self, schema: Schema) -> int:
         key = (schema.name, schema.encoding)
         if key not in self._schemas:
-            self._schemas[key] = self._writer.register_schema(name=schema.name, encoding=schema.encoding,
-                                                              data=schema.data)
+            self._schemas[key] = self._writer.register_schema(
+                name=schema.name, encoding=schema.encoding, data=schema.data
+            )
         return self._schemas[key]
 
     # -- durability --
@@ -175,9 +206,14 @@ class RecordingWriter:
         if self._closed:
             return self.path
         self._closed = True
-        self.add_metadata("drivebench.recording", {"format": FORMAT_VERSION,
-                                                    "counts": json.dumps(dict(self.counts), sort_keys=True),
-                                                    "missing": json.dumps(dict(self.missing), sort_keys=True)})
+        self.add_metadata(
+            "drivebench.recording",
+            {
+                "format": FORMAT_VERSION,
+                "counts": json.dumps(dict(self.counts), sort_keys=True),
+                "missing": json.dumps(dict(self.missing), sort_keys=True),
+            },
+        )
         self._writer.finish()
         self._file.flush()
         os.fsync(self._file.fileno())

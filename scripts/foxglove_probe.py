@@ -37,11 +37,18 @@ def probe(url: str, *, seconds: float) -> dict:
             if isinstance(message, str):
                 body = json.loads(message)
                 if body.get("op") == "advertise":
-                    cameras = [c for c in body["channels"] if c["topic"] in CAMERA_TOPICS
-                               or c["topic"].endswith("/sim/camera")]
+                    cameras = [
+                        c for c in body["channels"] if c["topic"] in CAMERA_TOPICS or c["topic"].endswith("/sim/camera")
+                    ]
                     if cameras:
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                            {"id": c["id"], "channelId": c["id"]} for c in cameras]}))
+                        ws.send(
+                            json.dumps(
+                                {
+                                    "op": "subscribe",
+                                    "subscriptions": [{"id": c["id"], "channelId": c["id"]} for c in cameras],
+                                }
+                            )
+                        )
             elif message[0] == MESSAGE_DATA:
                 image = CompressedImage()
                 image.ParseFromString(message[13:])
@@ -51,8 +58,13 @@ def probe(url: str, *, seconds: float) -> dict:
                     size = f"{pixels.shape[1]}x{pixels.shape[0]}"
                     first = first or time.monotonic()
         span = time.monotonic() - first if first else 0.0
-    return {"url": url, "images": images, "seconds": round(span, 2),
-            "rate_hz": round((images - 1) / span, 1) if span > 0 else 0.0, "size": size}
+    return {
+        "url": url,
+        "images": images,
+        "seconds": round(span, 2),
+        "rate_hz": round((images - 1) / span, 1) if span > 0 else 0.0,
+        "size": size,
+    }
 
 
 def main() -> int:

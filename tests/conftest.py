@@ -33,8 +33,9 @@ def make_stack(tmp_path) -> Iterator:
 
     def make(*brains: BrainLaunch, **options) -> LocalStack:
         run_id = options.pop("run_id", None) or f"t{uuid.uuid4().hex[:8]}"
-        stack = LocalStack(run_id=run_id, run_dir=tmp_path / run_id, brains=list(brains) or [BrainLaunch("explicit")],
-                           **options)
+        stack = LocalStack(
+            run_id=run_id, run_dir=tmp_path / run_id, brains=list(brains) or [BrainLaunch("explicit")], **options
+        )
         stacks.append(stack)
         stack.start()
         return stack

@@ -74,8 +74,10 @@ def validate_mcap(*paths: str | Path, decode: bool = True, require_viewable: boo
     except (json.JSONDecodeError, TypeError) as exc:
         raise RuntimeError(f"unparseable validator output ({exc}): {proc.stdout!r} {proc.stderr!r}") from exc
     if len(files) != len(paths):
-        raise RuntimeError(f"validator exited {proc.returncode} with {len(files)} results for {len(paths)} files: "
-                           f"{proc.stderr.strip()}")
+        raise RuntimeError(
+            f"validator exited {proc.returncode} with {len(files)} results for {len(paths)} files: "
+            f"{proc.stderr.strip()}"
+        )
     return ValidationResult(returncode=proc.returncode, files=files)
 
 

@@ -18,8 +18,13 @@ from protocol.bus import router_address
 
 def drivebench(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
     base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          env=base | (env or {}), timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args],
+        capture_output=True,
+        text=True,
+        env=base | (env or {}),
+        timeout=timeout,
+    )
 
 
 def one_line(result: subprocess.CompletedProcess) -> str:
@@ -28,13 +33,16 @@ def one_line(result: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-@pytest.mark.parametrize("args, code, message", [
-    (["run", "--router", "tcp/127.0.0.1:7447"], 2, "--router needs --attach"),
-    (["run", "--attach", "--run-id", "r1", "--weights", "x.ckpt"], 2, "--weights cannot be used with --attach"),
-    (["run", "--attach", "--run-id", "r1", "--shadow", "explicit"], 2, "--shadow cannot be used with --attach"),
-    (["run", "--attach"], 2, "no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER"),
-    (["run", "--attach", "--run-id", "r1"], 2, "no router to attach to"),
-])
+@pytest.mark.parametrize(
+    "args, code, message",
+    [
+        (["run", "--router", "tcp/127.0.0.1:7447"], 2, "--router needs --attach"),
+        (["run", "--attach", "--run-id", "r1", "--weights", "x.ckpt"], 2, "--weights cannot be used with --attach"),
+        (["run", "--attach", "--run-id", "r1", "--shadow", "explicit"], 2, "--shadow cannot be used with --attach"),
+        (["run", "--attach"], 2, "no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER"),
+        (["run", "--attach", "--run-id", "r1"], 2, "no router to attach to"),
+    ],
+)
 def test_attach_mistakes_are_one_line(args, code, message):
     result = drivebench(*args)
     assert result.returncode == code, result.stderr
@@ -44,8 +52,11 @@ def test_attach_mistakes_are_one_line(args, code, message):
 @pytest.fixture
 def router():
     port = free_loopback_port()
-    process = subprocess.Popen([sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{port}"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.router", "--listen", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         assert _wait_router(port), "the router did not listen"
         yield f"tcp/127.0.0.1:{port}"
@@ -97,10 +108,16 @@ def test_health_says_what_is_missing(router):
     assert result.returncode == 1 and one_line(result).startswith(f"drivebench health: router {dead} not reachable")
 
 
-@pytest.mark.parametrize("endpoint, address", [
-    ("tcp/10.0.0.5:7447", ("10.0.0.5", 7447)), ("tls/localhost:7447", ("localhost", 7447)),
-    ("tcp/[::]:7447", ("::1", 7447)), ("tcp/0.0.0.0:7447", ("127.0.0.1", 7447)), ("tcp/[::1]:9", ("::1", 9)),
-])
+@pytest.mark.parametrize(
+    "endpoint, address",
+    [
+        ("tcp/10.0.0.5:7447", ("10.0.0.5", 7447)),
+        ("tls/localhost:7447", ("localhost", 7447)),
+        ("tcp/[::]:7447", ("::1", 7447)),
+        ("tcp/0.0.0.0:7447", ("127.0.0.1", 7447)),
+        ("tcp/[::1]:9", ("::1", 9)),
+    ],
+)
 def test_router_address_of_endpoints(endpoint, address):
     assert router_address(endpoint) == address
 

@@ -55,8 +55,16 @@ def frames():
 @pytest.mark.parametrize("name", brain_names())
 def test_every_registered_brain_meets_the_contract(name, frames, brain_options):
     results = check_brain(name, options=brain_options(name), frames=frames, memory_steps=120)
-    assert [r.name for r in results] == ["make", "protocol", "act", "read-only", "units", "answer time",
-                                         "determinism", "memory"]
+    assert [r.name for r in results] == [
+        "make",
+        "protocol",
+        "act",
+        "read-only",
+        "units",
+        "answer time",
+        "determinism",
+        "memory",
+    ]
     assert passed(results), "\n".join(r.line() for r in results)
 
 
@@ -72,13 +80,15 @@ def test_the_checker_frames_are_real_renders_of_every_world(frames):
 def test_brains_answer_any_camera_size(name, size, brain_options):
     circuit = load_circuit("simple")
     with Scene(circuit) as scene:
-        images = [scene.render(CarState(*circuit.centreline.pose_at(s)), CameraSpec(width_px=size[0],
-                                                                                   height_px=size[1]))
-                  for s in np.arange(0.0, 12.0, 4.0)]
+        images = [
+            scene.render(CarState(*circuit.centreline.pose_at(s)), CameraSpec(width_px=size[0], height_px=size[1]))
+            for s in np.arange(0.0, 12.0, 4.0)
+        ]
     brain = make_brain(name, **brain_options(name))
     brain.reset(seed=0)
-    actions = [brain.act(Observation(image_rgb=image, stamp_ns=i * 50_000_000, seq=i))
-               for i, image in enumerate(images)]
+    actions = [
+        brain.act(Observation(image_rgb=image, stamp_ns=i * 50_000_000, seq=i)) for i, image in enumerate(images)
+    ]
     assert all(np.isfinite([a.speed_mps, a.yaw_rate_radps]).all() for a in actions)
 
 
@@ -152,23 +162,31 @@ def test_checker_names_the_fix_for_each_broken_rule(broken_brains, frames):
     assert "deque" in hoarder["memory"] and "MiB" in hoarder["memory"]
     assert "not brains.base.Action" in failures(check_brain("broken_brains:Tuple", frames=frames))["act"]
     assert "copy the image" in failures(check_brain("broken_brains:Scribbler", frames=frames))["read-only"]
-    assert "def reset(self, *, seed: int)" in failures(check_brain("broken_brains:PositionalSeed",
-                                                                   frames=frames))["protocol"]
+    assert (
+        "def reset(self, *, seed: int)"
+        in failures(check_brain("broken_brains:PositionalSeed", frames=frames))["protocol"]
+    )
     assert "radians per second" in failures(check_brain("broken_brains:Degrees", frames=frames))["units"]
     assert "gain" in failures(check_brain("broken_brains:NeedsOption", frames=frames))["make"]
     assert passed(check_brain("broken_brains:NeedsOption", options={"gain": 1}, frames=frames)) is False  # no act
 
 
 def test_checker_stops_at_a_name_that_leads_nowhere(broken_brains):
-    for name, expected in (("hal", "unknown brain 'hal'"), ("broken_brains:Nope", "has no 'Nope'"),
-                           ("no_such_module:Brain", "cannot import module 'no_such_module'"),
-                           ("missing_brain.py", "not found")):
+    for name, expected in (
+        ("hal", "unknown brain 'hal'"),
+        ("broken_brains:Nope", "has no 'Nope'"),
+        ("no_such_module:Brain", "cannot import module 'no_such_module'"),
+        ("missing_brain.py", "not found"),
+    ):
         results = check_brain(name)
         assert [(r.name, r.status) for r in results] == [("make", "fail")] and expected in results[0].detail
 
 
 def test_unknown_brain_names_the_known_ones_and_the_other_forms():
-    with pytest.raises(UnknownBrainError, match=r"unknown brain 'hal' \(known: behavior_metrics, constant, "
-                                                r"deepest_lstm_tiny_pilotnet, expert, explicit, memdccp, .*; or give "
-                                                r"package.module:Class, or a Behavior Metrics brain file"):
+    with pytest.raises(
+        UnknownBrainError,
+        match=r"unknown brain 'hal' \(known: behavior_metrics, constant, "
+        r"deepest_lstm_tiny_pilotnet, expert, explicit, memdccp, .*; or give "
+        r"package.module:Class, or a Behavior Metrics brain file",
+    ):
         make_brain("hal")

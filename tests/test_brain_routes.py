@@ -53,7 +53,7 @@ def test_installed_entry_points_are_listed_with_their_package():
 
 # -- the Behavior Metrics adapter ------------------------------------------------------------------------------------
 
-BM_STYLE = '''
+BM_STYLE = """
 import numpy as np
 
 
@@ -74,7 +74,7 @@ class Brain:
         self.motors.sendV(float(image[0, 0, 0]))  # blue of the first pixel: the image is BGR
         if self.frames == 1:
             self.motors.sendW(np.random.uniform(-1, 1))  # later frames leave W as it was
-'''
+"""
 
 
 @pytest.fixture
@@ -157,22 +157,34 @@ def test_real_messages_on_the_wire_validate_against_their_schema():
         assert wire["type"] == f"drivebench.{type(message).__name__}.v1"
         jsonschema.validate(as_json_value(wire), message_schema(type(message)))
     # And what such a brain sends back decodes as the project's own type.
-    reply = {"type": "drivebench.Command.v1", "header": {"run_id": "r", "episode": 0, "seq": 0, "stamp_ns": 0},
-             "brain": "mine", "frame_seq": 0, "speed_mps": 4.0, "yaw_rate_radps": 0.1}
+    reply = {
+        "type": "drivebench.Command.v1",
+        "header": {"run_id": "r", "episode": 0, "seq": 0, "stamp_ns": 0},
+        "brain": "mine",
+        "frame_seq": 0,
+        "speed_mps": 4.0,
+        "yaw_rate_radps": 0.1,
+    }
     jsonschema.validate(reply, message_schema(Command))
     assert codec.decode(msgpack.packb(reply), Command).speed_mps == 4.0
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({**reply, "speed_mps": "fast"}, message_schema(Command))
-    assert json.loads(schema_files()["CameraFrame.schema.json"])["$defs"]["CameraFrame"]["properties"]["data"][
-        "x-msgpack"] == "bin"
+    assert (
+        json.loads(schema_files()["CameraFrame.schema.json"])["$defs"]["CameraFrame"]["properties"]["data"]["x-msgpack"]
+        == "bin"
+    )
     assert len(BRAIN_MESSAGES) == len(schema_files())
 
 
 def test_schema_command_writes_the_folder(tmp_path):
     import subprocess
 
-    result = subprocess.run([sys.executable, "-m", "orchestrator.cli", "brains", "schema", "-o", str(tmp_path)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "brains", "schema", "-o", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(schema_files())
 
@@ -189,8 +201,10 @@ def test_matrix_files_name_brains_by_module_path_and_brain_file(tmp_path, bm_fil
         path = tmp_path / "m.yaml"
         path.write_text("name: mine\nbrains: [lap_module:Mine, brain_bm_style.py]\ncircuits: [simple]\n")
         matrix = load_matrix(path)
-        assert [(b.label, b.brain) for b in matrix.brains] == [("Mine", "lap_module:Mine"),
-                                                                ("brain_bm_style", str(bm_file))]
+        assert [(b.label, b.brain) for b in matrix.brains] == [
+            ("Mine", "lap_module:Mine"),
+            ("brain_bm_style", str(bm_file)),
+        ]
         path.write_text("name: mine\nbrains: [lap_module:Missing]\ncircuits: [simple]\n")
         with pytest.raises(MatrixError, match=r"m.yaml:2: brain 'lap_module:Missing': module 'lap_module' has no"):
             load_matrix(path)
@@ -202,13 +216,20 @@ def test_matrix_files_name_brains_by_module_path_and_brain_file(tmp_path, bm_fil
 def test_brains_check_command_exit_codes_and_fix_lines(tmp_path):
     import subprocess
 
-    (tmp_path / "kmh.py").write_text("from brains.base import Action\nclass Kmh:\n    def reset(self, *, seed):\n"
-                                     "        pass\n    def act(self, observation):\n"
-                                     "        return Action(speed_mps=72.0, yaw_rate_radps=0.0)\n")
+    (tmp_path / "kmh.py").write_text(
+        "from brains.base import Action\nclass Kmh:\n    def reset(self, *, seed):\n"
+        "        pass\n    def act(self, observation):\n"
+        "        return Action(speed_mps=72.0, yaw_rate_radps=0.0)\n"
+    )
 
     def check(*args):
-        return subprocess.run([sys.executable, "-m", "orchestrator.cli", "brains", "check", *args,
-                               "--memory-steps", "40"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        return subprocess.run(
+            [sys.executable, "-m", "orchestrator.cli", "brains", "check", *args, "--memory-steps", "40"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=tmp_path,
+        )
 
     good = check("constant", "--brain-option", "speed_mps=3")
     assert good.returncode == 0 and good.stdout.count("PASS") == 8, good.stdout + good.stderr

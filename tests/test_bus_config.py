@@ -30,6 +30,7 @@ def resolved(config: BusConfig = BusConfig(), **env: str):
 
 # -- endpoints and mode --
 
+
 def test_defaults_without_environment_are_a_loopback_peer():
     bus = resolved()
     assert (bus.mode, bus.connect, bus.listen, bus.connect_timeout_ms) == ("peer", (), ("tcp/127.0.0.1:0",), -1)
@@ -74,13 +75,16 @@ def test_overrides_and_files_are_explicit_config(tmp_path):
     assert (bus.mode, bus.connect) == ("client", ("tcp/127.0.0.1:7000",))
 
 
-@pytest.mark.parametrize(("env", "message"), [
-    ({"DRIVEBENCH_MODE": "router"}, "DRIVEBENCH_MODE must be peer or client, got 'router'"),
-    ({"DRIVEBENCH_MODE": "Peer"}, "DRIVEBENCH_MODE must be peer or client, got 'Peer'"),
-    ({"DRIVEBENCH_ROUTER": "10.1.2.3:7447"}, "DRIVEBENCH_ROUTER: '10.1.2.3:7447' is not an endpoint"),
-    ({"DRIVEBENCH_ROUTER": "htp/10.1.2.3:7447"}, "DRIVEBENCH_ROUTER: 'htp/10.1.2.3:7447' is not an endpoint"),
-    ({"DRIVEBENCH_LISTEN": "tcp/0.0.0.0:1,0.0.0.0:2"}, "DRIVEBENCH_LISTEN: '0.0.0.0:2' is not an endpoint"),
-])
+@pytest.mark.parametrize(
+    ("env", "message"),
+    [
+        ({"DRIVEBENCH_MODE": "router"}, "DRIVEBENCH_MODE must be peer or client, got 'router'"),
+        ({"DRIVEBENCH_MODE": "Peer"}, "DRIVEBENCH_MODE must be peer or client, got 'Peer'"),
+        ({"DRIVEBENCH_ROUTER": "10.1.2.3:7447"}, "DRIVEBENCH_ROUTER: '10.1.2.3:7447' is not an endpoint"),
+        ({"DRIVEBENCH_ROUTER": "htp/10.1.2.3:7447"}, "DRIVEBENCH_ROUTER: 'htp/10.1.2.3:7447' is not an endpoint"),
+        ({"DRIVEBENCH_LISTEN": "tcp/0.0.0.0:1,0.0.0.0:2"}, "DRIVEBENCH_LISTEN: '0.0.0.0:2' is not an endpoint"),
+    ],
+)
 def test_a_bad_variable_is_one_line_naming_it(env, message):
     with pytest.raises(BusError) as error:
         resolved(**env)
@@ -102,15 +106,26 @@ def test_zenoh_accepts_every_resolved_config(tmp_path):
     ca, cert, key = (tmp_path / name for name in ("ca.pem", "me.pem", "me.key"))
     for path in (ca, cert, key):
         path.write_text("not checked here: Zenoh reads it when it connects\n")
-    for config, env in [(BusConfig(), {}), (OBSERVER_BUS, {"DRIVEBENCH_ROUTER": ROUTER}),
-                        (BusConfig(mode="router", listen=["tcp/127.0.0.1:0"]), {}),
-                        (BusConfig(connect=["tls/router.lan:7447"]),
-                         {"DRIVEBENCH_TLS_ROOT_CA": str(ca), "DRIVEBENCH_TLS_CERT": str(cert),
-                          "DRIVEBENCH_TLS_KEY": str(key), "DRIVEBENCH_USER": "u", "DRIVEBENCH_PASSWORD": "p"})]:
+    for config, env in [
+        (BusConfig(), {}),
+        (OBSERVER_BUS, {"DRIVEBENCH_ROUTER": ROUTER}),
+        (BusConfig(mode="router", listen=["tcp/127.0.0.1:0"]), {}),
+        (
+            BusConfig(connect=["tls/router.lan:7447"]),
+            {
+                "DRIVEBENCH_TLS_ROOT_CA": str(ca),
+                "DRIVEBENCH_TLS_CERT": str(cert),
+                "DRIVEBENCH_TLS_KEY": str(key),
+                "DRIVEBENCH_USER": "u",
+                "DRIVEBENCH_PASSWORD": "p",
+            },
+        ),
+    ]:
         zenoh_config(config, name="test", env=env)
 
 
 # -- TLS and credentials --
+
 
 @pytest.fixture
 def pem(tmp_path):
@@ -122,15 +137,23 @@ def pem(tmp_path):
 
 
 def test_security_from_environment_makes_a_client_with_a_finite_connect_timeout(pem):
-    bus = resolved(DRIVEBENCH_ROUTER="tls/router.lan:7447", DRIVEBENCH_TLS_ROOT_CA=pem["ca.pem"],
-                   DRIVEBENCH_TLS_CERT=pem["me.pem"], DRIVEBENCH_TLS_KEY=pem["me.key"],
-                   DRIVEBENCH_LISTEN="tcp/0.0.0.0:9")
+    bus = resolved(
+        DRIVEBENCH_ROUTER="tls/router.lan:7447",
+        DRIVEBENCH_TLS_ROOT_CA=pem["ca.pem"],
+        DRIVEBENCH_TLS_CERT=pem["me.pem"],
+        DRIVEBENCH_TLS_KEY=pem["me.key"],
+        DRIVEBENCH_LISTEN="tcp/0.0.0.0:9",
+    )
     assert bus.secure
     assert (bus.mode, bus.listen, bus.connect_timeout_ms) == ("client", (), 10_000)
     tls = zenoh_settings(bus, name="t")["transport"]["link"]["tls"]
     # Measured: a client shows its certificate to a mutual-TLS router only with enable_mtls.
-    assert tls == {"root_ca_certificate": pem["ca.pem"], "connect_certificate": pem["me.pem"],
-                   "connect_private_key": pem["me.key"], "enable_mtls": True}
+    assert tls == {
+        "root_ca_certificate": pem["ca.pem"],
+        "connect_certificate": pem["me.pem"],
+        "connect_private_key": pem["me.key"],
+        "enable_mtls": True,
+    }
 
 
 def test_a_tls_endpoint_alone_is_secure():
@@ -144,14 +167,26 @@ def test_config_files_win_over_environment_files(pem, tmp_path):
     assert bus.tls_root_ca == str(other)
 
 
-@pytest.mark.parametrize(("config", "env", "message"), [
-    (BusConfig(tls_cert="/nonexistent/me.pem", tls_key="/nonexistent/me.key"), {},
-     "bus.tls_cert: cannot read /nonexistent/me.pem: No such file or directory"),
-    (BusConfig(), {"DRIVEBENCH_TLS_ROOT_CA": "/nonexistent/ca.pem"},
-     "DRIVEBENCH_TLS_ROOT_CA: cannot read /nonexistent/ca.pem: No such file or directory"),
-    (BusConfig(user="u", password_file="/nonexistent/pw"), {},
-     "bus.password_file: cannot read /nonexistent/pw: No such file or directory"),
-])
+@pytest.mark.parametrize(
+    ("config", "env", "message"),
+    [
+        (
+            BusConfig(tls_cert="/nonexistent/me.pem", tls_key="/nonexistent/me.key"),
+            {},
+            "bus.tls_cert: cannot read /nonexistent/me.pem: No such file or directory",
+        ),
+        (
+            BusConfig(),
+            {"DRIVEBENCH_TLS_ROOT_CA": "/nonexistent/ca.pem"},
+            "DRIVEBENCH_TLS_ROOT_CA: cannot read /nonexistent/ca.pem: No such file or directory",
+        ),
+        (
+            BusConfig(user="u", password_file="/nonexistent/pw"),
+            {},
+            "bus.password_file: cannot read /nonexistent/pw: No such file or directory",
+        ),
+    ],
+)
 def test_a_missing_file_is_one_line_naming_field_and_path(config, env, message):
     with pytest.raises(BusError) as error:
         resolved(config, **env)
@@ -172,8 +207,9 @@ def test_incomplete_security_settings_are_refused(pem, tmp_path):
 
 
 def test_a_secure_process_must_be_a_listenerless_client(pem):
-    with pytest.raises(BusError, match="bus.mode is peer, but TLS or credentials are set: a secure process must be a "
-                                       "client"):
+    with pytest.raises(
+        BusError, match="bus.mode is peer, but TLS or credentials are set: a secure process must be a client"
+    ):
         resolved(BusConfig(mode="peer", connect=["tls/router.lan:7447"]), DRIVEBENCH_TLS_ROOT_CA=pem["ca.pem"])
     with pytest.raises(BusError, match="DRIVEBENCH_MODE is peer"):
         resolved(DRIVEBENCH_MODE="peer", DRIVEBENCH_USER="alice", DRIVEBENCH_PASSWORD="secret")
@@ -184,8 +220,11 @@ def test_a_secure_process_must_be_a_listenerless_client(pem):
 def test_a_tls_listener_needs_the_routers_certificate(pem):
     with pytest.raises(BusError, match=r"listening on \['tls/0.0.0.0:7447'\] needs the router's certificate"):
         resolved(BusConfig(mode="router", listen=["tls/0.0.0.0:7447"]))
-    router = resolved(BusConfig(mode="router", listen=["tls/0.0.0.0:7447"]), DRIVEBENCH_TLS_CERT=pem["me.pem"],
-                      DRIVEBENCH_TLS_KEY=pem["me.key"])
+    router = resolved(
+        BusConfig(mode="router", listen=["tls/0.0.0.0:7447"]),
+        DRIVEBENCH_TLS_CERT=pem["me.pem"],
+        DRIVEBENCH_TLS_KEY=pem["me.key"],
+    )
     assert router.connect_timeout_ms == -1  # a router is never a client
     tls = zenoh_settings(router, name="r")["transport"]["link"]["tls"]
     assert (tls["listen_certificate"], tls["listen_private_key"]) == (pem["me.pem"], pem["me.key"])
@@ -206,14 +245,20 @@ def test_the_password_comes_from_a_file_or_the_environment_and_is_never_shown(tm
 
 # -- real processes: the error is one line on stderr and exit code 2 --
 
+
 def clean_env(**extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
     return env | extra
 
 
 def test_a_service_with_a_bad_variable_exits_2_with_one_line():
-    result = subprocess.run([sys.executable, "-m", "brains", "--brain", "constant"], capture_output=True, text=True,
-                            timeout=60, env=clean_env(DRIVEBENCH_MODE="server", DRIVEBENCH_ROUTER="tcp/127.0.0.1:9"))
+    result = subprocess.run(
+        [sys.executable, "-m", "brains", "--brain", "constant"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=clean_env(DRIVEBENCH_MODE="server", DRIVEBENCH_ROUTER="tcp/127.0.0.1:9"),
+    )
     assert result.returncode == 2, result.stderr
     last = result.stderr.strip().splitlines()[-1]
     assert last == "brain: error: DRIVEBENCH_MODE must be peer or client, got 'server'"
@@ -221,10 +266,25 @@ def test_a_service_with_a_bad_variable_exits_2_with_one_line():
 
 def test_a_router_with_a_missing_certificate_exits_2_with_one_line(tmp_path):
     config = tmp_path / "router.yaml"
-    config.write_text(json.dumps({"bus": {"listen": ["tls/127.0.0.1:0"], "tls_cert": str(tmp_path / "router.pem"),
-                                          "tls_key": str(tmp_path / "router.key")}}))
-    result = subprocess.run([sys.executable, "-m", "services.router", "--config", str(config)], capture_output=True,
-                            text=True, timeout=60, env=clean_env())
+    config.write_text(
+        json.dumps(
+            {
+                "bus": {
+                    "listen": ["tls/127.0.0.1:0"],
+                    "tls_cert": str(tmp_path / "router.pem"),
+                    "tls_key": str(tmp_path / "router.key"),
+                }
+            }
+        )
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "services.router", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=clean_env(),
+    )
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().splitlines()[-1] == (
-        f"router: error: bus.tls_cert: cannot read {tmp_path / 'router.pem'}: No such file or directory")
+        f"router: error: bus.tls_cert: cannot read {tmp_path / 'router.pem'}: No such file or directory"
+    )

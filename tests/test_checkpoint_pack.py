@@ -82,12 +82,15 @@ def test_packed_checkpoint_drives_a_neural_brain(pilotnet, road_frame):
     np.testing.assert_allclose(act(written[-1]), act(original), rtol=1e-2)
 
 
-@pytest.mark.parametrize("case, message", [
-    ("missing", r"shard file .*model\.ckpt\.shard2 is missing"),
-    ("truncated", r"shard file .*model\.ckpt\.shard2 does not match its sha256"),
-    ("changed", r"shard file .*model\.ckpt\.shard2 does not match its sha256"),
-    ("lfs", r"shard file .*model\.ckpt\.shard2 is a git LFS pointer"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("missing", r"shard file .*model\.ckpt\.shard2 is missing"),
+        ("truncated", r"shard file .*model\.ckpt\.shard2 does not match its sha256"),
+        ("changed", r"shard file .*model\.ckpt\.shard2 does not match its sha256"),
+        ("lfs", r"shard file .*model\.ckpt\.shard2 is a git LFS pointer"),
+    ],
+)
 def test_missing_or_changed_shard_is_one_line_naming_the_file(case, message, pilotnet, tmp_path):
     packed = copy_pack(pilotnet[1], tmp_path / "copy")
     shard = packed.with_name("model.ckpt.shard2")
@@ -109,14 +112,28 @@ def test_missing_or_changed_shard_is_one_line_naming_the_file(case, message, pil
 def test_float32_pack_of_a_training_checkpoint_is_exact_and_drops_resume_state(tmp_path):
     source = make_random_checkpoint(tmp_path / "small.pt", SMALL)
     raw = read_checkpoint(source)
-    raw.update(optimizer_state={"state": {}, "param_groups": []}, epoch=3, rng={"torch": torch.get_rng_state()},
-               resume={"best_state_dict": raw["state_dict"]})
+    raw.update(
+        optimizer_state={"state": {}, "param_groups": []},
+        epoch=3,
+        rng={"torch": torch.get_rng_state()},
+        resume={"best_state_dict": raw["state_dict"]},
+    )
     torch.save(raw, tmp_path / "last.ckpt")
     written = pack_checkpoint(tmp_path / "last.ckpt", tmp_path / "model.ckpt", half=False)
     assert [path.name for path in written] == ["model.ckpt.shard0", "model.ckpt"]  # fits one shard: still one
     packed = torch.load(written[-1], weights_only=True)
-    assert set(packed) == {"format", "model", "hyper", "input", "normalisation", "dataset", "metrics", "training",
-                           "state_dict", SHARDS_KEY}
+    assert set(packed) == {
+        "format",
+        "model",
+        "hyper",
+        "input",
+        "normalisation",
+        "dataset",
+        "metrics",
+        "training",
+        "state_dict",
+        SHARDS_KEY,
+    }
     assert packed["state_dict"] == {} and packed[SHARDS_KEY]["dtype"] == "float32"
     back = read_checkpoint(written[-1])["state_dict"]
     assert all(torch.equal(back[k], v) for k, v in raw["state_dict"].items())
@@ -134,8 +151,9 @@ def test_repacking_is_stable_and_removes_stale_shards(tmp_path):
 
 def test_joined_shards_are_checked_without_per_file_hashes(tmp_path):
     """A pack whose entry carries only the joined sha256 (the minimal form) still detects a changed shard."""
-    written = pack_checkpoint(make_random_checkpoint(tmp_path / "small.pt", SMALL), tmp_path / "m.ckpt",
-                              shard_bytes=50_000)
+    written = pack_checkpoint(
+        make_random_checkpoint(tmp_path / "small.pt", SMALL), tmp_path / "m.ckpt", shard_bytes=50_000
+    )
     raw = torch.load(written[-1], weights_only=True)
     del raw[SHARDS_KEY]["file_sha256"]
     torch.save(raw, written[-1])
@@ -154,8 +172,12 @@ def test_pack_command_errors_are_one_line(tmp_path, capsys):
 
 def test_pack_command_end_to_end(pilotnet, tmp_path):
     out = tmp_path / "git" / "pilotnet.ckpt"
-    done = subprocess.run([sys.executable, "-m", "orchestrator.cli", "pack", str(pilotnet[0]), "-o", str(out)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "pack", str(pilotnet[0]), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     files = sorted(out.parent.iterdir())
     assert len(files) == 5 and all(path.stat().st_size <= 9 * 2**20 for path in files)  # default 9 MiB shards

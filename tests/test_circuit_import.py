@@ -102,8 +102,9 @@ def test_comments_blank_lines_and_an_explicitly_closed_file_are_accepted(tmp_pat
     import_racetrack_csv(csv, name="closed")
     circuit = load_circuit("closed")
     assert circuit.road_half_width_m == pytest.approx(1.5)
-    assert circuit.length_m == pytest.approx(np.sum(np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)),
-                                              rel=2e-3)
+    assert circuit.length_m == pytest.approx(
+        np.sum(np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)), rel=2e-3
+    )
 
 
 def test_an_existing_user_circuit_is_kept_unless_overwritten(tmp_path):
@@ -170,8 +171,11 @@ def test_a_figure_of_eight_is_refused_naming_the_crossing_lines(tmp_path):
     eight = np.column_stack([400 * np.sin(t), 200 * np.sin(2 * t)])
     csv = tmp_path / "eight.csv"
     csv.write_text(HEADER + "\n".join(lines_of(eight)) + "\n")
-    with pytest.raises(CircuitError, match=r"eight\.csv: the centreline crosses itself near \(-?0\.\d, -?0\.\d\): "
-                                           r"the segment from line 2\d\d to line 2\d\d crosses the one from line"):
+    with pytest.raises(
+        CircuitError,
+        match=r"eight\.csv: the centreline crosses itself near \(-?0\.\d, -?0\.\d\): "
+        r"the segment from line 2\d\d to line 2\d\d crosses the one from line",
+    ):
         import_racetrack_csv(csv, name="eight")
 
 

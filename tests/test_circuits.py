@@ -37,7 +37,7 @@ def brute_force(centreline: Centreline, x: float, y: float) -> tuple[float, floa
     """(distance, s) of the closest point over every segment."""
     p = centreline.points_m
     v = np.roll(p, -1, axis=0) - p
-    t = np.clip(((x - p[:, 0]) * v[:, 0] + (y - p[:, 1]) * v[:, 1]) / (v ** 2).sum(axis=1), 0, 1)
+    t = np.clip(((x - p[:, 0]) * v[:, 0] + (y - p[:, 1]) * v[:, 1]) / (v**2).sum(axis=1), 0, 1)
     d = np.hypot(x - (p[:, 0] + t * v[:, 0]), y - (p[:, 1] + t * v[:, 1]))
     i = int(np.argmin(d))
     return float(d[i]), float(centreline.s_m[i] + t[i] * np.hypot(*v[i]))
@@ -46,6 +46,7 @@ def brute_force(centreline: Centreline, x: float, y: float) -> tuple[float, floa
 def segments_cross(a, b, c, d) -> bool:
     def orient(p, q, r):
         return np.sign((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+
     return orient(a, b, c) != orient(a, b, d) and orient(c, d, a) != orient(c, d, b)
 
 
@@ -182,12 +183,14 @@ def stadium(length: float, gap: float, step: float = 0.5) -> np.ndarray:
     r = gap / 2
     straight = np.arange(0, length, step)
     arc = np.linspace(np.pi / 2, -np.pi / 2, max(8, int(np.pi * r / step)), endpoint=False)
-    return np.vstack([
-        np.column_stack([straight, np.full_like(straight, gap)]),
-        np.column_stack([length + r * np.cos(arc), r + r * np.sin(arc)]),
-        np.column_stack([length - straight, np.zeros_like(straight)]),
-        np.column_stack([-r * np.cos(arc), r - r * np.sin(arc)]),
-    ])
+    return np.vstack(
+        [
+            np.column_stack([straight, np.full_like(straight, gap)]),
+            np.column_stack([length + r * np.cos(arc), r + r * np.sin(arc)]),
+            np.column_stack([length - straight, np.zeros_like(straight)]),
+            np.column_stack([-r * np.cos(arc), r - r * np.sin(arc)]),
+        ]
+    )
 
 
 def test_check_track_accepts_a_circle_and_a_wide_stadium():

@@ -14,8 +14,9 @@ pytestmark = pytest.mark.integration
 
 
 def drivebench(*args: str, env: dict | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout, env=env
+    )
 
 
 @pytest.fixture
@@ -44,8 +45,9 @@ def test_imported_f1_scale_track_is_driven_by_the_explicit_brain(tmp_path, circu
     assert imported.returncode == 0, imported.stderr
     listed = drivebench("circuits", "list", env=circuits_env)
     assert "oval" in listed.stdout and "simple" in listed.stdout
-    result = drivebench("run", "--circuit", "oval", "--max-sim-seconds", "40", "--json", "--out", str(tmp_path / "r"),
-                        env=circuits_env)
+    result = drivebench(
+        "run", "--circuit", "oval", "--max-sim-seconds", "40", "--json", "--out", str(tmp_path / "r"), env=circuits_env
+    )
     assert result.returncode == 0, result.stderr
     score = json.loads(result.stdout)
     assert score["reason"] == "time_limit"  # it kept on the road for 40 s

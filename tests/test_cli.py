@@ -17,15 +17,31 @@ pytestmark = pytest.mark.integration
 
 
 def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_run_json_prints_one_json_object_and_writes_the_run_folder(tmp_path):
     out = tmp_path / "run"
-    result = drivebench("run", "--circuit", "simple", "--brain", "explicit", "--max-sim-seconds", "5",
-                        "--camera", "160x120", "--seed", "4", "--json", "--out", str(out),
-                        "--run-id", "0042")  # digits only: must stay a string in every process
+    result = drivebench(
+        "run",
+        "--circuit",
+        "simple",
+        "--brain",
+        "explicit",
+        "--max-sim-seconds",
+        "5",
+        "--camera",
+        "160x120",
+        "--seed",
+        "4",
+        "--json",
+        "--out",
+        str(out),
+        "--run-id",
+        "0042",
+    )  # digits only: must stay a string in every process
     assert result.returncode == 0, result.stderr
     score = json.loads(result.stdout)  # stdout is exactly one JSON object
     assert result.stdout.count("\n") == 1
@@ -47,11 +63,14 @@ def test_run_prints_a_metrics_table(tmp_path):
     assert "BM position deviation" in result.stdout
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--circuit", "atlantis"], "unknown circuit 'atlantis' (known: "),
-    (["--brain", "hal"], "unknown brain 'hal' (known: "),
-    (["--laps", "0"], "laps must be >= 1"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--circuit", "atlantis"], "unknown circuit 'atlantis' (known: "),
+        (["--brain", "hal"], "unknown brain 'hal' (known: "),
+        (["--laps", "0"], "laps must be >= 1"),
+    ],
+)
 def test_user_mistakes_give_one_line_and_exit_2(tmp_path, args, message):
     result = drivebench("run", "--out", str(tmp_path / "r"), *args, timeout=30)
     assert result.returncode == 2
@@ -66,28 +85,36 @@ def test_bad_camera_size_is_a_usage_error(tmp_path):
 
 
 def test_bad_brain_option_is_refused_before_anything_starts(tmp_path):
-    result = drivebench("run", "--brain", "constant", "--brain-option", "warp=9", "--out", str(tmp_path / "r"),
-                        timeout=90)
+    result = drivebench(
+        "run", "--brain", "constant", "--brain-option", "warp=9", "--out", str(tmp_path / "r"), timeout=90
+    )
     assert result.returncode == 2  # a usage mistake, found before the stack starts: no run folder
     assert "bad options for brain 'constant'" in result.stderr and "warp" in result.stderr
     assert "Traceback" not in result.stderr and not (tmp_path / "r").exists()
 
 
-@pytest.mark.parametrize("args, expected", [
-    (["--brain", "explicit", "--weights", "{good}"], "brain 'explicit' takes no weights"),
-    (["--brain", "pilotnet", "--weights", "{good}"], "holds a memdccp network, not pilotnet"),
-    (["--brain", "memdccp", "--weights", "{random}"], "not a torch checkpoint"),
-    (["--brain", "memdccp", "--weights", "{pickle}"], "not a torch checkpoint of tensors"),
-    (["--shadow", "memdccp={random}"], "not a torch checkpoint"),
-], ids=["no-weights-brain", "wrong-network", "random-bytes", "pickled-object", "shadow"])
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--brain", "explicit", "--weights", "{good}"], "brain 'explicit' takes no weights"),
+        (["--brain", "pilotnet", "--weights", "{good}"], "holds a memdccp network, not pilotnet"),
+        (["--brain", "memdccp", "--weights", "{random}"], "not a torch checkpoint"),
+        (["--brain", "memdccp", "--weights", "{pickle}"], "not a torch checkpoint of tensors"),
+        (["--shadow", "memdccp={random}"], "not a torch checkpoint"),
+    ],
+    ids=["no-weights-brain", "wrong-network", "random-bytes", "pickled-object", "shadow"],
+)
 def test_bad_weights_are_refused_before_anything_starts(tmp_path, args, expected):
     require("torch")
     import torch
 
     (tmp_path / "random.ckpt").write_bytes(bytes(range(256)) * 8)
     torch.save({"model": print}, tmp_path / "pickle.ckpt")  # loading it would need unpickling a function
-    paths = {"good": str(Path(__file__).resolve().parent.parent / "brains" / "weights" / "memdccp.ckpt"),
-             "random": str(tmp_path / "random.ckpt"), "pickle": str(tmp_path / "pickle.ckpt")}
+    paths = {
+        "good": str(Path(__file__).resolve().parent.parent / "brains" / "weights" / "memdccp.ckpt"),
+        "random": str(tmp_path / "random.ckpt"),
+        "pickle": str(tmp_path / "pickle.ckpt"),
+    }
     started = time.monotonic()
     result = drivebench("run", *[arg.format(**paths) for arg in args], "--out", str(tmp_path / "r"), timeout=60)
     assert result.returncode == 2 and expected in result.stderr, result.stderr
@@ -99,8 +126,12 @@ def test_bad_weights_are_refused_before_anything_starts(tmp_path, args, expected
 @pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupting_a_run_stops_every_process(tmp_path, signal_number):
     out = tmp_path / "run"
-    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--out", str(out)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", "run", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 60
     while "episode 0 started" not in _read(out / "logs" / "simulator.log"):
         assert time.monotonic() < deadline and run.poll() is None, "the episode never started"
@@ -145,9 +176,30 @@ def _alive(pid: int) -> bool:
 def test_a_failed_run_leaves_a_failure_record_and_prints_it_with_json(tmp_path):
     """A hard failure (the scorer killed) is typed, in failure.json and on stdout with --json: not only prose."""
     out = tmp_path / "run"
-    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--brain", "constant", "--brain-option",
-                            "speed_mps=0", "--max-sim-seconds", "600", "--camera", "64x48", "--run-id", "failjson",
-                            "--json", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator.cli",
+            "run",
+            "--brain",
+            "constant",
+            "--brain-option",
+            "speed_mps=0",
+            "--max-sim-seconds",
+            "600",
+            "--camera",
+            "64x48",
+            "--run-id",
+            "failjson",
+            "--json",
+            "--out",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60
         while not (out / "logs" / "scorer.log").is_file() or "ready" not in (out / "logs" / "scorer.log").read_text():
@@ -163,4 +215,3 @@ def test_a_failed_run_leaves_a_failure_record_and_prints_it_with_json(tmp_path):
     record = json.loads(stdout)
     assert record["failure"] == "scorer_died" and record["run_id"] == "failjson"
     assert json.loads((out / "failure.json").read_text()) == record
-

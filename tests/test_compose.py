@@ -31,8 +31,18 @@ ROOT = Path(__file__).resolve().parent.parent
 COMPOSE_FILE = ROOT / "compose.yaml"
 PROFILES = ("gpu", "record", "viz", "matrix")
 STOPPED = (0, 128 + signal.SIGTERM)  # a clean exit, or the SIGTERM handler's exit code after closing everything
-EVERY_SERVICE = {"router", "simulator", "noise", "brain", "brain-gpu", "scorer", "run", "recorder", "orchestrator",
-                 "viz"}
+EVERY_SERVICE = {
+    "router",
+    "simulator",
+    "noise",
+    "brain",
+    "brain-gpu",
+    "scorer",
+    "run",
+    "recorder",
+    "orchestrator",
+    "viz",
+}
 
 
 def compose_binary() -> Path:
@@ -43,18 +53,29 @@ def compose_binary() -> Path:
     return binary
 
 
-def compose(*args: str, file: Path = COMPOSE_FILE, env: dict[str, str] | None = None,
-            profiles: tuple[str, ...] = PROFILES, overrides: tuple[Path, ...] = ()) -> subprocess.CompletedProcess:
+def compose(
+    *args: str,
+    file: Path = COMPOSE_FILE,
+    env: dict[str, str] | None = None,
+    profiles: tuple[str, ...] = PROFILES,
+    overrides: tuple[Path, ...] = (),
+) -> subprocess.CompletedProcess:
     profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
     profile_args += [arg for override in overrides for arg in ("-f", str(override))]
     # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
     base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_") and k not in ("BRAIN", "TAG")}
-    return subprocess.run([str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent),
-                           *profile_args, *args], capture_output=True, text=True, env=base | (env or {}), timeout=60)
+    return subprocess.run(
+        [str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent), *profile_args, *args],
+        capture_output=True,
+        text=True,
+        env=base | (env or {}),
+        timeout=60,
+    )
 
 
-def resolved(env: dict[str, str] | None = None, profiles: tuple[str, ...] = PROFILES,
-             overrides: tuple[Path, ...] = ()) -> dict:
+def resolved(
+    env: dict[str, str] | None = None, profiles: tuple[str, ...] = PROFILES, overrides: tuple[Path, ...] = ()
+) -> dict:
     result = compose("config", "--format", "json", env=env, profiles=profiles, overrides=overrides)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)
@@ -69,17 +90,30 @@ def test_docker_compose_config_accepts_the_file_with_every_profile():
 
 
 def test_the_compose_spec_schema_accepts_the_file():
-    result = subprocess.run([sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec",
-                             str(COMPOSE_FILE)], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec", str(COMPOSE_FILE)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-@pytest.mark.parametrize("mutation, error", [
-    (("    depends_on: *needs-router\n    healthcheck:\n      <<: *healthcheck\n      test: [\"CMD\", \"drivebench\", "
-      "\"health\", \"scorer\"]", "    depends_on: [referee]\n"), "depends on undefined service"),
-    (("  init: true ", "  init: maybe "), "init"),
-    (("  network_mode: host", "  network_mode: host\n  ports: [\"99999:7447\"]"), "port"),
-])
+@pytest.mark.parametrize(
+    "mutation, error",
+    [
+        (
+            (
+                "    depends_on: *needs-router\n    healthcheck:\n      <<: *healthcheck\n"
+                '      test: ["CMD", "drivebench", "health", "scorer"]',
+                "    depends_on: [referee]\n",
+            ),
+            "depends on undefined service",
+        ),
+        (("  init: true ", "  init: maybe "), "init"),
+        (("  network_mode: host", '  network_mode: host\n  ports: ["99999:7447"]'), "port"),
+    ],
+)
 def test_a_broken_compose_file_fails_the_check(tmp_path, mutation, error):
     old, new = mutation
     text = COMPOSE_FILE.read_text()
@@ -94,8 +128,12 @@ def test_a_broken_compose_file_fails_the_check(tmp_path, mutation, error):
 def test_an_unknown_key_fails_the_schema(tmp_path):
     broken = tmp_path / "compose.yaml"
     broken.write_text(COMPOSE_FILE.read_text().replace("  init: true", "  init: true\n  restart_policy: always", 1))
-    result = subprocess.run([sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec",
-                             str(broken)], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "check_jsonschema", "--builtin-schema", "vendor.compose-spec", str(broken)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode != 0
     assert "restart_policy" in result.stdout + result.stderr
 
@@ -141,8 +179,13 @@ def test_profiles_gpu_reservation_and_ordering():
 
 
 def test_environment_chooses_router_brain_and_results_folder(tmp_path):
-    services = resolved(env={"DRIVEBENCH_ROUTER": "tcp/10.0.0.5:7447", "BRAIN": "deepest_lstm_tiny_pilotnet",
-                             "RESULTS_DIR": str(tmp_path)})["services"]
+    services = resolved(
+        env={
+            "DRIVEBENCH_ROUTER": "tcp/10.0.0.5:7447",
+            "BRAIN": "deepest_lstm_tiny_pilotnet",
+            "RESULTS_DIR": str(tmp_path),
+        }
+    )["services"]
     assert services["brain"]["command"][:5] == ["python", "-m", "brains", "--brain", "deepest_lstm_tiny_pilotnet"]
     assert services["brain"]["healthcheck"]["test"][-1] == "deepest_lstm_tiny_pilotnet"
     assert all(s["environment"]["DRIVEBENCH_ROUTER"] == "tcp/10.0.0.5:7447" for s in services.values())
@@ -153,8 +196,10 @@ def test_dockerfile_copies_every_package_the_project_installs():
     dockerfile = (ROOT / "Dockerfile").read_text()
     copied = set(re.findall(r"^COPY (?!--)(\S+) ", dockerfile, flags=re.M))
     pyproject = (ROOT / "pyproject.toml").read_text()
-    packages = {name.rstrip("*") for name in re.search(r"include = \[(.*?)\]", pyproject).group(1)
-                .replace('"', "").replace(" ", "").split(",")}
+    packages = {
+        name.rstrip("*")
+        for name in re.search(r"include = \[(.*?)\]", pyproject).group(1).replace('"', "").replace(" ", "").split(",")
+    }
     assert packages <= copied, f"packages not copied into the image: {packages - copied}"
     for path in copied:
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
@@ -205,16 +250,18 @@ class ComposeEmulation:
         for dependency in self.services[name].get("depends_on", {}):
             assert dependency in self.processes, f"{name} depends on {dependency}, which was not started first"
         log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
-        process = subprocess.Popen(self.argv(name), stdout=log, stderr=subprocess.STDOUT, env=self.env(name),
-                                   cwd=ROOT, start_new_session=True)
+        process = subprocess.Popen(
+            self.argv(name), stdout=log, stderr=subprocess.STDOUT, env=self.env(name), cwd=ROOT, start_new_session=True
+        )
         self.processes[name] = process
         return process
 
     def wait_healthy(self, name: str, *, timeout_s: float = 60.0) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
-            check = subprocess.run(self.argv(name, "healthcheck"), capture_output=True, text=True,
-                                   env=self.env(name), cwd=ROOT, timeout=30)
+            check = subprocess.run(
+                self.argv(name, "healthcheck"), capture_output=True, text=True, env=self.env(name), cwd=ROOT, timeout=30
+            )
             if check.returncode == 0:
                 return
             assert self.processes[name].poll() is None, f"{name} exited: {self.log(name)}"
@@ -246,12 +293,17 @@ class ComposeEmulation:
                 process.wait()
 
 
-def emulated_stack(tmp_path: Path, *, run_prefix: str, max_sim_seconds: float,
-                   profiles: tuple[str, ...] = ()) -> tuple[ComposeEmulation, dict[str, str], int]:
+def emulated_stack(
+    tmp_path: Path, *, run_prefix: str, max_sim_seconds: float, profiles: tuple[str, ...] = ()
+) -> tuple[ComposeEmulation, dict[str, str], int]:
     """The resolved compose file on a free loopback port, as processes: (stack, its environment, the port)."""
     port = free_loopback_port()
-    env = {"DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}", "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
-           "MAX_SIM_SECONDS": f"{max_sim_seconds:g}", "DRIVEBENCH_RUN_ID": f"{run_prefix}{port}"}
+    env = {
+        "DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}",
+        "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
+        "MAX_SIM_SECONDS": f"{max_sim_seconds:g}",
+        "DRIVEBENCH_RUN_ID": f"{run_prefix}{port}",
+    }
     results, logs = tmp_path / "results", tmp_path / "logs"
     results.mkdir()
     logs.mkdir()
@@ -268,8 +320,9 @@ def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path
             stack.up(name)
         assert stack.start("run").wait(timeout=120) == 0, stack.log("run")
         # `BRAIN=... docker compose up -d --no-deps brain`: compose stops the old container, starts the new one.
-        swapped = ComposeEmulation(resolved(env=env | {"BRAIN": "deepest_lstm_tiny_pilotnet"}, profiles=("record",)),
-                                   results, logs)
+        swapped = ComposeEmulation(
+            resolved(env=env | {"BRAIN": "deepest_lstm_tiny_pilotnet"}, profiles=("record",)), results, logs
+        )
         assert stack.stop("brain") in STOPPED
         swapped.processes = stack.processes
         swapped.up("brain")
@@ -292,7 +345,9 @@ def test_compose_services_drive_an_episode_record_it_and_swap_the_brain(tmp_path
     assert len(recordings) == 1 and not list((results / "recordings").glob("*.part"))
     events = [r.message for r in read_messages(recordings[0], keys_glob="*/sim/events")]
     assert [e.spec.active_brain for e in events if e.kind == EventKind.START] == [
-        "explicit", "deepest_lstm_tiny_pilotnet"]
+        "explicit",
+        "deepest_lstm_tiny_pilotnet",
+    ]
 
 
 @pytest.mark.integration
@@ -357,8 +412,17 @@ def test_the_secure_override_validates_and_gives_each_service_its_own_certificat
     result = compose("config", "-q", overrides=(SECURE_FILE,))
     assert result.returncode == 0, result.stderr
     services = resolved(overrides=(SECURE_FILE,))["services"]
-    identity = {"router": "router", "simulator": "sim", "noise": "noise", "brain": "brain", "brain-gpu": "brain",
-                "scorer": "scorer", "run": "orchestrator", "recorder": "recorder", "viz": "viz"}
+    identity = {
+        "router": "router",
+        "simulator": "sim",
+        "noise": "noise",
+        "brain": "brain",
+        "brain-gpu": "brain",
+        "scorer": "scorer",
+        "run": "orchestrator",
+        "recorder": "recorder",
+        "viz": "viz",
+    }
     for name, cert in identity.items():
         environment = services[name]["environment"]
         assert environment["DRIVEBENCH_TLS_CERT"] == f"/certs/{cert}.pem", name
@@ -376,28 +440,34 @@ def test_secure_compose_services_drive_an_episode_and_refuse_a_viewer_driver(tmp
     if shutil.which("openssl") is None:
         missing("scripts/make-certs.sh needs openssl, which is not installed")
     certs, results, logs = tmp_path / "certs", tmp_path / "results", tmp_path / "logs"
-    made = subprocess.run(["bash", str(ROOT / "scripts" / "make-certs.sh"), str(certs)], capture_output=True,
-                          text=True, timeout=120)
+    made = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "make-certs.sh"), str(certs)], capture_output=True, text=True, timeout=120
+    )
     assert made.returncode == 0, made.stderr
     results.mkdir()
     logs.mkdir()
     port = free_loopback_port()
-    config = resolved(env={"DRIVEBENCH_RUN_ID": f"secure{port}", "MAX_SIM_SECONDS": "4"}, profiles=(),
-                      overrides=(SECURE_FILE,))
+    config = resolved(
+        env={"DRIVEBENCH_RUN_ID": f"secure{port}", "MAX_SIM_SECONDS": "4"}, profiles=(), overrides=(SECURE_FILE,)
+    )
     for service in config["services"].values():  # a free port instead of 7447, in the commands and the variables
         service["command"] = [w.replace(":7447", f":{port}") for w in service["command"]]
         service["environment"]["DRIVEBENCH_ROUTER"] = service["environment"]["DRIVEBENCH_ROUTER"].replace(
-            ":7447", f":{port}")
+            ":7447", f":{port}"
+        )
     stack = ComposeEmulation(config, results, logs, certs=certs)
     try:
         for name in ("router", "simulator", "noise", "scorer", "brain"):
             stack.up(name)
         assert stack.start("run").wait(timeout=120) == 0, stack.log("run")
         stack.processes.pop("run")
-        as_viewer = stack.env("run") | {"DRIVEBENCH_TLS_CERT": str(certs / "viewer.pem"),
-                                        "DRIVEBENCH_TLS_KEY": str(certs / "viewer.key")}
-        refused = subprocess.run(stack.argv("run"), capture_output=True, text=True, env=as_viewer, cwd=ROOT,
-                                 timeout=120)
+        as_viewer = stack.env("run") | {
+            "DRIVEBENCH_TLS_CERT": str(certs / "viewer.pem"),
+            "DRIVEBENCH_TLS_KEY": str(certs / "viewer.key"),
+        }
+        refused = subprocess.run(
+            stack.argv("run"), capture_output=True, text=True, env=as_viewer, cwd=ROOT, timeout=120
+        )
         assert refused.returncode == 1, refused.stderr
         assert "only an orchestrator identity may start" in refused.stderr.strip().splitlines()[-1]
     finally:

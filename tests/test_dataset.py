@@ -61,15 +61,33 @@ def label(brain: str, episode: int, seq: int) -> tuple[float, float]:
     return base + episode + seq * 0.01, (-1) ** seq * (0.05 * (seq % 7)) + episode * 0.001
 
 
-def episode_stream(run_id: str = "r1", episode: int = 0, frames: int = 30, *, circuit: str = "simple",
-                   brains: tuple[str, ...] = ("pilot", "other"), active: str = "pilot",
-                   dropped: frozenset = frozenset(), unanswered: frozenset = frozenset(),
-                   resent: frozenset = frozenset(), switch_at: int | None = None, switch_to: str = "other",
-                   speed: Callable | None = None, lag: int = 1, step_s: float = 0.05) -> Iterator[Recorded]:
+def episode_stream(
+    run_id: str = "r1",
+    episode: int = 0,
+    frames: int = 30,
+    *,
+    circuit: str = "simple",
+    brains: tuple[str, ...] = ("pilot", "other"),
+    active: str = "pilot",
+    dropped: frozenset = frozenset(),
+    unanswered: frozenset = frozenset(),
+    resent: frozenset = frozenset(),
+    switch_at: int | None = None,
+    switch_to: str = "other",
+    speed: Callable | None = None,
+    lag: int = 1,
+    step_s: float = 0.05,
+) -> Iterator[Recorded]:
     """One episode as the bus carries it: START, then per step truth frame, perturbed frame, pose, and commands
     that answer a frame ``lag`` steps later (so frames wait for their command); END."""
-    spec = EpisodeSpec(circuit=circuit, active_brain=active, seed=7, noise=[Gaussian(sigma=3.0)], step_s=step_s,
-                       camera=CameraSpec(width_px=WIDTH, height_px=HEIGHT))
+    spec = EpisodeSpec(
+        circuit=circuit,
+        active_brain=active,
+        seed=7,
+        noise=[Gaussian(sigma=3.0)],
+        step_s=step_s,
+        camera=CameraSpec(width_px=WIDTH, height_px=HEIGHT),
+    )
     events = keys.events(run_id)
     event_seq = 0
 
@@ -82,8 +100,11 @@ def episode_stream(run_id: str = "r1", episode: int = 0, frames: int = 30, *, ci
     for seq in range(frames + lag):
         if seq < frames:
             if seq == switch_at:
-                yield Recorded(events, EpisodeEvent(header=header(event_seq), kind=EventKind.BRAIN_SWITCH,
-                                                    brain=switch_to), seq * STEP_NS)
+                yield Recorded(
+                    events,
+                    EpisodeEvent(header=header(event_seq), kind=EventKind.BRAIN_SWITCH, brain=switch_to),
+                    seq * STEP_NS,
+                )
                 event_seq += 1
             yield from frame_records(run_id, header(seq), seq, dropped=seq in dropped)
             if seq in resent:  # a lock-step resend: the same frame again
@@ -93,35 +114,45 @@ def episode_stream(run_id: str = "r1", episode: int = 0, frames: int = 30, *, ci
             answered = waiting.pop(0)
             if answered not in unanswered:
                 yield from command_records(run_id, episode, answered, brains, speed)
-    yield Recorded(events, EpisodeEvent(header=header(event_seq), kind=EventKind.END,
-                                        reason=EndReason.LAPS_COMPLETED), frames * STEP_NS)
+    yield Recorded(
+        events,
+        EpisodeEvent(header=header(event_seq), kind=EventKind.END, reason=EndReason.LAPS_COMPLETED),
+        frames * STEP_NS,
+    )
 
 
 def frame_records(run_id: str, header: Header, seq: int, *, dropped: bool) -> Iterator[Recorded]:
     truth = image_frame(header, pixels(seq))
     yield Recorded(keys.camera_raw(run_id), truth, header.stamp_ns)
-    perturbed = (CameraFrame(header=header, width_px=WIDTH, height_px=HEIGHT, data=b"", dropped=True) if dropped
-                 else image_frame(header, pixels(seq)))
+    perturbed = (
+        CameraFrame(header=header, width_px=WIDTH, height_px=HEIGHT, data=b"", dropped=True)
+        if dropped
+        else image_frame(header, pixels(seq))
+    )
     yield Recorded(keys.camera_perturbed(run_id), perturbed, header.stamp_ns)
     yield Recorded(keys.pose(run_id), Pose(header=header, x_m=0.1 * seq, y_m=0.0, yaw_rad=0.0), header.stamp_ns)
 
 
-def command_records(run_id: str, episode: int, seq: int, brains: tuple[str, ...],
-                    speed: Callable | None) -> Iterator[Recorded]:
+def command_records(
+    run_id: str, episode: int, seq: int, brains: tuple[str, ...], speed: Callable | None
+) -> Iterator[Recorded]:
     for count, brain in enumerate(brains):
         v, w = label(brain, episode, seq)
         if speed is not None:
             v = speed(brain, episode, seq)
         header = Header(run_id=run_id, episode=episode, seq=seq, stamp_ns=seq * STEP_NS)
-        yield Recorded(keys.command(run_id, brain),
-                       Command(header=header, brain=brain, frame_seq=seq, speed_mps=v, yaw_rate_radps=w),
-                       seq * STEP_NS + count)
+        yield Recorded(
+            keys.command(run_id, brain),
+            Command(header=header, brain=brain, frame_seq=seq, speed_mps=v, yaw_rate_radps=w),
+            seq * STEP_NS + count,
+        )
 
 
 def source(name: str, *streams: Callable[[], Iterator[Recorded]]) -> tuple[str, Callable[[], Iterator[Recorded]]]:
     def open_stream() -> Iterator[Recorded]:
         for stream in streams:
             yield from stream()
+
     return name, open_stream
 
 
@@ -137,8 +168,10 @@ def build(tmp_path: Path, *sources, name: str = "ds", **options) -> tuple[Path, 
 
 
 def arrays(out: Path) -> dict[str, np.ndarray]:
-    return {name: np.load(out / f"{name}.npy") for name in
-            ("frames", "labels", "episode", "frame_seq", "stamp_ns", "train_index", "val_index")}
+    return {
+        name: np.load(out / f"{name}.npy")
+        for name in ("frames", "labels", "episode", "frame_seq", "stamp_ns", "train_index", "val_index")
+    }
 
 
 # -- pairing -----------------------------------------------------------------------------------------------------------
@@ -204,6 +237,7 @@ def test_a_command_read_before_its_frame_still_pairs(tmp_path):
             yield record
             if isinstance(record.message, Command) and record.message.brain == "other":
                 yield held
+
     out, manifest = build(tmp_path, source("a", commands_first))
     a = arrays(out)
     assert a["frame_seq"].tolist() == list(range(10))
@@ -222,6 +256,7 @@ def test_frames_before_a_start_event_are_counted_not_paired(tmp_path):
     def late_start() -> Iterator[Recorded]:  # the recorder joined mid-episode: no START for episode 0
         yield from (r for r in episode_stream(episode=0, frames=5) if not isinstance(r.message, EpisodeEvent))
         yield from episode_stream(episode=1, frames=6)
+
     _, manifest = build(tmp_path, source("late", late_start))
     assert manifest["totals"]["samples"] == 6
     assert manifest["sources"][0]["frames_outside_episodes"] == 5
@@ -231,8 +266,9 @@ def test_frames_before_a_start_event_are_counted_not_paired(tmp_path):
 
 
 def test_frames_are_cropped_then_resized_with_area_averaging(tmp_path):
-    out, _ = build(tmp_path, source("a", ep(frames=3)), width_px=10, height_px=5, crop_top_fraction=0.5,
-                   crop_bottom_fraction=1.0)
+    out, _ = build(
+        tmp_path, source("a", ep(frames=3)), width_px=10, height_px=5, crop_top_fraction=0.5, crop_bottom_fraction=1.0
+    )
     frames = arrays(out)["frames"]
     assert frames.shape == (3, 5, 10, 3)
     # rows 10..19 kept, 2 source rows per output row: mean of 10*r and 10*(r+1) for r = 10, 12, ...
@@ -246,8 +282,11 @@ def test_frames_are_cropped_then_resized_with_area_averaging(tmp_path):
 
 
 def test_windows_never_cross_episodes_nor_span_a_dropped_frame(tmp_path):
-    out, manifest = build(tmp_path, source("a", ep(episode=0, frames=30, dropped=frozenset({10})),
-                                           ep(episode=1, frames=30)), offsets_frames=(-2, -1, 0))
+    out, manifest = build(
+        tmp_path,
+        source("a", ep(episode=0, frames=30, dropped=frozenset({10})), ep(episode=1, frames=30)),
+        offsets_frames=(-2, -1, 0),
+    )
     a = arrays(out)
     train = a["train_index"]
     # episode 0: seq 2..9 and 13..29 (10 is missing); episode 1: seq 2..29
@@ -278,6 +317,7 @@ def test_runs_interleaved_in_one_source_are_stored_episode_by_episode(tmp_path):
             yield from pair
         yield from a
         yield from b
+
     out, manifest = build(tmp_path, source("both", interleaved), offsets_frames=(-1, 0))
     arr = arrays(out)
     assert arr["episode"].tolist() == [0] * 10 + [1] * 10
@@ -314,8 +354,10 @@ def test_label_statistics_come_from_the_train_split_only(tmp_path):
     def speed(brain, episode, seq):
         return 100.0 if episode == 1 else 1.0 + seq * 0.1  # validation episode: wildly different
 
-    streams = [ep(episode=0, frames=20, circuit="simple", speed=speed),
-               ep(episode=1, frames=20, circuit="monaco", speed=speed)]
+    streams = [
+        ep(episode=0, frames=20, circuit="simple", speed=speed),
+        ep(episode=1, frames=20, circuit="monaco", speed=speed),
+    ]
     out, manifest = build(tmp_path, source("a", *streams), split="circuit:monaco")
     a = arrays(out)
     train_labels = a["labels"][a["train_index"]].astype(np.float64)
@@ -356,9 +398,12 @@ def test_circuit_split_naming_an_absent_circuit_is_an_error(tmp_path):
 
 
 def test_manifest_records_sources_and_their_episodes(tmp_path):
-    out, manifest = build(tmp_path, source("first.mcap", ep(episode=0, frames=8, unanswered=frozenset({2}))),
-                          source("second.mcap", ep(episode=0, frames=6, circuit="monaco")),  # same run id, again
-                          offsets_frames=(-1, 0))
+    out, manifest = build(
+        tmp_path,
+        source("first.mcap", ep(episode=0, frames=8, unanswered=frozenset({2}))),
+        source("second.mcap", ep(episode=0, frames=6, circuit="monaco")),  # same run id, again
+        offsets_frames=(-1, 0),
+    )
     assert [s["name"] for s in manifest["sources"]] == ["first.mcap", "second.mcap"]
     assert [s["run_ids"] for s in manifest["sources"]] == [["r1"], ["r1"]]
     first, second = manifest["sources"][0]["episodes"][0], manifest["sources"][1]["episodes"][0]
@@ -377,6 +422,7 @@ def test_a_source_that_raises_mid_stream_names_the_source(tmp_path):
     def broken() -> Iterator[Recorded]:
         yield from episode_stream(frames=5)
         raise OSError("truncated chunk at byte 1234")
+
     with pytest.raises(DatasetError, match=r"source bad\.mcap: reading failed .*truncated chunk") as caught:
         build(tmp_path, source("good.mcap", ep(frames=5)), ("bad.mcap", broken))
     assert "\n" not in str(caught.value)
@@ -400,16 +446,19 @@ def test_a_non_empty_output_folder_is_refused_unless_overwriting(tmp_path):
     assert not (out / "precious.txt").exists() and len(DrivingDataset(out)) == 5
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"offsets_frames": (-2, -1)}, "end at 0"),
-    ({"offsets_frames": (-1, -2, 0)}, "strictly increasing"),
-    ({"offsets_frames": ()}, "non-empty"),
-    ({"split": "frames:0.2"}, "split must be"),
-    ({"split": "episode:1.5"}, "within"),
-    ({"camera": "raw"}, "camera must be"),
-    ({"crop_top_fraction": 0.6, "crop_bottom_fraction": 0.5}, "crop"),
-    ({"brain": "a/b"}, "brain name"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"offsets_frames": (-2, -1)}, "end at 0"),
+        ({"offsets_frames": (-1, -2, 0)}, "strictly increasing"),
+        ({"offsets_frames": ()}, "non-empty"),
+        ({"split": "frames:0.2"}, "split must be"),
+        ({"split": "episode:1.5"}, "within"),
+        ({"camera": "raw"}, "camera must be"),
+        ({"crop_top_fraction": 0.6, "crop_bottom_fraction": 0.5}, "crop"),
+        ({"brain": "a/b"}, "brain name"),
+    ],
+)
 def test_bad_options_are_refused(options, message):
     with pytest.raises(DatasetError, match=message):
         DatasetOptions(**options)
@@ -493,9 +542,15 @@ def test_samples_per_second_is_measured(two_episode_dataset):
 
 
 def test_the_core_imports_neither_zenoh_nor_torch_nor_mcap():
-    code = ("import sys, recorder.dataset; "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('zenoh', 'torch', 'mcap')))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                            cwd=Path(__file__).resolve().parents[1])
+    code = (
+        "import sys, recorder.dataset; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('zenoh', 'torch', 'mcap')))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert result.stdout.strip() == "[]"
-

@@ -22,16 +22,36 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def drivebench(*argv: str, timeout: float = 170) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True, timeout=timeout, cwd=ROOT
+    )
 
 
 @pytest.fixture(scope="module")
 def collected(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("collect") / "data"
-    result = drivebench("dataset", "collect", "--circuits", "simple,many_curves", "--max-sim-seconds", "4",
-                        "--camera", "160x120", "--size", "40x20", "--crop", "0.5:1", "--history", "3", "--stride", "2",
-                        "--split", "circuit:many_curves", "-o", str(out))
+    result = drivebench(
+        "dataset",
+        "collect",
+        "--circuits",
+        "simple,many_curves",
+        "--max-sim-seconds",
+        "4",
+        "--camera",
+        "160x120",
+        "--size",
+        "40x20",
+        "--crop",
+        "0.5:1",
+        "--history",
+        "3",
+        "--stride",
+        "2",
+        "--split",
+        "circuit:many_curves",
+        "-o",
+        str(out),
+    )
     assert result.returncode == 0, result.stderr
     return out
 

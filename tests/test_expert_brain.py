@@ -26,8 +26,13 @@ def observe(truth: GroundTruth | None, seq: int = 0) -> Observation:
 def truth_at(circuit: str, s_m: float, *, lateral_m: float = 0.0, direction: str = "forward") -> GroundTruth:
     centreline = load_circuit(circuit, direction=direction).centreline
     x, y, heading = centreline.pose_at(s_m)
-    return GroundTruth(x_m=x - lateral_m * math.sin(heading), y_m=y + lateral_m * math.cos(heading), yaw_rad=heading,
-                       circuit=circuit, direction=direction)
+    return GroundTruth(
+        x_m=x - lateral_m * math.sin(heading),
+        y_m=y + lateral_m * math.cos(heading),
+        yaw_rad=heading,
+        circuit=circuit,
+        direction=direction,
+    )
 
 
 def test_it_steers_back_to_the_centre_line_from_either_side():
@@ -60,9 +65,17 @@ def test_the_noisy_driver_passes_the_privilege_on():
 
 
 def test_randomised_collection_draws_every_world_from_the_seed():
-    args = argparse.Namespace(circuits=",".join(f"random:{i}" for i in range(12)), direction="both", laps=1,
-                              max_sim_seconds=100.0, camera=(320, 240), recovery_noise=0.0, brain="expert",
-                              variation=[], randomise=True)
+    args = argparse.Namespace(
+        circuits=",".join(f"random:{i}" for i in range(12)),
+        direction="both",
+        laps=1,
+        max_sim_seconds=100.0,
+        camera=(320, 240),
+        recovery_noise=0.0,
+        brain="expert",
+        variation=[],
+        randomise=True,
+    )
     specs = collection_specs(args)
     again = collection_specs(args)
     assert specs == again and len(specs) == 24
@@ -81,8 +94,13 @@ def test_randomised_collection_draws_every_world_from_the_seed():
 @pytest.mark.slow
 def test_the_expert_laps_a_world_without_line_or_walls_in_reverse(make_stack):
     stack = make_stack(BrainLaunch("expert"))
-    spec = EpisodeSpec(circuit="simple", laps=1, direction="reverse", camera=CameraSpec(width_px=160, height_px=120),
-                       active_brain="expert")
+    spec = EpisodeSpec(
+        circuit="simple",
+        laps=1,
+        direction="reverse",
+        camera=CameraSpec(width_px=160, height_px=120),
+        active_brain="expert",
+    )
     score = stack.run_episode(apply_variation(spec, "line=none,walls=off,camera=left"))
     assert score.reason == EndReason.LAPS_COMPLETED, score
     assert score.metrics.cross_track_mean_m < 0.05 and score.metrics.off_track_events == 0

@@ -17,8 +17,18 @@ from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 
 ROOT = Path(__file__).resolve().parent.parent
 # What `pip install drivebench` (no extra) leaves out: the simulator, recording, live view, reports, neural brains.
-NOT_IN_CORE = ("pybullet", "scipy", "matplotlib", "mcap", "zstandard", "foxglove", "foxglove_schemas_protobuf",
-               "google.protobuf", "torch", "onnxruntime")
+NOT_IN_CORE = (
+    "pybullet",
+    "scipy",
+    "matplotlib",
+    "mcap",
+    "zstandard",
+    "foxglove",
+    "foxglove_schemas_protobuf",
+    "google.protobuf",
+    "torch",
+    "onnxruntime",
+)
 BLOCKED_HOST = f"""
 import runpy, sys
 for name in {NOT_IN_CORE!r}:
@@ -30,11 +40,26 @@ runpy.run_module("brains", run_name="__main__", alter_sys=True)
 def test_a_brain_host_without_the_stacks_extras_drives_an_episode(tmp_path):
     with LocalStack(run_id="extras", run_dir=tmp_path, brains=[]) as stack:
         log = open(tmp_path / "brain.log", "wb")
-        host = subprocess.Popen([sys.executable, "-c", BLOCKED_HOST, "--router", stack.endpoint, "--run-id",
-                                 "extras", "--brain", "explicit"], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        host = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                BLOCKED_HOST,
+                "--router",
+                stack.endpoint,
+                "--run-id",
+                "extras",
+                "--brain",
+                "explicit",
+            ],
+            cwd=ROOT,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
         try:
-            spec = EpisodeSpec(max_sim_seconds=2.0, active_brain="explicit",
-                               camera=CameraSpec(width_px=96, height_px=72))
+            spec = EpisodeSpec(
+                max_sim_seconds=2.0, active_brain="explicit", camera=CameraSpec(width_px=96, height_px=72)
+            )
             score = stack.run_episode(spec)
         finally:
             host.terminate()
@@ -51,6 +76,14 @@ def test_the_core_is_small_and_the_stack_extra_holds_every_role():
     extras = project["optional-dependencies"]
     assert extras["stack"] == ["drivebench[sim,record,view,report]"]
     everything = " ".join(extras["sim"] + extras["record"] + extras["view"] + extras["report"])
-    for package in ("pybullet", "scipy", "mcap", "zstandard", "foxglove-sdk", "foxglove-schemas-protobuf",
-                    "protobuf", "matplotlib"):
+    for package in (
+        "pybullet",
+        "scipy",
+        "mcap",
+        "zstandard",
+        "foxglove-sdk",
+        "foxglove-schemas-protobuf",
+        "protobuf",
+        "matplotlib",
+    ):
         assert package in everything, package

@@ -26,10 +26,30 @@ pytestmark = pytest.mark.integration
 
 def attach(stack, out, *args: str) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--attach", "--router", stack.endpoint,
-                             "--run-id", stack.run_id, "--camera", "64x48", "--json", "--out", str(out), *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator.cli",
+            "run",
+            "--attach",
+            "--router",
+            stack.endpoint,
+            "--run-id",
+            stack.run_id,
+            "--camera",
+            "64x48",
+            "--json",
+            "--out",
+            str(out),
+            *args,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
 
 
 def next_event(inbox: Inbox, kind: EventKind, *, timeout_s: float) -> EpisodeEvent:
@@ -87,10 +107,27 @@ def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_s
     stack = make_stack(BrainLaunch("explicit"))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
     with open(tmp_path / "extra.log", "wb") as log:
-        extra = subprocess.Popen([sys.executable, "-m", "brains", "--router", stack.endpoint, "--run-id",
-                                  stack.run_id, "--brain", "constant", "--name", "extra", "--set",
-                                  "orphan_timeout_s=2"], stdout=log, stderr=subprocess.STDOUT, env=env,
-                                 start_new_session=True)
+        extra = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "brains",
+                "--router",
+                stack.endpoint,
+                "--run-id",
+                stack.run_id,
+                "--brain",
+                "constant",
+                "--name",
+                "extra",
+                "--set",
+                "orphan_timeout_s=2",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
     try:
         token = keys.alive(stack.run_id, "brain", "extra")
         deadline = time.monotonic() + 30

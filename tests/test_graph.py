@@ -53,26 +53,30 @@ def test_every_role_has_a_runnable_module_and_every_health_role_a_token():
     for row in graph.ROLES:
         assert not row.module or importlib.util.find_spec(row.module) is not None, row.name
         assert row.bus_mode in ("peer", "client", "router"), row.name
-    assert set(graph.health_roles()) == {"router", "simulator", "noise", "brain", "scorer", "driver", "recorder",
-                                         "viz"}
+    assert set(graph.health_roles()) == {"router", "simulator", "noise", "brain", "scorer", "driver", "recorder", "viz"}
     with pytest.raises(KeyError, match="no process role 'referee'"):
         graph.role("referee")
 
 
-@pytest.mark.parametrize("expression, key, matches", [
-    ("drivebench/run/*/sim/pose", "drivebench/run/r1/sim/pose", True),
-    ("drivebench/run/*/sim/pose", "drivebench/run/r1/sim/camera", False),
-    ("drivebench/run/*/**", "drivebench/run/r1/brain/b/cmd", True),
-    ("drivebench/run/*/**", "drivebench/run/r1", False),
-    ("drivebench/run/*/brain/*/cmd", "drivebench/run/r1/brain/b/control", False),
-])
+@pytest.mark.parametrize(
+    "expression, key, matches",
+    [
+        ("drivebench/run/*/sim/pose", "drivebench/run/r1/sim/pose", True),
+        ("drivebench/run/*/sim/pose", "drivebench/run/r1/sim/camera", False),
+        ("drivebench/run/*/**", "drivebench/run/r1/brain/b/cmd", True),
+        ("drivebench/run/*/**", "drivebench/run/r1", False),
+        ("drivebench/run/*/brain/*/cmd", "drivebench/run/r1/brain/b/control", False),
+    ],
+)
 def test_key_matching(expression, key, matches):
     assert graph.key_matches(expression, key) is matches
 
 
 def _put_allowed(role: str, key: str) -> bool:
-    return any(flow == "ingress" and "put" in messages and any(graph.key_matches(e, key) for e in expressions)
-               for flow, messages, expressions in security.ROLES[role])
+    return any(
+        flow == "ingress" and "put" in messages and any(graph.key_matches(e, key) for e in expressions)
+        for flow, messages, expressions in security.ROLES[role]
+    )
 
 
 def test_every_key_a_stack_puts_is_published_by_one_row_that_its_access_rules_allow(make_stack):

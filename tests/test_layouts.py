@@ -48,8 +48,9 @@ def named_topics(layout: dict[str, Any]) -> dict[str, set[str]]:
 
 @pytest.mark.parametrize("name", [layouts.SINGLE, layouts.COMPARE])
 def test_the_shipped_files_are_what_the_code_generates(name):
-    assert (FOLDER / name).read_text() == layouts.render(layouts.layouts()[name]), \
+    assert (FOLDER / name).read_text() == layouts.render(layouts.layouts()[name]), (
         "regenerate with: python -m services.viz.layouts"
+    )
 
 
 @pytest.mark.parametrize("name", [layouts.SINGLE, layouts.COMPARE])
@@ -70,11 +71,19 @@ def test_the_single_run_layout_shows_what_the_issue_asks_for():
         by_type.setdefault(panel_id.split("!")[0], []).append(found)
     assert {topics.CIRCUIT, topics.CAR_POSE} <= by_type["3D"][0]
     assert by_type["Image"] == [{topics.CAMERA_TRUTH}, {topics.CAMERA_BRAIN}]  # side by side
-    assert layout["layout"]["first"]["second"] == {"direction": "row", "first": "Image!truth",
-                                                   "second": "Image!brain", "splitPercentage": 50}
+    assert layout["layout"]["first"]["second"] == {
+        "direction": "row",
+        "first": "Image!truth",
+        "second": "Image!brain",
+        "splitPercentage": 50,
+    }
     plotted = {path["value"] for config in layout["configById"].values() for path in config.get("paths", [])}
-    assert plotted == {"/car/state.speed_mps", "/car/state.yaw_rate_radps", "/metrics/live.cross_track_m",
-                       "/car/state.command_latency_ns"}
+    assert plotted == {
+        "/car/state.speed_mps",
+        "/car/state.yaw_rate_radps",
+        "/metrics/live.cross_track_m",
+        "/car/state.command_latency_ns",
+    }
     assert by_type["RosOut"] == [{topics.EPISODE_LOG}] and by_type["Table"] == [{topics.EPISODE_SCORE}]
     assert layout["configById"]["3D!scene"]["followTf"] == "car"
 

@@ -60,11 +60,18 @@ def test_axes_vary_brain_slowest_then_circuit_variation_perturbation_repetition(
     episodes = parse(EXAMPLE).episodes
     per_brain = len(episodes) // 2
     assert {episode.brain.label for episode in episodes[:per_brain]} == {"explicit"}
-    assert [episode.circuit for episode in episodes[:per_brain:per_brain // 3]] == ["simple", "montmelo", "montreal"]
-    assert [episode.variation for episode in episodes[:5 * 3 * 2:5 * 3]] == [
-        "line=red,road=grey,walls=on", "line=red,road=grey,walls=off"]
+    assert [episode.circuit for episode in episodes[: per_brain : per_brain // 3]] == ["simple", "montmelo", "montreal"]
+    assert [episode.variation for episode in episodes[: 5 * 3 * 2 : 5 * 3]] == [
+        "line=red,road=grey,walls=on",
+        "line=red,road=grey,walls=off",
+    ]
     assert [episode.perturbation for episode in episodes[:15:3]] == [
-        "none", "salt_pepper=0.2", "camera=left", "gaussian=10", "salt_pepper=0.2+camera=left"]
+        "none",
+        "salt_pepper=0.2",
+        "camera=left",
+        "gaussian=10",
+        "salt_pepper=0.2+camera=left",
+    ]
 
 
 def test_episode_specs_carry_limits_camera_seed_world_noise_and_label():
@@ -112,20 +119,23 @@ def test_same_text_gives_same_keys_and_specs():
 # -- labels --------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("written", "label"), [
-    ("none", "none"),
-    ("null", "none"),
-    ("{salt_pepper: 0.2}", "salt_pepper=0.2"),
-    ('"salt_pepper=0.2"', "salt_pepper=0.2"),
-    ("gaussian=10", "gaussian=10"),
-    ("{gaussian: 10}", "gaussian=10"),
-    ("{salt_pepper: 0.2, camera: left}", "salt_pepper=0.2+camera=left"),
-    ('"salt_pepper=0.2+camera=left"', "salt_pepper=0.2+camera=left"),
-    ("{occlusion: {patches: 2, size_fraction: 0.3}}", "occlusion:patches=2,size_fraction=0.3"),
-    ('"occlusion:patches=2,size_fraction=0.3"', "occlusion:patches=2,size_fraction=0.3"),
-    ("{camera_offset_m: 0.1, delay: 2}", "camera_offset_m=0.1+delay=2"),
-    ("brightness=+0.2", "brightness=0.2"),
-])
+@pytest.mark.parametrize(
+    ("written", "label"),
+    [
+        ("none", "none"),
+        ("null", "none"),
+        ("{salt_pepper: 0.2}", "salt_pepper=0.2"),
+        ('"salt_pepper=0.2"', "salt_pepper=0.2"),
+        ("gaussian=10", "gaussian=10"),
+        ("{gaussian: 10}", "gaussian=10"),
+        ("{salt_pepper: 0.2, camera: left}", "salt_pepper=0.2+camera=left"),
+        ('"salt_pepper=0.2+camera=left"', "salt_pepper=0.2+camera=left"),
+        ("{occlusion: {patches: 2, size_fraction: 0.3}}", "occlusion:patches=2,size_fraction=0.3"),
+        ('"occlusion:patches=2,size_fraction=0.3"', "occlusion:patches=2,size_fraction=0.3"),
+        ("{camera_offset_m: 0.1, delay: 2}", "camera_offset_m=0.1+delay=2"),
+        ("brightness=+0.2", "brightness=0.2"),
+    ],
+)
 def test_perturbation_labels(written, label):
     (episode,) = parse(f"{MINIMAL}perturbations: [{written}]\n").episodes
     assert episode.perturbation == label
@@ -162,8 +172,10 @@ def weights_matrix(tmp_path) -> Path:
     (tmp_path / "runs" / "memdccp_v1.ckpt").write_bytes(b"not really a checkpoint")
     path = tmp_path / "experiments" / "m.yaml"
     path.parent.mkdir()
-    path.write_text("brains: [{name: memdccp, weights: ../runs/memdccp_v1.ckpt, options: {threads: 1, scale: 1.0e-7,"
-                    " mode: 'on'}}]\ncircuits: [simple]\n")
+    path.write_text(
+        "brains: [{name: memdccp, weights: ../runs/memdccp_v1.ckpt, options: {threads: 1, scale: 1.0e-7,"
+        " mode: 'on'}}]\ncircuits: [simple]\n"
+    )
     return path
 
 
@@ -183,8 +195,11 @@ def test_launch_options_and_to_dict_round_trip(weights_matrix):
     read_back = {text.partition("=")[0]: yaml.safe_load(text.partition("=")[2]) for text in options}
     assert read_back == {"threads": 1, "scale": 1e-7, "mode": "on", "weights": str(brain.weights)}
     assert json.loads(json.dumps(brain.to_dict())) == {
-        "label": "memdccp-memdccp_v1", "brain": "memdccp", "weights": str(brain.weights),
-        "options": {"threads": 1, "scale": 1e-7, "mode": "on"}}
+        "label": "memdccp-memdccp_v1",
+        "brain": "memdccp",
+        "weights": str(brain.weights),
+        "options": {"threads": 1, "scale": 1e-7, "mode": "on"},
+    }
 
 
 # -- exclude and include -------------------------------------------------------------------------------------------
@@ -224,7 +239,9 @@ def test_include_adds_combinations_over_repetitions_at_the_end_without_duplicate
     excluded = 2 * 3 * 12 * 5 * 3 - 1 * 3 * 4 * 5 * 3
     added = [episode.key for episode in matrix.episodes[excluded:]]
     assert added == [
-        "explicit/monaco/default/none/r0", "explicit/monaco/default/none/r1", "explicit/monaco/default/none/r2",
+        "explicit/monaco/default/none/r0",
+        "explicit/monaco/default/none/r1",
+        "explicit/monaco/default/none/r2",
         # the second include is already in the product: not repeated
         "explicit/simple/line=none,road=grey,walls=off/gaussian=10/r0",
         "explicit/simple/line=none,road=grey,walls=off/gaussian=10/r1",
@@ -240,15 +257,20 @@ def test_include_adds_combinations_over_repetitions_at_the_end_without_duplicate
 
 
 def test_worlds_list_the_worlds_one_by_one_and_exclude_names_their_values():
-    matrix = parse(MINIMAL + textwrap.dedent("""\
+    matrix = parse(
+        MINIMAL
+        + textwrap.dedent("""\
         worlds:
           - {line: red, road: grey, walls: on}
           - {line: none, walls: off}
           - {line: red, direction: reverse}
         exclude: [{line: none}]
-    """))
+    """)
+    )
     assert [episode.variation for episode in matrix.episodes] == [
-        "line=red,road=grey,walls=on", "line=red,direction=reverse"]
+        "line=red,road=grey,walls=on",
+        "line=red,direction=reverse",
+    ]
     assert matrix.variation_keys == ("line", "road", "walls", "direction")
     assert [episode.spec.direction for episode in matrix.episodes] == ["forward", "reverse"]
 
@@ -267,11 +289,16 @@ def test_parts_expand_in_order_over_the_same_brains_with_their_own_axes():
     assert matrix.parts == ("laps", "worlds", "noise")
     keys = [episode.key for episode in matrix.episodes]
     assert keys == [
-        "laps:explicit/montmelo/default/none/r0", "laps:explicit/montmelo/default/none/r1",
-        "laps:slow/montmelo/default/none/r0", "laps:slow/montmelo/default/none/r1",
-        "worlds:explicit/simple/line=white/none/r0", "worlds:explicit/simple/direction=reverse/none/r0",
-        "worlds:slow/simple/line=white/none/r0", "worlds:slow/simple/direction=reverse/none/r0",
-        "noise:explicit/simple/default/salt_pepper=0.4/r0", "noise:slow/simple/default/salt_pepper=0.4/r0",
+        "laps:explicit/montmelo/default/none/r0",
+        "laps:explicit/montmelo/default/none/r1",
+        "laps:slow/montmelo/default/none/r0",
+        "laps:slow/montmelo/default/none/r1",
+        "worlds:explicit/simple/line=white/none/r0",
+        "worlds:explicit/simple/direction=reverse/none/r0",
+        "worlds:slow/simple/line=white/none/r0",
+        "worlds:slow/simple/direction=reverse/none/r0",
+        "noise:explicit/simple/default/salt_pepper=0.4/r0",
+        "noise:slow/simple/default/salt_pepper=0.4/r0",
     ]
     assert [episode.index for episode in matrix.episodes] == list(range(10))
     assert [part_of(key) for key in keys] == ["laps"] * 4 + ["worlds"] * 4 + ["noise"] * 2
@@ -299,8 +326,11 @@ ERRORS = [
     ("brains:\n  - explicit\n  - warpdrive\ncircuits: [simple]\n", 3, ["'warpdrive'", "known:", "explicit"]),
     ("brains: [{label: x}]\ncircuits: [simple]\n", 1, ["needs a name"]),
     ("brains: [{name: explicit, weight: a.ckpt}]\ncircuits: [simple]\n", 1, ["'weight'", "weights"]),
-    ("brains: [explicit]\ncircuits:\n  - simple\n  - nowhere\n", 4,
-     ["'nowhere'", "montmelo", "drivebench circuits list"]),
+    (
+        "brains: [explicit]\ncircuits:\n  - simple\n  - nowhere\n",
+        4,
+        ["'nowhere'", "montmelo", "drivebench circuits list"],
+    ),
     ("brains: [explicit]\ncircuits: [simple, simple]\n", 2, ["'simple'", "twice"]),
     (MINIMAL + "variations:\n  colour: [red]\n", 4, ["'colour'", "allowed", "line"]),
     (MINIMAL + "variations:\n  line: [red, blue]\n", 4, ["'blue'", "red, white, none"]),

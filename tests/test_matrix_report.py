@@ -84,30 +84,64 @@ def make_results(folder: Path) -> dict:
             key = f"{brain}/{circuit}/{variation}/{perturbation}/r{rep}"
             world = WorldVariation(line="white", walls=False) if variation != BASELINE else WorldVariation()
             spec = EpisodeSpec(circuit=circuit, laps=1, seed=1000 + index, active_brain=brain, world=world)
-            entry = {"label": brain, "brain": brain, "weights": "missing/model.ckpt" if brain == "pilotnet" else None,
-                     "options": []}
+            entry = {
+                "label": brain,
+                "brain": brain,
+                "weights": "missing/model.ckpt" if brain == "pilotnet" else None,
+                "options": [],
+            }
             started = 1_700_000_100.0 + 60 * index
-            common = dict(key=key, index=index, brain=brain, circuit=circuit, variation=variation,
-                          perturbation=perturbation, repetition=rep, spec=spec, brain_entry=entry, run_id=f"r{index}",
-                          started_at=started, logs=f"logs/{index:03d}")
+            common = dict(
+                key=key,
+                index=index,
+                brain=brain,
+                circuit=circuit,
+                variation=variation,
+                perturbation=perturbation,
+                repetition=rep,
+                spec=spec,
+                brain_entry=entry,
+                run_id=f"r{index}",
+                started_at=started,
+                logs=f"logs/{index:03d}",
+            )
             if (brain, circuit, variation, rep) == FAILED:
-                store.record(EpisodeResult(**common, status="failed", ended_at=started + 3.0,
-                                           failure="brain_died: brain 'x' exited with code -9"))
+                store.record(
+                    EpisodeResult(
+                        **common,
+                        status="failed",
+                        ended_at=started + 3.0,
+                        failure="brain_died: brain 'x' exited with code -9",
+                    )
+                )
                 continue
             crash = (brain, circuit, variation, rep) == CRASH
             metrics, arrays = drive(circuit, brain, rep, fraction=0.4 if crash else 1.03)
             reason = EndReason.CRASH if crash else EndReason.LAPS_COMPLETED
-            score = EpisodeScore(header=Header(run_id=f"r{index}", episode=0, seq=0, stamp_ns=0), spec=spec,
-                                 reason=reason, brain=brain, metrics=metrics)
+            score = EpisodeScore(
+                header=Header(run_id=f"r{index}", episode=0, seq=0, stamp_ns=0),
+                spec=spec,
+                reason=reason,
+                brain=brain,
+                metrics=metrics,
+            )
             trajectory = f"trajectories/{index:03d}.npz"
             if perturbation == "none":
                 np.savez(folder / trajectory, **arrays)
             elif rep == 0:  # a file without live samples: the progress plot takes its progress from the poses
                 np.savez(folder / trajectory, **{k: v for k, v in arrays.items() if not k.startswith("live_")})
             # (the other perturbed episode's file is missing on disk)
-            store.record(EpisodeResult(**common, status="done", ended_at=started + metrics.wall_time_s,
-                                       reason=str(reason), score=score, trajectory=trajectory,
-                                       recording=f"recordings/{index:03d}.mcap"))
+            store.record(
+                EpisodeResult(
+                    **common,
+                    status="done",
+                    ended_at=started + metrics.wall_time_s,
+                    reason=str(reason),
+                    score=score,
+                    trajectory=trajectory,
+                    recording=f"recordings/{index:03d}.mcap",
+                )
+            )
             scores[(brain, circuit, variation, perturbation, rep)] = metrics
     return scores
 
@@ -126,8 +160,13 @@ def test_files_are_written(report):
         assert path.is_file() and path.stat().st_size > 0 and path.parent == folder
     assert files.parquet is None  # pyarrow is not installed here
     names = {p.name for p in files.plots}
-    assert {"trajectories_speed_simple.png", "trajectories_xte_simple.png", "trajectories_speed_nurburgring.png",
-            "boxplots.png", "progress.png"} <= names
+    assert {
+        "trajectories_speed_simple.png",
+        "trajectories_xte_simple.png",
+        "trajectories_speed_nurburgring.png",
+        "boxplots.png",
+        "progress.png",
+    } <= names
     for plot in files.plots:
         assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -264,22 +303,53 @@ def test_internal_metrics_come_from_the_checkpoint(tmp_path):
 
     model = "deepest_lstm_tiny_pilotnet"
     save_checkpoint(
-        tmp_path / "model.ckpt", model_name=model, module=make_model(model), input=default_input(model),
-        normalisation={"image_mean": [0.5] * 3, "image_std": [0.25] * 3, "labels": "zscore",
-                       "label_mean": [5.0, 0.0], "label_std": [2.0, 1.0]},
-        metrics={"train": {"mae_speed_mps": 0.2, "mae_yaw_rate_radps": 0.05, "mse_normalised": 0.0123},
-                 "val": {"mae_speed_mps": 0.4321, "mae_yaw_rate_radps": 0.0767, "mse_normalised": 0.0456},
-                 "best_epoch": 7})
+        tmp_path / "model.ckpt",
+        model_name=model,
+        module=make_model(model),
+        input=default_input(model),
+        normalisation={
+            "image_mean": [0.5] * 3,
+            "image_std": [0.25] * 3,
+            "labels": "zscore",
+            "label_mean": [5.0, 0.0],
+            "label_std": [2.0, 1.0],
+        },
+        metrics={
+            "train": {"mae_speed_mps": 0.2, "mae_yaw_rate_radps": 0.05, "mse_normalised": 0.0123},
+            "val": {"mae_speed_mps": 0.4321, "mae_yaw_rate_radps": 0.0767, "mse_normalised": 0.0456},
+            "best_epoch": 7,
+        },
+    )
     metrics, arrays = drive("simple", "pilotnet", 0)
     spec = EpisodeSpec(circuit="simple", active_brain="tiny")
-    score = EpisodeScore(header=Header(run_id="r", episode=0, seq=0, stamp_ns=0), spec=spec,
-                         reason=EndReason.LAPS_COMPLETED, brain="tiny", metrics=metrics)
+    score = EpisodeScore(
+        header=Header(run_id="r", episode=0, seq=0, stamp_ns=0),
+        spec=spec,
+        reason=EndReason.LAPS_COMPLETED,
+        brain="tiny",
+        metrics=metrics,
+    )
     with ResultStore(tmp_path) as store:
-        store.record(EpisodeResult(key="tiny/0", index=0, brain="tiny", circuit="simple", variation="default",
-                                   perturbation="none", repetition=0, spec=spec,
-                                   brain_entry={"label": "tiny", "brain": "neural", "weights": "model.ckpt"},
-                                   status="done", run_id="r", started_at=0.0, ended_at=10.0, reason="laps_completed",
-                                   score=score, trajectory=None))
+        store.record(
+            EpisodeResult(
+                key="tiny/0",
+                index=0,
+                brain="tiny",
+                circuit="simple",
+                variation="default",
+                perturbation="none",
+                repetition=0,
+                spec=spec,
+                brain_entry={"label": "tiny", "brain": "neural", "weights": "model.ckpt"},
+                status="done",
+                run_id="r",
+                started_at=0.0,
+                ended_at=10.0,
+                reason="laps_completed",
+                score=score,
+                trajectory=None,
+            )
+        )
     text = write_report(tmp_path).markdown.read_text()
     section = text.split("## Internal metrics")[1].split("## ")[0]
     row = next(line for line in section.splitlines() if line.startswith("| tiny |"))

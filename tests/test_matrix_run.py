@@ -28,8 +28,13 @@ def write_matrix(folder: Path, body: str) -> Path:
 
 
 def drivebench(*args: str, **options) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **options)
+    return subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **options,
+    )
 
 
 def processes_with(text: str) -> list[int]:
@@ -73,13 +78,18 @@ def finished_rows(database: Path) -> list[tuple]:
 
 
 def test_two_episodes_of_different_brains_run_side_by_side_on_one_router(tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, """
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
 name: pair
 brains: [explicit, {name: constant, options: {speed_mps: 1.0, yaw_rate_radps: 0.5}}]
 circuits: [simple]
 limits: {laps: 1, max_sim_seconds: 8}
 camera: 96x72
-"""))
+""",
+        )
+    )
     progress = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=2)).run()
     assert (progress.done, progress.failed) == (2, 0)
     with ResultStore(tmp_path / "out", create=False) as store:
@@ -100,12 +110,15 @@ camera: 96x72
 
 @pytest.mark.slow
 def test_small_matrix_end_to_end_writes_results_and_report(tmp_path):
-    path = write_matrix(tmp_path, f"""
+    path = write_matrix(
+        tmp_path,
+        f"""
 name: small
 brains: [explicit, {{name: constant, options: {{speed_mps: 2.0}}}}]
 circuits: [simple, many_curves]
 variations: {{line: [red, white]}}
-{SHORT}""")
+{SHORT}""",
+    )
     out = tmp_path / "out"
     run = drivebench("matrix", str(path), "-o", str(out), "--workers", "2")
     stdout, stderr = run.communicate(timeout=400)
@@ -115,8 +128,11 @@ variations: {{line: [red, white]}}
     with ResultStore(out, create=False) as store:
         results = store.results()
     assert {(r.brain, r.circuit, r.variation) for r in results} == {
-        (brain, circuit, f"line={line}") for brain in ("explicit", "constant") for circuit in ("simple", "many_curves")
-        for line in ("red", "white")}
+        (brain, circuit, f"line={line}")
+        for brain in ("explicit", "constant")
+        for circuit in ("simple", "many_curves")
+        for line in ("red", "white")
+    }
     for result in results:
         assert result.score.spec.world.line == result.variation.removeprefix("line=")
         assert (out / result.trajectory).is_file()
@@ -128,12 +144,15 @@ variations: {{line: [red, white]}}
 
 
 def test_resume_after_sigkill_reruns_only_what_did_not_finish(tmp_path):
-    path = write_matrix(tmp_path, f"""
+    path = write_matrix(
+        tmp_path,
+        f"""
 name: resumable
 brains: [{{name: constant, options: {{speed_mps: 1.0}}}}]
 circuits: [simple]
 repetitions: 4
-{SHORT}""")
+{SHORT}""",
+    )
     out = tmp_path / "out"
     first = drivebench("matrix", str(path), "-o", str(out), "--no-report")
     deadline = time.monotonic() + 120
@@ -161,14 +180,19 @@ repetitions: 4
 
 
 def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, """
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
 name: killing
 brains: [{name: constant, options: {speed_mps: 0.5}}]
 circuits: [simple]
 repetitions: 2
 limits: {laps: 1, max_sim_seconds: 30}
 camera: 96x72
-"""))
+""",
+        )
+    )
     killed: list[int] = []
 
     def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
@@ -180,8 +204,9 @@ camera: 96x72
                 os.kill(pid, signal.SIGKILL)
                 killed.append(pid)
 
-    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1),
-                          on_change=kill_the_first_brain_2_s_into_its_episode)
+    runner = MatrixRunner(
+        matrix, tmp_path / "out", RunOptions(workers=1), on_change=kill_the_first_brain_2_s_into_its_episode
+    )
     progress = runner.run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)

@@ -30,29 +30,37 @@ TELEMETRY = IMAGES  # one telemetry message per image
 MSGPACK_BYTES = b"\x81\xa5speed\xcb\x40\x24\x00\x00\x00\x00\x00\x00"  # msgpack for {"speed": 10.0}
 
 
-def write_recording(path: Path, extra: tuple[str, str, bytes] | None = None,
-                    compression: str = "ZSTD") -> Path:
+def write_recording(path: Path, extra: tuple[str, str, bytes] | None = None, compression: str = "ZSTD") -> Path:
     """A recording like drivebench's; ``extra`` = (topic, message encoding, payload) adds a schemaless channel."""
     rng = random.Random(42)  # deterministic bytes, so byte offsets chosen by the tests are reproducible
     with path.open("wb") as stream:
-        writer = mcap_writer.Writer(stream, chunk_size=1 << 20, enable_data_crcs=True,
-                                    compression=mcap_writer.CompressionType[compression])
+        writer = mcap_writer.Writer(
+            stream, chunk_size=1 << 20, enable_data_crcs=True, compression=mcap_writer.CompressionType[compression]
+        )
         writer.start(profile="", library="drivebench-test")
         image_schema = writer.register_schema(
-            "foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data)
+            "foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data
+        )
         image_channel = writer.register_channel("/camera/image", "protobuf", image_schema)
-        telemetry_schema = writer.register_schema("Telemetry", "jsonschema", json.dumps(
-            {"type": "object", "properties": {"speed": {"type": "number"}, "seq": {"type": "integer"}}}).encode())
+        telemetry_schema = writer.register_schema(
+            "Telemetry",
+            "jsonschema",
+            json.dumps(
+                {"type": "object", "properties": {"speed": {"type": "number"}, "seq": {"type": "integer"}}}
+            ).encode(),
+        )
         telemetry_channel = writer.register_channel("/telemetry", "json", telemetry_schema)
         extra_channel = writer.register_channel(extra[0], extra[1], 0) if extra else None
         for i in range(IMAGES):  # interleaved, as a live recording is: every chunk holds every channel
             t = 1_000_000_000 + i * 50_000_000
-            image = raw_image_pb2.RawImage(width=64, height=48, encoding="rgb8", step=64 * 3, frame_id="camera",
-                                           data=rng.randbytes(64 * 48 * 3))
+            image = raw_image_pb2.RawImage(
+                width=64, height=48, encoding="rgb8", step=64 * 3, frame_id="camera", data=rng.randbytes(64 * 48 * 3)
+            )
             image.timestamp.FromNanoseconds(t)
             writer.add_message(image_channel, t, image.SerializeToString(), t, sequence=i)
-            writer.add_message(telemetry_channel, t + 1, json.dumps({"speed": 10.0, "seq": i}).encode(), t + 1,
-                               sequence=i)
+            writer.add_message(
+                telemetry_channel, t + 1, json.dumps({"speed": 10.0, "seq": i}).encode(), t + 1, sequence=i
+            )
             if extra_channel is not None:
                 writer.add_message(extra_channel, t + 2, extra[2], t + 2, sequence=i)
         writer.finish()
@@ -61,8 +69,13 @@ def write_recording(path: Path, extra: tuple[str, str, bytes] | None = None,
 
 def run_cli(*args: str | Path) -> subprocess.CompletedProcess:
     """The validator as a user runs it, to check its text output and exit code directly."""
-    return subprocess.run(["node", str(VALIDATOR_DIR / "validate.mjs"), *map(str, args)],
-                          capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(
+        ["node", str(VALIDATOR_DIR / "validate.mjs"), *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
 
 
 def chunk_offsets(path: Path) -> list[tuple[int, int]]:
@@ -76,7 +89,7 @@ def damage(path: Path, offset: int, new_bytes: bytes | None = None) -> Path:
     """Overwrite bytes at ``offset`` (default: invert one byte) in place."""
     data = bytearray(path.read_bytes())
     replacement = new_bytes if new_bytes is not None else bytes([data[offset] ^ 0xFF])
-    data[offset:offset + len(replacement)] = replacement
+    data[offset : offset + len(replacement)] = replacement
     path.write_bytes(bytes(data))
     return path
 
@@ -85,7 +98,7 @@ def records(data: bytes, start: int, end: int):
     """(offset, opcode) of each top-level record from ``start`` to ``end``: opcode u8, content length u64."""
     while start < end:
         yield start, data[start]
-        start += 9 + int.from_bytes(data[start + 1:start + 9], "little")
+        start += 9 + int.from_bytes(data[start + 1 : start + 9], "little")
 
 
 @pytest.fixture
@@ -154,7 +167,7 @@ def test_message_index_naming_the_wrong_channel_is_an_error(good):
     start, length = chunk_offsets(good)[0]
     after_chunk = records(data, start + length, len(data))
     first, second = [offset for offset, _ in itertools.takewhile(lambda r: r[1] == 0x07, after_chunk)]  # MessageIndex
-    data[second + 9:second + 11] = data[first + 9:first + 11]  # channel_id u16 follows opcode and length
+    data[second + 9 : second + 11] = data[first + 9 : first + 11]  # channel_id u16 follows opcode and length
     good.write_bytes(bytes(data))
     [file] = validate_mcap(good).files
     assert any('"/camera/image"' in e and "belong to another topic" in e for e in file.errors), file.errors
@@ -165,10 +178,10 @@ def test_statistics_that_lie_are_an_error(good):
     # field) and re-sign the summary so that only the count, not the summary CRC, is wrong.
     data = bytearray(good.read_bytes())
     footer = len(data) - 8 - 29  # Footer: opcode, length, summary_start, summary_offset_start, summary_crc; magic
-    summary_start = int.from_bytes(data[footer + 9:footer + 17], "little")
+    summary_start = int.from_bytes(data[footer + 9 : footer + 17], "little")
     statistics = next(o for o, op in records(data, summary_start, footer) if op == 0x0B)
     struct.pack_into("<Q", data, statistics + 9, IMAGES + TELEMETRY + 1)
-    struct.pack_into("<I", data, footer + 25, zlib.crc32(data[summary_start:footer + 25]))
+    struct.pack_into("<I", data, footer + 25, zlib.crc32(data[summary_start : footer + 25]))
     good.write_bytes(bytes(data))
     [file] = validate_mcap(good).files
     assert file.errors == [f"Statistics messageCount is {IMAGES + TELEMETRY + 1}, actual {IMAGES + TELEMETRY}"]
@@ -198,8 +211,7 @@ def test_protobuf_bytes_that_do_not_match_the_schema_are_an_error(tmp_path):
     with bad.open("wb") as stream:
         writer = mcap_writer.Writer(stream, enable_data_crcs=True)
         writer.start()
-        schema = writer.register_schema(
-            "foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data)
+        schema = writer.register_schema("foxglove.RawImage", "protobuf", protobuf_schema(raw_image_pb2.RawImage).data)
         channel = writer.register_channel("/camera/image", "protobuf", schema)
         writer.add_message(channel, 1, b"\xff\xff\xff", 1, sequence=7)
         writer.finish()

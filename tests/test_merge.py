@@ -21,8 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def two_recordings(tmp_path: Path) -> tuple[Path, Path]:
-    return (write(tmp_path / "a.mcap", one_run("r1", brain="explicit"), run_id="r1"),
-            write(tmp_path / "b.mcap", one_run("r2", brain="pilot", steps=30), run_id="r2"))
+    return (
+        write(tmp_path / "a.mcap", one_run("r1", brain="explicit"), run_id="r1"),
+        write(tmp_path / "b.mcap", one_run("r2", brain="pilot", steps=30), run_id="r2"),
+    )
 
 
 def read_all(path: Path) -> tuple[dict[str, str], dict[str, list], dict[str, dict[str, str]], dict[str, dict]]:
@@ -65,8 +67,11 @@ def test_two_runs_merge_under_their_namespaces_and_share_the_world_frame(tmp_pat
         assert PoseInFrame.FromString(messages[f"/{namespace}/car/pose"][-1].data).frame_id == "world"
         scene = SceneUpdate.FromString(messages[f"/{namespace}/circuit"][-1].data)
         assert [(e.id, e.frame_id) for e in scene.entities] == [("track", "world"), ("car", f"{namespace}/car")]
-        assert (scene.entities[1].cubes[0].color.r, scene.entities[1].cubes[0].color.g,
-                scene.entities[1].cubes[0].color.b) == pytest.approx(colour)
+        assert (
+            scene.entities[1].cubes[0].color.r,
+            scene.entities[1].cubes[0].color.g,
+            scene.entities[1].cubes[0].color.b,
+        ) == pytest.approx(colour)
         assert RawImage.FromString(messages[f"/{namespace}/camera/brain"][0].data).frame_id == f"{namespace}/camera"
     # Both clocks start at 0: the runs play back aligned from their starts.
     assert messages["/runA/camera/truth"][0].log_time == messages["/runB/camera/truth"][0].log_time == 0
@@ -86,8 +91,15 @@ def test_an_old_file_merges_onto_stable_namespaced_topics(tmp_path):
     new = write(tmp_path / "new.mcap", one_run("r1"), run_id="r1")
     report = merge([LEGACY, new], output=tmp_path / "ab.mcap", names=["old", "new"])
     schemas, messages, metadata, _ = read_all(report.output)
-    assert {"/old/camera/truth", "/old/camera/brain", "/old/tf", "/old/circuit", "/old/brain/explicit/cmd",
-            "/new/camera/truth", "/new/episode/log"} <= set(schemas)
+    assert {
+        "/old/camera/truth",
+        "/old/camera/brain",
+        "/old/tf",
+        "/old/circuit",
+        "/old/brain/explicit/cmd",
+        "/new/camera/truth",
+        "/new/episode/log",
+    } <= set(schemas)
     assert not any("legacy1" in topic for topic in schemas)
     assert metadata["drivebench.merge"]["run_ids"] == '{"new": ["r1"], "old": ["legacy1"]}'
     assert_valid_mcap(report.output)
@@ -99,17 +111,23 @@ def test_runs_that_share_a_run_id_merge_for_viewing_but_replay_and_datasets_refu
     report = merge([a, b], output=tmp_path / "ab.mcap")
     schemas, messages, _, _ = read_all(report.output)
     assert len(messages["/runA/camera/truth"]) == 25 and len(messages["/runB/camera/truth"]) == 10
-    with pytest.raises(RecordingError, match=r"ab\.mcap: a merged file whose runs /runA and /runB share the run id "
-                                             r"'compose'; replay or build datasets from the original recordings"):
+    with pytest.raises(
+        RecordingError,
+        match=r"ab\.mcap: a merged file whose runs /runA and /runB share the run id "
+        r"'compose'; replay or build datasets from the original recordings",
+    ):
         list(read_messages(report.output))
     assert [r.key for r in read_messages(a, keys_glob="*/scorer/*")]  # the originals read as ever
 
 
-@pytest.mark.parametrize(("names", "message"), [
-    (["same", "same"], "must be distinct"),
-    (["one"], "1 name(s) for 2 recording(s)"),
-    (["a/b", "c"], "namespace 'a/b' may only contain"),
-])
+@pytest.mark.parametrize(
+    ("names", "message"),
+    [
+        (["same", "same"], "must be distinct"),
+        (["one"], "1 name(s) for 2 recording(s)"),
+        (["a/b", "c"], "namespace 'a/b' may only contain"),
+    ],
+)
 def test_bad_names_are_one_clear_error(tmp_path, names, message):
     a, b = two_recordings(tmp_path)
     with pytest.raises(MergeError, match=re.escape(message)):
@@ -118,8 +136,9 @@ def test_bad_names_are_one_clear_error(tmp_path, names, message):
 
 
 def run_cli(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True,
-                          timeout=120, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True, timeout=120, cwd=ROOT
+    )
 
 
 def test_cli_merges_and_refuses_mistakes_in_one_line(tmp_path):
@@ -128,11 +147,15 @@ def test_cli_merges_and_refuses_mistakes_in_one_line(tmp_path):
     result = run_cli("recorder", "merge", str(a), str(b), "-o", str(out))
     assert result.returncode == 0, result.stderr
     assert "/runA <- " in result.stderr and "/runB <- " in result.stderr and out.exists()
-    for argv, error in ((["recorder", "merge", str(a), str(b), "-o", str(out)], "already exists"),
-                        (["recorder", "merge", str(a), str(tmp_path / "none.mcap"), "-o", str(tmp_path / "x.mcap")],
-                         "none.mcap: no such recording"),
-                        (["recorder", "merge", str(a), "-o", str(tmp_path / "x.mcap")], "at least two"),
-                        (["recorder", "merge", str(a), str(b), "-o", str(a)], "is one of the inputs")):
+    for argv, error in (
+        (["recorder", "merge", str(a), str(b), "-o", str(out)], "already exists"),
+        (
+            ["recorder", "merge", str(a), str(tmp_path / "none.mcap"), "-o", str(tmp_path / "x.mcap")],
+            "none.mcap: no such recording",
+        ),
+        (["recorder", "merge", str(a), "-o", str(tmp_path / "x.mcap")], "at least two"),
+        (["recorder", "merge", str(a), str(b), "-o", str(a)], "is one of the inputs"),
+    ):
         result = run_cli(*argv)
         assert result.returncode == 2, result.stderr
         assert len(result.stderr.strip().splitlines()) == 1 and error in result.stderr, result.stderr

@@ -37,8 +37,15 @@ STEP_NS = 50_000_000
 
 
 def make_circuit(points: np.ndarray, half_width: float = 1.5) -> Circuit:
-    return Circuit(name="synthetic", description="", source="", centreline=Centreline(points),
-                   road_half_width_m=half_width, line_width_m=0.1, wall_height_m=0.5)
+    return Circuit(
+        name="synthetic",
+        description="",
+        source="",
+        centreline=Centreline(points),
+        road_half_width_m=half_width,
+        line_width_m=0.1,
+        wall_height_m=0.5,
+    )
 
 
 def circle_points(radius: float, spacing: float = 0.25) -> np.ndarray:
@@ -68,16 +75,24 @@ def stadium_points(straight: float, radius: float, spacing: float = 0.25) -> np.
     return np.array(points)
 
 
-def drive(scorer: EpisodeScorer, xy: np.ndarray, *, speed: float = 5.0, yaw_rate: float = 0.0,
-          inference_ns: int = 0, latency_ns: int = 0) -> None:
+def drive(
+    scorer: EpisodeScorer,
+    xy: np.ndarray,
+    *,
+    speed: float = 5.0,
+    yaw_rate: float = 0.0,
+    inference_ns: int = 0,
+    latency_ns: int = 0,
+) -> None:
     """Feed poses (one per step) and one lock-step command per pose."""
     for k, (x, y) in enumerate(np.asarray(xy).tolist()):
         scorer.add_pose(seq=k, stamp_ns=k * STEP_NS, x_m=x, y_m=y, yaw_rad=0.0, command_latency_ns=latency_ns)
         scorer.add_command(stamp_ns=k * STEP_NS, speed_mps=speed, yaw_rate_radps=yaw_rate, inference_ns=inference_ns)
 
 
-def circle_trajectory(radius: float, speed: float, laps: float, *, start_rad: float = 0.0,
-                      direction: int = 1) -> np.ndarray:
+def circle_trajectory(
+    radius: float, speed: float, laps: float, *, start_rad: float = 0.0, direction: int = 1
+) -> np.ndarray:
     steps = int(round(laps * 2 * math.pi * radius / speed / STEP_S))
     angles = start_rad + direction * speed * np.arange(steps + 1) * STEP_S / radius
     return np.column_stack([radius * np.cos(angles), radius * np.sin(angles)])
@@ -213,8 +228,10 @@ def _bm_reference_deviation(p: np.ndarray, q: np.ndarray) -> float:
     q = np.roll(q, -bm_nearest_checkpoint(q, p[0]), axis=0)
     values, prev_t, stalls = [], 0.0, 0
     for k, point in enumerate(q):
+
         def distance(t, point=point):
             return float(np.hypot(*(spline(np.atleast_1d(t)[0]) - point)))
+
         t = float(fmin(distance, prev_t, disp=False, xtol=1e-8, ftol=1e-10)[0])
         if distance(t) > 1.0 or k < 3:
             grid = np.linspace(prev_t, min(prev_t + 100, n - 1), 20001)
@@ -243,7 +260,7 @@ def test_bm_position_deviation_matches_an_fmin_search(offset_m):
     mae, total = bm_position_deviation(p, q)
     reference = _bm_reference_deviation(p, q)
     assert mae == pytest.approx(reference, rel=1e-6)
-    assert mae > 1000 ** offset_m * 1.5  # the weave is seen: a straight path would give 1000**offset
+    assert mae > 1000**offset_m * 1.5  # the weave is seen: a straight path would give 1000**offset
 
 
 # --- beyond BM: pure functions -----------------------------------------------------------------------------------
@@ -309,8 +326,9 @@ def test_on_the_centreline_cross_track_zero_and_deviation_one():
     assert metrics.off_track_events == 0
     # The last point is one segment short of the start: almost a lap, not a lap.
     assert metrics.completed_laps == 0 and metrics.lap_times_s == []
-    assert metrics.progress_m == pytest.approx(circuit.length_m - np.hypot(*(circuit.centreline.points_m[-1]
-                                                                              - circuit.centreline.points_m[0])))
+    assert metrics.progress_m == pytest.approx(
+        circuit.length_m - np.hypot(*(circuit.centreline.points_m[-1] - circuit.centreline.points_m[0]))
+    )
 
 
 def test_perfect_circle_lap_is_timed_to_better_than_a_step():
@@ -461,8 +479,13 @@ def test_command_rate_latency_and_inference():
 def test_degenerate_episodes_do_not_raise():
     circuit = make_circuit(circle_points(20.0))
     empty = EpisodeScorer(circuit=circuit, laps_target=1, step_s=STEP_S)
-    assert empty.live() == {"progress_laps": 0.0, "completed_laps": 0, "sim_time_s": 0.0, "cross_track_m": 0.0,
-                            "speed_mps": 0.0}
+    assert empty.live() == {
+        "progress_laps": 0.0,
+        "completed_laps": 0,
+        "sim_time_s": 0.0,
+        "cross_track_m": 0.0,
+        "speed_mps": 0.0,
+    }
     metrics = empty.finish(wall_time_s=0.0)
     assert metrics.steps == 0 and metrics.sim_time_s == 0.0 and metrics.real_time_factor == 0.0
     assert metrics.percentage_completed == 0.0 and metrics.bm_lap_seconds is None
@@ -538,5 +561,5 @@ def test_long_episode_finishes():
     assert metrics.lap_times_s == pytest.approx([lap_s] * 3, rel=1e-3)
     assert metrics.progress_m == pytest.approx(1500.0, abs=0.5)
     assert metrics.cross_track_max_m == pytest.approx(0.6, abs=0.01)
-    assert 1.0 < metrics.position_deviation_mae < 1000 ** 0.6
+    assert 1.0 < metrics.position_deviation_mae < 1000**0.6
     assert metrics.percentage_completed > 300.0

@@ -38,8 +38,12 @@ class Namespaces:
 
     def __init__(self, tag: str, subnet: int):
         self.names = {host: f"db{tag}{host}" for host in "ABC"}
-        self.address = {("A", "B"): f"10.{subnet}.1.1", ("B", "A"): f"10.{subnet}.1.2",
-                        ("A", "C"): f"10.{subnet}.2.1", ("C", "A"): f"10.{subnet}.2.2"}
+        self.address = {
+            ("A", "B"): f"10.{subnet}.1.1",
+            ("B", "A"): f"10.{subnet}.1.2",
+            ("A", "C"): f"10.{subnet}.2.1",
+            ("C", "A"): f"10.{subnet}.2.2",
+        }
         self.tag = tag
 
     def create(self) -> None:
@@ -48,8 +52,22 @@ class Namespaces:
             self._check(ip("-n", name, "link", "set", "lo", "up"))
         for far in "BC":
             near_dev, far_dev = f"v{self.tag}A{far}", f"v{self.tag}{far}A"
-            self._check(ip("link", "add", near_dev, "netns", self.names["A"], "type", "veth", "peer", "name", far_dev,
-                           "netns", self.names[far]))
+            self._check(
+                ip(
+                    "link",
+                    "add",
+                    near_dev,
+                    "netns",
+                    self.names["A"],
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    far_dev,
+                    "netns",
+                    self.names[far],
+                )
+            )
             for host, dev, other in (("A", near_dev, far), (far, far_dev, "A")):
                 self._check(ip("-n", self.names[host], "addr", "add", f"{self.address[(host, other)]}/24", "dev", dev))
                 self._check(ip("-n", self.names[host], "link", "set", dev, "up"))
@@ -66,8 +84,13 @@ class Namespaces:
     def popen(self, host: str, argv: list[str], *, env: dict[str, str], log: Path) -> subprocess.Popen:
         base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
         with open(log, "wb") as out:
-            return subprocess.Popen(["ip", "netns", "exec", self.names[host], *argv], stdout=out,
-                                    stderr=subprocess.STDOUT, env=base | env | {"PYTHONUNBUFFERED": "1"}, cwd=ROOT)
+            return subprocess.Popen(
+                ["ip", "netns", "exec", self.names[host], *argv],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=base | env | {"PYTHONUNBUFFERED": "1"},
+                cwd=ROOT,
+            )
 
 
 def namespaces_or_skip() -> Namespaces:
@@ -93,24 +116,54 @@ def test_an_episode_runs_with_router_brain_and_scorer_in_separate_namespaces(tmp
     run_id = f"netns{net.tag}"
     env_a = {"DRIVEBENCH_ROUTER": router_b, "DRIVEBENCH_RUN_ID": run_id}
     try:
-        processes.append(net.popen("A", [sys.executable, "-m", "services.router", "--listen", router_b, "--listen",
-                                         router_c], env={}, log=tmp_path / "router.log"))
+        processes.append(
+            net.popen(
+                "A",
+                [sys.executable, "-m", "services.router", "--listen", router_b, "--listen", router_c],
+                env={},
+                log=tmp_path / "router.log",
+            )
+        )
         for module in ("services.simulator", "services.noise"):
-            processes.append(net.popen("A", [sys.executable, "-m", module], env=env_a,
-                                       log=tmp_path / f"{module}.log"))
+            processes.append(net.popen("A", [sys.executable, "-m", module], env=env_a, log=tmp_path / f"{module}.log"))
         # The brain's machine as the README sets it up: a client, so only the router's port must be reachable.
         # (As a peer it relies on a direct link to the simulator; twice in full-suite runs the simulator had not
         # seen the brain's token 5 s after the driver had.)
-        processes.append(net.popen("B", [sys.executable, "-m", "brains", "--brain", "explicit"],
-                                   env={"DRIVEBENCH_ROUTER": router_b, "DRIVEBENCH_RUN_ID": run_id,
-                                        "DRIVEBENCH_MODE": "client"},
-                                   log=tmp_path / "brain.log"))
-        processes.append(net.popen("C", [sys.executable, "-m", "services.scorer"],
-                                   env={"DRIVEBENCH_ROUTER": router_c, "DRIVEBENCH_RUN_ID": run_id},
-                                   log=tmp_path / "scorer.log"))
-        driver = net.popen("A", [sys.executable, "-m", "orchestrator.cli", "run", "--attach", "--wait", "60",
-                                 "--max-sim-seconds", "10", "--out", str(tmp_path / "run"), "--json"],
-                           env=env_a, log=tmp_path / "driver.log")
+        processes.append(
+            net.popen(
+                "B",
+                [sys.executable, "-m", "brains", "--brain", "explicit"],
+                env={"DRIVEBENCH_ROUTER": router_b, "DRIVEBENCH_RUN_ID": run_id, "DRIVEBENCH_MODE": "client"},
+                log=tmp_path / "brain.log",
+            )
+        )
+        processes.append(
+            net.popen(
+                "C",
+                [sys.executable, "-m", "services.scorer"],
+                env={"DRIVEBENCH_ROUTER": router_c, "DRIVEBENCH_RUN_ID": run_id},
+                log=tmp_path / "scorer.log",
+            )
+        )
+        driver = net.popen(
+            "A",
+            [
+                sys.executable,
+                "-m",
+                "orchestrator.cli",
+                "run",
+                "--attach",
+                "--wait",
+                "60",
+                "--max-sim-seconds",
+                "10",
+                "--out",
+                str(tmp_path / "run"),
+                "--json",
+            ],
+            env=env_a,
+            log=tmp_path / "driver.log",
+        )
         processes.append(driver)
         code = driver.wait(timeout=150)
         logs = {path.name: path.read_text(errors="replace")[-1500:] for path in tmp_path.glob("*.log")}
@@ -120,8 +173,12 @@ def test_an_episode_runs_with_router_brain_and_scorer_in_separate_namespaces(tmp
         assert score["metrics"]["steps"] == 200 and score["metrics"]["progress_m"] > 40, score["metrics"]
         # Everything crossed a veth: the brain's and the scorer's only links are to addresses in namespace A.
         for name in "BC":
-            links = subprocess.run(["ip", "netns", "exec", net.names[name], "ss", "-tnH", "state", "established"],
-                                   capture_output=True, text=True, timeout=10).stdout
+            links = subprocess.run(
+                ["ip", "netns", "exec", net.names[name], "ss", "-tnH", "state", "established"],
+                capture_output=True,
+                text=True,
+                timeout=10,
+            ).stdout
             assert net.address[("A", name)] in links, (name, links)
     finally:
         for process in processes:

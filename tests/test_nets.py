@@ -52,6 +52,7 @@ def models() -> dict[str, nn.Module]:
 
 # --- registry -------------------------------------------------------------------------------------------------
 
+
 def test_registry_names_and_inputs():
     assert sorted(MODELS) == sorted(NAMES)
     assert (MODELS["pilotnet"].input_height_px, MODELS["pilotnet"].input_width_px) == (66, 200)
@@ -69,13 +70,16 @@ def test_importing_registry_and_preprocess_does_not_import_torch():
 
 # --- parameter counts -----------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", NAMES)
 def test_keras_parameter_count_matches_reference(models, name):
     assert keras_param_count(models[name]) == MODELS[name].reference_params
 
 
-@pytest.mark.parametrize("name, trainable", [("pilotnet", 17_016_200), ("deepest_lstm_tiny_pilotnet", 62_470),
-                                             ("pilotnet_x3", 352_952), ("memdccp", 910_688)])
+@pytest.mark.parametrize(
+    "name, trainable",
+    [("pilotnet", 17_016_200), ("deepest_lstm_tiny_pilotnet", 62_470), ("pilotnet_x3", 352_952), ("memdccp", 910_688)],
+)
 def test_trainable_count_excludes_bn_moving_statistics(models, name, trainable):
     # Keras counts BN moving mean/variance (2·3 numbers on the RGB input); PyTorch keeps them as buffers.
     assert sum(p.numel() for p in models[name].parameters()) == trainable
@@ -116,6 +120,7 @@ def test_pilotnet_x3_lstm_width_is_a_setting():
 
 # --- forward / backward ---------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", NAMES)
 def test_output_shape(models, name):
     out = models[name].train()(batch(MODELS[name]))
@@ -151,6 +156,7 @@ def test_batchnorm_uses_keras_hyperparameters(models):
 
 
 # --- Keras layer semantics ------------------------------------------------------------------------------------
+
 
 def test_keras_same_padding_sizes_and_placement():
     assert keras_same_padding(66, 5, 2) == (1, 2)  # the odd extra row goes to the bottom
@@ -239,6 +245,7 @@ def test_memdccp_raw_reshape_is_keras_row_major():
 
 
 # --- preprocessing --------------------------------------------------------------------------------------------
+
 
 def test_label_round_trip_and_clipping():
     v = np.array([6.5, 10.0, 24.0])

@@ -54,8 +54,10 @@ def flat_frame(value: int, size: tuple[int, int] = (320, 240)) -> np.ndarray:
 def drive(brain, images, *, step_ms: int = 50, seqs=None) -> list:
     brain.reset(seed=0)
     seqs = range(len(images)) if seqs is None else seqs
-    return [brain.act(Observation(image_rgb=image, stamp_ns=seq * step_ms * MS, seq=seq))
-            for seq, image in zip(seqs, images)]
+    return [
+        brain.act(Observation(image_rgb=image, stamp_ns=seq * step_ms * MS, seq=seq))
+        for seq, image in zip(seqs, images)
+    ]
 
 
 def as_array(actions) -> np.ndarray:
@@ -124,11 +126,14 @@ def seq_brain(ckpts) -> NeuralBrain:
     return NeuralBrain(weights=ckpts["memdccp"], backend="torch")
 
 
-@pytest.mark.parametrize("step_ms, offsets", [
-    (50, (-9, -5, 0)),  # the training step: the training offsets
-    (40, (-11, -6, 0)),  # 25 Hz: -0.45 s is closest to -0.44 s, -0.25 s to -0.24 s
-    (100, (-5, -3, 0)),  # 10 Hz: -0.45 s lies halfway between -0.4 and -0.5 s; ties go to the older frame
-])
+@pytest.mark.parametrize(
+    "step_ms, offsets",
+    [
+        (50, (-9, -5, 0)),  # the training step: the training offsets
+        (40, (-11, -6, 0)),  # 25 Hz: -0.45 s is closest to -0.44 s, -0.25 s to -0.24 s
+        (100, (-5, -3, 0)),  # 10 Hz: -0.45 s lies halfway between -0.4 and -0.5 s; ties go to the older frame
+    ],
+)
 def test_history_picks_the_frames_closest_to_the_offsets_in_seconds(seq_brain, step_ms, offsets):
     seq_brain.reset(seed=0)
     for n in range(25):
@@ -179,10 +184,20 @@ def test_output_is_denormalised_with_the_checkpoint_label_statistics(backend, tm
     with torch.no_grad():  # constant normalised output (0.3, -0.7)
         last.weight.zero_()
         last.bias.copy_(torch.tensor([0.3, -0.7]))
-    norm = {"image_mean": [0.5] * 3, "image_std": [0.25] * 3, "labels": "zscore", "label_mean": [4.0, 0.5],
-            "label_std": [2.0, 0.25]}
-    path = save_checkpoint(tmp_path / "c.pt", model_name="deepest_lstm_tiny_pilotnet", module=model,
-                           input=default_input("deepest_lstm_tiny_pilotnet"), normalisation=norm)
+    norm = {
+        "image_mean": [0.5] * 3,
+        "image_std": [0.25] * 3,
+        "labels": "zscore",
+        "label_mean": [4.0, 0.5],
+        "label_std": [2.0, 0.25],
+    }
+    path = save_checkpoint(
+        tmp_path / "c.pt",
+        model_name="deepest_lstm_tiny_pilotnet",
+        module=model,
+        input=default_input("deepest_lstm_tiny_pilotnet"),
+        normalisation=norm,
+    )
     (action,) = drive(NeuralBrain(weights=str(path), backend=backend), noise_frames(1))
     assert action.speed_mps == pytest.approx(0.3 * 2.0 + 4.0, abs=1e-5)
     assert action.yaw_rate_radps == pytest.approx(-0.7 * 0.25 + 0.5, abs=1e-5)
@@ -201,18 +216,22 @@ def _write(case: str, folder, ckpts) -> str:
     elif case == "plain_dict":
         torch.save({"weights": torch.zeros(3)}, path)
     else:
-        torch.save({**good, **({"format": "drivebench.checkpoint.v0"} if case == "format" else {"model": "resnet"})},
-                   path)
+        torch.save(
+            {**good, **({"format": "drivebench.checkpoint.v0"} if case == "format" else {"model": "resnet"})}, path
+        )
     return str(path)
 
 
-@pytest.mark.parametrize("case, message", [
-    ("missing", "no such checkpoint file"),
-    ("text", "not a torch checkpoint"),
-    ("plain_dict", "not a drivebench checkpoint"),
-    ("format", f"format 'drivebench.checkpoint.v0', expected '{FORMAT}'"),
-    ("model", "unknown model 'resnet'"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("missing", "no such checkpoint file"),
+        ("text", "not a torch checkpoint"),
+        ("plain_dict", "not a drivebench checkpoint"),
+        ("format", f"format 'drivebench.checkpoint.v0', expected '{FORMAT}'"),
+        ("model", "unknown model 'resnet'"),
+    ],
+)
 def test_bad_weights_give_one_line_naming_the_file(case, message, tmp_path, ckpts):
     path = _write(case, tmp_path, ckpts)
     with pytest.raises(CheckpointError) as error:
@@ -246,13 +265,17 @@ def test_device_option_runs_on_the_cpu_and_names_what_is_missing(ckpts):
             make_brain("memdccp", weights=ckpts["memdccp"], backend="torch", device="cuda")
 
 
-@pytest.mark.parametrize("argv, line", [
-    ([], "brain: error: brain 'neural' needs --weights CKPT (or --set options.weights=CKPT)"),
-    (["--weights", "/nowhere/m.pt"], "brain: error: /nowhere/m.pt: no such checkpoint file"),
-])
+@pytest.mark.parametrize(
+    "argv, line",
+    [
+        ([], "brain: error: brain 'neural' needs --weights CKPT (or --set options.weights=CKPT)"),
+        (["--weights", "/nowhere/m.pt"], "brain: error: /nowhere/m.pt: no such checkpoint file"),
+    ],
+)
 def test_brain_host_reports_missing_or_bad_weights_in_one_line(argv, line):
-    done = subprocess.run([sys.executable, "-m", "brains", "--brain", "neural", *argv], capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "brains", "--brain", "neural", *argv], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2
     assert done.stderr.strip().splitlines()[-1] == line
     assert "Traceback" not in done.stderr
@@ -297,11 +320,13 @@ def test_brain_host_drives_the_closed_loop(make_stack, tmp_path):
 
     name = "deepest_lstm_tiny_pilotnet"
     # Slow and nearly straight whatever the untrained network says, so the episode lasts.
-    weights = make_random_checkpoint(tmp_path / "tiny.pt", name, seed=0, label_mean=(1.0, 0.0),
-                                     label_std=(0.2, 0.02))
+    weights = make_random_checkpoint(tmp_path / "tiny.pt", name, seed=0, label_mean=(1.0, 0.0), label_std=(0.2, 0.02))
     stack = make_stack(BrainLaunch(name, options=(f"weights={json.dumps(str(weights))}",)))
-    score = stack.run_episode(EpisodeSpec(circuit="simple", max_sim_seconds=15.0, active_brain=name,
-                                          camera=CameraSpec(width_px=160, height_px=120)))
+    score = stack.run_episode(
+        EpisodeSpec(
+            circuit="simple", max_sim_seconds=15.0, active_brain=name, camera=CameraSpec(width_px=160, height_px=120)
+        )
+    )
     m = score.metrics
     assert score.brain == name
     assert score.reason in (EndReason.TIME_LIMIT, EndReason.OFF_TRACK, EndReason.CRASH), score.reason

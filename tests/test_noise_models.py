@@ -40,8 +40,15 @@ DETERMINISTIC_STAGES: list[NoiseStage] = [
 # A model added to protocol.messages.NOISE_MODELS is tested by every contract test below with no edit here, built with
 # its defaults (test_make_model_covers_every_stage_type names one that has none: give it defaults or a stage above).
 _LISTED = {type(stage) for stage in RANDOM_STAGES + DETERMINISTIC_STAGES}
-ALL_STAGES = RANDOM_STAGES + DETERMINISTIC_STAGES + [model() for model in NOISE_MODELS if model not in _LISTED
-                                                     and not any(f.required for f in msgspec.structs.fields(model))]
+ALL_STAGES = (
+    RANDOM_STAGES
+    + DETERMINISTIC_STAGES
+    + [
+        model()
+        for model in NOISE_MODELS
+        if model not in _LISTED and not any(f.required for f in msgspec.structs.fields(model))
+    ]
+)
 
 
 def stage_id(stage: NoiseStage) -> str:
@@ -53,7 +60,7 @@ def textured(height: int = H, width: int = W, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     image = np.stack([40 + 150 * x / width, 60 + 120 * y / height, 128 + 60 * np.sin(x / 9.0 + y / 13.0)], axis=2)
-    image[height // 3: height // 2, width // 4: width // 2] = (220, 30, 30)  # a red block: sharp edges
+    image[height // 3 : height // 2, width // 4 : width // 2] = (220, 30, 30)  # a red block: sharp edges
     image += rng.normal(0.0, 3.0, image.shape)
     out = np.clip(np.rint(image), 0, 255).astype(np.uint8)
     out.flags.writeable = False
@@ -70,13 +77,15 @@ def run(model: NoiseModel | NoisePipeline, frames: list[np.ndarray]) -> list[np.
 
 def same_outputs(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> bool:
     assert len(a) == len(b)
-    return all((x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
-               for x, y in zip(a, b, strict=True))
+    return all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+        for x, y in zip(a, b, strict=True)
+    )
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return math.inf if mse == 0 else 10 * math.log10(255.0 ** 2 / mse)
+    return math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse)
 
 
 # -- salt and pepper --
@@ -134,7 +143,7 @@ def test_gaussian_residual_has_std_sigma_and_zero_mean_on_mid_grey(sigma):
     model.reset(seed=3)
     grey = constant(128, 200, 200)
     residual = model.apply(grey).astype(np.float64) - 128
-    expected_std = math.sqrt(sigma ** 2 + 1 / 12)  # rounding to integers adds 1/12 of variance
+    expected_std = math.sqrt(sigma**2 + 1 / 12)  # rounding to integers adds 1/12 of variance
     assert residual.std() == pytest.approx(expected_std, rel=0.02)
     assert abs(residual.mean()) < 0.05 * sigma
     # independent per channel, and gaussian-shaped: round(sigma * z) is within n sigma when |z| < n + 0.5 / sigma
@@ -205,18 +214,18 @@ def test_one_occlusion_patch_is_one_black_rectangle_of_size_fraction_of_each_sid
         rows, cols = np.nonzero(black)
         assert (rows.max() - rows.min() + 1, cols.max() - cols.min() + 1) == (round(0.2 * H), round(0.2 * W))
         assert black.sum() == round(0.2 * H) * round(0.2 * W)  # a filled rectangle
-        assert black.mean() == pytest.approx(0.2 ** 2)
+        assert black.mean() == pytest.approx(0.2**2)
 
 
 def test_occlusion_covers_about_patches_times_size_fraction_squared():
     model = make_model(Occlusion(patches=2, size_fraction=0.2))
     model.reset(seed=11)
     covered = [np.all(model.apply(constant(200)) == 0, axis=2).mean() for _ in range(300)]
-    assert max(covered) <= 2 * 0.2 ** 2 + 1e-12
-    assert min(covered) >= 0.2 ** 2 - 1e-12
+    assert max(covered) <= 2 * 0.2**2 + 1e-12
+    assert min(covered) >= 0.2**2 - 1e-12
     # random placement overlaps a little: expected 0.08 - 0.0021
-    assert np.mean(covered) == pytest.approx(2 * 0.2 ** 2, abs=0.005)
-    assert np.mean(covered) < 2 * 0.2 ** 2
+    assert np.mean(covered) == pytest.approx(2 * 0.2**2, abs=0.005)
+    assert np.mean(covered) < 2 * 0.2**2
 
 
 def test_occlusion_fires_in_a_fraction_probability_of_frames():
@@ -394,8 +403,16 @@ def test_make_model_covers_every_stage_type_and_rejects_others():
         make_model({"model": "blur", "kernel_px": 3})
 
 
-@pytest.mark.parametrize("bad", [np.zeros((10, 10), np.uint8), np.zeros((10, 10, 4), np.uint8),
-                                 np.zeros((10, 10, 3), np.float32), np.zeros((0, 10, 3), np.uint8), [[1, 2, 3]]])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((10, 10), np.uint8),
+        np.zeros((10, 10, 4), np.uint8),
+        np.zeros((10, 10, 3), np.float32),
+        np.zeros((0, 10, 3), np.uint8),
+        [[1, 2, 3]],
+    ],
+)
 @pytest.mark.parametrize("stage", ALL_STAGES, ids=stage_id)
 def test_a_bad_image_is_a_clear_value_error(stage, bad):
     with pytest.raises(ValueError, match="H x W x 3 uint8|NumPy array"):
@@ -424,9 +441,14 @@ def test_a_pipeline_applies_its_stages_in_order():
 
 
 def test_a_pipeline_is_reproducible_and_its_seed_matters():
-    stages = [SaltPepper(probability=0.2), Gaussian(sigma=8.0),
-              Occlusion(patches=2, size_fraction=0.2, probability=0.5),
-              Jpeg(quality=70), Delay(frames=2), Drop(probability=0.3)]
+    stages = [
+        SaltPepper(probability=0.2),
+        Gaussian(sigma=8.0),
+        Occlusion(patches=2, size_fraction=0.2, probability=0.5),
+        Jpeg(quality=70),
+        Delay(frames=2),
+        Drop(probability=0.3),
+    ]
     frames = frame_sequence(10)
 
     def outputs(seed: int) -> list[np.ndarray | None]:
@@ -459,7 +481,7 @@ def test_stages_have_independent_generators():
     once.reset(seed=4)
     changed_once = np.any(once.apply(constant(128)) != 128, axis=2).mean()
     changed_twice = np.any(twice.apply(constant(128)) != 128, axis=2).mean()
-    assert changed_twice == pytest.approx(1 - 0.8 ** 2, abs=0.02)  # not 0.2, as identical masks would give
+    assert changed_twice == pytest.approx(1 - 0.8**2, abs=0.02)  # not 0.2, as identical masks would give
     assert changed_once == pytest.approx(0.2, abs=0.02)
 
 
@@ -495,8 +517,9 @@ def test_a_pipeline_rejects_something_that_is_not_a_stage():
 
 
 def test_a_pipeline_is_built_from_a_decoded_spec_list():
-    decoded = msgspec.json.decode(b'[{"model": "salt_pepper", "probability": 0.2}, {"model": "delay", "frames": 2}]',
-                                  type=list[NoiseStage])
+    decoded = msgspec.json.decode(
+        b'[{"model": "salt_pepper", "probability": 0.2}, {"model": "delay", "frames": 2}]', type=list[NoiseStage]
+    )
     pipeline = NoisePipeline(decoded)
     assert isinstance(pipeline.models[1], DelayModel)
     assert pipeline.apply(constant(128)) is not None
@@ -505,23 +528,26 @@ def test_a_pipeline_is_built_from_a_decoded_spec_list():
 # -- validation of the stage structs --
 
 
-@pytest.mark.parametrize(("build", "message"), [
-    (lambda: Jpeg(quality=500), "jpeg quality must be within 1..100, got 500"),
-    (lambda: Jpeg(quality=0), "jpeg quality"),
-    (lambda: SaltPepper(probability=1.5), "salt_pepper probability must be within 0..1"),
-    (lambda: SaltPepper(probability=float("nan")), "salt_pepper probability"),
-    (lambda: Gaussian(sigma=-1.0), "gaussian sigma must be >= 0"),
-    (lambda: Gaussian(sigma=float("nan")), "gaussian sigma"),
-    (lambda: Blur(kernel_px=4), "blur kernel_px must be an odd number"),
-    (lambda: Blur(kernel_px=0), "blur kernel_px"),
-    (lambda: Brightness(brightness=1.5), "brightness must be within -1..1"),
-    (lambda: Brightness(contrast=-0.5), "contrast >= 0"),
-    (lambda: Occlusion(size_fraction=0.0), "size_fraction within"),
-    (lambda: Occlusion(patches=-1), "patches >= 0"),
-    (lambda: Occlusion(probability=2.0), "occlusion probability"),
-    (lambda: Delay(frames=-1), "delay frames must be within 0.."),
-    (lambda: Drop(probability=-0.1), "drop probability"),
-])
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: Jpeg(quality=500), "jpeg quality must be within 1..100, got 500"),
+        (lambda: Jpeg(quality=0), "jpeg quality"),
+        (lambda: SaltPepper(probability=1.5), "salt_pepper probability must be within 0..1"),
+        (lambda: SaltPepper(probability=float("nan")), "salt_pepper probability"),
+        (lambda: Gaussian(sigma=-1.0), "gaussian sigma must be >= 0"),
+        (lambda: Gaussian(sigma=float("nan")), "gaussian sigma"),
+        (lambda: Blur(kernel_px=4), "blur kernel_px must be an odd number"),
+        (lambda: Blur(kernel_px=0), "blur kernel_px"),
+        (lambda: Brightness(brightness=1.5), "brightness must be within -1..1"),
+        (lambda: Brightness(contrast=-0.5), "contrast >= 0"),
+        (lambda: Occlusion(size_fraction=0.0), "size_fraction within"),
+        (lambda: Occlusion(patches=-1), "patches >= 0"),
+        (lambda: Occlusion(probability=2.0), "occlusion probability"),
+        (lambda: Delay(frames=-1), "delay frames must be within 0.."),
+        (lambda: Drop(probability=-0.1), "drop probability"),
+    ],
+)
 def test_invalid_stage_parameters_raise_a_clear_value_error(build, message):
     with pytest.raises(ValueError, match=message.replace(".", r"\.").replace("(", r"\(")):
         build()

@@ -53,13 +53,17 @@ def test_noise_is_seeded_from_the_spec(make_stack):
     poses = Inbox()
     stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=poses)
     noise = [SaltPepper(probability=0.3), Delay(frames=2)]
-    runs = [stack.run_episode(EpisodeSpec(max_sim_seconds=8.0, seed=seed, camera=CameraSpec(width_px=160,
-                                                                                            height_px=120),
-                                          noise=noise)) for seed in (1, 1, 2)]
+    runs = [
+        stack.run_episode(
+            EpisodeSpec(max_sim_seconds=8.0, seed=seed, camera=CameraSpec(width_px=160, height_px=120), noise=noise)
+        )
+        for seed in (1, 1, 2)
+    ]
     by_episode: dict[int, list] = {}
     for received in poses.drain():
         by_episode.setdefault(received.message.header.episode, []).append(
-            (received.message.x_m, received.message.y_m, received.message.yaw_rad))
+            (received.message.x_m, received.message.y_m, received.message.yaw_rad)
+        )
     first, again, other = (np.array(by_episode[run.header.episode]) for run in runs)
     assert np.array_equal(first, again)
     assert not np.array_equal(first, other)

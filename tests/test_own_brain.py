@@ -33,8 +33,14 @@ LAP_LIMIT_S = "150"
 
 def drivebench(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, env=env, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+    )
 
 
 def lap_score(result: subprocess.CompletedProcess) -> dict:
@@ -49,9 +55,13 @@ def lap_score(result: subprocess.CompletedProcess) -> dict:
 def test_an_installed_package_brain_drives_a_lap_by_its_entry_point_name(tmp_path):
     listed = drivebench("brains", "list")
     assert "my_brain" in listed.stdout and "entry point of drivebench-my-brain" in listed.stdout, (
-        "examples/my_brain is not installed: run scripts/setup.sh")
-    score = lap_score(drivebench("run", "--brain", "my_brain", "--max-sim-seconds", LAP_LIMIT_S, "--json",
-                                 "--out", str(tmp_path / "run")))
+        "examples/my_brain is not installed: run scripts/setup.sh"
+    )
+    score = lap_score(
+        drivebench(
+            "run", "--brain", "my_brain", "--max-sim-seconds", LAP_LIMIT_S, "--json", "--out", str(tmp_path / "run")
+        )
+    )
     assert score["brain"] == "my_brain"
 
 
@@ -74,42 +84,81 @@ class SteadyExplicit:
 @pytest.mark.slow
 def test_a_module_path_brain_from_the_users_folder_drives_a_lap(tmp_path):
     (tmp_path / "lap_brain.py").write_text(LAP_BRAIN)
-    score = lap_score(drivebench("run", "--brain", "lap_brain:SteadyExplicit", "--brain-option", "speed_mps=9",
-                                 "--max-sim-seconds", LAP_LIMIT_S, "--json", "--out", str(tmp_path / "run"),
-                                 cwd=tmp_path))
+    score = lap_score(
+        drivebench(
+            "run",
+            "--brain",
+            "lap_brain:SteadyExplicit",
+            "--brain-option",
+            "speed_mps=9",
+            "--max-sim-seconds",
+            LAP_LIMIT_S,
+            "--json",
+            "--out",
+            str(tmp_path / "run"),
+            cwd=tmp_path,
+        )
+    )
     assert score["brain"] == "SteadyExplicit"  # its bus name: the class name
     assert 8.5 < score["metrics"]["average_speed_mps"] < 9.5
 
 
 @pytest.mark.slow
 def test_a_behavior_metrics_brain_file_drives_a_lap_unchanged(tmp_path):
-    score = lap_score(drivebench("run", "--brain", str(BM_EXAMPLE), "--max-sim-seconds", LAP_LIMIT_S, "--json",
-                                 "--out", str(tmp_path / "run")))
+    score = lap_score(
+        drivebench(
+            "run",
+            "--brain",
+            str(BM_EXAMPLE),
+            "--max-sim-seconds",
+            LAP_LIMIT_S,
+            "--json",
+            "--out",
+            str(tmp_path / "run"),
+        )
+    )
     assert score["brain"] == "brain_f1_follow_line"
 
 
 @pytest.mark.slow
 def test_a_standalone_zenoh_brain_without_project_code_drives_a_lap(tmp_path):
     source = STANDALONE.read_text()
-    assert not [line for line in source.splitlines()
-                if line.startswith(("import ", "from ")) and line.split()[1].split(".")[0] not in
-                ("argparse", "threading", "time", "msgpack", "zenoh")], "the example may only use zenoh and msgpack"
+    assert not [
+        line
+        for line in source.splitlines()
+        if line.startswith(("import ", "from "))
+        and line.split()[1].split(".")[0] not in ("argparse", "threading", "time", "msgpack", "zenoh")
+    ], "the example may only use zenoh and msgpack"
     with LocalStack(run_id="standalone", run_dir=tmp_path / "stack", brains=[]) as stack:
         log = open(tmp_path / "brain.log", "wb")
-        brain = subprocess.Popen([sys.executable, str(STANDALONE), "--router", stack.endpoint, "--run-id",
-                                  stack.run_id, "--name", "line_follower"], stdout=log, stderr=subprocess.STDOUT,
-                                 cwd=tmp_path)  # not the repository: nothing of drivebench is importable by path
+        brain = subprocess.Popen(
+            [
+                sys.executable,
+                str(STANDALONE),
+                "--router",
+                stack.endpoint,
+                "--run-id",
+                stack.run_id,
+                "--name",
+                "line_follower",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=tmp_path,
+        )  # not the repository: nothing of drivebench is importable by path
         try:
             token = keys.alive(stack.run_id, "brain", "line_follower")
             deadline = time.monotonic() + 30
             while token not in stack.bus.alive_now(token) and time.monotonic() < deadline:
                 assert brain.poll() is None, (tmp_path / "brain.log").read_text()
-            score = stack.run_episode(EpisodeSpec(circuit="simple", active_brain="line_follower",
-                                                  max_sim_seconds=float(LAP_LIMIT_S)))
+            score = stack.run_episode(
+                EpisodeSpec(circuit="simple", active_brain="line_follower", max_sim_seconds=float(LAP_LIMIT_S))
+            )
             assert score.reason == EndReason.LAPS_COMPLETED, score.reason
             assert score.metrics.completed_laps == 1 and score.metrics.command_rate_hz > 19
-            reply = stack.bus.request(keys.brain_control(stack.run_id, "line_follower"),
-                                      b"\x81\xa6action\xa4stop", timeout_s=5)  # msgpack {"action": "stop"}
+            reply = stack.bus.request(
+                keys.brain_control(stack.run_id, "line_follower"), b"\x81\xa6action\xa4stop", timeout_s=5
+            )  # msgpack {"action": "stop"}
             assert reply is not None
             assert brain.wait(timeout=10) == 0  # stopped over its control key, cleanly
         finally:

@@ -38,15 +38,26 @@ def test_paper_yaml_expands_to_exactly_the_episodes_of_the_six_tables():
     montmelo = [e for e in matrix.episodes if e.part == "montmelo"]
     assert {(e.circuit, e.variation, e.perturbation) for e in montmelo} == {("montmelo", "default", "none")}
     assert sorted({e.repetition for e in montmelo}) == [0, 1, 2]
-    worlds = {(e.spec.world.line, e.spec.world.road, e.spec.world.walls, e.spec.direction)
-              for e in matrix.episodes if e.part == "generalisation"}
-    assert worlds == {("red", "grey", True, "forward"), ("red", "white", True, "forward"),
-                      ("white", "grey", True, "forward"), ("none", "grey", True, "forward"),
-                      ("none", "white", True, "forward"), ("none", "grey", False, "forward"),
-                      ("red", "grey", True, "reverse")}
+    worlds = {
+        (e.spec.world.line, e.spec.world.road, e.spec.world.walls, e.spec.direction)
+        for e in matrix.episodes
+        if e.part == "generalisation"
+    }
+    assert worlds == {
+        ("red", "grey", True, "forward"),
+        ("red", "white", True, "forward"),
+        ("white", "grey", True, "forward"),
+        ("none", "grey", True, "forward"),
+        ("none", "white", True, "forward"),
+        ("none", "grey", False, "forward"),
+        ("red", "grey", True, "reverse"),
+    }
     assert {e.circuit for e in matrix.episodes if e.part == "generalisation"} == {"simple"}
-    camera = {(e.circuit, e.spec.camera.lateral_offset_m, e.spec.camera.pitch_down_rad)
-              for e in matrix.episodes if e.part == "camera"}
+    camera = {
+        (e.circuit, e.spec.camera.lateral_offset_m, e.spec.camera.pitch_down_rad)
+        for e in matrix.episodes
+        if e.part == "camera"
+    }
     assert camera == {("montreal", 0.20, 0.0), ("montreal", -0.20, 0.0), ("montreal", -0.20, 0.2)}
     noise = {(e.circuit, tuple(e.spec.noise)) for e in matrix.episodes if e.part == "noise"}
     assert noise == {("montreal", (SaltPepper(probability=p),)) for p in (0.2, 0.4, 0.6)}
@@ -104,13 +115,32 @@ def paper_results(tmp_path_factory) -> tuple[Path, list[EpisodeResult]]:
             label = variation or "default"
             metrics = drive(circuit, speed, fraction=fraction)
             reason = EndReason.LAPS_COMPLETED if fraction > 1 else EndReason.CRASH
-            score = EpisodeScore(header=Header(run_id=f"r{index}", episode=0, seq=0, stamp_ns=0), spec=spec,
-                                 reason=reason, brain=brain, metrics=metrics)
-            store.record(EpisodeResult(
-                key=f"{part}:{brain}/{circuit}/{label}/{perturbation}/r0", index=index, brain=brain, circuit=circuit,
-                variation=label, perturbation=perturbation, repetition=0, spec=spec,
-                brain_entry={"label": brain, "brain": brain, "weights": None, "options": {}}, status="done",
-                run_id=f"r{index}", started_at=0.0, ended_at=1.0, reason=str(reason), score=score))
+            score = EpisodeScore(
+                header=Header(run_id=f"r{index}", episode=0, seq=0, stamp_ns=0),
+                spec=spec,
+                reason=reason,
+                brain=brain,
+                metrics=metrics,
+            )
+            store.record(
+                EpisodeResult(
+                    key=f"{part}:{brain}/{circuit}/{label}/{perturbation}/r0",
+                    index=index,
+                    brain=brain,
+                    circuit=circuit,
+                    variation=label,
+                    perturbation=perturbation,
+                    repetition=0,
+                    spec=spec,
+                    brain_entry={"label": brain, "brain": brain, "weights": None, "options": {}},
+                    status="done",
+                    run_id=f"r{index}",
+                    started_at=0.0,
+                    ended_at=1.0,
+                    reason=str(reason),
+                    score=score,
+                )
+            )
         results = store.results()
     return folder, results
 
@@ -118,8 +148,10 @@ def paper_results(tmp_path_factory) -> tuple[Path, list[EpisodeResult]]:
 def tables(folder: Path, results: list[EpisodeResult]) -> dict[int, Table]:
     """The tables by number; the beyond-the-paper circuits table as 0."""
     blocks = [block for block in paper_sections(results, folder)[0].blocks if isinstance(block, Table)]
-    return {int(block.caption.split(":")[0].split()[1]) if block.caption.startswith("Table ") else 0: block
-            for block in blocks}
+    return {
+        int(block.caption.split(":")[0].split()[1]) if block.caption.startswith("Table ") else 0: block
+        for block in blocks
+    }
 
 
 def row(table: Table, name: str) -> dict[str, str]:
@@ -168,8 +200,13 @@ def test_the_report_of_a_paper_run_carries_the_tables_and_paper_md(paper_results
 @pytest.mark.slow
 def test_drivebench_paper_smoke_runs_end_to_end(tmp_path):
     out = tmp_path / "paper"
-    done = subprocess.run([sys.executable, "-m", "orchestrator.cli", "paper", "--smoke", "-o", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "paper", "--smoke", "-o", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     paper_md = (out / "paper.md").read_text()
     for number in range(1, 7):
@@ -182,12 +219,16 @@ def test_drivebench_paper_smoke_runs_end_to_end(tmp_path):
     assert {r.key.split(":")[0] for r in results} == set(PARTS)
 
 
-@pytest.mark.parametrize(("args", "words"), [
-    (["--file", "experiments/smoke.yaml"], "not a paper matrix"),
-    (["--file", "experiments/nothing.yaml"], "cannot read the matrix file"),
-    (["--resume"], "--resume needs -o DIR"),
-])
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--file", "experiments/smoke.yaml"], "not a paper matrix"),
+        (["--file", "experiments/nothing.yaml"], "cannot read the matrix file"),
+        (["--resume"], "--resume needs -o DIR"),
+    ],
+)
 def test_paper_mistakes_are_one_line(args, words):
-    done = subprocess.run([sys.executable, "-m", "orchestrator.cli", "paper", *args], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "paper", *args], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert done.returncode == 2 and words in done.stderr and done.stderr.count("\n") == 1, done.stderr

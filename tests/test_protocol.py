@@ -28,23 +28,55 @@ from protocol.messages import (
 
 HEADER = Header(run_id="r1", episode=2, seq=7, stamp_ns=350_000_000)
 METRICS = EpisodeMetrics(
-    sim_time_s=1.0, wall_time_s=0.5, real_time_factor=2.0, steps=20, completed_distance_m=7.0, average_speed_mps=7.0,
-    percentage_completed=1.5, bm_lap_seconds=None, position_deviation_mae=1.2, position_deviation_total_err=12.0,
-    suddenness_distance=0.01, mean_inference_time_s=0.002, progress_m=7.0, progress_laps=0.016, completed_laps=0,
-    lap_times_s=[], cross_track_mean_m=0.01, cross_track_rms_m=0.02, cross_track_max_m=0.05, cross_track_p95_m=0.04,
-    off_track_events=0, command_rate_hz=20.0, command_latency_p50_ms=1.0, command_latency_p95_ms=2.0,
-    inference_p50_ms=2.0, inference_p95_ms=3.0)
+    sim_time_s=1.0,
+    wall_time_s=0.5,
+    real_time_factor=2.0,
+    steps=20,
+    completed_distance_m=7.0,
+    average_speed_mps=7.0,
+    percentage_completed=1.5,
+    bm_lap_seconds=None,
+    position_deviation_mae=1.2,
+    position_deviation_total_err=12.0,
+    suddenness_distance=0.01,
+    mean_inference_time_s=0.002,
+    progress_m=7.0,
+    progress_laps=0.016,
+    completed_laps=0,
+    lap_times_s=[],
+    cross_track_mean_m=0.01,
+    cross_track_rms_m=0.02,
+    cross_track_max_m=0.05,
+    cross_track_p95_m=0.04,
+    off_track_events=0,
+    command_rate_hz=20.0,
+    command_latency_p50_ms=1.0,
+    command_latency_p95_ms=2.0,
+    inference_p50_ms=2.0,
+    inference_p95_ms=3.0,
+)
 SAMPLES = {
     CameraFrame: CameraFrame(header=HEADER, width_px=2, height_px=1, data=bytes(range(6))),
-    Pose: Pose(header=HEADER, x_m=1.5, y_m=-2.0, yaw_rad=0.1, speed_mps=7.0, yaw_rate_radps=-0.2,
-               command_latency_ns=1200),
-    Command: Command(header=HEADER, brain="explicit", frame_seq=7, speed_mps=8.0, yaw_rate_radps=0.3,
-                     inference_ns=1500),
+    Pose: Pose(
+        header=HEADER, x_m=1.5, y_m=-2.0, yaw_rad=0.1, speed_mps=7.0, yaw_rate_radps=-0.2, command_latency_ns=1200
+    ),
+    Command: Command(
+        header=HEADER, brain="explicit", frame_seq=7, speed_mps=8.0, yaw_rate_radps=0.3, inference_ns=1500
+    ),
     EpisodeEvent: EpisodeEvent(header=HEADER, kind=EventKind.END, reason=EndReason.CRASH, last_pose_seq=7),
-    LiveMetrics: LiveMetrics(header=HEADER, progress_laps=0.5, laps_target=1, completed_laps=0, sim_time_s=3.0,
-                             real_time_factor=2.5, cross_track_m=0.1, speed_mps=7.0),
-    EpisodeScore: EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit",
-                               metrics=METRICS),
+    LiveMetrics: LiveMetrics(
+        header=HEADER,
+        progress_laps=0.5,
+        laps_target=1,
+        completed_laps=0,
+        sim_time_s=3.0,
+        real_time_factor=2.5,
+        cross_track_m=0.1,
+        speed_mps=7.0,
+    ),
+    EpisodeScore: EpisodeScore(
+        header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit", metrics=METRICS
+    ),
     ControlRequest: ControlRequest(action="start", spec=EpisodeSpec(laps=2, camera=CameraSpec(width_px=64))),
     ControlReply: ControlReply(ok=True, detail="", episode=3, state="starting"),
 }
@@ -71,9 +103,16 @@ def test_wire_format_is_plain_msgpack(message_type):
 
 
 def test_message_written_by_msgpack_decodes():
-    payload = msgpack.packb({"type": "drivebench.Command.v1", "brain": "mine", "frame_seq": 3, "speed_mps": 1.0,
-                             "yaw_rate_radps": 0.0,
-                             "header": {"run_id": "r", "episode": 0, "seq": 0, "stamp_ns": 150_000_000}})
+    payload = msgpack.packb(
+        {
+            "type": "drivebench.Command.v1",
+            "brain": "mine",
+            "frame_seq": 3,
+            "speed_mps": 1.0,
+            "yaw_rate_radps": 0.0,
+            "header": {"run_id": "r", "episode": 0, "seq": 0, "stamp_ns": 150_000_000},
+        }
+    )
     command = codec.decode(payload, Command)
     assert command.brain == "mine" and command.frame_seq == 3 and command.inference_ns == 0
 

@@ -54,8 +54,11 @@ def worker_node(cluster: Cluster, *, slots: int, gpus: int = 0):
 def cluster():
     """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot and one GPU (Ray's
     bookkeeping only: nothing here uses it); this process is the driver."""
-    cluster = Cluster(initialize_head=True, connect=False,
-                      head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH})
+    cluster = Cluster(
+        initialize_head=True,
+        connect=False,
+        head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH},
+    )
     worker_node(cluster, slots=1, gpus=1)
     cluster.wait_for_nodes()
     ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
@@ -65,16 +68,25 @@ def cluster():
 
 
 def drivebench(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "orchestrator.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 # The lock-step part of a trajectory (the simulator's poses); the live-progress samples beside them are taken at a
 # wall-clock rate by the scorer, so they differ between any two runs, local or not.
 POSE_ARRAYS = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
 # Score metrics measured in wall-clock time (how fast the machine was), not on the road.
-WALL_METRICS = {"wall_time_s", "real_time_factor", "mean_inference_time_s", "command_rate_hz",
-                "command_latency_p50_ms", "command_latency_p95_ms", "inference_p50_ms", "inference_p95_ms"}
+WALL_METRICS = {
+    "wall_time_s",
+    "real_time_factor",
+    "mean_inference_time_s",
+    "command_rate_hz",
+    "command_latency_p50_ms",
+    "command_latency_p95_ms",
+    "inference_p50_ms",
+    "inference_p95_ms",
+}
 
 
 def road_metrics(result) -> dict:
@@ -94,13 +106,18 @@ def trajectories(out: Path) -> dict[str, dict[str, bytes]]:
 
 
 def test_a_matrix_on_the_cluster_gives_the_local_results_bit_for_bit_with_its_recordings(cluster, tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, """
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
 name: same
 brains: [explicit, {name: constant, options: {speed_mps: 1.5, yaw_rate_radps: 0.2}}]
 circuits: [simple]
 limits: {laps: 1, max_sim_seconds: 6}
 camera: 96x72
-"""))
+""",
+        )
+    )
     local = MatrixRunner(matrix, tmp_path / "local", RunOptions(workers=1)).run()
     artifacts = tmp_path / "shared"
     live_seen: list = []  # what the progress lanes showed: live metrics streamed from the tasks
@@ -109,9 +126,13 @@ camera: 96x72
         live_seen.extend(worker.live for worker in progress.workers if worker.live is not None)
 
     # Each episode also asks for half a GPU, as a neural brain would: Ray's own GPU field, not a custom resource.
-    remote = RayMatrixRunner(matrix, tmp_path / "ray", RunOptions(record=True), on_change=watch_lanes,
-                             ray_options=RayOptions(address=cluster.address, artifacts=artifacts,
-                                                    resources={EPISODE_SLOT: 1.0, "GPU": 0.5})).run()
+    remote = RayMatrixRunner(
+        matrix,
+        tmp_path / "ray",
+        RunOptions(record=True),
+        on_change=watch_lanes,
+        ray_options=RayOptions(address=cluster.address, artifacts=artifacts, resources={EPISODE_SLOT: 1.0, "GPU": 0.5}),
+    ).run()
     assert live_seen and max(live.sim_time_s for live in live_seen) > 0.5  # 6 s sim: about 2 s of wall time
     assert (local.done, local.failed) == (remote.done, remote.failed) == (2, 0)
     local_arrays, ray_arrays = trajectories(tmp_path / "local"), trajectories(tmp_path / "ray")
@@ -145,14 +166,19 @@ camera: 96x72
 def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
-    matrix = load_matrix(write_matrix(tmp_path, """
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
 name: dying
 brains: [explicit]
 circuits: [simple]
 repetitions: 3
 limits: {laps: 1, max_sim_seconds: 12}
 camera: 96x72
-"""))
+""",
+        )
+    )
     removed = threading.Event()
 
     def remove_the_second_node_once_both_drive(progress) -> None:
@@ -161,9 +187,13 @@ camera: 96x72
             cluster.remove_node(second, allow_graceful=False)
             removed.set()
 
-    progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
-                               ray_options=RayOptions(address=cluster.address),
-                               on_change=remove_the_second_node_once_both_drive).run()
+    progress = RayMatrixRunner(
+        matrix,
+        tmp_path / "out",
+        RunOptions(),
+        ray_options=RayOptions(address=cluster.address),
+        on_change=remove_the_second_node_once_both_drive,
+    ).run()
     assert removed.is_set(), "the second node was never removed mid-matrix"
     assert (progress.done, progress.failed) == (3, 0)
     with ResultStore(tmp_path / "out", create=False) as store:
@@ -189,14 +219,19 @@ camera: 96x72
 def test_past_its_retries_a_node_death_is_a_failed_row_of_kind_node_died(cluster, tmp_path):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
-    matrix = load_matrix(write_matrix(tmp_path, """
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
 name: unlucky
 brains: [explicit]
 circuits: [simple]
 repetitions: 2
 limits: {laps: 1, max_sim_seconds: 12}
 camera: 96x72
-"""))
+""",
+        )
+    )
     removed = threading.Event()
 
     def remove_the_second_node_once_both_drive(progress) -> None:
@@ -205,9 +240,13 @@ camera: 96x72
             cluster.remove_node(second, allow_graceful=False)
             removed.set()
 
-    progress = RayMatrixRunner(matrix, tmp_path / "out", RunOptions(),
-                               ray_options=RayOptions(address=cluster.address, node_retries=0),
-                               on_change=remove_the_second_node_once_both_drive).run()
+    progress = RayMatrixRunner(
+        matrix,
+        tmp_path / "out",
+        RunOptions(),
+        ray_options=RayOptions(address=cluster.address, node_retries=0),
+        on_change=remove_the_second_node_once_both_drive,
+    ).run()
     assert removed.is_set()
     assert (progress.done, progress.failed) == (1, 1)
     with ResultStore(tmp_path / "out", create=False) as store:
@@ -236,18 +275,22 @@ def running_episodes(out: Path) -> list[str]:
 
 
 def test_driver_killed_then_resume_runs_only_what_did_not_finish(cluster, tmp_path):
-    path = write_matrix(tmp_path, """
+    path = write_matrix(
+        tmp_path,
+        """
 name: resumable
 brains: [explicit]
 circuits: [simple]
 repetitions: 3
 limits: {laps: 1, max_sim_seconds: 3}
 camera: 96x72
-""")
+""",
+    )
     out = tmp_path / "out"
     # --artifacts on the output folder (one machine): the episode folders, config.yaml with its run id, land there.
-    first = drivebench("matrix", str(path), "-o", str(out), "--ray", cluster.address, "--artifacts", str(out),
-                       "--no-report")
+    first = drivebench(
+        "matrix", str(path), "-o", str(out), "--ray", cluster.address, "--artifacts", str(out), "--no-report"
+    )
     deadline = time.monotonic() + 120
     while not (finished_rows(out / "results.sqlite") and running_episodes(out)):  # one done, the next under way
         assert first.poll() is None, first.communicate()[1]
@@ -278,8 +321,9 @@ camera: 96x72
 def test_a_resource_no_node_has_fails_at_once_in_one_line(cluster, tmp_path):
     path = write_matrix(tmp_path, "name: greedy\nbrains: [explicit]\ncircuits: [simple]\n")
     started = time.monotonic()
-    run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", cluster.address,
-                     "--ray-resource", "GPU=2")
+    run = drivebench(
+        "matrix", str(path), "-o", str(tmp_path / "out"), "--ray", cluster.address, "--ray-resource", "GPU=2"
+    )
     _, stderr = run.communicate(timeout=60)
     assert run.returncode == 1
     lines = stderr.strip().splitlines()
@@ -295,6 +339,8 @@ def test_an_address_where_no_cluster_answers_is_one_line_at_once(tmp_path):
     run = drivebench("matrix", str(path), "-o", str(tmp_path / "out"), "--ray", f"{LOOPBACK}:1")
     _, stderr = run.communicate(timeout=60)
     assert run.returncode == 1
-    assert stderr.strip().splitlines()[-1] == (f"drivebench: the stack could not run: no Ray cluster at "
-                                               f"'{LOOPBACK}:1': nothing answers there (Connection refused)")
+    assert stderr.strip().splitlines()[-1] == (
+        f"drivebench: the stack could not run: no Ray cluster at "
+        f"'{LOOPBACK}:1': nothing answers there (Connection refused)"
+    )
     assert time.monotonic() - started < 30

@@ -20,19 +20,26 @@ from orchestrator.results import ResultStore
 def run_matrix(tmp_path, *args: str) -> subprocess.CompletedProcess:
     path = tmp_path / "m.yaml"
     path.write_text("name: options\nbrains: [explicit]\ncircuits: [simple]\n")
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(tmp_path / "out"),
-                           *args], capture_output=True, text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(tmp_path / "out"), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (("--ray", "auto", "--record"), "--record with --ray needs --artifacts DIR"),
-    (("--ray", "auto", "--ray-resource", "GPU"), "--ray-resource 'GPU': expected NAME=AMOUNT with AMOUNT > 0"),
-    (("--ray", "auto", "--ray-resource", "GPU=-1"), "--ray-resource 'GPU=-1': expected NAME=AMOUNT"),
-    (("--ray", "auto", "--node-retries", "-1"), "--node-retries must be >= 0, got -1"),
-    (("--artifacts", "/tmp"), "--artifacts and --ray-resource go with --ray ADDRESS"),
-    (("--ray", " "), "--ray needs an address: auto, HOST:PORT or ray://HOST:10001"),
-    (("--ray", "auto", "--workers", "4"), "--workers is for a local run: on Ray, the nodes' episode_slot"),
-])
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--ray", "auto", "--record"), "--record with --ray needs --artifacts DIR"),
+        (("--ray", "auto", "--ray-resource", "GPU"), "--ray-resource 'GPU': expected NAME=AMOUNT with AMOUNT > 0"),
+        (("--ray", "auto", "--ray-resource", "GPU=-1"), "--ray-resource 'GPU=-1': expected NAME=AMOUNT"),
+        (("--ray", "auto", "--node-retries", "-1"), "--node-retries must be >= 0, got -1"),
+        (("--artifacts", "/tmp"), "--artifacts and --ray-resource go with --ray ADDRESS"),
+        (("--ray", " "), "--ray needs an address: auto, HOST:PORT or ray://HOST:10001"),
+        (("--ray", "auto", "--workers", "4"), "--workers is for a local run: on Ray, the nodes' episode_slot"),
+    ],
+)
 def test_a_ray_option_mistake_is_one_line_and_nothing_starts(tmp_path, args, message):
     run = run_matrix(tmp_path, *args)
     assert run.returncode == 2, run.stderr
@@ -88,12 +95,13 @@ def test_compose_ray_file_resolves_and_its_worker_declares_episode_slots(tmp_pat
     # The worker's own shell line, run for real with `ray` swapped for a printer of its arguments: the resources
     # argument is the JSON Ray wants, one slot per core by default.
     printer = tmp_path / "ray"
-    printer.write_text("#!/bin/sh\nfor arg in \"$@\"; do printf '%s\\n' \"$arg\"; done\n")
+    printer.write_text('#!/bin/sh\nfor arg in "$@"; do printf \'%s\\n\' "$arg"; done\n')
     printer.chmod(0o755)
     for slots, expected in (("3", 3), ("", len(os.sched_getaffinity(0)))):
         env = {"PATH": f"{tmp_path}:{os.environ['PATH']}", "EPISODE_SLOTS": slots, "RAY_HEAD": "10.0.0.1:6379"}
-        run = subprocess.run(["sh", "-c", script.replace("$$", "$")], capture_output=True, text=True, env=env,
-                             timeout=10)
+        run = subprocess.run(
+            ["sh", "-c", script.replace("$$", "$")], capture_output=True, text=True, env=env, timeout=10
+        )
         args = run.stdout.splitlines()
         assert args[args.index("--address") + 1] == "10.0.0.1:6379"
         assert json.loads(args[args.index("--resources") + 1]) == {EPISODE_SLOT: expected}
@@ -103,10 +111,13 @@ def test_without_ray_installed_ray_says_how_to_install_it(tmp_path):
     path = tmp_path / "m.yaml"
     path.write_text("name: plain\nbrains: [explicit]\ncircuits: [simple]\n")
     # A Python where `import ray` fails, as on an install without the extra.
-    code = ("import sys; sys.modules['ray'] = None; from orchestrator.cli import main; "
-            f"sys.exit(main(['matrix', {str(path)!r}, '-o', {str(tmp_path / 'out')!r}, '--ray', 'auto']))")
+    code = (
+        "import sys; sys.modules['ray'] = None; from orchestrator.cli import main; "
+        f"sys.exit(main(['matrix', {str(path)!r}, '-o', {str(tmp_path / 'out')!r}, '--ray', 'auto']))"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert run.returncode == 1
     assert run.stderr.strip().splitlines() == [
         "drivebench: the stack could not run: --ray needs Ray: pip install 'drivebench[cluster]' "
-        "(or: pip install 'ray>=2.50')"]
+        "(or: pip install 'ray>=2.50')"
+    ]

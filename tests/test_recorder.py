@@ -44,8 +44,9 @@ def header(seq: int, *, episode: int = 0, run_id: str = "r1") -> Header:
 
 def frame(seq: int, *, episode: int = 0, run_id: str = "r1", size=(64, 48)) -> CameraFrame:
     pixels = np.random.default_rng(seq).integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
-    return CameraFrame(header=header(seq, episode=episode, run_id=run_id), width_px=size[0], height_px=size[1],
-                       data=pixels.tobytes())
+    return CameraFrame(
+        header=header(seq, episode=episode, run_id=run_id), width_px=size[0], height_px=size[1], data=pixels.tobytes()
+    )
 
 
 def two_episodes(run_id: str = "r1", *, size=(64, 48)) -> list[tuple[str, object]]:
@@ -53,11 +54,24 @@ def two_episodes(run_id: str = "r1", *, size=(64, 48)) -> list[tuple[str, object
     for episode, steps in ((0, 30), (1, 12)):
         for seq in range(steps):
             messages.append((keys.camera_raw(run_id), frame(seq, episode=episode, run_id=run_id, size=size)))
-            messages.append((keys.pose(run_id), Pose(header=header(seq, episode=episode, run_id=run_id),
-                                                     x_m=seq * 0.1, y_m=1.0, yaw_rad=0.2)))
-            messages.append((keys.command(run_id, "explicit"),
-                             Command(header=header(seq, episode=episode, run_id=run_id), brain="explicit",
-                                     frame_seq=seq, speed_mps=2.0, yaw_rate_radps=-0.1 * seq)))
+            messages.append(
+                (
+                    keys.pose(run_id),
+                    Pose(header=header(seq, episode=episode, run_id=run_id), x_m=seq * 0.1, y_m=1.0, yaw_rad=0.2),
+                )
+            )
+            messages.append(
+                (
+                    keys.command(run_id, "explicit"),
+                    Command(
+                        header=header(seq, episode=episode, run_id=run_id),
+                        brain="explicit",
+                        frame_seq=seq,
+                        speed_mps=2.0,
+                        yaw_rate_radps=-0.1 * seq,
+                    ),
+                )
+            )
     return messages
 
 
@@ -111,8 +125,11 @@ def test_flushes_come_every_second_of_simulated_time_even_when_wall_time_flies(t
 def test_info_lists_bus_and_view_channels(tmp_path):
     info = recording_info(write_recording(tmp_path / "a.mcap", two_episodes()))
     bus = {c.key: (c.topic, c.messages) for c in info.channels if c.bus_key}
-    assert bus == {keys.camera_raw("r1"): ("/camera/truth", 42), keys.pose("r1"): ("/car/state", 42),
-                   keys.command("r1", "explicit"): ("/brain/explicit/cmd", 42)}
+    assert bus == {
+        keys.camera_raw("r1"): ("/camera/truth", 42),
+        keys.pose("r1"): ("/car/state", 42),
+        keys.command("r1", "explicit"): ("/brain/explicit/cmd", 42),
+    }
     views = {c.topic: c.schema for c in info.channels if not c.bus_key}
     assert views["/car/pose"] == "foxglove.PoseInFrame"
     assert views["/tf"] == "foxglove.FrameTransform"
@@ -161,14 +178,23 @@ def test_repair_recovers_the_complete_chunks_of_a_truncated_file(tmp_path):
 
 
 def run_cli(*argv: str, env: dict | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *argv],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env=env,
+    )
 
 
 def test_cli_errors_are_one_line(tmp_path):
     truncated = cut(write_recording(tmp_path / "t.mcap", two_episodes()), 0.5)
-    for argv in (["recorder", "info", str(truncated)], ["recorder", "info", str(tmp_path / "none.mcap")],
-                 ["replay", str(truncated), "--router", "tcp/127.0.0.1:9"]):
+    for argv in (
+        ["recorder", "info", str(truncated)],
+        ["recorder", "info", str(tmp_path / "none.mcap")],
+        ["replay", str(truncated), "--router", "tcp/127.0.0.1:9"],
+    ):
         result = run_cli(*argv)
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
@@ -199,9 +225,23 @@ def router():
 def start_recorder(endpoint: str, bus: Bus, run_id: str, output: Path, *extra: str) -> subprocess.Popen:
     watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
     process = subprocess.Popen(
-        [sys.executable, "-m", "recorder", "--router", endpoint, "--run-id", run_id,
-         "--set", f"output={json.dumps(str(output))}", *extra],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "recorder",
+            "--router",
+            endpoint,
+            "--run-id",
+            run_id,
+            "--set",
+            f"output={json.dumps(str(output))}",
+            *extra,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     missing = watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30)
     watch.close()
     assert not missing, f"recorder did not come up: {process.poll()}"
@@ -225,8 +265,9 @@ def publish_steps(bus: Bus, run_id: str, *, seconds: float, rate_hz: float = 50.
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("stop, exit_code", [(signal.SIGTERM, 128 + signal.SIGTERM), (signal.SIGINT, 130)],
-                         ids=["sigterm", "sigint"])
+@pytest.mark.parametrize(
+    "stop, exit_code", [(signal.SIGTERM, 128 + signal.SIGTERM), (signal.SIGINT, 130)], ids=["sigterm", "sigint"]
+)
 def test_stopping_finishes_a_complete_file_with_every_message(tmp_path, router, stop, exit_code):
     endpoint, bus = router
     output = tmp_path / "rec" / "a.mcap"
@@ -320,8 +361,11 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     expected = sorted((keys.with_run_id(r.key, "again"), codec.encode(rebased(r.message, "again"))) for r in original)
     assert sorted((r.key, codec.encode(r.message)) for r in replayed) == expected
     # Two runs (two run ids), one topic set: a Foxglove layout made on one shows the other.
-    assert {c.topic for c in recording_info(first).channels} == {c.topic for c in recording_info(second).channels} \
+    assert (
+        {c.topic for c in recording_info(first).channels}
+        == {c.topic for c in recording_info(second).channels}
         == topics.run_topics(brains=("explicit",))
+    )
     assert_valid_mcap(first, second)
 
 

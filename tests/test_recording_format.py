@@ -36,36 +36,82 @@ from protocol.recording import (
 )
 
 HEADER = Header(run_id="r-1", episode=3, seq=41, stamp_ns=2_050_000_001)
-SPEC = EpisodeSpec(circuit="montreal", seed=9, camera=CameraSpec(width_px=64, height_px=48, yaw_rad=0.1),
-                   world=WorldVariation(line="white", walls=False), noise=[SaltPepper(probability=0.1),
-                                                                          Gaussian(sigma=3.5)])
+SPEC = EpisodeSpec(
+    circuit="montreal",
+    seed=9,
+    camera=CameraSpec(width_px=64, height_px=48, yaw_rad=0.1),
+    world=WorldVariation(line="white", walls=False),
+    noise=[SaltPepper(probability=0.1), Gaussian(sigma=3.5)],
+)
 METRICS = EpisodeMetrics(
-    sim_time_s=12.5, wall_time_s=5.25, real_time_factor=2.38, steps=250, completed_distance_m=40.1,
-    average_speed_mps=3.2, percentage_completed=9.1, bm_lap_seconds=None, position_deviation_mae=1.01,
-    position_deviation_total_err=3.3, suddenness_distance=0.2, mean_inference_time_s=0.001, progress_m=40.0,
-    progress_laps=0.09, completed_laps=0, lap_times_s=[], cross_track_mean_m=0.04, cross_track_rms_m=0.05,
-    cross_track_max_m=0.2, cross_track_p95_m=0.15, off_track_events=0, command_rate_hz=20.0,
-    command_latency_p50_ms=1.5, command_latency_p95_ms=2.5, inference_p50_ms=0.4, inference_p95_ms=0.9)
+    sim_time_s=12.5,
+    wall_time_s=5.25,
+    real_time_factor=2.38,
+    steps=250,
+    completed_distance_m=40.1,
+    average_speed_mps=3.2,
+    percentage_completed=9.1,
+    bm_lap_seconds=None,
+    position_deviation_mae=1.01,
+    position_deviation_total_err=3.3,
+    suddenness_distance=0.2,
+    mean_inference_time_s=0.001,
+    progress_m=40.0,
+    progress_laps=0.09,
+    completed_laps=0,
+    lap_times_s=[],
+    cross_track_mean_m=0.04,
+    cross_track_rms_m=0.05,
+    cross_track_max_m=0.2,
+    cross_track_p95_m=0.15,
+    off_track_events=0,
+    command_rate_hz=20.0,
+    command_latency_p50_ms=1.5,
+    command_latency_p95_ms=2.5,
+    inference_p50_ms=0.4,
+    inference_p95_ms=0.9,
+)
 
 
 def random_frame(*, dropped: bool = False) -> CameraFrame:
     pixels = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    return CameraFrame(header=HEADER, width_px=64, height_px=48, data=b"" if dropped else pixels.tobytes(),
-                       dropped=dropped)
+    return CameraFrame(
+        header=HEADER, width_px=64, height_px=48, data=b"" if dropped else pixels.tobytes(), dropped=dropped
+    )
 
 
 MESSAGES = [
     random_frame(),
     random_frame(dropped=True),
-    Pose(header=HEADER, x_m=1.25, y_m=-3.0000001, yaw_rad=3.1, speed_mps=4.5, yaw_rate_radps=-0.7,
-         command_latency_ns=1_234_567),
-    Command(header=HEADER, brain="explicit", frame_seq=41, speed_mps=3.0, yaw_rate_radps=0.1 + 0.2,
-            inference_ns=999),
+    Pose(
+        header=HEADER,
+        x_m=1.25,
+        y_m=-3.0000001,
+        yaw_rad=3.1,
+        speed_mps=4.5,
+        yaw_rate_radps=-0.7,
+        command_latency_ns=1_234_567,
+    ),
+    Command(header=HEADER, brain="explicit", frame_seq=41, speed_mps=3.0, yaw_rate_radps=0.1 + 0.2, inference_ns=999),
     EpisodeEvent(header=HEADER, kind=EventKind.START, spec=SPEC),
-    EpisodeEvent(header=HEADER, kind=EventKind.END, reason=EndReason.OFF_TRACK, detail="left the road",
-                 last_pose_seq=40, wall_elapsed_ns=5),
-    LiveMetrics(header=HEADER, progress_laps=0.5, laps_target=1, completed_laps=0, sim_time_s=2.05,
-                real_time_factor=2.0, cross_track_m=-0.05, speed_mps=3.1),
+    EpisodeEvent(
+        header=HEADER,
+        kind=EventKind.END,
+        reason=EndReason.OFF_TRACK,
+        detail="left the road",
+        last_pose_seq=40,
+        wall_elapsed_ns=5,
+    ),
+    LiveMetrics(
+        header=HEADER,
+        progress_laps=0.5,
+        laps_target=1,
+        completed_laps=0,
+        sim_time_s=2.05,
+        real_time_factor=2.0,
+        cross_track_m=-0.05,
+        speed_mps=3.1,
+    ),
     EpisodeScore(header=HEADER, spec=SPEC, reason=EndReason.TIME_LIMIT, brain="explicit", metrics=METRICS),
 ]
 
@@ -115,11 +161,11 @@ def test_raw_images_read_by_foxglove_stock_schema():
 
 
 def test_jpeg_images_come_back_close_not_exact():
-    frame = CameraFrame(header=HEADER, width_px=64, height_px=48,
-                        data=np.full((48, 64, 3), (200, 30, 30), np.uint8).tobytes())
+    frame = CameraFrame(
+        header=HEADER, width_px=64, height_px=48, data=np.full((48, 64, 3), (200, 30, 30), np.uint8).tobytes()
+    )
     layout = channel_layout(KEY, CameraFrame, image_format="jpeg")
-    back = from_record(to_record(frame, image_format="jpeg"), schema_name=layout.schema.name,
-                       metadata=layout.metadata)
+    back = from_record(to_record(frame, image_format="jpeg"), schema_name=layout.schema.name, metadata=layout.metadata)
     assert (back.header, back.width_px, back.height_px) == (frame.header, 64, 48)
     error = np.abs(np.frombuffer(back.data, np.uint8).astype(int) - np.frombuffer(frame.data, np.uint8)).max()
     assert error <= 8

@@ -74,13 +74,20 @@ def is_lit(pixels: np.ndarray, rgba: tuple[float, ...], lighting: str) -> bool:
     return bool(((pixels >= low) & (pixels <= high)).all())
 
 
-WORLDS = [WorldVariation(), WorldVariation(line="white"), WorldVariation(line="none"), WorldVariation(road="white"),
-          WorldVariation(walls=False), WorldVariation(lighting="no_sun"),
-          WorldVariation(line="white", road="white", walls=False, lighting="no_sun")]
+WORLDS = [
+    WorldVariation(),
+    WorldVariation(line="white"),
+    WorldVariation(line="none"),
+    WorldVariation(road="white"),
+    WorldVariation(walls=False),
+    WorldVariation(lighting="no_sun"),
+    WorldVariation(line="white", road="white", walls=False, lighting="no_sun"),
+]
 
 
-@pytest.mark.parametrize("world", WORLDS, ids=lambda w: f"{w.line}-{w.road}-{'walls' if w.walls else 'open'}-"
-                                                         f"{w.lighting}")
+@pytest.mark.parametrize(
+    "world", WORLDS, ids=lambda w: f"{w.line}-{w.road}-{'walls' if w.walls else 'open'}-{w.lighting}"
+)
 def test_every_variation_is_drawn_by_both_renderers(renderer, world):
     scene = make_scene(CIRCUIT, world, renderer=renderer)
     try:
@@ -116,8 +123,15 @@ def test_the_camera_matrices_are_pybullets():
     eye, forward, up = camera_eye_and_axes(car, camera)
     theirs = np.array(pybullet.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), up.tolist())).reshape(4, 4).T
     np.testing.assert_allclose(view_matrix(car, camera), theirs, atol=1e-5)
-    theirs = np.array(pybullet.computeProjectionMatrixFOV(math.degrees(vertical_fov_rad(camera)), 200 / 66,
-                                                          camera.near_m, camera.far_m)).reshape(4, 4).T
+    theirs = (
+        np.array(
+            pybullet.computeProjectionMatrixFOV(
+                math.degrees(vertical_fov_rad(camera)), 200 / 66, camera.near_m, camera.far_m
+            )
+        )
+        .reshape(4, 4)
+        .T
+    )
     np.testing.assert_allclose(projection_matrix(camera), theirs, rtol=1e-5, atol=1e-6)
 
 
@@ -162,9 +176,14 @@ PARITY_SSIM = 0.99
 PARITY_DIFFERING = 0.003
 
 
-@pytest.mark.parametrize("circuit_name, world", [("simple", WorldVariation()),
-                                                 ("montreal", WorldVariation(line="white", walls=False)),
-                                                 ("many_curves", WorldVariation(road="white", lighting="no_sun"))])
+@pytest.mark.parametrize(
+    "circuit_name, world",
+    [
+        ("simple", WorldVariation()),
+        ("montreal", WorldVariation(line="white", walls=False)),
+        ("many_curves", WorldVariation(road="white", lighting="no_sun")),
+    ],
+)
 def test_gl_frames_match_pybullets(circuit_name, world):
     require_gl()
     circuit = load_circuit(circuit_name)
@@ -193,12 +212,18 @@ def test_the_parity_measures_tell_a_shifted_frame_from_the_same_one():
 
 
 def _child(code: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=60,
-                          env={**os.environ, **env})
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, **env},
+    )
 
 
 def test_auto_falls_back_to_pybullet_with_the_reason_where_egl_is_missing():
-    child = _child("""
+    child = _child(
+        """
         import json
         from circuits import load_circuit
         from protocol.messages import EpisodeSpec
@@ -214,7 +239,9 @@ def test_auto_falls_back_to_pybullet_with_the_reason_where_egl_is_missing():
         print(json.dumps({"auto": auto.name, "notice": auto.notice, "gl": gl,
                           "scene": type(sim._scene).__name__, "frame": list(sim.render().shape),
                           "spec": resolve_spec(EpisodeSpec(renderer="auto")).renderer}))
-    """, NO_EGL)
+    """,
+        NO_EGL,
+    )
     assert child.returncode == 0, child.stderr
     result = json.loads(child.stdout)
     assert result["auto"] == "pybullet" and result["scene"] == "Scene" and result["frame"] == [240, 320, 3]
@@ -247,8 +274,9 @@ def test_llvmpipe_gets_one_thread_unless_the_user_chose():
         print(os.environ["LP_NUM_THREADS"])
     """
     env = {key: value for key, value in os.environ.items() if key != "LP_NUM_THREADS"}
-    child = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=60,
-                           env=env)
+    child = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=60, env=env
+    )
     assert child.stdout.strip() == "1", child.stderr
     assert _child(code, {"LP_NUM_THREADS": "2"}).stdout.strip() == "2"
 
@@ -268,14 +296,20 @@ def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it(monk
 
 
 def drivebench(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          timeout=120, env={**os.environ, **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, **(env or {})},
+    )
 
 
 @pytest.mark.integration
 def test_run_auto_without_egl_drives_with_pybullet_and_says_why(tmp_path):
-    result = drivebench("run", "--renderer", "auto", "--max-sim-seconds", "1", "--json", "--runs-dir",
-                        str(tmp_path), env=NO_EGL)
+    result = drivebench(
+        "run", "--renderer", "auto", "--max-sim-seconds", "1", "--json", "--runs-dir", str(tmp_path), env=NO_EGL
+    )
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["spec"]["renderer"] == "pybullet"
     notices = [line for line in result.stderr.splitlines() if "renderer auto" in line]
@@ -289,8 +323,18 @@ def test_run_auto_without_egl_drives_with_pybullet_and_says_why(tmp_path):
 def test_run_with_gl_records_the_renderer_in_the_score_and_the_recording(tmp_path):
     require_gl()
     recording = tmp_path / "gl.mcap"
-    result = drivebench("run", "--renderer", "auto", "--max-sim-seconds", "2", "--json", "--runs-dir",
-                        str(tmp_path), "--record", str(recording))
+    result = drivebench(
+        "run",
+        "--renderer",
+        "auto",
+        "--max-sim-seconds",
+        "2",
+        "--json",
+        "--runs-dir",
+        str(tmp_path),
+        "--record",
+        str(recording),
+    )
     assert result.returncode == 0, result.stderr
     score = json.loads(result.stdout)
     assert score["spec"]["renderer"] == "gl" and score["metrics"]["steps"] >= 39
@@ -318,18 +362,30 @@ def test_dataset_collect_puts_its_renderer_in_every_spec(monkeypatch):
 
     from orchestrator.collect import CollectError, collection_specs
 
-    args = argparse.Namespace(circuits="simple,montreal", direction="forward", laps=1, max_sim_seconds=100.0,
-                              camera=(320, 240), recovery_noise=0.0, brain="explicit", variation=[], randomise=False,
-                              renderer="pybullet")
+    args = argparse.Namespace(
+        circuits="simple,montreal",
+        direction="forward",
+        laps=1,
+        max_sim_seconds=100.0,
+        camera=(320, 240),
+        recovery_noise=0.0,
+        brain="explicit",
+        variation=[],
+        randomise=False,
+        renderer="pybullet",
+    )
     assert {spec.renderer for spec in collection_specs(args)} == {"pybullet"}
-    child = _child("""
+    child = _child(
+        """
         import argparse
         from orchestrator.collect import collection_specs
         args = argparse.Namespace(circuits="simple", direction="forward", laps=1, max_sim_seconds=100.0,
                                   camera=(320, 240), recovery_noise=0.0, brain="explicit", variation=[],
                                   randomise=False, renderer="auto")
         print(collection_specs(args)[0].renderer)
-    """, NO_EGL)
+    """,
+        NO_EGL,
+    )
     assert child.stdout.strip() == "pybullet" and "renderer auto: using pybullet" in child.stderr
     monkeypatch.setenv("DRIVEBENCH_RENDERER", "vulkan")
     with pytest.raises(CollectError, match="DRIVEBENCH_RENDERER must be one of"):
@@ -349,6 +405,9 @@ def test_a_simulator_without_egl_refuses_gl_in_one_line_and_falls_back_for_auto(
         score = stack.run_episode(EpisodeSpec(renderer="auto", max_sim_seconds=0.5))
     assert "\n" not in str(refused.value)
     assert score.spec.renderer == "pybullet" and score.metrics.steps == 10
-    notices = [line for line in (tmp_path / "logs" / "simulator.log").read_text().splitlines()
-               if "renderer auto: using pybullet" in line]
+    notices = [
+        line
+        for line in (tmp_path / "logs" / "simulator.log").read_text().splitlines()
+        if "renderer auto: using pybullet" in line
+    ]
     assert len(notices) == 1 and "not loaded" in notices[0]

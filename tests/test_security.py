@@ -48,14 +48,15 @@ FAILED_OPEN_MS = 1500  # connect timeout of the buses that must fail to open
 
 # -- certificates --
 
+
 def _key():
     return ec.generate_private_key(ec.SECP256R1())
 
 
 def _write(folder: Path, name: str, key, certificate) -> None:
-    (folder / f"{name}.key").write_bytes(key.private_bytes(serialization.Encoding.PEM,
-                                                           serialization.PrivateFormat.PKCS8,
-                                                           serialization.NoEncryption()))
+    (folder / f"{name}.key").write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
     (folder / f"{name}.pem").write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
 
 
@@ -66,35 +67,63 @@ def make_pki(folder: Path, names: list[str]) -> Path:
     now = datetime.datetime.now(datetime.timezone.utc)
     ca_key = _key()
     ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "drivebench test CA")])
-    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
-          .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(hours=1))
-          .not_valid_after(now + datetime.timedelta(days=1))
-          .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
-                                       content_commitment=False, key_encipherment=False, data_encipherment=False,
-                                       key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
-          .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
-          .sign(ca_key, hashes.SHA256()))
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(hours=1))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                key_cert_sign=True,
+                crl_sign=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
     _write(folder, "ca", ca_key, ca)
     for name in names:
         key = _key()
         certificate = (
-            x509.CertificateBuilder().subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
-            .issuer_name(ca_name).public_key(key.public_key()).serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(hours=1)).not_valid_after(now + datetime.timedelta(days=1))
+            x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
+            .issuer_name(ca_name)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(hours=1))
+            .not_valid_after(now + datetime.timedelta(days=1))
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost"),
-                                                        x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-                           critical=False)
-            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
-                           critical=False)
+            .add_extension(
+                x509.SubjectAlternativeName(
+                    [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+                ),
+                critical=False,
+            )
+            .add_extension(
+                x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                critical=False,
+            )
             .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
-            .sign(ca_key, hashes.SHA256()))
+            .sign(ca_key, hashes.SHA256())
+        )
         _write(folder, name, key, certificate)
     return folder
 
 
 # -- processes --
+
 
 def clean_env(**extra: str) -> dict[str, str]:
     """The test's environment without the user's DRIVEBENCH_* settings; children die with us."""
@@ -103,8 +132,11 @@ def clean_env(**extra: str) -> dict[str, str]:
 
 
 def tls_env(pki: Path, identity: str) -> dict[str, str]:
-    return {"DRIVEBENCH_TLS_ROOT_CA": str(pki / "ca.pem"), "DRIVEBENCH_TLS_CERT": str(pki / f"{identity}.pem"),
-            "DRIVEBENCH_TLS_KEY": str(pki / f"{identity}.key")}
+    return {
+        "DRIVEBENCH_TLS_ROOT_CA": str(pki / "ca.pem"),
+        "DRIVEBENCH_TLS_CERT": str(pki / f"{identity}.pem"),
+        "DRIVEBENCH_TLS_KEY": str(pki / f"{identity}.key"),
+    }
 
 
 @dataclass
@@ -114,8 +146,15 @@ class Processes:
 
     def start(self, name: str, argv: list[str], env: dict[str, str]) -> subprocess.Popen:
         with open(self.logs / f"{name}.log", "ab") as log:
-            process = subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, env=env, stdout=log,
-                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+            process = subprocess.Popen(
+                [sys.executable, "-m", *argv],
+                cwd=ROOT,
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+            )
         self.children[name] = process
         return process
 
@@ -186,8 +225,10 @@ class SecureStack:
     def run_episode(self, spec: EpisodeSpec = SPEC) -> tuple[EpisodeScore, np.ndarray]:
         """Start an episode as the orchestrator; its score and its poses (seq, x, y, yaw, applied yaw rate)."""
         inbox = Inbox()
-        subscriptions = [self.orchestrator.subscribe(keys.pose(self.run_id), Pose, inbox=inbox),
-                         self.orchestrator.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox)]
+        subscriptions = [
+            self.orchestrator.subscribe(keys.pose(self.run_id), Pose, inbox=inbox),
+            self.orchestrator.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
+        ]
         try:
             reply = self.control(self.orchestrator, ControlRequest(action="start", spec=spec))
             assert reply is not None and reply.ok, reply
@@ -221,23 +262,42 @@ def secure_stack(tmp_path_factory):
     endpoint, run_id = f"tls/localhost:{port}", f"s{uuid.uuid4().hex[:8]}"
     orchestrator = None
     try:
-        start_router(processes, folder, "router", {
-            "bus": {"listen": [f"tls/127.0.0.1:{port}"], "tls_cert": str(pki / "router.pem"),
-                    "tls_key": str(pki / "router.key"), "tls_root_ca": str(pki / "ca.pem")},
-            "mtls": True,
-            "roles": {"brain": ["brain"], "orchestrator": ["orchestrator"], "service": ["sim", "scorer"],
-                      "observer": ["viewer"]},
-        })
+        start_router(
+            processes,
+            folder,
+            "router",
+            {
+                "bus": {
+                    "listen": [f"tls/127.0.0.1:{port}"],
+                    "tls_cert": str(pki / "router.pem"),
+                    "tls_key": str(pki / "router.key"),
+                    "tls_root_ca": str(pki / "ca.pem"),
+                },
+                "mtls": True,
+                "roles": {
+                    "brain": ["brain"],
+                    "orchestrator": ["orchestrator"],
+                    "service": ["sim", "scorer"],
+                    "observer": ["viewer"],
+                },
+            },
+        )
         common = ["--router", endpoint, "--run-id", run_id]
         processes.start("simulator", ["services.simulator", *common], clean_env(**tls_env(pki, "sim")))
-        processes.start("brain", ["brains", "--brain", "explicit", "--set", "camera=raw", *common],
-                        clean_env(**tls_env(pki, "brain")))
+        processes.start(
+            "brain",
+            ["brains", "--brain", "explicit", "--set", "camera=raw", *common],
+            clean_env(**tls_env(pki, "brain")),
+        )
         processes.start("scorer", ["services.scorer", *common], clean_env(**tls_env(pki, "scorer")))
         orchestrator = client_bus(pki, endpoint, "orchestrator", name="orchestrator")
         assert orchestrator.resolved.mode == "client"
         watch = orchestrator.watch_alive(keys.alive_all(run_id))
-        wanted = {keys.alive(run_id, "simulator", "sim"), keys.alive(run_id, "brain", "explicit"),
-                  keys.alive(run_id, "scorer", "scorer")}
+        wanted = {
+            keys.alive(run_id, "simulator", "sim"),
+            keys.alive(run_id, "brain", "explicit"),
+            keys.alive(run_id, "scorer", "scorer"),
+        }
         missing = watch.wait_for(wanted, timeout_s=40, abort=processes.dead)
         assert (dead := processes.dead()) is None, dead
         assert not missing, f"not alive: {missing}"
@@ -263,10 +323,15 @@ class Intruder:
             def put(self, item: Received) -> None:
                 frame: CameraFrame = item.message
                 h = frame.header
-                publisher.publish(Command(header=Header(run_id=run_id, episode=h.episode, seq=intruder.sent,
-                                                        stamp_ns=h.stamp_ns),
-                                          brain=brain, frame_seq=h.seq, speed_mps=3.0,
-                                          yaw_rate_radps=INTRUDER_YAW_RATE))
+                publisher.publish(
+                    Command(
+                        header=Header(run_id=run_id, episode=h.episode, seq=intruder.sent, stamp_ns=h.stamp_ns),
+                        brain=brain,
+                        frame_seq=h.seq,
+                        speed_mps=3.0,
+                        yaw_rate_radps=INTRUDER_YAW_RATE,
+                    )
+                )
                 intruder.sent += 1
 
         bus.subscribe(keys.camera_raw(run_id), CameraFrame, inbox=AnswerAtOnce())
@@ -274,6 +339,7 @@ class Intruder:
 
 
 # -- the secure stack --
+
 
 @pytest.mark.integration
 def test_a_client_without_a_certificate_cannot_connect(secure_stack):
@@ -303,9 +369,12 @@ def test_an_intruder_without_the_brain_role_changes_nothing_and_the_same_one_wit
         stranger.subscribe(keys.pose(stack.run_id), Pose, inbox=stranger_inbox)
         time.sleep(1.0)  # ample for a token or a subscription to reach the router (milliseconds when allowed)
         assert keys.alive(stack.run_id, "brain", "intruder") not in stack.orchestrator.alive_now(
-            keys.alive_all(stack.run_id))
-        refused = stack.control(stack.orchestrator, ControlRequest(
-            action="start", spec=EpisodeSpec(active_brain="intruder", camera=SPEC.camera)))
+            keys.alive_all(stack.run_id)
+        )
+        refused = stack.control(
+            stack.orchestrator,
+            ControlRequest(action="start", spec=EpisodeSpec(active_brain="intruder", camera=SPEC.camera)),
+        )
         assert refused is not None and not refused.ok and "'intruder' is not alive" in refused.detail
         score, poses = stack.run_episode()
         assert intruder.sent >= 60  # it saw every frame (an observer may subscribe) and answered each
@@ -374,12 +443,14 @@ def test_a_brain_may_put_commands_only(secure_stack):
         for key in (keys.pose(run), keys.run_all(run), f"{keys.run_prefix(run)}/sim/*"):
             brain.publisher(key, Pose, Traffic.EVENTS).publish(pose)
         brain.publisher(keys.command(run, "spoofer"), Command, Traffic.COMMANDS).publish(
-            Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0))
+            Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0)
+        )
         assert commands.recv(timeout_s=3.0) is not None  # the allowed put arrives...
         assert inbox.recv(timeout_s=0.5) is None  # ... the forbidden ones never did
 
 
 # -- TLS without mutual TLS, with user names and passwords --
+
 
 @pytest.mark.integration
 def test_tls_with_user_password_lets_known_users_in_and_refuses_a_wrong_password(tmp_path, monkeypatch):
@@ -393,33 +464,56 @@ def test_tls_with_user_password_lets_known_users_in_and_refuses_a_wrong_password
     def bus(user: str, password: str, **config) -> Bus:
         secret = tmp_path / f"{user}-{password}.pw"
         secret.write_text(password + "\n")
-        return Bus(BusConfig(connect=[endpoint], tls_root_ca=str(pki / "ca.pem"), user=user,
-                             password_file=str(secret), **config), name=user)
+        return Bus(
+            BusConfig(
+                connect=[endpoint], tls_root_ca=str(pki / "ca.pem"), user=user, password_file=str(secret), **config
+            ),
+            name=user,
+        )
 
     try:
-        start_router(processes, tmp_path, "router", {
-            "bus": {"listen": [f"tls/127.0.0.1:{port}"], "tls_cert": str(pki / "router.pem"),
-                    "tls_key": str(pki / "router.key")},
-            "users_file": str(users),
-            "roles": {"brain": [{"username": "pilot"}], "service": ["simuser"], "observer": ["watcher"]},
-        })
+        start_router(
+            processes,
+            tmp_path,
+            "router",
+            {
+                "bus": {
+                    "listen": [f"tls/127.0.0.1:{port}"],
+                    "tls_cert": str(pki / "router.pem"),
+                    "tls_key": str(pki / "router.key"),
+                },
+                "users_file": str(users),
+                "roles": {"brain": [{"username": "pilot"}], "service": ["simuser"], "observer": ["watcher"]},
+            },
+        )
         with pytest.raises(BusError, match="wrong user/password") as error:
             bus("pilot", "not-the-password", connect_timeout_ms=FAILED_OPEN_MS)
         assert "\n" not in str(error.value)
         with pytest.raises(BusError, match="Timeout"):  # TLS alone, no credentials
-            Bus(BusConfig(connect=[endpoint], tls_root_ca=str(pki / "ca.pem"), connect_timeout_ms=FAILED_OPEN_MS),
-                name="nobody")
+            Bus(
+                BusConfig(connect=[endpoint], tls_root_ca=str(pki / "ca.pem"), connect_timeout_ms=FAILED_OPEN_MS),
+                name="nobody",
+            )
         monkeypatch.setenv("DRIVEBENCH_USER", "watcher")  # credentials from the environment work the same
         monkeypatch.setenv("DRIVEBENCH_PASSWORD", "watch-pw")
-        with bus("pilot", "pilot-pw") as pilot, bus("simuser", "sim-pw") as sim, \
-                Bus(BusConfig(connect=[endpoint], tls_root_ca=str(pki / "ca.pem")), name="watcher") as watcher:
+        with (
+            bus("pilot", "pilot-pw") as pilot,
+            bus("simuser", "sim-pw") as sim,
+            Bus(BusConfig(connect=[endpoint], tls_root_ca=str(pki / "ca.pem")), name="watcher") as watcher,
+        ):
             assert watcher.resolved.user == "watcher"
             inbox = sim.subscribe(keys.commands_all(run), Command).inbox
             time.sleep(0.5)
             for source, brain in ((watcher, "watcher"), (pilot, "pilot")):
-                source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS).publish(Command(
-                    header=Header(run_id=run, episode=0, seq=0, stamp_ns=0), brain=brain, frame_seq=0,
-                    speed_mps=1.0, yaw_rate_radps=0.0))
+                source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS).publish(
+                    Command(
+                        header=Header(run_id=run, episode=0, seq=0, stamp_ns=0),
+                        brain=brain,
+                        frame_seq=0,
+                        speed_mps=1.0,
+                        yaw_rate_radps=0.0,
+                    )
+                )
             received = inbox.recv(timeout_s=3.0)
             assert received is not None and received.message.brain == "pilot"  # the brain user's command arrives
             assert inbox.recv(timeout_s=0.5) is None  # the observer's never does
@@ -429,6 +523,7 @@ def test_tls_with_user_password_lets_known_users_in_and_refuses_a_wrong_password
 
 # -- units: the ACL builder and the router's security config --
 
+
 def _rules_of(acl: dict, subject_match: dict) -> list[dict]:
     ids = {s["id"] for s in acl["subjects"] if {k: v for k, v in s.items() if k != "id"} == subject_match}
     rule_ids = {r for p in acl["policies"] if ids & set(p["subjects"]) for r in p["rules"]}
@@ -436,13 +531,22 @@ def _rules_of(acl: dict, subject_match: dict) -> list[dict]:
 
 
 def _allowed(acl: dict, subject_match: dict, flow: str, message: str) -> set[str]:
-    return {key for rule in _rules_of(acl, subject_match) if flow in rule["flows"] and message in rule["messages"]
-            for key in rule["key_exprs"]}
+    return {
+        key
+        for rule in _rules_of(acl, subject_match)
+        if flow in rule["flows"] and message in rule["messages"]
+        for key in rule["key_exprs"]
+    }
 
 
 def test_acl_is_default_deny_with_one_subject_per_identity():
-    acl = build_access_control({"brain": ["gpu-box", Identity(cert_common_name="b2", username="alice")],
-                                "orchestrator": ["orchestrator"], "observer": ["viewer", "gpu-box"]})
+    acl = build_access_control(
+        {
+            "brain": ["gpu-box", Identity(cert_common_name="b2", username="alice")],
+            "orchestrator": ["orchestrator"],
+            "observer": ["viewer", "gpu-box"],
+        }
+    )
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     assert all(rule["permission"] == "allow" for rule in acl["rules"])
     subjects = [{k: v for k, v in s.items() if k != "id"} for s in acl["subjects"]]
@@ -458,8 +562,11 @@ def test_acl_grants_each_role_its_own_keys_only():
     assert _allowed(acl, cn("b"), "ingress", "put") == {"drivebench/run/*/brain/*/cmd"}
     assert _allowed(acl, cn("b"), "ingress", "liveliness_token") == {"drivebench/alive/*/brain/*"}
     assert _allowed(acl, cn("b"), "ingress", "declare_queryable") == {"drivebench/run/*/brain/*/control"}
-    assert _allowed(acl, cn("o"), "ingress", "query") == {"drivebench/run/*/sim/control", "drivebench/run/*/sim/status",
-                                                          "drivebench/run/*/brain/*/control"}
+    assert _allowed(acl, cn("o"), "ingress", "query") == {
+        "drivebench/run/*/sim/control",
+        "drivebench/run/*/sim/status",
+        "drivebench/run/*/brain/*/control",
+    }
     for name in ("b", "v", "s"):
         assert "drivebench/run/*/sim/control" not in _allowed(acl, cn(name), "ingress", "query")
         assert _allowed(acl, cn(name), "ingress", "query") == {"drivebench/run/*/sim/status"}
@@ -468,17 +575,30 @@ def test_acl_grants_each_role_its_own_keys_only():
     assert _allowed(acl, cn("v"), "ingress", "declare_subscriber") == {"drivebench/**"}
     assert _allowed(acl, cn("v"), "egress", "put") == {"drivebench/**"}
     assert "drivebench/run/*/brain/*/cmd" not in _allowed(acl, cn("s"), "ingress", "put")
-    assert {"drivebench/run/*/sim/camera", "drivebench/run/*/noise/camera",
-            "drivebench/run/*/scorer/score"} <= _allowed(acl, cn("s"), "ingress", "put")
+    assert {
+        "drivebench/run/*/sim/camera",
+        "drivebench/run/*/noise/camera",
+        "drivebench/run/*/scorer/score",
+    } <= _allowed(acl, cn("s"), "ingress", "put")
     assert _allowed(acl, {"cert_common_names": ["nobody"]}, "ingress", "declare_subscriber") == set()
 
 
 def test_acl_patterns_come_from_the_keys_module():
     run = "r1"
     patterns = {key for grants in ROLES.values() for _, _, key_exprs in grants for key in key_exprs}
-    concrete = [keys.command(run, "x"), keys.brain_control(run, "x"), keys.sim_control(run), keys.sim_status(run),
-                keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run), keys.events(run),
-                keys.live_metrics(run), keys.score(run), keys.alive(run, "brain", "x")]
+    concrete = [
+        keys.command(run, "x"),
+        keys.brain_control(run, "x"),
+        keys.sim_control(run),
+        keys.sim_status(run),
+        keys.camera_raw(run),
+        keys.camera_perturbed(run),
+        keys.pose(run),
+        keys.events(run),
+        keys.live_metrics(run),
+        keys.score(run),
+        keys.alive(run, "brain", "x"),
+    ]
     for key in concrete:
         assert any(_matches(pattern, key) for pattern in patterns), key
 
@@ -496,8 +616,15 @@ def test_unknown_roles_and_unusable_settings_are_one_line(tmp_path):
         build_access_control({"pilot": ["x"]})
     with pytest.raises(ValueError, match="an identity needs a cert_common_name, a username or both"):
         Identity()
-    base = dict(mtls=False, tls_root_ca="", tls_cert="", listen=["tls/0.0.0.0:7447"], users_file="", roles={},
-                access_control_file="")
+    base = dict(
+        mtls=False,
+        tls_root_ca="",
+        tls_cert="",
+        listen=["tls/0.0.0.0:7447"],
+        users_file="",
+        roles={},
+        access_control_file="",
+    )
     with pytest.raises(ConfigError, match="mtls: true needs the CA"):
         router_settings(**base | {"mtls": True})
     with pytest.raises(ConfigError, match="mtls: true needs a tls/ or quic/ endpoint"):
@@ -523,8 +650,15 @@ def test_a_hand_written_access_control_file_is_checked_by_zenoh(tmp_path):
       subjects: [{ id: "s", cert_common_names: ["x"] }],
       policies: [{ rules: ["r"], subjects: ["s"] }],
     }""")
-    base = dict(mtls=True, tls_root_ca="ca.pem", tls_cert="r.pem", listen=["tls/0.0.0.0:7447"], users_file="",
-                roles={}, access_control_file=str(good))
+    base = dict(
+        mtls=True,
+        tls_root_ca="ca.pem",
+        tls_cert="r.pem",
+        listen=["tls/0.0.0.0:7447"],
+        users_file="",
+        roles={},
+        access_control_file=str(good),
+    )
     settings = router_settings(**base)
     assert settings["access_control"]["rules"][0]["key_exprs"] == ["a/**"]
     assert settings["transport/link/tls/enable_mtls"] is True

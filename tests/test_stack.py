@@ -65,8 +65,15 @@ def test_same_seed_gives_bitwise_identical_trajectory(make_stack):
     assert _sim_metrics(first.metrics) == _sim_metrics(second.metrics)
 
 
-WALL_CLOCK_METRICS = {"wall_time_s", "real_time_factor", "command_latency_p50_ms", "command_latency_p95_ms",
-                      "inference_p50_ms", "inference_p95_ms", "mean_inference_time_s"}
+WALL_CLOCK_METRICS = {
+    "wall_time_s",
+    "real_time_factor",
+    "command_latency_p50_ms",
+    "command_latency_p95_ms",
+    "inference_p50_ms",
+    "inference_p95_ms",
+    "mean_inference_time_s",
+}
 
 
 def _sim_metrics(metrics) -> dict:
@@ -85,24 +92,30 @@ def test_killing_the_brain_ends_the_episode_as_brain_lost_within_2_s(make_stack)
         os.kill(brain.process.pid, signal.SIGKILL)
 
     threading.Thread(target=kill_soon, daemon=True).start()
-    score = stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=600,
-                                          camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=60)
+    score = stack.run_episode(
+        EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=CameraSpec(width_px=64, height_px=48)),
+        wall_timeout_s=60,
+    )
     scored_at = time.monotonic()
     assert score.reason == EndReason.BRAIN_LOST
     assert scored_at - killed_at[0] < 2.0
     assert stack.child("simulator", "sim").process.poll() is None  # the simulator lives on
 
 
-@pytest.mark.parametrize("role, name, kind", [("simulator", "sim", "simulator_died"), ("noise", "noise", "noise_died"),
-                                              ("scorer", "scorer", "scorer_died")])
+@pytest.mark.parametrize(
+    "role, name, kind",
+    [("simulator", "sim", "simulator_died"), ("noise", "noise", "noise_died"), ("scorer", "scorer", "scorer_died")],
+)
 def test_a_killed_service_fails_the_episode_typed_by_its_role_within_2_s(make_stack, role, name, kind):
     stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
     victim = stack.child(role, name)
     threading.Timer(2.0, os.kill, (victim.process.pid, signal.SIGKILL)).start()
     started = time.monotonic()
     with pytest.raises(StackFailure) as failure:
-        stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=600,
-                                      camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=60)
+        stack.run_episode(
+            EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=CameraSpec(width_px=64, height_px=48)),
+            wall_timeout_s=60,
+        )
     assert failure.value.kind == kind and f"{role} '{name}' killed by SIGKILL" in str(failure.value)
     assert time.monotonic() - started < 2.0 + 2.0
     record = failure.value.record(run_id=stack.run_id)
@@ -112,8 +125,10 @@ def test_a_killed_service_fails_the_episode_typed_by_its_role_within_2_s(make_st
 def test_a_killed_recorder_leaves_the_episode_running_and_scored(make_stack, tmp_path):
     stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)), record=tmp_path / "r.mcap")
     threading.Timer(1.0, os.kill, (stack.child("recorder", "recorder").process.pid, signal.SIGKILL)).start()
-    score = stack.run_episode(EpisodeSpec(active_brain="constant", max_sim_seconds=200.0,
-                                          camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=60)
+    score = stack.run_episode(
+        EpisodeSpec(active_brain="constant", max_sim_seconds=200.0, camera=CameraSpec(width_px=64, height_px=48)),
+        wall_timeout_s=60,
+    )
     assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 4000
     assert stack.recording_failure is not None and stack.recording_failure.kind == "recorder_died"
 
@@ -121,8 +136,10 @@ def test_a_killed_recorder_leaves_the_episode_running_and_scored(make_stack, tmp
 def test_a_brain_that_answers_too_late_ends_the_episode_as_brain_timeout(make_stack):
     stack = make_stack(BrainLaunch("constant", options=("delay_s=1.5",)))
     started = time.monotonic()
-    score = stack.run_episode(EpisodeSpec(active_brain="constant", brain_timeout_s=0.5,
-                                          camera=CameraSpec(width_px=64, height_px=48)), wall_timeout_s=30)
+    score = stack.run_episode(
+        EpisodeSpec(active_brain="constant", brain_timeout_s=0.5, camera=CameraSpec(width_px=64, height_px=48)),
+        wall_timeout_s=30,
+    )
     assert score.reason == EndReason.BRAIN_TIMEOUT
     assert score.metrics.steps == 0
     assert time.monotonic() - started < 10
@@ -133,14 +150,28 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
     run = stack.run_id
     spec = EpisodeSpec(max_sim_seconds=6.0, camera=CameraSpec(width_px=96, height_px=72))
     wrong_type = codec.encode(Pose(header=Header(run_id=run, episode=0, seq=0, stamp_ns=0), x_m=0, y_m=0, yaw_rad=0))
-    bad_frame = codec.encode(CameraFrame(header=Header(run_id=run, episode=0, seq=0, stamp_ns=0), width_px=640,
-                                         height_px=480, data=b"short"))
-    wrong_field = msgpack.packb({"type": "drivebench.Command.v1", "brain": "explicit", "frame_seq": "zero",
-                                 "speed_mps": 1, "yaw_rate_radps": 0,
-                                 "header": {"run_id": run, "episode": 0, "seq": 0, "stamp_ns": 0}})
+    bad_frame = codec.encode(
+        CameraFrame(header=Header(run_id=run, episode=0, seq=0, stamp_ns=0), width_px=640, height_px=480, data=b"short")
+    )
+    wrong_field = msgpack.packb(
+        {
+            "type": "drivebench.Command.v1",
+            "brain": "explicit",
+            "frame_seq": "zero",
+            "speed_mps": 1,
+            "yaw_rate_radps": 0,
+            "header": {"run_id": run, "episode": 0, "seq": 0, "stamp_ns": 0},
+        }
+    )
     garbage = [b"", b"\xc1\xc1", b"hello", msgpack.packb([1, 2]), wrong_type, wrong_field]
-    targets = [keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run), keys.events(run),
-               keys.command(run, "explicit"), keys.command(run, "intruder")]
+    targets = [
+        keys.camera_raw(run),
+        keys.camera_perturbed(run),
+        keys.pose(run),
+        keys.events(run),
+        keys.command(run, "explicit"),
+        keys.command(run, "intruder"),
+    ]
     publishers = [stack.bus.publisher(key, object, Traffic.EVENTS) for key in targets]
 
     def spray() -> None:
@@ -185,8 +216,7 @@ def test_stack_with_the_router_as_its_own_process(tmp_path):
     from orchestrator.launcher import LocalStack
 
     # A run id of digits only: it must stay a string through every command line and config.
-    with LocalStack(run_id="0123", run_dir=tmp_path, brains=[BrainLaunch("explicit")],
-                    embed_router=False) as stack:
+    with LocalStack(run_id="0123", run_dir=tmp_path, brains=[BrainLaunch("explicit")], embed_router=False) as stack:
         assert stack.child("router", "router").process.poll() is None
         score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, camera=CameraSpec(width_px=96, height_px=72)))
     assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 60
@@ -195,8 +225,9 @@ def test_stack_with_the_router_as_its_own_process(tmp_path):
 
 def test_realtime_mode_runs_at_wall_clock_rate(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
-    score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, realtime=True,
-                                          camera=CameraSpec(width_px=96, height_px=72)))
+    score = stack.run_episode(
+        EpisodeSpec(max_sim_seconds=3.0, realtime=True, camera=CameraSpec(width_px=96, height_px=72))
+    )
     assert score.reason == EndReason.TIME_LIMIT
     assert score.metrics.real_time_factor == pytest.approx(1.0, abs=0.1)
     assert score.metrics.progress_m > 5  # the explicit brain drove with its latest commands

@@ -56,8 +56,9 @@ def wait_for(predicate, *, timeout_s: float, what: str) -> None:
 
 
 def control(stack, request: ControlRequest) -> ControlReply:
-    return codec.decode(stack.bus.request(keys.sim_control(stack.run_id), codec.encode(request), timeout_s=2.0),
-                        ControlReply)
+    return codec.decode(
+        stack.bus.request(keys.sim_control(stack.run_id), codec.encode(request), timeout_s=2.0), ControlReply
+    )
 
 
 def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
@@ -69,10 +70,21 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
     thread, outcome = run_in_thread(stack, EpisodeSpec(circuit="simple", laps=2, max_sim_seconds=60.0, camera=TINY))
     wait_for(lambda: poses.received >= 60, timeout_s=60, what="3 s of sim time")  # 20 Hz
 
-    result = swap_brain(router=stack.endpoint, run_id=stack.run_id, brain="explicit", name=None, options=(),
-                        log_path=stack.run_dir / "logs", timeout_s=60)
-    assert (result.name, result.old_brain, result.switched, result.old_stopped) == ("explicit-2", "explicit", True,
-                                                                                     True)
+    result = swap_brain(
+        router=stack.endpoint,
+        run_id=stack.run_id,
+        brain="explicit",
+        name=None,
+        options=(),
+        log_path=stack.run_dir / "logs",
+        timeout_s=60,
+    )
+    assert (result.name, result.old_brain, result.switched, result.old_stopped) == (
+        "explicit-2",
+        "explicit",
+        True,
+        True,
+    )
     assert result.log_path == stack.run_dir / "logs" / "brain-explicit-2.log"
     assert stack.child("brain", "explicit").process.wait(timeout=10) == 0  # stopped on request, cleanly
 
@@ -91,8 +103,9 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
     seqs = {received.message.header.seq for received in poses.drain() if received.message.header.episode == 0}
     assert seqs == set(range(1201))  # every step, none missing, the start pose included
     switch_events = [r.message for r in events.drain() if r.message.kind == EventKind.BRAIN_SWITCH]
-    assert [(e.brain, e.detail, e.header.stamp_ns) for e in switch_events] == [("explicit-2", "explicit",
-                                                                                switch.stamp_ns)]
+    assert [(e.brain, e.detail, e.header.stamp_ns) for e in switch_events] == [
+        ("explicit-2", "explicit", switch.stamp_ns)
+    ]
 
     stack.close()  # stops the swapped-in brain too, although the stack did not start it
     assert result.process.wait(timeout=10) == 0
@@ -113,12 +126,23 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     assert not reply.ok and "no episode is running" in reply.detail
     died = "brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"
     with pytest.raises(SwapError, match=died):
-        swap_brain(router=stack.endpoint, run_id=stack.run_id, brain="constant", name=None, options=("warp=9",),
-                   log_path=stack.run_dir / "logs", timeout_s=30)
-    thread, outcome = run_in_thread(stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64,
-                                                                                               height_px=48)))
-    wait_for(lambda: control(stack, ControlRequest(action="status")).state == "running", timeout_s=30,
-             what="the episode to run")
+        swap_brain(
+            router=stack.endpoint,
+            run_id=stack.run_id,
+            brain="constant",
+            name=None,
+            options=("warp=9",),
+            log_path=stack.run_dir / "logs",
+            timeout_s=30,
+        )
+    thread, outcome = run_in_thread(
+        stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64, height_px=48))
+    )
+    wait_for(
+        lambda: control(stack, ControlRequest(action="status")).state == "running",
+        timeout_s=30,
+        what="the episode to run",
+    )
     status = control(stack, ControlRequest(action="status"))
     assert status.active_brain == "explicit" and status.spec is not None and status.spec.max_sim_seconds == 4.0
     reply = control(stack, ControlRequest(action="switch", brain="ghost"))
@@ -146,19 +170,40 @@ def test_shadow_brains_are_scored_against_the_driver(make_stack):
 
 
 def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_the_swap_command_finds_a_running_stack_by_its_stack_file(tmp_path):
     out = tmp_path / "run"
     # 50 laps: one lap of simple at 96x72 takes only ~4 s of wall time, less than a swap on a loaded machine.
-    run = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--laps",
-                            "50", "--camera", "96x72", "--out", str(out), "--json"], stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator.cli",
+            "run",
+            "--max-sim-seconds",
+            "3000",
+            "--laps",
+            "50",
+            "--camera",
+            "96x72",
+            "--out",
+            str(out),
+            "--json",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
-        wait_for(lambda: (out / "stack.json").is_file() and "started" in _read(out / "logs" / "simulator.log"),
-                 timeout_s=60, what="the run to start its episode")
+        wait_for(
+            lambda: (out / "stack.json").is_file() and "started" in _read(out / "logs" / "simulator.log"),
+            timeout_s=60,
+            what="the run to start its episode",
+        )
         stack = json.loads((out / "stack.json").read_text())
         assert stack["pid"] == run.pid and stack["router"].startswith("tcp/127.0.0.1:")
         swapped = drivebench("swap", "explicit", "--runs-dir", str(tmp_path), timeout=90)
@@ -179,8 +224,9 @@ def test_the_swap_command_finds_a_running_stack_by_its_stack_file(tmp_path):
 
 def test_the_swap_command_without_a_running_stack_says_so_in_one_line(tmp_path):
     (tmp_path / "old").mkdir()
-    (tmp_path / "old" / "stack.json").write_text(json.dumps({"router": "tcp/127.0.0.1:9", "run_id": "gone",
-                                                             "pid": 2 ** 22 + 1}))  # no such process
+    (tmp_path / "old" / "stack.json").write_text(
+        json.dumps({"router": "tcp/127.0.0.1:9", "run_id": "gone", "pid": 2**22 + 1})
+    )  # no such process
     result = drivebench("swap", "explicit", "--runs-dir", str(tmp_path), timeout=30)
     assert result.returncode == 1
     assert "no running stack found" in result.stderr and "Traceback" not in result.stderr

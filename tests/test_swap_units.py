@@ -31,11 +31,24 @@ from protocol.runtime import UsageError
 from services.scorer.shadows import CommandMatcher
 
 HEADER = Header(run_id="r1", episode=0, seq=0, stamp_ns=1_000_000_000)
-SCORE = EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit-2",
-                     metrics=METRICS,
-                     switches=[BrainSwitch(stamp_ns=150_000_000, seq=3, from_brain="explicit", to_brain="explicit-2")],
-                     shadows=[ShadowDistance(brain="constant", frames=18, speed_mae_mps=6.0, yaw_rate_mae_radps=0.25,
-                                             yaw_rate_rmse_radps=0.3, yaw_rate_max_abs_radps=0.9)])
+SCORE = EpisodeScore(
+    header=HEADER,
+    spec=EpisodeSpec(),
+    reason=EndReason.TIME_LIMIT,
+    brain="explicit-2",
+    metrics=METRICS,
+    switches=[BrainSwitch(stamp_ns=150_000_000, seq=3, from_brain="explicit", to_brain="explicit-2")],
+    shadows=[
+        ShadowDistance(
+            brain="constant",
+            frames=18,
+            speed_mae_mps=6.0,
+            yaw_rate_mae_radps=0.25,
+            yaw_rate_rmse_radps=0.3,
+            yaw_rate_max_abs_radps=0.9,
+        )
+    ],
+)
 
 
 # -- protocol ---------------------------------------------------------------------------------------------------------
@@ -55,8 +68,10 @@ def test_control_messages_carry_the_switch_and_the_running_spec():
     assert codec.decode(codec.encode(request), ControlRequest) == request
     reply = ControlReply(ok=True, state="running", episode=2, active_brain="explicit", spec=EpisodeSpec(seed=5))
     assert codec.decode(codec.encode(reply), ControlReply) == reply
-    assert codec.decode(msgpack.packb({"type": "drivebench.ControlRequest.v1", "action": "status"}),
-                        ControlRequest).brain == ""
+    assert (
+        codec.decode(msgpack.packb({"type": "drivebench.ControlRequest.v1", "action": "status"}), ControlRequest).brain
+        == ""
+    )
 
 
 def test_brain_control_key():
@@ -79,8 +94,13 @@ def test_a_score_with_switches_and_shadows_is_recorded_and_read_back():
 
 
 def command(brain: str, frame_seq: int, speed_mps: float = 1.0, yaw_rate_radps: float = 0.0) -> Command:
-    return Command(header=Header(run_id="r", episode=0, seq=frame_seq, stamp_ns=frame_seq * 50_000_000),
-                   brain=brain, frame_seq=frame_seq, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps)
+    return Command(
+        header=Header(run_id="r", episode=0, seq=frame_seq, stamp_ns=frame_seq * 50_000_000),
+        brain=brain,
+        frame_seq=frame_seq,
+        speed_mps=speed_mps,
+        yaw_rate_radps=yaw_rate_radps,
+    )
 
 
 def test_the_driver_of_each_frame_follows_the_switches_whatever_arrives_first():
@@ -137,7 +157,7 @@ def test_locate_stack_takes_the_newest_live_one(tmp_path):
     write_stack(tmp_path / "a", run_id="old", pid=os.getpid(), router="tcp/127.0.0.1:1")
     newest = write_stack(tmp_path / "b", run_id="new", pid=os.getpid(), router="tcp/127.0.0.1:2")
     os.utime(newest / "stack.json", (2e9, 2e9))
-    write_stack(tmp_path / "c", run_id="dead", pid=2 ** 22 + 1)
+    write_stack(tmp_path / "c", run_id="dead", pid=2**22 + 1)
     assert locate_stack(runs_dir=tmp_path, run_id=None, router=None) == StackInfo("tcp/127.0.0.1:2", "new", newest)
     assert locate_stack(runs_dir=tmp_path, run_id="old", router=None).router == "tcp/127.0.0.1:1"
     assert locate_stack(runs_dir=tmp_path, run_id="old", router="tcp/h:9").router == "tcp/h:9"
@@ -179,6 +199,7 @@ def test_the_metrics_table_shows_switches_and_shadows():
     table = metrics_table(SCORE)
     assert "explicit -> explicit-2 at frame 3 (0.15 s)" in table
     assert "shadow constant" in table and "0.250 / 0.300 / 0.900 rad/s over 18 frames" in table
-    plain = metrics_table(EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT,
-                                       brain="explicit", metrics=METRICS))
+    plain = metrics_table(
+        EpisodeScore(header=HEADER, spec=EpisodeSpec(), reason=EndReason.TIME_LIMIT, brain="explicit", metrics=METRICS)
+    )
     assert "switch" not in plain and "shadow" not in plain

@@ -34,10 +34,18 @@ from recorder.writer import RecordingWriter
 
 LEGACY = Path(__file__).resolve().parent / "fixtures" / "legacy-run-topics.mcap"  # see fixtures/README.md
 
-_JSON_SCHEMAS = {topics.CAR_STATE: "drivebench.Pose.v1", topics.EPISODE_EVENTS: "drivebench.EpisodeEvent.v1",
-                 topics.METRICS_LIVE: "drivebench.LiveMetrics.v1", topics.EPISODE_SCORE: "drivebench.EpisodeScore.v1"}
-_VIEW_SCHEMAS = {topics.CAR_POSE: "foxglove.PoseInFrame", topics.TF: "foxglove.FrameTransform",
-                 topics.CIRCUIT: "foxglove.SceneUpdate", topics.EPISODE_LOG: "foxglove.Log"}
+_JSON_SCHEMAS = {
+    topics.CAR_STATE: "drivebench.Pose.v1",
+    topics.EPISODE_EVENTS: "drivebench.EpisodeEvent.v1",
+    topics.METRICS_LIVE: "drivebench.LiveMetrics.v1",
+    topics.EPISODE_SCORE: "drivebench.EpisodeScore.v1",
+}
+_VIEW_SCHEMAS = {
+    topics.CAR_POSE: "foxglove.PoseInFrame",
+    topics.TF: "foxglove.FrameTransform",
+    topics.CIRCUIT: "foxglove.SceneUpdate",
+    topics.EPISODE_LOG: "foxglove.Log",
+}
 
 
 def expected_schemas(published: set[str], *, image: str) -> dict[str, str]:
@@ -53,10 +61,18 @@ def expected_schemas(published: set[str], *, image: str) -> dict[str, str]:
 
 def test_every_recorded_key_has_a_stable_topic_without_the_run_id():
     for run in ("r1", "compose"):
-        assert {topics.topic_of_key(k) for k in (keys.camera_raw(run), keys.camera_perturbed(run), keys.pose(run),
-                                                 keys.events(run), keys.live_metrics(run), keys.score(run),
-                                                 keys.command(run, "explicit"))} == \
-            topics.run_topics(brains=("explicit",)) - set(topics.VIEW_TOPICS.values())
+        assert {
+            topics.topic_of_key(k)
+            for k in (
+                keys.camera_raw(run),
+                keys.camera_perturbed(run),
+                keys.pose(run),
+                keys.events(run),
+                keys.live_metrics(run),
+                keys.score(run),
+                keys.command(run, "explicit"),
+            )
+        } == topics.run_topics(brains=("explicit",)) - set(topics.VIEW_TOPICS.values())
     assert topics.topic_of_key("drivebench/run/r1/future/thing") == "/future/thing"  # unknown: still run-free
     with pytest.raises(ValueError, match="not a run key"):
         topics.topic_of_key("drivebench/alive/r1")
@@ -94,21 +110,49 @@ def one_run(run_id: str, *, brain: str = "explicit", steps: int = 25) -> list[tu
     messages: list[tuple[str, msgspec.Struct]] = [(keys.events(run_id), start_event(run_id, 0, spec))]
     for seq in range(steps):
         pixels = np.full((6, 8, 3), seq % 256, np.uint8).tobytes()
-        messages += [(keys.camera_raw(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
-                     (keys.camera_perturbed(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6,
-                                                                 data=pixels)),
-                     (keys.pose(run_id), Pose(header=header(seq), x_m=0.1 * seq, y_m=1.0, yaw_rad=0.1,
-                                              speed_mps=2.0, yaw_rate_radps=0.3, command_latency_ns=1_000_000)),
-                     (keys.command(run_id, brain), Command(header=header(seq), brain=brain, frame_seq=seq,
-                                                           speed_mps=2.0, yaw_rate_radps=0.3))]
-    messages += [(keys.live_metrics(run_id), LiveMetrics(header=header(0), progress_laps=0.1, laps_target=1,
-                                                         completed_laps=0, sim_time_s=1.0, real_time_factor=3.0,
-                                                         cross_track_m=0.02, speed_mps=2.0)),
-                 (keys.events(run_id), EpisodeEvent(header=header(1), kind=EventKind.LAP, lap=1)),
-                 (keys.events(run_id), EpisodeEvent(header=header(2), kind=EventKind.END,
-                                                    reason=EndReason.LAPS_COMPLETED)),
-                 (keys.score(run_id), EpisodeScore(header=header(0), spec=spec, reason=EndReason.LAPS_COMPLETED,
-                                                   brain=brain, metrics=zero_metrics()))]
+        messages += [
+            (keys.camera_raw(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
+            (keys.camera_perturbed(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
+            (
+                keys.pose(run_id),
+                Pose(
+                    header=header(seq),
+                    x_m=0.1 * seq,
+                    y_m=1.0,
+                    yaw_rad=0.1,
+                    speed_mps=2.0,
+                    yaw_rate_radps=0.3,
+                    command_latency_ns=1_000_000,
+                ),
+            ),
+            (
+                keys.command(run_id, brain),
+                Command(header=header(seq), brain=brain, frame_seq=seq, speed_mps=2.0, yaw_rate_radps=0.3),
+            ),
+        ]
+    messages += [
+        (
+            keys.live_metrics(run_id),
+            LiveMetrics(
+                header=header(0),
+                progress_laps=0.1,
+                laps_target=1,
+                completed_laps=0,
+                sim_time_s=1.0,
+                real_time_factor=3.0,
+                cross_track_m=0.02,
+                speed_mps=2.0,
+            ),
+        ),
+        (keys.events(run_id), EpisodeEvent(header=header(1), kind=EventKind.LAP, lap=1)),
+        (keys.events(run_id), EpisodeEvent(header=header(2), kind=EventKind.END, reason=EndReason.LAPS_COMPLETED)),
+        (
+            keys.score(run_id),
+            EpisodeScore(
+                header=header(0), spec=spec, reason=EndReason.LAPS_COMPLETED, brain=brain, metrics=zero_metrics()
+            ),
+        ),
+    ]
     return messages
 
 
@@ -143,8 +187,9 @@ def test_two_runs_record_the_same_stable_topics_and_schemas(tmp_path, image_form
         assert not any(run in topic for topic in schemas)
         assert metadata["drivebench.run"]["run_id"] == run and metadata["drivebench.recording"]["format"] == "2"
         keyed = {c.topic: c.metadata["drivebench.key"] for c in channels if "drivebench.key" in c.metadata}
-        assert keyed[topics.CAMERA_TRUTH] == keys.camera_raw(run) and keyed["/brain/explicit/cmd"] == \
-            keys.command(run, "explicit")
+        assert keyed[topics.CAMERA_TRUTH] == keys.camera_raw(run) and keyed["/brain/explicit/cmd"] == keys.command(
+            run, "explicit"
+        )
         assert_valid_mcap(path)
         seen.append(set(schemas))
     assert seen[0] == seen[1] == published  # one layout shows both
@@ -184,29 +229,43 @@ def test_an_old_file_with_run_id_topics_reads_back_the_same_bus_messages_as_a_ne
     """The fixture was written by the recorder before stable topics; rewriting its messages with today's recorder
     changes every topic but not one bus key, message or log time that replay and datasets see."""
     old = list(read_messages(LEGACY))
-    assert {r.key for r in old} == {keys.camera_raw("legacy1"), keys.camera_perturbed("legacy1"), keys.pose("legacy1"),
-                                    keys.command("legacy1", "explicit"), keys.events("legacy1"),
-                                    keys.live_metrics("legacy1")}
+    assert {r.key for r in old} == {
+        keys.camera_raw("legacy1"),
+        keys.camera_perturbed("legacy1"),
+        keys.pose("legacy1"),
+        keys.command("legacy1", "explicit"),
+        keys.events("legacy1"),
+        keys.live_metrics("legacy1"),
+    }
     new_path = write(tmp_path / "new.mcap", [(r.key, r.message) for r in old], run_id="legacy1")
     new = list(read_messages(new_path))
-    assert [(r.key, codec.encode(r.message), r.log_time_ns) for r in new] == \
-        [(r.key, codec.encode(r.message), r.log_time_ns) for r in old]
-    assert {r.key for r in read_messages(LEGACY, keys_glob="*/sim/*")} == \
-        {r.key for r in read_messages(new_path, keys_glob="*/sim/*")} == \
-        {keys.camera_raw("legacy1"), keys.pose("legacy1"), keys.events("legacy1")}
+    assert [(r.key, codec.encode(r.message), r.log_time_ns) for r in new] == [
+        (r.key, codec.encode(r.message), r.log_time_ns) for r in old
+    ]
+    assert (
+        {r.key for r in read_messages(LEGACY, keys_glob="*/sim/*")}
+        == {r.key for r in read_messages(new_path, keys_glob="*/sim/*")}
+        == {keys.camera_raw("legacy1"), keys.pose("legacy1"), keys.events("legacy1")}
+    )
 
     old_info, new_info = recording_info(LEGACY), recording_info(new_path)
     assert all(c.topic.startswith("drivebench/run/legacy1/") for c in old_info.channels)
-    assert {topics.stable_topic(c.topic) for c in old_info.channels} | {topics.EPISODE_LOG} == \
-        {c.topic for c in new_info.channels}  # the legacy mapping; the episode log is new
-    assert sorted((c.key, c.run_id) for c in old_info.channels if c.bus_key) == \
-        sorted((c.key, c.run_id) for c in new_info.channels if c.bus_key)
+    assert {topics.stable_topic(c.topic) for c in old_info.channels} | {topics.EPISODE_LOG} == {
+        c.topic for c in new_info.channels
+    }  # the legacy mapping; the episode log is new
+    assert sorted((c.key, c.run_id) for c in old_info.channels if c.bus_key) == sorted(
+        (c.key, c.run_id) for c in new_info.channels if c.bus_key
+    )
 
     datasets = []
     for name, path in (("old", LEGACY), ("new", new_path)):
         out = tmp_path / name
-        build_dataset([(name, lambda path=path: read_messages(path))], out_dir=out, progress=False,
-                      options=DatasetOptions(width_px=8, height_px=6, split="none"))
+        build_dataset(
+            [(name, lambda path=path: read_messages(path))],
+            out_dir=out,
+            progress=False,
+            options=DatasetOptions(width_px=8, height_px=6, split="none"),
+        )
         datasets.append({a: np.load(out / f"{a}.npy") for a in ("frames", "labels", "frame_seq")})
     assert len(datasets[0]["frames"]) == 2  # frames 0 and 1: the END event's stamp (50 ms) precedes frame 2
     for name in ("frames", "labels", "frame_seq"):

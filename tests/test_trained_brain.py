@@ -29,8 +29,9 @@ WEIGHTS = ROOT / "brains" / "weights" / "deepest_lstm_tiny_pilotnet.ckpt"
 def test_the_trained_tiny_network_follows_the_line_of_a_circuit_it_never_saw(make_stack):
     weights = f"weights={json.dumps(str(WEIGHTS))}"
     stack = make_stack(BrainLaunch("deepest_lstm_tiny_pilotnet", options=(weights,)))
-    score = stack.run_episode(EpisodeSpec(circuit="simple", max_sim_seconds=25.0,
-                                          active_brain="deepest_lstm_tiny_pilotnet"))
+    score = stack.run_episode(
+        EpisodeSpec(circuit="simple", max_sim_seconds=25.0, active_brain="deepest_lstm_tiny_pilotnet")
+    )
     metrics = score.metrics
     assert score.reason == EndReason.TIME_LIMIT  # 500 steps without leaving the road or touching a wall
     assert metrics.steps == 500 and metrics.off_track_events == 0
@@ -39,8 +40,13 @@ def test_the_trained_tiny_network_follows_the_line_of_a_circuit_it_never_saw(mak
 
 
 def test_export_of_the_trained_network_matches_torch(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "orchestrator.cli", "export", str(WEIGHTS), "-o",
-                             str(tmp_path / "tiny.onnx")], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "export", str(WEIGHTS), "-o", str(tmp_path / "tiny.onnx")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "tiny.onnx").stat().st_size > 100_000
     difference = float((result.stdout + result.stderr).split("=")[-1].split()[0])
@@ -51,8 +57,14 @@ SHIPPED = sorted(path for path in (ROOT / "brains" / "weights").glob("*.ckpt"))
 
 
 def test_drivebench_ships_every_network_of_the_paper_and_the_randomised_one():
-    assert {path.stem for path in SHIPPED} >= {"pilotnet", "deepest_lstm_tiny_pilotnet", "pilotnet_x3", "memdccp",
-                                               "deepest_lstm_tiny_pilotnet_dr", "recurrent_tiny_pilotnet_dr"}
+    assert {path.stem for path in SHIPPED} >= {
+        "pilotnet",
+        "deepest_lstm_tiny_pilotnet",
+        "pilotnet_x3",
+        "memdccp",
+        "deepest_lstm_tiny_pilotnet_dr",
+        "recurrent_tiny_pilotnet_dr",
+    }
     for path in (ROOT / "brains" / "weights").iterdir():
         assert path.stat().st_size < 10 * 2**20, f"{path.name}: git files stay under 10 MB"
 
@@ -87,12 +99,16 @@ def lap_of_simple(make_stack, *, brain: str, weights_file: str, variation: str):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("brain, weights_file, variation", [
-    # Trained on random circuits in random worlds, it laps a world no paper-recipe network laps.
-    ("deepest_lstm_tiny_pilotnet", "deepest_lstm_tiny_pilotnet_dr.ckpt", "line=none,road=white"),
-    # The world the paper's memDCCP fails: only the road's edge against the grass, a few pixels at the horizon.
-    ("recurrent_tiny_pilotnet", "recurrent_tiny_pilotnet_dr.ckpt", "line=none,walls=off"),
-], ids=["tiny_dr-no-line-white-road", "rtiny_dr-no-line-no-walls"])
+@pytest.mark.parametrize(
+    "brain, weights_file, variation",
+    [
+        # Trained on random circuits in random worlds, it laps a world no paper-recipe network laps.
+        ("deepest_lstm_tiny_pilotnet", "deepest_lstm_tiny_pilotnet_dr.ckpt", "line=none,road=white"),
+        # The world the paper's memDCCP fails: only the road's edge against the grass, a few pixels at the horizon.
+        ("recurrent_tiny_pilotnet", "recurrent_tiny_pilotnet_dr.ckpt", "line=none,walls=off"),
+    ],
+    ids=["tiny_dr-no-line-white-road", "rtiny_dr-no-line-no-walls"],
+)
 def test_the_randomised_networks_lap_worlds_the_paper_recipe_fails(make_stack, brain, weights_file, variation):
     score = lap_of_simple(make_stack, brain=brain, weights_file=weights_file, variation=variation)
     assert score.reason == EndReason.LAPS_COMPLETED, score

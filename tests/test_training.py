@@ -39,8 +39,9 @@ TINY = "deepest_lstm_tiny_pilotnet"
 
 
 def drivebench(*args: str) -> None:
-    result = subprocess.run([sys.executable, "-m", "orchestrator.cli", *map(str, args)], capture_output=True,
-                            text=True, timeout=150)
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *map(str, args)], capture_output=True, text=True, timeout=150
+    )
     assert result.returncode == 0, result.stderr
 
 
@@ -50,8 +51,22 @@ def datasets(tmp_path_factory) -> dict[str, Path]:
     "seq3": 100x50 full frame, offsets (-4, -2, 0), one episode each side of the split;
     "crop": 100x50 lower half (DeepestLSTMTinyPilotNet), one frame, everything in train."""
     root = tmp_path_factory.mktemp("training-data")
-    drivebench("dataset", "collect", "--circuits", "simple,many_curves", "--max-sim-seconds", "12",
-               "-o", root / "seq3", "--history", "3", "--stride", "2", "--split", "episode:0.5")
+    drivebench(
+        "dataset",
+        "collect",
+        "--circuits",
+        "simple,many_curves",
+        "--max-sim-seconds",
+        "12",
+        "-o",
+        root / "seq3",
+        "--history",
+        "3",
+        "--stride",
+        "2",
+        "--split",
+        "episode:0.5",
+    )
     recordings = sorted((root / "seq3.recordings").glob("*.mcap"))
     drivebench("dataset", "build", *recordings, "-o", root / "crop", "--crop", "0.5:1", "--split", "none")
     return {"seq3": root / "seq3", "crop": root / "crop"}
@@ -59,8 +74,18 @@ def datasets(tmp_path_factory) -> dict[str, Path]:
 
 def options(data: Path, output: Path, **overrides) -> TrainOptions:
     """Small, fast, single-threaded (the results then do not depend on the machine's core count)."""
-    settings = dict(model=TINY, data=data, output=output, epochs=4, batch_size=16, lr=1e-3, threads=1,
-                    max_samples_per_epoch=64, eval_train_samples=32, seed=0)
+    settings = dict(
+        model=TINY,
+        data=data,
+        output=output,
+        epochs=4,
+        batch_size=16,
+        lr=1e-3,
+        threads=1,
+        max_samples_per_epoch=64,
+        eval_train_samples=32,
+        seed=0,
+    )
     return TrainOptions(**{**settings, **overrides})
 
 
@@ -84,8 +109,18 @@ def without_wall(curve: list[dict]) -> list[dict]:
 @pytest.mark.slow
 def test_tiny_model_overfits_a_small_real_dataset(datasets, tmp_path):
     out = tmp_path / "run"
-    result = train(options(datasets["crop"], out, epochs=20, batch_size=16, max_samples_per_epoch=None,
-                           limit_train_samples=16, augment=False), progress=False)
+    result = train(
+        options(
+            datasets["crop"],
+            out,
+            epochs=20,
+            batch_size=16,
+            max_samples_per_epoch=None,
+            limit_train_samples=16,
+            augment=False,
+        ),
+        progress=False,
+    )
     metrics = result.metrics
     first = metrics["curve"][0]
     # After epoch 1 (already 30 steps in) versus the best epoch: the 16 samples are memorised.
@@ -103,8 +138,7 @@ def test_tiny_model_overfits_a_small_real_dataset(datasets, tmp_path):
 @pytest.fixture(scope="module")
 def memdccp_run(datasets, tmp_path_factory):
     out = tmp_path_factory.mktemp("memdccp") / "run"
-    return train(options(datasets["seq3"], out, model="memdccp", epochs=1, max_samples_per_epoch=32),
-                 progress=False)
+    return train(options(datasets["seq3"], out, model="memdccp", epochs=1, max_samples_per_epoch=32), progress=False)
 
 
 @pytest.mark.slow
@@ -130,8 +164,15 @@ def test_checkpoint_format(memdccp_run, datasets):
     raw = torch.load(memdccp_run.checkpoint, map_location="cpu", weights_only=True)
     assert raw["format"] == CHECKPOINT_FORMAT and raw["model"] == "memdccp" and raw["hyper"] == {}
     manifest = json.loads((datasets["seq3"] / "manifest.json").read_text())
-    assert raw["input"] == {"width_px": 100, "height_px": 50, "crop_top_fraction": 0.0, "crop_bottom_fraction": 1.0,
-                            "offsets_frames": [-4, -2, 0], "offsets_s": [-0.2, -0.1, 0.0], "step_s": 0.05}
+    assert raw["input"] == {
+        "width_px": 100,
+        "height_px": 50,
+        "crop_top_fraction": 0.0,
+        "crop_bottom_fraction": 1.0,
+        "offsets_frames": [-4, -2, 0],
+        "offsets_s": [-0.2, -0.1, 0.0],
+        "step_s": 0.05,
+    }
     speed, yaw = manifest["train_label_stats"]["speed_mps"], manifest["train_label_stats"]["yaw_rate_radps"]
     norm = raw["normalisation"]
     assert norm["labels"] == "zscore" and norm["image_mean"] == pytest.approx([0.485, 0.456, 0.406])
@@ -142,11 +183,20 @@ def test_checkpoint_format(memdccp_run, datasets):
     assert raw["dataset"]["samples_val"] == manifest["split"]["val_samples"]
     assert len(raw["dataset"]["manifest_sha256"]) == 64
     metrics = raw["metrics"]
-    assert set(metrics["train"]) == set(metrics["val"]) == {"mae_speed_mps", "mae_yaw_rate_radps", "mse_normalised",
-                                                                "mae_paper", "mse_paper"}
+    assert (
+        set(metrics["train"])
+        == set(metrics["val"])
+        == {"mae_speed_mps", "mae_yaw_rate_radps", "mse_normalised", "mae_paper", "mse_paper"}
+    )
     assert metrics["best_epoch"] == metrics["epochs_run"] == 1
-    assert set(metrics["curve"][0]) >= {"epoch", "train_loss", "val_loss", "val_mae_speed_mps",
-                                        "val_mae_yaw_rate_radps", "wall_s"}
+    assert set(metrics["curve"][0]) >= {
+        "epoch",
+        "train_loss",
+        "val_loss",
+        "val_mae_speed_mps",
+        "val_mae_yaw_rate_radps",
+        "wall_s",
+    }
     assert raw["training"]["torch"] == torch.__version__ and raw["training"]["samples_per_s"] > 0
     assert {"seed", "lr", "batch_size", "epochs", "device", "wall_s"} <= set(raw["training"])
     last = torch.load(memdccp_run.output / "last.ckpt", map_location="cpu", weights_only=True)
@@ -173,8 +223,9 @@ def test_resume_ends_exactly_where_an_uninterrupted_run_does(straight, datasets,
     assert result.epochs_run == 4
     assert_same_tensors(state_dict(out / "last.ckpt"), state_dict(straight / "last.ckpt"))
     assert_same_tensors(state_dict(out / "model.ckpt"), state_dict(straight / "model.ckpt"))
-    assert without_wall(result.metrics["curve"]) == without_wall(read_checkpoint(straight / "model.ckpt")["metrics"]
-                                                                 ["curve"])
+    assert without_wall(result.metrics["curve"]) == without_wall(
+        read_checkpoint(straight / "model.ckpt")["metrics"]["curve"]
+    )
 
 
 @pytest.mark.slow
@@ -291,8 +342,9 @@ def test_model_and_dataset_mismatches_are_one_line_errors(datasets, tmp_path):
     assert "3 frames" in message and "[0]" in message
     message = one_line_error(TrainError, lambda: options(datasets["crop"], tmp_path / "c", model="alexnet"))
     assert "alexnet" in message and TINY in message
-    message = one_line_error(TrainError, lambda: train(options(datasets["seq3"], tmp_path / "d", model="memdccp",
-                                                               hyper={"warp": 9})))
+    message = one_line_error(
+        TrainError, lambda: train(options(datasets["seq3"], tmp_path / "d", model="memdccp", hyper={"warp": 9}))
+    )
     assert "warp" in message
     message = one_line_error(TrainError, lambda: train(options(tmp_path / "nothing", tmp_path / "e")))
     assert "nothing" in message
@@ -338,7 +390,11 @@ def test_cli_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):
 
 def test_hyper_values_are_typed():
     assert train_cli.parse_hyper(["clean=true", "lstm_units=16", "dropout=0.1", "name=x"]) == {
-        "clean": True, "lstm_units": 16, "dropout": 0.1, "name": "x"}
+        "clean": True,
+        "lstm_units": 16,
+        "dropout": 0.1,
+        "name": "x",
+    }
     with pytest.raises(train_cli.HyperError):
         train_cli.parse_hyper(["=3"])
 

@@ -24,14 +24,18 @@ def render(world: str = "", *, s_m: float = 20.0) -> np.ndarray:
 
 def bottom_centre(image: np.ndarray) -> np.ndarray:
     h, w = image.shape[:2]
-    return image[int(0.9 * h):, int(0.45 * w):int(0.55 * w)].reshape(-1, 3)
+    return image[int(0.9 * h) :, int(0.45 * w) : int(0.55 * w)].reshape(-1, 3)
 
 
 def beside_road(image: np.ndarray) -> np.ndarray:
     """Just above the horizon at the image sides: walls when they are on, sky (and grass) when off."""
     h, w = image.shape[:2]
-    return np.concatenate([image[int(0.42 * h):int(0.49 * h), :int(0.1 * w)].reshape(-1, 3),
-                           image[int(0.42 * h):int(0.49 * h), int(0.9 * w):].reshape(-1, 3)])
+    return np.concatenate(
+        [
+            image[int(0.42 * h) : int(0.49 * h), : int(0.1 * w)].reshape(-1, 3),
+            image[int(0.42 * h) : int(0.49 * h), int(0.9 * w) :].reshape(-1, 3),
+        ]
+    )
 
 
 def test_line_colours():
@@ -43,8 +47,8 @@ def test_line_colours():
 
 def test_road_colours():
     h, w = 240, 320
-    grey = render("road=grey")[int(0.9 * h):, :int(0.15 * w)].reshape(-1, 3).mean(axis=0)
-    white = render("road=white")[int(0.9 * h):, :int(0.15 * w)].reshape(-1, 3).mean(axis=0)
+    grey = render("road=grey")[int(0.9 * h) :, : int(0.15 * w)].reshape(-1, 3).mean(axis=0)
+    white = render("road=white")[int(0.9 * h) :, : int(0.15 * w)].reshape(-1, 3).mean(axis=0)
     assert grey.max() < 120 and white.min() > 170
     assert np.ptp(grey) < 5 and np.ptp(white) < 5  # unsaturated
 
@@ -55,10 +59,10 @@ def test_walls_hide_what_lies_beyond_the_road():
     assert 120 < with_walls[:, 0].mean() < 170  # darker than the sky in red (the explicit brain's speed rule)
     h = 240
     without = render("walls=off")
-    horizon_band = without[int(0.45 * h):int(0.52 * h)].reshape(-1, 3)
+    horizon_band = without[int(0.45 * h) : int(0.52 * h)].reshape(-1, 3)
     grass = (horizon_band[:, 1] > horizon_band[:, 0] + 10) & (horizon_band[:, 1] > horizon_band[:, 2] + 10)
     assert grass.mean() > 0.05  # grass seen beyond the road edge
-    with_band = render("walls=on")[int(0.45 * h):int(0.52 * h)].reshape(-1, 3)
+    with_band = render("walls=on")[int(0.45 * h) : int(0.52 * h)].reshape(-1, 3)
     assert ((with_band[:, 1] > with_band[:, 0] + 10) & (with_band[:, 1] > with_band[:, 2] + 10)).mean() == 0
 
 
@@ -68,7 +72,7 @@ def test_no_sun_is_darker():
 
 def test_camera_offsets_move_the_line_the_right_way():
     def line_x(image: np.ndarray) -> float:
-        rows = image[int(0.8 * image.shape[0]):]
+        rows = image[int(0.8 * image.shape[0]) :]
         red = (rows[..., 0] > 180) & (rows[..., 1] < 60)
         return float(np.nonzero(red)[1].mean())
 
@@ -105,10 +109,15 @@ def test_variation_parsing():
     assert reverse.direction == "reverse" and reverse.world.line == "white"
     with pytest.raises(ValueError, match="direction must be one of forward, reverse"):
         EpisodeSpec(direction="sideways")
-    for bad, message in [("line=blue", "line must be one of red, white, none"), ("walls=maybe", "walls must be on"),
-                         ("camera=top", "unknown camera preset 'top'"), ("fog=1", "unknown variation 'fog'"),
-                         ("line", "must look like key=value"), ("camera_hfov_rad=9", "hfov_rad must be within"),
-                         ("direction=backwards", "direction must be one of forward, reverse")]:
+    for bad, message in [
+        ("line=blue", "line must be one of red, white, none"),
+        ("walls=maybe", "walls must be on"),
+        ("camera=top", "unknown camera preset 'top'"),
+        ("fog=1", "unknown variation 'fog'"),
+        ("line", "must look like key=value"),
+        ("camera_hfov_rad=9", "hfov_rad must be within"),
+        ("direction=backwards", "direction must be one of forward, reverse"),
+    ]:
         with pytest.raises(VariationError, match=message):
             apply_variation(EpisodeSpec(), bad)
 
@@ -118,7 +127,11 @@ def test_noise_shorthands():
     assert noise_stage({"jpeg": 30}) == Jpeg(quality=30)
     assert noise_stage("occlusion:patches=3,size_fraction=0.1") == Occlusion(patches=3, size_fraction=0.1)
     assert noise_stage({"drop": {"probability": 0.5}}) == Drop(probability=0.5)
-    for bad, message in [("rain=1", "unknown noise model 'rain'"), ("jpeg=0", "quality must be within 1..100"),
-                         ("salt_pepper=lots", "Expected `float`"), ({"a": 1, "b": 2}, "one model")]:
+    for bad, message in [
+        ("rain=1", "unknown noise model 'rain'"),
+        ("jpeg=0", "quality must be within 1..100"),
+        ("salt_pepper=lots", "Expected `float`"),
+        ({"a": 1, "b": 2}, "one model"),
+    ]:
         with pytest.raises(VariationError, match=message):
             noise_stage(bad)

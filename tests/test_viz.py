@@ -81,7 +81,8 @@ class FoxgloveClient:
                 elif message[0] == MESSAGE_DATA:
                     subscription, log_time = struct.unpack_from("<IQ", message, 1)
                     self.messages[self._topic_of_subscription[subscription]].append(
-                        Received(time.monotonic(), log_time, message[13:]))
+                        Received(time.monotonic(), log_time, message[13:])
+                    )
         except Exception:  # noqa: BLE001 - the connection closed under us at the end of a test
             pass
 
@@ -103,8 +104,9 @@ class FoxgloveClient:
 
     def wait_for_channels(self, topics: set[str], timeout_s: float = 10.0) -> None:
         with self._advertised:
-            assert self._advertised.wait_for(lambda: topics <= set(self.channels), timeout=timeout_s), \
+            assert self._advertised.wait_for(lambda: topics <= set(self.channels), timeout=timeout_s), (
                 f"never advertised: {topics - set(self.channels)}"
+            )
 
 
 @contextmanager
@@ -141,8 +143,14 @@ class StuckClient:
                 if getattr(event, "opcode", None) == Opcode.TEXT and json.loads(event.data)["op"] == "advertise":
                     channels.update({c["id"]: c["topic"] for c in json.loads(event.data)["channels"]})
             self._send()
-        self.protocol.send_text(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": i, "channelId": channel} for i, channel in enumerate(channels)]}).encode())
+        self.protocol.send_text(
+            json.dumps(
+                {
+                    "op": "subscribe",
+                    "subscriptions": [{"id": i, "channelId": channel} for i, channel in enumerate(channels)],
+                }
+            ).encode()
+        )
         self._send()
 
     def _send(self) -> None:
@@ -162,8 +170,11 @@ class StuckClient:
                     break
                 self.bytes_read += len(data)
                 self.protocol.receive_data(data)
-                frames += sum(1 for event in self.protocol.events_received()
-                              if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA)
+                frames += sum(
+                    1
+                    for event in self.protocol.events_received()
+                    if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA
+                )
         except TimeoutError:
             pass
         except OSError:
@@ -206,8 +217,22 @@ def viz_process(stack, *extra: str):
     watch = stack.bus.watch_alive(token)
     with open(log_path, "ab") as log_file:
         process = subprocess.Popen(
-            [sys.executable, "-m", "services.viz", "--router", stack.endpoint, "--run-id", stack.run_id,
-             "--set", f"port={port}", *extra], cwd=ROOT, stdout=log_file, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "services.viz",
+                "--router",
+                stack.endpoint,
+                "--run-id",
+                stack.run_id,
+                "--set",
+                f"port={port}",
+                *extra,
+            ],
+            cwd=ROOT,
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+        )
     viz = Viz(process, port, log_path)
     try:
         missing = watch.wait_for({token}, timeout_s=30, abort=lambda: "dead" if process.poll() is not None else None)
@@ -252,8 +277,11 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
         assert {t: c["schemaName"] for t, c in client.channels.items()} == expected_schemas(published, image="jpeg")
         assert client.server_info["name"] == f"drivebench {run}"
         advertised = client.channels[camera]
-        assert (advertised["encoding"], advertised["schemaName"], advertised["schemaEncoding"]) == \
-            ("protobuf", "foxglove.CompressedImage", "protobuf")
+        assert (advertised["encoding"], advertised["schemaName"], advertised["schemaEncoding"]) == (
+            "protobuf",
+            "foxglove.CompressedImage",
+            "protobuf",
+        )
         assert client.channels[topics.METRICS_LIVE]["schemaEncoding"] == "jsonschema"
         time.sleep(0.5)  # the subscriptions reach the server
 
@@ -271,10 +299,12 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
     images = [m for m in client.messages[camera] if started <= m.arrival <= ended + 1.0]
     seconds = ended - started
     bus_rate, ws_rate = len(on_bus) / seconds, len(images) / seconds
-    print(f"\ncamera on the bus: {len(on_bus)} frames in {seconds:.2f} s = {bus_rate:.1f} Hz; over the WebSocket: "
-          f"{len(images)} images = {ws_rate:.1f} Hz ({100 * ws_rate / bus_rate:.1f} %), "
-          f"{sum(len(m.payload) for m in images) / len(images) / 1e3:.1f} kB each; viz CPU {cpu_used:.2f} s "
-          f"= {100 * cpu_used / seconds:.0f} % of a core (two cameras encoded)")
+    print(
+        f"\ncamera on the bus: {len(on_bus)} frames in {seconds:.2f} s = {bus_rate:.1f} Hz; over the WebSocket: "
+        f"{len(images)} images = {ws_rate:.1f} Hz ({100 * ws_rate / bus_rate:.1f} %), "
+        f"{sum(len(m.payload) for m in images) / len(images) / 1e3:.1f} kB each; viz CPU {cpu_used:.2f} s "
+        f"= {100 * cpu_used / seconds:.0f} % of a core (two cameras encoded)"
+    )
     assert ws_rate >= 0.9 * bus_rate
     for image in images:
         assert decode_jpeg_image(image.payload).shape == (CAMERA.height_px, CAMERA.width_px, 3)
@@ -294,8 +324,11 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
     transform = FrameTransform.FromString(client.messages[views["world_from_car"]][-1].payload)
     assert car.frame_id == "world" and (transform.parent_frame_id, transform.child_frame_id) == ("world", "car")
     assert (car.pose.position.x, car.pose.position.y) == pytest.approx((poses[-1]["x_m"], poses[-1]["y_m"]))
-    assert client.messages[views["car_pose"]][-1].log_time_ns == poses[-1]["header"]["stamp_ns"] \
+    assert (
+        client.messages[views["car_pose"]][-1].log_time_ns
+        == poses[-1]["header"]["stamp_ns"]
         == car.timestamp.seconds * 1_000_000_000 + car.timestamp.nanos
+    )
     tracks = [SceneUpdate.FromString(m.payload) for m in client.messages[views["track"]]]
     assert 1 <= len(tracks) <= 2  # once for the episode (and once more if the subscription came after it)
     assert [entity.id for entity in tracks[-1].entities] == ["track", "car"] and len(tracks[-1].entities[0].lines) >= 2
@@ -336,13 +369,22 @@ def test_channels_added_while_viewers_connect_reach_them():
                 assert time.monotonic() < deadline, f"never reached every viewer: {missing}"
                 bridge.maintain()
                 for brain in brains:
-                    bridge.publish(keys.command("r", brain), Command(
-                        header=Header(run_id="r", episode=0, seq=seq, stamp_ns=seq * 50_000_000), brain=brain,
-                        frame_seq=seq, speed_mps=1.0, yaw_rate_radps=0.0))
+                    bridge.publish(
+                        keys.command("r", brain),
+                        Command(
+                            header=Header(run_id="r", episode=0, seq=seq, stamp_ns=seq * 50_000_000),
+                            brain=brain,
+                            frame_seq=seq,
+                            speed_mps=1.0,
+                            yaw_rate_radps=0.0,
+                        ),
+                    )
                 seq += 1
                 time.sleep(0.05)
-        print(f"\n{len(brains)} channels added as {len(clients)} viewers connected; advertised again after a lost "
-              f"subscription: {bridge.readvertised}")
+        print(
+            f"\n{len(brains)} channels added as {len(clients)} viewers connected; advertised again after a lost "
+            f"subscription: {bridge.readvertised}"
+        )
     finally:
         bridge.close()
 
@@ -356,8 +398,13 @@ def sample_rss(viz: Viz, stop: threading.Event, samples: list[float]) -> None:
 @pytest.mark.integration
 def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_stack):
     stack = make_stack()
-    everything = {topics.CAMERA_TRUTH, topics.CAMERA_BRAIN, topics.CAR_STATE, topics.command_topic("explicit"),
-                  topics.CIRCUIT}
+    everything = {
+        topics.CAMERA_TRUTH,
+        topics.CAMERA_BRAIN,
+        topics.CAR_STATE,
+        topics.command_topic("explicit"),
+        topics.CIRCUIT,
+    }
     # Salt and pepper makes the perturbed camera's JPEGs big (~50 kB): an episode then sends far more than the
     # kernel's socket buffers hold (a few MB), so the server's per-client backlog really fills and drops.
     spec = EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA, noise=[SaltPepper(probability=0.2)])
@@ -385,17 +432,21 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
         stuck.close()
     sent = [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
     sent_while_stuck = sent[2] - sent[1]
-    rtf = {name: score.metrics.real_time_factor
-           for name, score in (("alone", alone), ("reading", reading), ("stuck", with_stuck))}
+    rtf = {
+        name: score.metrics.real_time_factor
+        for name, score in (("alone", alone), ("reading", reading), ("stuck", with_stuck))
+    }
     half = len(samples) // 2
     noisy = reader.messages[topics.CAMERA_BRAIN]
-    print(f"\nreal-time factor: {rtf['alone']:.2f} with no viewer, {rtf['reading']:.2f} with a viewer reading every "
-          f"channel, {rtf['stuck']:.2f} with one that never reads ({100 * rtf['stuck'] / rtf['reading']:.0f} % of "
-          f"reading, {100 * rtf['stuck'] / rtf['alone']:.0f} % of none); viz RSS {rss_before:.1f} MB before, max "
-          f"{max(samples):.1f} MB (first half {max(samples[:half]):.1f}, second half {max(samples[half:]):.1f}); "
-          f"sent to the stuck viewer {sent_while_stuck} messages (the reader got {len(noisy)} noisy images, "
-          f"{sum(len(m.payload) for m in noisy) / 1e6:.1f} MB), of which it could still read {read_late} "
-          f"({stuck.bytes_read / 1e6:.1f} MB) afterwards")
+    print(
+        f"\nreal-time factor: {rtf['alone']:.2f} with no viewer, {rtf['reading']:.2f} with a viewer reading every "
+        f"channel, {rtf['stuck']:.2f} with one that never reads ({100 * rtf['stuck'] / rtf['reading']:.0f} % of "
+        f"reading, {100 * rtf['stuck'] / rtf['alone']:.0f} % of none); viz RSS {rss_before:.1f} MB before, max "
+        f"{max(samples):.1f} MB (first half {max(samples[:half]):.1f}, second half {max(samples[half:]):.1f}); "
+        f"sent to the stuck viewer {sent_while_stuck} messages (the reader got {len(noisy)} noisy images, "
+        f"{sum(len(m.payload) for m in noisy) / 1e6:.1f} MB), of which it could still read {read_late} "
+        f"({stuck.bytes_read / 1e6:.1f} MB) afterwards"
+    )
     assert alone.reason == reading.reason == with_stuck.reason == EndReason.TIME_LIMIT
     assert with_stuck.metrics.steps == alone.metrics.steps  # lock-step: nothing lost either
     # Generous: 2 cores shared by simulator, brain, noise, scorer, viz and this test; episodes vary by ~20 %.
@@ -460,14 +511,22 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
 
     stack = make_stack()
     run = stack.run_id
-    episode = threading.Thread(target=stack.run_episode, daemon=True,
-                               args=(EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48)),))
+    episode = threading.Thread(
+        target=stack.run_episode,
+        daemon=True,
+        args=(EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48)),),
+    )
     episode.start()
     time.sleep(1.0)  # its START event is long gone when the view joins
     port = free_loopback_port()
     env = {k: v for k, v in os.environ.items() if k not in ("DRIVEBENCH_RUN_ID", "DRIVEBENCH_ROUTER")}
-    view = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "view", "--router", stack.endpoint,
-                             "--port", str(port)], cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    view = subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", "view", "--router", stack.endpoint, "--port", str(port)],
+        cwd=ROOT,
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         lines = []
         while not any(line.startswith("drivebench view:") for line in lines):

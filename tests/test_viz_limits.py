@@ -22,8 +22,12 @@ from services.viz.bridge import LiveBridge
 def noisy_frame(seq: int) -> CameraFrame:
     """320x240 of noise: a JPEG of ~100 kB, as big as the perturbed camera gets."""
     pixels = np.random.default_rng(seq).integers(0, 256, (240, 320, 3), dtype=np.uint8)
-    return CameraFrame(header=Header(run_id="r", episode=0, seq=seq, stamp_ns=seq * 50_000_000), width_px=320,
-                       height_px=240, data=pixels.tobytes())
+    return CameraFrame(
+        header=Header(run_id="r", episode=0, seq=seq, stamp_ns=seq * 50_000_000),
+        width_px=320,
+        height_px=240,
+        data=pixels.tobytes(),
+    )
 
 
 def wait_until(condition, timeout_s: float = 10.0) -> None:
@@ -75,8 +79,11 @@ def read_everything(stuck: StuckClient, *, quiet_s: float = 1.0) -> tuple[list[b
         while data := stuck.sock.recv(1 << 20):
             stuck.bytes_read += len(data)
             stuck.protocol.receive_data(data)
-            payloads += [event.data[13:] for event in stuck.protocol.events_received()
-                         if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA]
+            payloads += [
+                event.data[13:]
+                for event in stuck.protocol.events_received()
+                if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA
+            ]
         closed = True
     except TimeoutError:
         pass
@@ -107,12 +114,14 @@ def test_a_slow_viewers_backlog_is_bounded_in_bytes_and_its_stream_stays_valid()
     _, unbounded_payloads, _ = flood_a_stuck_viewer(backlog_bytes=None, frames=frames)
     stats = gated.gate.stats
     jpeg_kb = np.mean([len(p) for p in unbounded_payloads]) / 1e3
-    print(f"\n{frames} JPEGs of {jpeg_kb:.0f} kB to a viewer that never reads: with backlog_bytes {budget}, "
-          f"peak backlog {stats.peak_backlog_bytes} bytes, {stats.dropped_messages} dropped "
-          f"({stats.dropped_bytes / 1e6:.1f} MB), {len(payloads)} still readable afterwards "
-          f"({sum(map(len, payloads)) / 1e6:.1f} MB: the kernel's socket buffers plus the backlog); without the "
-          f"byte bound (backlog of 100000 messages) {len(unbounded_payloads)} "
-          f"({sum(map(len, unbounded_payloads)) / 1e6:.1f} MB)")
+    print(
+        f"\n{frames} JPEGs of {jpeg_kb:.0f} kB to a viewer that never reads: with backlog_bytes {budget}, "
+        f"peak backlog {stats.peak_backlog_bytes} bytes, {stats.dropped_messages} dropped "
+        f"({stats.dropped_bytes / 1e6:.1f} MB), {len(payloads)} still readable afterwards "
+        f"({sum(map(len, payloads)) / 1e6:.1f} MB: the kernel's socket buffers plus the backlog); without the "
+        f"byte bound (backlog of 100000 messages) {len(unbounded_payloads)} "
+        f"({sum(map(len, unbounded_payloads)) / 1e6:.1f} MB)"
+    )
     assert len(unbounded_payloads) == frames  # the message bound alone held every frame for the stuck viewer
     assert 0 < stats.peak_backlog_bytes <= budget
     assert stats.dropped_messages > 0 and len(payloads) + stats.dropped_messages == frames

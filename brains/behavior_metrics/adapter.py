@@ -115,8 +115,9 @@ def load_brain_file(path: str | Path) -> ModuleType:
         spec.loader.exec_module(module)
     except Exception as error:  # the user's file: whatever it raises, say where
         del sys.modules[name]
-        raise BrainOptionsError(f"Behavior Metrics brain file {str(path)!r} failed to import: "
-                                f"{type(error).__name__}: {error}") from None
+        raise BrainOptionsError(
+            f"Behavior Metrics brain file {str(path)!r} failed to import: {type(error).__name__}: {error}"
+        ) from None
     if not inspect.isclass(getattr(module, "Brain", None)):
         raise BrainOptionsError(f"Behavior Metrics brain file {str(path)!r} defines no class Brain")
     return module
@@ -144,15 +145,20 @@ class BehaviorMetricsBrain:
 
     def _new_brain(self) -> Any:
         accepted = inspect.signature(self._brain_class).parameters
-        extra = {key: value for key, value in (("model", self._model), ("config", self._config))
-                 if key in accepted or any(p.kind is p.VAR_KEYWORD for p in accepted.values())}
+        extra = {
+            key: value
+            for key, value in (("model", self._model), ("config", self._config))
+            if key in accepted or any(p.kind is p.VAR_KEYWORD for p in accepted.values())
+        }
         sensors, actuators = Sensors(self.camera), Actuators(self.motors)
         try:
             return self._brain_class(sensors, actuators, self.handler, **extra)
         except Exception as error:
-            raise BrainOptionsError(f"Behavior Metrics brain {self.file!r}: Brain(sensors, actuators, handler"
-                                    f"{''.join(', ' + k for k in extra)}) failed: {type(error).__name__}: "
-                                    f"{error}") from None
+            raise BrainOptionsError(
+                f"Behavior Metrics brain {self.file!r}: Brain(sensors, actuators, handler"
+                f"{''.join(', ' + k for k in extra)}) failed: {type(error).__name__}: "
+                f"{error}"
+            ) from None
 
     def reset(self, *, seed: int) -> None:
         """A fresh ``Brain`` and still motors; ``random`` and numpy's global generator seeded from ``seed``."""

@@ -53,9 +53,17 @@ class ExpertBrain:
 
     needs_ground_truth = True
 
-    def __init__(self, *, max_speed_mps: float = 12.0, min_speed_mps: float = 4.0, lateral_accel_mps2: float = 5.0,
-                 accel_mps2: float = 4.0, braking_distance_m: float = 18.0, lookahead_s: float = 0.35,
-                 min_lookahead_m: float = 2.5):
+    def __init__(
+        self,
+        *,
+        max_speed_mps: float = 12.0,
+        min_speed_mps: float = 4.0,
+        lateral_accel_mps2: float = 5.0,
+        accel_mps2: float = 4.0,
+        braking_distance_m: float = 18.0,
+        lookahead_s: float = 0.35,
+        min_lookahead_m: float = 2.5,
+    ):
         if not 0 < min_speed_mps <= max_speed_mps or lateral_accel_mps2 <= 0 or accel_mps2 <= 0:
             raise ValueError("need 0 < min_speed_mps <= max_speed_mps, lateral_accel_mps2 > 0 and accel_mps2 > 0")
         self.max_speed_mps, self.min_speed_mps = float(max_speed_mps), float(min_speed_mps)

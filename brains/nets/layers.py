@@ -34,7 +34,7 @@ def keras_same_pad(x: torch.Tensor, kernel: Sequence[int], stride: Sequence[int]
     """Zero-pad the trailing ``len(kernel)`` dims of ``x`` the way Keras "same" would before a convolution."""
     pads: list[int] = []
     # F.pad takes pairs starting from the last dim.
-    for size, k, s in zip(reversed(x.shape[-len(kernel):]), reversed(kernel), reversed(stride)):
+    for size, k, s in zip(reversed(x.shape[-len(kernel) :]), reversed(kernel), reversed(stride)):
         pads.extend(keras_same_padding(int(size), k, s))
     return F.pad(x, pads) if any(pads) else x
 
@@ -45,8 +45,14 @@ class _KerasSame:
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1, bias: bool = True):
         # Stride 1 with an odd kernel pads k // 2 on both sides: let the conv do it (no extra F.pad op).
         symmetric = stride == 1 and kernel_size % 2 == 1
-        super().__init__(in_channels, out_channels, kernel_size, stride=stride,
-                         padding=kernel_size // 2 if symmetric else 0, bias=bias)
+        super().__init__(
+            in_channels,
+            out_channels,
+            kernel_size,
+            stride=stride,
+            padding=kernel_size // 2 if symmetric else 0,
+            bias=bias,
+        )
         self._symmetric = symmetric
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -94,7 +100,7 @@ class ConvLSTM2d(nn.Module):
         nn.init.orthogonal_(self.recurrent_conv.weight)
         with torch.no_grad():
             self.input_conv.bias.zero_()
-            self.input_conv.bias[self.filters:2 * self.filters] = 1.0  # unit_forget_bias=True
+            self.input_conv.bias[self.filters : 2 * self.filters] = 1.0  # unit_forget_bias=True
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, t, c, h, w = x.shape
@@ -138,7 +144,7 @@ class KerasLSTM(nn.Module):
         nn.init.orthogonal_(self.weight_hh)
         with torch.no_grad():
             self.bias.zero_()
-            self.bias[self.units:2 * self.units] = 1.0
+            self.bias[self.units : 2 * self.units] = 1.0
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z_in = F.linear(x, self.weight_ih, self.bias)  # (B, T, 4·units), all steps at once
@@ -161,8 +167,13 @@ def pilotnet_convs(conv: type[nn.Module]) -> nn.Sequential:
     whose 5x5x5 and 3x3x3 kernels and strides apply along time too).
     """
     layers: list[nn.Module] = []
-    for channels_in, channels_out, kernel, stride in ((3, 24, 5, 2), (24, 36, 5, 2), (36, 48, 5, 2), (48, 64, 3, 1),
-                                                      (64, 64, 3, 1)):
+    for channels_in, channels_out, kernel, stride in (
+        (3, 24, 5, 2),
+        (24, 36, 5, 2),
+        (36, 48, 5, 2),
+        (48, 64, 3, 1),
+        (64, 64, 3, 1),
+    ):
         layers += [conv(channels_in, channels_out, kernel, stride=stride), nn.ReLU()]
     return nn.Sequential(*layers)
 

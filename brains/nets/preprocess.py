@@ -71,6 +71,8 @@ def prepare_batch(frames_uint8: np.ndarray, info: ModelInfo | None = None) -> np
     if frames_uint8.dtype != np.uint8 or frames_uint8.ndim < 4 or frames_uint8.shape[-1] != 3:
         raise ValueError(f"expected uint8 (N, H, W, 3), got {frames_uint8.dtype} {frames_uint8.shape}")
     if info is not None and frames_uint8.shape[-3:-1] != (info.input_height_px, info.input_width_px):
-        raise ValueError(f"{info.name} wants {info.input_height_px}x{info.input_width_px} frames, "
-                         f"got {frames_uint8.shape[-3]}x{frames_uint8.shape[-2]}")
+        raise ValueError(
+            f"{info.name} wants {info.input_height_px}x{info.input_width_px} frames, "
+            f"got {frames_uint8.shape[-3]}x{frames_uint8.shape[-2]}"
+        )
     return _normalise_pixels(frames_uint8)

@@ -69,10 +69,13 @@ class Preprocessor:
         height = image_rgb.shape[0]
         top, bottom = round(self.spec.crop_top_fraction * height), round(self.spec.crop_bottom_fraction * height)
         if bottom <= top:
-            raise ValueError(f"crop {self.spec.crop_top_fraction}..{self.spec.crop_bottom_fraction} keeps no row "
-                             f"of a {height}-row frame")
-        resized = cv2.resize(image_rgb[top:bottom], (self.spec.width_px, self.spec.height_px),
-                             interpolation=cv2.INTER_AREA)
+            raise ValueError(
+                f"crop {self.spec.crop_top_fraction}..{self.spec.crop_bottom_fraction} keeps no row "
+                f"of a {height}-row frame"
+            )
+        resized = cv2.resize(
+            image_rgb[top:bottom], (self.spec.width_px, self.spec.height_px), interpolation=cv2.INTER_AREA
+        )
         # The same float32 operations, in the same order, as the training pipeline (not folded into one
         # multiply-add, which would differ in the last bits).
         x = (resized.astype(np.float32) / np.float32(255.0) - self._mean) / self._std
@@ -90,8 +93,16 @@ class NeuralBrain:
     model: if given, the network the weights must hold (the named brains set it).
     """
 
-    def __init__(self, *, weights: str, backend: str = "onnx", threads: int = 1, onnx_path: str | None = None,
-                 model: str | None = None, device: str = "cpu"):
+    def __init__(
+        self,
+        *,
+        weights: str,
+        backend: str = "onnx",
+        threads: int = 1,
+        onnx_path: str | None = None,
+        model: str | None = None,
+        device: str = "cpu",
+    ):
         if backend not in BACKENDS:
             raise BrainOptionsError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         if device != "cpu" and backend != "torch":
@@ -141,8 +152,9 @@ class NeuralBrain:
         if not self.history:
             raise RuntimeError("no frame yet: call act() first")
         now = self.history[-1][0]
-        return [min(self.history, key=lambda item: (abs(item[0] - (now + offset)), item[0]))
-                for offset in self._offsets_ns]
+        return [
+            min(self.history, key=lambda item: (abs(item[0] - (now + offset)), item[0])) for offset in self._offsets_ns
+        ]
 
     def input_stamps_ns(self) -> list[int]:
         """Stamps (ns) of the frames the next network input is built from, oldest offset first."""
@@ -184,8 +196,9 @@ def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | N
         return OrtRunner(path, threads=threads)
     runner = OrtRunner(path, threads=threads)
     if runner.metadata().get(SOURCE_SHA256_KEY) != file_sha256(ckpt.path):
-        raise CheckpointError(f"{path}: exported from another checkpoint than {ckpt.path}; delete it or set another "
-                              "onnx_path")
+        raise CheckpointError(
+            f"{path}: exported from another checkpoint than {ckpt.path}; delete it or set another onnx_path"
+        )
     return runner
 
 
@@ -210,14 +223,14 @@ def _factory(brain: str, model: str | None):
         """Check the weights before any process starts: loadable, the right network (CheckpointError, one line)."""
         if weights:
             path = Path(weights)
-            ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else \
-                load_checkpoint(path)
+            ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
             _check_model(ckpt, model)
 
     make.preflight = preflight
     make.__name__ = make.__qualname__ = brain
-    make.__doc__ = f"Brain {brain!r}: NeuralBrain(weights=..., ...)" + (f" serving a {model} checkpoint." if model
-                                                                         else " serving any network.")
+    make.__doc__ = f"Brain {brain!r}: NeuralBrain(weights=..., ...)" + (
+        f" serving a {model} checkpoint." if model else " serving any network."
+    )
     return make
 
 

@@ -49,8 +49,15 @@ LABEL_MODES = ("zscore", "paper")
 # What every checkpoint must hold (extra keys, e.g. a resumable run's optimizer state, are allowed).
 REQUIRED_KEYS = {
     "": ("format", "model", "hyper", "state_dict", "input", "normalisation", "dataset", "metrics", "training"),
-    "input": ("width_px", "height_px", "crop_top_fraction", "crop_bottom_fraction", "offsets_frames", "offsets_s",
-              "step_s"),
+    "input": (
+        "width_px",
+        "height_px",
+        "crop_top_fraction",
+        "crop_bottom_fraction",
+        "offsets_frames",
+        "offsets_s",
+        "step_s",
+    ),
     "normalisation": ("image_mean", "image_std", "labels", "label_mean", "label_std"),
 }
 
@@ -146,8 +153,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
         # Never pass on torch's advice to load with weights_only=False: that runs whatever the file contains.
         if "Weights only load failed" in str(error):
-            raise CheckpointError(f"{path}: not a torch checkpoint of tensors and plain data (the only kind "
-                                  f"drivebench loads)") from None
+            raise CheckpointError(
+                f"{path}: not a torch checkpoint of tensors and plain data (the only kind drivebench loads)"
+            ) from None
         raise CheckpointError(f"{path}: not a torch checkpoint ({_first_line(error)})") from None
     _check_keys(raw, path)
     if isinstance(raw, dict) and SHARDS_KEY in raw:
@@ -176,13 +184,16 @@ def _read_shards(shards: Any, path: Path) -> dict[str, Any]:
         if block.startswith(LFS_POINTER_PREFIX):
             raise CheckpointError(f"{path}: shard file {shard} is a git LFS pointer, not the data (git lfs pull?)")
         if per_file is not None and i < len(per_file) and hashlib.sha256(block).hexdigest() != per_file[i]:
-            raise CheckpointError(f"{path}: shard file {shard} does not match its sha256 (a truncated or changed "
-                                  f"copy?)")
+            raise CheckpointError(
+                f"{path}: shard file {shard} does not match its sha256 (a truncated or changed copy?)"
+            )
         blocks.append(block)
     data = b"".join(blocks)
     if hashlib.sha256(data).hexdigest() != expected:
-        raise CheckpointError(f"{path}: its shards {', '.join(names)} do not match the recorded sha256 (a git LFS "
-                              f"pointer, a truncated copy or a shard of another pack?)")
+        raise CheckpointError(
+            f"{path}: its shards {', '.join(names)} do not match the recorded sha256 (a git LFS "
+            f"pointer, a truncated copy or a shard of another pack?)"
+        )
     try:
         state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as error:
@@ -217,11 +228,20 @@ def _parse(raw: dict[str, Any], path: Path) -> Checkpoint:
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{path}: bad input/normalisation: {_first_line(error)}") from None
     if len(spec.offsets_s) != MODELS[model].frames:
-        raise CheckpointError(f"{path}: {len(spec.offsets_s)} frame offsets, but {model} takes "
-                              f"{MODELS[model].frames} frame(s)")
-    return Checkpoint(path=path, model=model, hyper=dict(raw.get("hyper") or {}), state_dict=raw["state_dict"],
-                      input=spec, normalisation=norm, dataset=dict(raw.get("dataset") or {}),
-                      metrics=dict(raw.get("metrics") or {}), training=dict(raw.get("training") or {}))
+        raise CheckpointError(
+            f"{path}: {len(spec.offsets_s)} frame offsets, but {model} takes {MODELS[model].frames} frame(s)"
+        )
+    return Checkpoint(
+        path=path,
+        model=model,
+        hyper=dict(raw.get("hyper") or {}),
+        state_dict=raw["state_dict"],
+        input=spec,
+        normalisation=norm,
+        dataset=dict(raw.get("dataset") or {}),
+        metrics=dict(raw.get("metrics") or {}),
+        training=dict(raw.get("training") or {}),
+    )
 
 
 def _input_spec(d: dict[str, Any]) -> InputSpec:
@@ -233,13 +253,22 @@ def _input_spec(d: dict[str, Any]) -> InputSpec:
         seconds = tuple(o * (step_s or 0.0) for o in frames)
     else:
         raise ValueError("offsets_s and step_s are both missing")
-    if len(seconds) != len(frames) or not seconds or seconds[-1] != 0.0 or any(
-            b <= a for a, b in zip(seconds, seconds[1:])):
+    if (
+        len(seconds) != len(frames)
+        or not seconds
+        or seconds[-1] != 0.0
+        or any(b <= a for a, b in zip(seconds, seconds[1:]))
+    ):
         raise ValueError(f"offsets_s {list(seconds)} must match offsets_frames {list(frames)}, increase and end at 0")
-    spec = InputSpec(width_px=int(d["width_px"]), height_px=int(d["height_px"]),
-                     crop_top_fraction=float(d["crop_top_fraction"]),
-                     crop_bottom_fraction=float(d["crop_bottom_fraction"]),
-                     offsets_frames=frames, offsets_s=seconds, step_s=step_s)
+    spec = InputSpec(
+        width_px=int(d["width_px"]),
+        height_px=int(d["height_px"]),
+        crop_top_fraction=float(d["crop_top_fraction"]),
+        crop_bottom_fraction=float(d["crop_bottom_fraction"]),
+        offsets_frames=frames,
+        offsets_s=seconds,
+        step_s=step_s,
+    )
     if not 0.0 <= spec.crop_top_fraction < spec.crop_bottom_fraction <= 1.0:
         raise ValueError(f"crop {spec.crop_top_fraction}..{spec.crop_bottom_fraction} keeps no rows")
     if spec.width_px < 1 or spec.height_px < 1:
@@ -248,9 +277,13 @@ def _input_spec(d: dict[str, Any]) -> InputSpec:
 
 
 def _normalisation(d: dict[str, Any]) -> Normalisation:
-    norm = Normalisation(image_mean=_floats(d["image_mean"], 3), image_std=_floats(d["image_std"], 3),
-                         labels=str(d["labels"]), label_mean=_floats(d["label_mean"], 2),
-                         label_std=_floats(d["label_std"], 2))
+    norm = Normalisation(
+        image_mean=_floats(d["image_mean"], 3),
+        image_std=_floats(d["image_std"], 3),
+        labels=str(d["labels"]),
+        label_mean=_floats(d["label_mean"], 2),
+        label_std=_floats(d["label_std"], 2),
+    )
     if norm.labels not in LABEL_MODES:
         raise ValueError(f"labels {norm.labels!r}, expected one of {', '.join(LABEL_MODES)}")
     if not all(s > 0 for s in norm.image_std + norm.label_std):
@@ -307,10 +340,14 @@ def input_shape(ckpt: Checkpoint, *, batch: int) -> tuple[int, ...]:
 def to_metadata(ckpt: Checkpoint) -> dict[str, str]:
     """What an exported ONNX file carries in ``metadata_props`` (string -> string; JSON for structures)."""
     spec = dataclasses.asdict(ckpt.input)
-    return {"drivebench.format": ONNX_FORMAT, "drivebench.model": ckpt.model,
-            "drivebench.hyper": json.dumps(ckpt.hyper), "drivebench.input": json.dumps(spec),
-            "drivebench.normalisation": json.dumps(dataclasses.asdict(ckpt.normalisation)),
-            "drivebench.source": str(ckpt.path)}
+    return {
+        "drivebench.format": ONNX_FORMAT,
+        "drivebench.model": ckpt.model,
+        "drivebench.hyper": json.dumps(ckpt.hyper),
+        "drivebench.input": json.dumps(spec),
+        "drivebench.normalisation": json.dumps(dataclasses.asdict(ckpt.normalisation)),
+        "drivebench.source": str(ckpt.path),
+    }
 
 
 def from_metadata(meta: dict[str, str], path: str | Path) -> Checkpoint:
@@ -319,10 +356,17 @@ def from_metadata(meta: dict[str, str], path: str | Path) -> Checkpoint:
     if meta.get("drivebench.format") != ONNX_FORMAT:
         raise CheckpointError(f"{path}: not exported by drivebench (no {ONNX_FORMAT} metadata)")
     try:
-        raw = {"format": FORMAT, "model": meta["drivebench.model"], "hyper": json.loads(meta["drivebench.hyper"]),
-               "state_dict": None, "input": json.loads(meta["drivebench.input"]),
-               "normalisation": json.loads(meta["drivebench.normalisation"]), "dataset": {}, "metrics": {},
-               "training": {}}
+        raw = {
+            "format": FORMAT,
+            "model": meta["drivebench.model"],
+            "hyper": json.loads(meta["drivebench.hyper"]),
+            "state_dict": None,
+            "input": json.loads(meta["drivebench.input"]),
+            "normalisation": json.loads(meta["drivebench.normalisation"]),
+            "dataset": {},
+            "metrics": {},
+            "training": {},
+        }
     except (KeyError, json.JSONDecodeError) as error:
         raise CheckpointError(f"{path}: bad drivebench metadata ({_first_line(error)})") from None
     _check_keys(raw, path)
@@ -338,8 +382,7 @@ def shard_names(dst: str | Path, count: int) -> list[Path]:
     return [dst.with_name(f"{dst.name}.shard{i}") for i in range(count)]
 
 
-def pack_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
-                    shard_bytes: int = 9 * 2**20) -> list[Path]:
+def pack_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True, shard_bytes: int = 9 * 2**20) -> list[Path]:
     """Write checkpoint ``src`` in the packed form (module docstring) at ``dst``; returns the files written, shards
     first, ``dst`` last.
 
@@ -355,18 +398,24 @@ def pack_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
     src, dst = Path(src), Path(dst)
     raw = read_checkpoint(src)
     dtype = torch.float16 if half else torch.float32
-    state = {k: v.detach().cpu().to(dtype) if v.is_floating_point() else v.detach().cpu()
-             for k, v in raw["state_dict"].items()}
+    state = {
+        k: v.detach().cpu().to(dtype) if v.is_floating_point() else v.detach().cpu()
+        for k, v in raw["state_dict"].items()
+    }
     buffer = io.BytesIO()
     torch.save(state, buffer)
     data = buffer.getvalue()
-    blocks = [data[i:i + shard_bytes] for i in range(0, len(data), shard_bytes)] or [b""]
+    blocks = [data[i : i + shard_bytes] for i in range(0, len(data), shard_bytes)] or [b""]
     shards = shard_names(dst, len(blocks))
     packed = {key: raw[key] for key in PACKED_KEYS if key in raw}
     packed["state_dict"] = {}
-    packed[SHARDS_KEY] = {"files": [shard.name for shard in shards], "sha256": hashlib.sha256(data).hexdigest(),
-                          "file_sha256": [hashlib.sha256(block).hexdigest() for block in blocks],
-                          "dtype": "float16" if half else "float32", "bytes": len(data)}
+    packed[SHARDS_KEY] = {
+        "files": [shard.name for shard in shards],
+        "sha256": hashlib.sha256(data).hexdigest(),
+        "file_sha256": [hashlib.sha256(block).hexdigest() for block in blocks],
+        "dtype": "float16" if half else "float32",
+        "bytes": len(data),
+    }
     dst.parent.mkdir(parents=True, exist_ok=True)
     for shard, block in zip(shards, blocks):
         _write_atomically(shard, lambda file, block=block: file.write(block))
@@ -407,30 +456,62 @@ def write_checkpoint(raw: dict[str, Any], path: str | Path) -> Path:
     return path
 
 
-def save_checkpoint(path: str | Path, *, model_name: str, module, hyper: dict[str, Any] | None = None,
-                    input: dict[str, Any], normalisation: dict[str, Any], dataset: dict[str, Any] | None = None,
-                    metrics: dict[str, Any] | None = None, training: dict[str, Any] | None = None) -> Path:
+def save_checkpoint(
+    path: str | Path,
+    *,
+    model_name: str,
+    module,
+    hyper: dict[str, Any] | None = None,
+    input: dict[str, Any],
+    normalisation: dict[str, Any],
+    dataset: dict[str, Any] | None = None,
+    metrics: dict[str, Any] | None = None,
+    training: dict[str, Any] | None = None,
+) -> Path:
     """Write ``module``'s weights as a ``drivebench.checkpoint.v1`` file (tests, benchmarks, smoke runs); returns the
     path."""
-    return write_checkpoint({"format": FORMAT, "model": model_name, "hyper": dict(hyper or {}),
-                             "state_dict": module.state_dict(), "input": input, "normalisation": normalisation,
-                             "dataset": dict(dataset or {}), "metrics": dict(metrics or {}),
-                             "training": dict(training or {})}, path)
+    return write_checkpoint(
+        {
+            "format": FORMAT,
+            "model": model_name,
+            "hyper": dict(hyper or {}),
+            "state_dict": module.state_dict(),
+            "input": input,
+            "normalisation": normalisation,
+            "dataset": dict(dataset or {}),
+            "metrics": dict(metrics or {}),
+            "training": dict(training or {}),
+        },
+        path,
+    )
 
 
-def default_input(model_name: str, *, offsets_frames: tuple[int, ...] = (-9, -5, 0),
-                  step_s: float = 0.05) -> dict[str, Any]:
+def default_input(
+    model_name: str, *, offsets_frames: tuple[int, ...] = (-9, -5, 0), step_s: float = 0.05
+) -> dict[str, Any]:
     """The paper's input for ``model_name`` (size, crop; frames t-9, t-5, t for sequence models) as a dict."""
     info = MODELS[model_name]
     frames = list(offsets_frames) if info.frames > 1 else [0]
-    return {"width_px": info.input_width_px, "height_px": info.input_height_px,
-            "crop_top_fraction": info.crop_top_fraction, "crop_bottom_fraction": 1.0,
-            "offsets_frames": frames, "offsets_s": [round(o * step_s, 9) for o in frames], "step_s": step_s}
+    return {
+        "width_px": info.input_width_px,
+        "height_px": info.input_height_px,
+        "crop_top_fraction": info.crop_top_fraction,
+        "crop_bottom_fraction": 1.0,
+        "offsets_frames": frames,
+        "offsets_s": [round(o * step_s, 9) for o in frames],
+        "step_s": step_s,
+    }
 
 
-def make_random_checkpoint(path: str | Path, model_name: str, *, seed: int = 0,
-                           label_mean: tuple[float, float] = (2.0, 0.0),
-                           label_std: tuple[float, float] = (0.5, 0.3), **input_options: Any) -> Path:
+def make_random_checkpoint(
+    path: str | Path,
+    model_name: str,
+    *,
+    seed: int = 0,
+    label_mean: tuple[float, float] = (2.0, 0.0),
+    label_std: tuple[float, float] = (0.5, 0.3),
+    **input_options: Any,
+) -> Path:
     """An untrained (seeded random init) checkpoint with made-up but valid normalisation, for tests and benchmarks.
 
     ``input_options`` go to :func:`default_input` (``offsets_frames``, ``step_s``). The weights are redrawn so that
@@ -447,10 +528,21 @@ def make_random_checkpoint(path: str | Path, model_name: str, *, seed: int = 0,
     frames = len(spec["offsets_frames"])
     image = (3, spec["height_px"], spec["width_px"])
     _lively_init_(module, generator, (8, *image) if frames == 1 else (8, frames, *image))
-    normalisation = {"image_mean": [0.485, 0.456, 0.406], "image_std": [0.229, 0.224, 0.225], "labels": "zscore",
-                     "label_mean": list(label_mean), "label_std": list(label_std)}
-    return save_checkpoint(path, model_name=model_name, module=module, input=spec,
-                           normalisation=normalisation, training={"note": f"random init, seed {seed}"})
+    normalisation = {
+        "image_mean": [0.485, 0.456, 0.406],
+        "image_std": [0.229, 0.224, 0.225],
+        "labels": "zscore",
+        "label_mean": list(label_mean),
+        "label_std": list(label_std),
+    }
+    return save_checkpoint(
+        path,
+        model_name=model_name,
+        module=module,
+        input=spec,
+        normalisation=normalisation,
+        training={"note": f"random init, seed {seed}"},
+    )
 
 
 def _lively_init_(module, generator, shape: tuple[int, ...]) -> None:

@@ -41,8 +41,9 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def export_onnx(ckpt_path: str | Path, out_path: str | Path, *, opset: int = 17,
-                ckpt: Checkpoint | None = None) -> Path:
+def export_onnx(
+    ckpt_path: str | Path, out_path: str | Path, *, opset: int = 17, ckpt: Checkpoint | None = None
+) -> Path:
     """Export checkpoint ``ckpt_path`` to ONNX at ``out_path`` (folders created); returns ``out_path``.
 
     ``ckpt``: the already loaded checkpoint of ``ckpt_path`` (saves loading it twice). The file is written under a
@@ -59,10 +60,17 @@ def export_onnx(ckpt_path: str | Path, out_path: str | Path, *, opset: int = 17,
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the legacy exporter's deprecation notices, once per export
-            torch.onnx.export(model, (torch.zeros(input_shape(ckpt, batch=1)),), str(partial), dynamo=False,
-                              opset_version=opset, input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
-                              dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
-                              do_constant_folding=True)
+            torch.onnx.export(
+                model,
+                (torch.zeros(input_shape(ckpt, batch=1)),),
+                str(partial),
+                dynamo=False,
+                opset_version=opset,
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+                do_constant_folding=True,
+            )
         proto = onnx.load(str(partial))
         meta = {**to_metadata(ckpt), SOURCE_SHA256_KEY: file_sha256(ckpt.path)}
         onnx.helper.set_model_props(proto, meta)
@@ -92,7 +100,8 @@ def pack_difference(original: str | Path, packed: str | Path, *, batch: int = 4,
     import torch
 
     ckpt_a, ckpt_b = load_checkpoint(original), load_checkpoint(packed)
-    x = torch.from_numpy(np.random.default_rng(seed).standard_normal(input_shape(ckpt_a, batch=batch))
-                         .astype(np.float32))
+    x = torch.from_numpy(
+        np.random.default_rng(seed).standard_normal(input_shape(ckpt_a, batch=batch)).astype(np.float32)
+    )
     with torch.inference_mode():
         return float((build_model(ckpt_a)(x) - build_model(ckpt_b)(x)).abs().max())

@@ -45,8 +45,9 @@ def torch_device(name: str):
         raise BrainOptionsError(f"device must be cpu, cuda, cuda:N or auto, got {name!r}") from None
     if device.type == "cuda":
         if not torch.cuda.is_available():
-            raise BrainOptionsError(f"device {name!r}: no CUDA device here (torch {torch.__version__} sees none); "
-                                    "use device=cpu or auto")
+            raise BrainOptionsError(
+                f"device {name!r}: no CUDA device here (torch {torch.__version__} sees none); use device=cpu or auto"
+            )
         if device.index is not None and device.index >= torch.cuda.device_count():
             raise BrainOptionsError(f"device {name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
     elif device.type != "cpu":
@@ -59,8 +60,10 @@ def ort_session(path: str | Path, *, threads: int = 1):
     try:
         import onnxruntime as ort
     except ImportError:
-        raise BrainOptionsError("backend 'onnx' needs onnxruntime (pip install onnxruntime, or the 'ml' extra); "
-                                "or use --set options.backend=torch") from None
+        raise BrainOptionsError(
+            "backend 'onnx' needs onnxruntime (pip install onnxruntime, or the 'ml' extra); "
+            "or use --set options.backend=torch"
+        ) from None
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1

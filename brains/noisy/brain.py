@@ -22,9 +22,15 @@ class NoisyBrain:
     Bursts are drawn from ``seed`` (``reset``), so an episode is repeatable.
     """
 
-    def __init__(self, *, base: str = "explicit", base_options: dict | None = None,
-                 steering_noise_radps: float = 0.5, burst_probability: float = 0.03,
-                 burst_steps: tuple[int, int] = (3, 8)):
+    def __init__(
+        self,
+        *,
+        base: str = "explicit",
+        base_options: dict | None = None,
+        steering_noise_radps: float = 0.5,
+        burst_probability: float = 0.03,
+        burst_steps: tuple[int, int] = (3, 8),
+    ):
         from brains.registry import make_brain
 
         if base == "noisy":
@@ -55,8 +61,9 @@ class NoisyBrain:
     def _disturbance(self) -> float:
         if self._burst_left == 0 and self._rng.random() < self.burst_probability:
             self._burst_left = int(self._rng.integers(self.burst_steps[0], self.burst_steps[1] + 1))
-            self._burst_radps = float(self._rng.choice((-1.0, 1.0)) * self._rng.uniform(0.5, 1.0)
-                                      * self.steering_noise_radps)
+            self._burst_radps = float(
+                self._rng.choice((-1.0, 1.0)) * self._rng.uniform(0.5, 1.0) * self.steering_noise_radps
+            )
         if self._burst_left == 0:
             return 0.0
         self._burst_left -= 1

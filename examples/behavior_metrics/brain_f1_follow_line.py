@@ -13,15 +13,14 @@ import numpy as np
 
 
 class Brain:
-
     def __init__(self, sensors, actuators, handler=None, model=None, config=None):
-        self.camera = sensors.get_camera('camera_0')
-        self.motors = actuators.get_motor('motors_0')
+        self.camera = sensors.get_camera("camera_0")
+        self.motors = actuators.get_motor("motors_0")
         self.handler = handler
         self.config = config or {}
-        self.kp = self.config.get('kp', 2.0)
-        self.kd = self.config.get('kd', 3.0)
-        self.speed = self.config.get('speed', 8.0)
+        self.kp = self.config.get("kp", 2.0)
+        self.kd = self.config.get("kd", 3.0)
+        self.speed = self.config.get("speed", 8.0)
         self.previous_error = 0.0
 
     def update_frame(self, frame_id, data):
@@ -31,7 +30,7 @@ class Brain:
     def execute(self):
         image = self.camera.getImage().data
         height, width = image.shape[:2]
-        lower = image[height // 2:]
+        lower = image[height // 2 :]
         hsv = cv2.cvtColor(lower, cv2.COLOR_BGR2HSV)
         mask = cv2.inRange(hsv, (0, 110, 15), (10, 255, 255)) | cv2.inRange(hsv, (170, 110, 15), (179, 255, 255))
         columns = np.nonzero(mask)[1]
@@ -43,4 +42,4 @@ class Brain:
         self.previous_error = error
         self.motors.sendV(self.speed)
         self.motors.sendW(w)
-        self.update_frame('frame_0', mask)
+        self.update_frame("frame_0", mask)

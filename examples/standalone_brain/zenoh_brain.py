@@ -60,8 +60,9 @@ class BrainProcess:
         self.stopped = threading.Event()
         self.frames = session.declare_subscriber(f"{prefix}/{'sim' if camera == 'raw' else 'noise'}/camera")
         # Commands must never be dropped: the simulator waits for each one in lock-step.
-        self.commands = session.declare_publisher(f"{prefix}/brain/{name}/cmd",
-                                                  congestion_control=zenoh.CongestionControl.BLOCK)
+        self.commands = session.declare_publisher(
+            f"{prefix}/brain/{name}/cmd", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self.control = session.declare_queryable(f"{prefix}/brain/{name}/control", self.on_control)
         # Declared last: whoever sees the token may rely on everything above.
         self.token = session.liveliness().declare_token(f"drivebench/alive/{run_id}/brain/{name}")
@@ -69,9 +70,13 @@ class BrainProcess:
     def on_control(self, query):
         request = msgpack.unpackb(query.payload.to_bytes()) if query.payload is not None else {}
         action = request.get("action")
-        reply = {"type": "drivebench.ControlReply.v1", "ok": action in ("status", "stop"),
-                 "state": "stopping" if action == "stop" else "serving", "episode": self.episode,
-                 "active_brain": self.name}
+        reply = {
+            "type": "drivebench.ControlReply.v1",
+            "ok": action in ("status", "stop"),
+            "state": "stopping" if action == "stop" else "serving",
+            "episode": self.episode,
+            "active_brain": self.name,
+        }
         if action not in ("status", "stop"):
             reply["detail"] = f"unknown action {action!r}"
         query.reply(query.key_expr, msgpack.packb(reply))
@@ -91,7 +96,9 @@ class BrainProcess:
     def answer(self, frame):
         header = frame["header"]
         if self.last is not None and (self.last["header"]["episode"], self.last["frame_seq"]) == (
-                header["episode"], header["seq"]):
+            header["episode"],
+            header["seq"],
+        ):
             self.commands.put(msgpack.packb(self.last))  # the simulator repeated a frame: same answer
             return
         if header["episode"] != self.episode:
@@ -102,11 +109,20 @@ class BrainProcess:
             speed, yaw_rate = (self.last["speed_mps"], self.last["yaw_rate_radps"]) if self.last else (0.0, 0.0)
         else:
             speed, yaw_rate = self.brain.act(frame["data"], frame["width_px"], frame["height_px"])
-        command = {"type": "drivebench.Command.v1",
-                   "header": {"run_id": self.run_id, "episode": header["episode"], "seq": self.seq,
-                              "stamp_ns": header["stamp_ns"]},
-                   "brain": self.name, "frame_seq": header["seq"], "speed_mps": float(speed),
-                   "yaw_rate_radps": float(yaw_rate), "inference_ns": time.perf_counter_ns() - started}
+        command = {
+            "type": "drivebench.Command.v1",
+            "header": {
+                "run_id": self.run_id,
+                "episode": header["episode"],
+                "seq": self.seq,
+                "stamp_ns": header["stamp_ns"],
+            },
+            "brain": self.name,
+            "frame_seq": header["seq"],
+            "speed_mps": float(speed),
+            "yaw_rate_radps": float(yaw_rate),
+            "inference_ns": time.perf_counter_ns() - started,
+        }
         self.seq += 1
         self.commands.put(msgpack.packb(command))
         self.last = command
@@ -117,8 +133,12 @@ def main():
     parser.add_argument("--router", default="tcp/127.0.0.1:7447", help="the stack's Zenoh router endpoint")
     parser.add_argument("--run-id", required=True, help="the run to drive in")
     parser.add_argument("--name", default="line_follower", help="this brain's name on the bus")
-    parser.add_argument("--camera", choices=("perturbed", "raw"), default="perturbed",
-                        help="perturbed: after the noise injector (default); raw: straight from the simulator")
+    parser.add_argument(
+        "--camera",
+        choices=("perturbed", "raw"),
+        default="perturbed",
+        help="perturbed: after the noise injector (default); raw: straight from the simulator",
+    )
     args = parser.parse_args()
     config = zenoh.Config()
     config.insert_json5("mode", '"client"')

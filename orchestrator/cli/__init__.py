@@ -43,8 +43,10 @@ COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="drivebench", description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
-                                       "them, build datasets, train and serve networks.")
+        prog="drivebench",
+        description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
+        "them, build datasets, train and serve networks.",
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     for module in COMMANDS:
         module.add(commands)

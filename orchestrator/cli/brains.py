@@ -15,21 +15,36 @@ SCHEMA_DIR = Path(__file__).resolve().parents[2] / "docs" / "protocol"
 
 
 def add(commands: argparse._SubParsersAction) -> None:
-    brains = commands.add_parser("brains", help="list brains, check one against the brain contract, write the wire "
-                                                "contract's JSON Schemas")
+    brains = commands.add_parser(
+        "brains", help="list brains, check one against the brain contract, write the wire contract's JSON Schemas"
+    )
     sub = brains.add_subparsers(dest="brains_command", required=True)
     sub.add_parser("list", help="every brain known by name, and where it comes from (built-in or which package)")
-    check = sub.add_parser("check", help="run the brain contract on a brain, one line per check with the fix for "
-                                         "each failure (exit 1 if any fails)")
+    check = sub.add_parser(
+        "check",
+        help="run the brain contract on a brain, one line per check with the fix for "
+        "each failure (exit 1 if any fails)",
+    )
     check.add_argument("brain", help="name, installed brain, package.module:Class, or a Behavior Metrics brain file")
     check.add_argument("--weights", type=Path, metavar="CKPT", help="checkpoint of a neural brain")
-    check.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
-                       help="constructor option, value as YAML (repeatable)")
-    check.add_argument("--memory-steps", type=int, default=300, metavar="N",
-                       help="frames of the memory-growth check (default 300)")
+    check.add_argument(
+        "--brain-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="constructor option, value as YAML (repeatable)",
+    )
+    check.add_argument(
+        "--memory-steps", type=int, default=300, metavar="N", help="frames of the memory-growth check (default 300)"
+    )
     schema = sub.add_parser("schema", help="write the JSON Schema of every message a brain process exchanges")
-    schema.add_argument("-o", "--output", type=Path, default=SCHEMA_DIR,
-                        help=f"folder (default: {SCHEMA_DIR.relative_to(SCHEMA_DIR.parent.parent)})")
+    schema.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=SCHEMA_DIR,
+        help=f"folder (default: {SCHEMA_DIR.relative_to(SCHEMA_DIR.parent.parent)})",
+    )
     brains.set_defaults(func=run_brains_command)
 
 
@@ -81,8 +96,9 @@ def _check(args: argparse.Namespace) -> int:
     for result in results:
         print(result.line())
     failures = sum(result.status == "fail" for result in results)
-    print(f"{args.brain}: " + (f"{failures} check(s) failed" if failures else "meets the brain contract"),
-          file=sys.stderr)
+    print(
+        f"{args.brain}: " + (f"{failures} check(s) failed" if failures else "meets the brain contract"), file=sys.stderr
+    )
     return 0 if passed(results) else 1
 
 

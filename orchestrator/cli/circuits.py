@@ -19,7 +19,8 @@ def add(commands: argparse._SubParsersAction) -> None:
     show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
     show.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
     importer = circuit_commands.add_parser(
-        "import", help="import a racetrack-database centreline CSV (x_m,y_m,w_tr_right_m,w_tr_left_m)")
+        "import", help="import a racetrack-database centreline CSV (x_m,y_m,w_tr_right_m,w_tr_left_m)"
+    )
     importer.add_argument("file", type=Path, help="the CSV file")
     importer.add_argument("--name", required=True, help="name to use it by (letters, digits, _ . -)")
     importer.add_argument("--scale", type=float, default=1.0, help="scale factor (default 1: real size)")
@@ -54,10 +55,10 @@ def command_circuits(args: argparse.Namespace) -> int:
 
             path = import_racetrack_csv(args.file, name=args.name, scale=args.scale, overwrite=args.overwrite)
             circuit = load_circuit(args.name)
-            print(f"imported {args.name}: {circuit.length_m:.1f} m, road {2 * circuit.road_half_width_m:.1f} m "
-                  f"-> {path}", file=sys.stderr)
+            print(
+                f"imported {args.name}: {circuit.length_m:.1f} m, road {2 * circuit.road_half_width_m:.1f} m -> {path}",
+                file=sys.stderr,
+            )
     except CircuitError as error:
         raise UsageError(str(error)) from None
     return EXIT_OK
-
-

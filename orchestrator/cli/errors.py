@@ -10,8 +10,16 @@ from __future__ import annotations
 
 from protocol.runtime import UsageError, UserError
 
-__all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_SOME_FAILED", "EXIT_USAGE", "CommandFailed",
-           "UsageError", "UserError"]
+__all__ = [
+    "EXIT_FAILED",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_SOME_FAILED",
+    "EXIT_USAGE",
+    "CommandFailed",
+    "UsageError",
+    "UserError",
+]
 
 EXIT_OK = 0  # it did what was asked (an episode that crashed the car is still a result)
 EXIT_FAILED = 1  # the stack could not run, or the command could not do its job (one line says why)

@@ -20,11 +20,21 @@ def add(subparsers: argparse._SubParsersAction) -> None:
     export.set_defaults(func=run_export)
     pack = subparsers.add_parser("pack", help="write a checkpoint in the packed, git-friendly form (float16 shards)")
     pack.add_argument("checkpoint", type=Path, help="drivebench.checkpoint.v1 file (packed or not)")
-    pack.add_argument("-o", "--output", type=Path, required=True,
-                      help="packed checkpoint to write (its shards OUT.shard0, OUT.shard1, ... go beside it)")
+    pack.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        help="packed checkpoint to write (its shards OUT.shard0, OUT.shard1, ... go beside it)",
+    )
     pack.add_argument("--float32", action="store_true", help="keep float32 weights (default: float16, half the size)")
-    pack.add_argument("--shard-mb", type=float, default=9.0, metavar="MIB",
-                      help="most MiB per shard file (default 9: every file stays under 10 MB)")
+    pack.add_argument(
+        "--shard-mb",
+        type=float,
+        default=9.0,
+        metavar="MIB",
+        help="most MiB per shard file (default 9: every file stays under 10 MB)",
+    )
     pack.add_argument("--parity-batch", type=int, default=4, help="batch of random inputs for the output check")
     pack.set_defaults(func=run_pack)
 
@@ -40,8 +50,10 @@ def _export(args: argparse.Namespace) -> int:
     out = export_onnx(args.checkpoint, args.output, opset=args.opset)
     parity = check_parity(args.checkpoint, out, batch=args.parity_batch)
     size_mb = out.stat().st_size / 1e6
-    print(f"wrote {out} ({size_mb:.1f} MB, opset {args.opset}); "
-          f"max |onnxruntime - torch| = {parity:.2e} over {args.parity_batch} random inputs")
+    print(
+        f"wrote {out} ({size_mb:.1f} MB, opset {args.opset}); "
+        f"max |onnxruntime - torch| = {parity:.2e} over {args.parity_batch} random inputs"
+    )
     return EXIT_OK
 
 
@@ -58,8 +70,6 @@ def _reporting_errors(needs: str, output: Path, action) -> int:
     except OSError as error:
         message = f"cannot write {output}: {error.strerror or error}"
     raise UsageError(message)
-
-
 
 
 def run_pack(args: argparse.Namespace) -> int:
@@ -83,7 +93,9 @@ def _pack(args: argparse.Namespace, shard_bytes: int) -> int:
         size = path.stat().st_size
         print(f"wrote {path} ({size / 1e6:.2f} MB)" if size >= 10_000 else f"wrote {path} ({size} bytes)")
     total = sum(path.stat().st_size for path in written)
-    print(f"{len(written)} files, {total / 1e6:.1f} MB in all (original {args.checkpoint.stat().st_size / 1e6:.1f} MB, "
-          f"{'float32' if args.float32 else 'float16'}); max |packed - original| = {difference:.2e} over "
-          f"{args.parity_batch} random inputs")
+    print(
+        f"{len(written)} files, {total / 1e6:.1f} MB in all (original {args.checkpoint.stat().st_size / 1e6:.1f} MB, "
+        f"{'float32' if args.float32 else 'float16'}); max |packed - original| = {difference:.2e} over "
+        f"{args.parity_batch} random inputs"
+    )
     return EXIT_OK

@@ -18,8 +18,11 @@ from protocol.runtime import RUN_ID_ENV
 def add(commands: argparse._SubParsersAction) -> None:
     health = commands.add_parser("health", help="exit 0 when a process of a running stack is up (healthchecks)")
     health.add_argument("role", choices=ROLES, help="which process")
-    health.add_argument("--name", help="its name on the bus, or the brain it runs (my_pkg.brain:MyBrain is MyBrain on "
-                                       "the bus; default: any process of that role)")
+    health.add_argument(
+        "--name",
+        help="its name on the bus, or the brain it runs (my_pkg.brain:MyBrain is MyBrain on "
+        "the bus; default: any process of that role)",
+    )
     health.add_argument("--run", help=f"run id (default: ${RUN_ID_ENV})")
     health.add_argument("--router", metavar="ENDPOINT", help=f"the router (default: ${ROUTER_ENV})")
     health.set_defaults(func=run_health_command)

@@ -21,15 +21,20 @@ from orchestrator.cli.ray import add_ray_options, ray_options_from
 
 def add(commands: argparse._SubParsersAction) -> None:
     matrix = commands.add_parser(
-        "matrix", help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
+        "matrix",
+        help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
         description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
-                    "as each episode ends, then write DIR/report.html and report.md.")
+        "as each episode ends, then write DIR/report.html and report.md.",
+    )
     matrix.add_argument("file", type=Path, help="matrix file (YAML)")
     add_run_options(matrix, default_out="runs/matrix-<name>-<time>", default_workers=1)
     matrix.add_argument("--no-report", action="store_true", help="do not write the report at the end")
-    matrix.add_argument("--smoke", action="store_true",
-                        help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
-                             "4 s of simulated time each on a 160x120 camera (what CI runs)")
+    matrix.add_argument(
+        "--smoke",
+        action="store_true",
+        help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
+        "4 s of simulated time each on a 160x120 camera (what CI runs)",
+    )
     add_ray_options(matrix)
     matrix.set_defaults(func=run_matrix_command)
 
@@ -37,20 +42,35 @@ def add(commands: argparse._SubParsersAction) -> None:
 def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, default_workers: int) -> None:
     """The options every command that runs a matrix file takes (drivebench matrix, drivebench paper)."""
     parser.add_argument("-o", "--out", type=Path, help=f"output folder (default: {default_out})")
-    parser.add_argument("--workers", type=int, default=default_workers, metavar="N",
-                        help=f"episodes run at the same time, each on its own stack (default: {default_workers}; "
-                             "about a core each)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=default_workers,
+        metavar="N",
+        help=f"episodes run at the same time, each on its own stack (default: {default_workers}; about a core each)",
+    )
     parser.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
-    parser.add_argument("--record-images", choices=("raw", "jpeg"), default="jpeg",
-                        help="camera images in recordings (default: jpeg, ~10x smaller than raw)")
-    parser.add_argument("--resume", action="store_true",
-                        help="run only the episodes DIR's results do not hold yet (after a crash or Ctrl-C)")
-    parser.add_argument("--retry-failed", action="store_true",
-                        help="with --resume: also run again the episodes the stack failed")
+    parser.add_argument(
+        "--record-images",
+        choices=("raw", "jpeg"),
+        default="jpeg",
+        help="camera images in recordings (default: jpeg, ~10x smaller than raw)",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="run only the episodes DIR's results do not hold yet (after a crash or Ctrl-C)",
+    )
+    parser.add_argument(
+        "--retry-failed", action="store_true", help="with --resume: also run again the episodes the stack failed"
+    )
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
-    parser.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
-                        help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
-                             "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)")
+    parser.add_argument(
+        "--renderer",
+        choices=("pybullet", "gl", "auto"),
+        help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
+        "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)",
+    )
 
 
 def load_matrix_file(path: Path):
@@ -69,9 +89,14 @@ def run_matrix_command(args: argparse.Namespace) -> int:
     matrix = load_matrix_file(args.file)
     if args.smoke:
         matrix = smoke_form(matrix)
-    return run_matrix_args(matrix, args, what="matrix", default_folder=f"matrix-{matrix.name}",
-                           command=f"drivebench matrix {args.file}" + (" --smoke" if args.smoke else ""),
-                           report=not args.no_report)
+    return run_matrix_args(
+        matrix,
+        args,
+        what="matrix",
+        default_folder=f"matrix-{matrix.name}",
+        command=f"drivebench matrix {args.file}" + (" --smoke" if args.smoke else ""),
+        report=not args.no_report,
+    )
 
 
 def _preflight(matrix) -> None:
@@ -108,8 +133,16 @@ def _resolve_renderers(matrix, requested: str | None, *, here: bool = True):
     return with_renderer(matrix, choose)
 
 
-def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_folder: str, command: str,
-                    report: bool = True, facts: dict | None = None) -> int:
+def run_matrix_args(
+    matrix,
+    args: argparse.Namespace,
+    *,
+    what: str,
+    default_folder: str,
+    command: str,
+    report: bool = True,
+    facts: dict | None = None,
+) -> int:
     """``--plan``, or run ``matrix`` as the options of :func:`add_run_options` say, with progress on stderr, then
     write its report (unless ``report`` is False); the exit code.
 
@@ -135,16 +168,28 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
     _preflight(matrix)
     out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and (out_dir / "results.sqlite").exists():
-        raise UsageError(f"{out_dir} already holds matrix results: add --resume to finish that run, or "
-                               f"choose another -o folder")
+        raise UsageError(
+            f"{out_dir} already holds matrix results: add --resume to finish that run, or choose another -o folder"
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(filename=out_dir / "matrix.log", level=logging.INFO,
-                        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s")
-    options = RunOptions(workers=args.workers, record=args.record, record_images=args.record_images,
-                         resume=args.resume, retry_failed=args.retry_failed, facts=dict(facts or {}))
+    logging.basicConfig(
+        filename=out_dir / "matrix.log",
+        level=logging.INFO,
+        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s",
+    )
+    options = RunOptions(
+        workers=args.workers,
+        record=args.record,
+        record_images=args.record_images,
+        resume=args.resume,
+        retry_failed=args.retry_failed,
+        facts=dict(facts or {}),
+    )
     where = f"{args.workers} worker(s)" if ray_options is None else f"Ray cluster {ray_options.address}"
-    print(f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {where}; "
-          f"output {out_dir}", file=sys.stderr)
+    print(
+        f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {where}; output {out_dir}",
+        file=sys.stderr,
+    )
     display = ProgressDisplay()
     if ray_options is None:
         runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
@@ -158,8 +203,11 @@ def run_matrix_args(matrix, args: argparse.Namespace, *, what: str, default_fold
         raise UsageError(str(error)) from None
     except KeyboardInterrupt:
         display.close()
-        print(f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
-              f"`{command} -o {out_dir} --resume` runs the rest", file=sys.stderr)
+        print(
+            f"drivebench: interrupted; finished episodes are in {out_dir / 'results.sqlite'}; "
+            f"`{command} -o {out_dir} --resume` runs the rest",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     finally:
         display.close()

@@ -20,16 +20,22 @@ from orchestrator.paper import (
 
 def add(commands: argparse._SubParsersAction) -> None:
     paper = commands.add_parser(
-        "paper", help="regenerate the paper's six tables (ours beside the paper's figures)",
+        "paper",
+        help="regenerate the paper's six tables (ours beside the paper's figures)",
         description="Run experiments/paper.yaml (every brain, circuit, world and perturbation the paper's closed-loop "
-                    "tables need) as a matrix, then write DIR/report.html, report.md and paper.md with the paper's "
-                    "figure beside ours in every cell. Add your own brain to the file to get its row.")
-    paper.add_argument("--file", type=Path, default=PAPER_FILE, help="the paper's matrix file "
-                                                                      "(default: experiments/paper.yaml)")
+        "tables need) as a matrix, then write DIR/report.html, report.md and paper.md with the paper's "
+        "figure beside ours in every cell. Add your own brain to the file to get its row.",
+    )
+    paper.add_argument(
+        "--file", type=Path, default=PAPER_FILE, help="the paper's matrix file (default: experiments/paper.yaml)"
+    )
     add_run_options(paper, default_out="runs/paper-<time>", default_workers=2)
-    paper.add_argument("--smoke", action="store_true",
-                       help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)}, the first {SMOKE_CELLS_PER_PART} "
-                            f"cells of every table, {SMOKE_SIM_SECONDS:g} s each (what CI runs)")
+    paper.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)}, the first {SMOKE_CELLS_PER_PART} "
+        f"cells of every table, {SMOKE_SIM_SECONDS:g} s each (what CI runs)",
+    )
     paper.set_defaults(func=run_paper_command)
 
 
@@ -41,7 +47,11 @@ def run_paper_command(args: argparse.Namespace) -> int:
         matrix = smoke_matrix(matrix)
         if not matrix.episodes:
             raise UsageError(f"{args.file}: --smoke needs the brains {', '.join(SMOKE_BRAINS)}")
-    command = "drivebench paper" + (f" --file {args.file}" if args.file != PAPER_FILE else "") + \
-        (" --smoke" if args.smoke else "")
-    return run_matrix_args(matrix, args, what="paper", default_folder=matrix.name, command=command,
-                           facts={PAPER_FACT: True})
+    command = (
+        "drivebench paper"
+        + (f" --file {args.file}" if args.file != PAPER_FILE else "")
+        + (" --smoke" if args.smoke else "")
+    )
+    return run_matrix_args(
+        matrix, args, what="paper", default_folder=matrix.name, command=command, facts={PAPER_FACT: True}
+    )

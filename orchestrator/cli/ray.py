@@ -11,17 +11,32 @@ from orchestrator.ray_options import DEFAULT_NODE_RETRIES, EPISODE_SLOT, RayOpti
 def add_ray_options(parser: argparse.ArgumentParser) -> None:
     """``--ray ADDRESS`` and its companions, on ``drivebench matrix``."""
     group = parser.add_argument_group("on a Ray cluster (pip install 'drivebench[cluster]')")
-    group.add_argument("--ray", metavar="ADDRESS",
-                       help="run the episodes as tasks on the Ray cluster at ADDRESS: auto, HOST:PORT or "
-                            "ray://HOST:10001 (each worker node declares episode_slot resources)")
-    group.add_argument("--artifacts", type=Path, metavar="DIR",
-                       help="with --ray: a folder every node mounts, for recordings (needed with --record)")
-    group.add_argument("--ray-resource", action="append", default=[], metavar="NAME=AMOUNT",
-                       help="with --ray: what one episode asks for besides one episode_slot, e.g. GPU=0.25 "
-                            "(repeatable)")
-    group.add_argument("--node-retries", type=int, default=DEFAULT_NODE_RETRIES, metavar="N",
-                       help=f"with --ray: how often an episode whose node died runs again elsewhere "
-                            f"(default {DEFAULT_NODE_RETRIES})")
+    group.add_argument(
+        "--ray",
+        metavar="ADDRESS",
+        help="run the episodes as tasks on the Ray cluster at ADDRESS: auto, HOST:PORT or "
+        "ray://HOST:10001 (each worker node declares episode_slot resources)",
+    )
+    group.add_argument(
+        "--artifacts",
+        type=Path,
+        metavar="DIR",
+        help="with --ray: a folder every node mounts, for recordings (needed with --record)",
+    )
+    group.add_argument(
+        "--ray-resource",
+        action="append",
+        default=[],
+        metavar="NAME=AMOUNT",
+        help="with --ray: what one episode asks for besides one episode_slot, e.g. GPU=0.25 (repeatable)",
+    )
+    group.add_argument(
+        "--node-retries",
+        type=int,
+        default=DEFAULT_NODE_RETRIES,
+        metavar="N",
+        help=f"with --ray: how often an episode whose node died runs again elsewhere (default {DEFAULT_NODE_RETRIES})",
+    )
 
 
 def ray_options_from(args: argparse.Namespace) -> RayOptions | None:
@@ -34,11 +49,14 @@ def ray_options_from(args: argparse.Namespace) -> RayOptions | None:
     if not address.strip():
         raise ValueError("--ray needs an address: auto, HOST:PORT or ray://HOST:10001")
     if args.record and args.artifacts is None:
-        raise ValueError("--record with --ray needs --artifacts DIR, a folder every node mounts (recordings are "
-                         "too large to travel through Ray)")
+        raise ValueError(
+            "--record with --ray needs --artifacts DIR, a folder every node mounts (recordings are "
+            "too large to travel through Ray)"
+        )
     if args.workers != 1:
-        raise ValueError("--workers is for a local run: on Ray, the nodes' episode_slot resources set how many "
-                         "episodes run at once")
+        raise ValueError(
+            "--workers is for a local run: on Ray, the nodes' episode_slot resources set how many episodes run at once"
+        )
     if args.node_retries < 0:
         raise ValueError(f"--node-retries must be >= 0, got {args.node_retries}")
     resources = {EPISODE_SLOT: 1.0}
@@ -52,5 +70,4 @@ def ray_options_from(args: argparse.Namespace) -> RayOptions | None:
             raise ValueError(f"--ray-resource {item!r}: expected NAME=AMOUNT with AMOUNT > 0, e.g. GPU=0.25")
         resources[name.strip()] = value
     artifacts = args.artifacts.resolve() if args.artifacts is not None else None
-    return RayOptions(address=address.strip(), artifacts=artifacts, resources=resources,
-                      node_retries=args.node_retries)
+    return RayOptions(address=address.strip(), artifacts=artifacts, resources=resources, node_retries=args.node_retries)

@@ -1,11 +1,11 @@
 """``drivebench recorder ...``, ``drivebench replay`` and ``drivebench dataset ...``: recordings from the command line.
 
-    drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
-    drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
-    drivebench recorder merge A B -o AB.mcap    compare runs: each under its own namespace (recorder.merge)
-    drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
-    drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
-    drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
+drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
+drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
+drivebench recorder merge A B -o AB.mcap    compare runs: each under its own namespace (recorder.merge)
+drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
+drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
+drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
 """
 
 from __future__ import annotations
@@ -33,12 +33,14 @@ def add(commands: argparse._SubParsersAction) -> None:
 
 def _usage_errors(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
     """``command`` with a bad recording, dataset or value turned into a usage error (one line, exit 2)."""
+
     @functools.wraps(command)
     def run(args: argparse.Namespace) -> int:
         try:
             return command(args)
         except (RecordingError, DatasetError, ValueError) as error:  # ValueError: CollectError
             raise UsageError(str(error)) from None
+
     return run
 
 
@@ -50,12 +52,14 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     info.set_defaults(func=_usage_errors(_info))
     repair = recorder_commands.add_parser("repair", help="recover everything readable from a killed recorder's file")
     repair.add_argument("file", type=Path, help="a .mcap.part file, or a truncated .mcap")
-    repair.add_argument("-o", "--output", type=Path, help="output file (default: x.mcap.part -> x.mcap, "
-                                                          "x.mcap -> x.repaired.mcap)")
+    repair.add_argument(
+        "-o", "--output", type=Path, help="output file (default: x.mcap.part -> x.mcap, x.mcap -> x.repaired.mcap)"
+    )
     repair.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     repair.set_defaults(func=_usage_errors(_repair))
     merge = recorder_commands.add_parser(
-        "merge", help="several recordings in one file, each run under its own namespace (compare runs in Foxglove)")
+        "merge", help="several recordings in one file, each run under its own namespace (compare runs in Foxglove)"
+    )
     merge.add_argument("files", nargs="+", type=Path, metavar="FILE.mcap")
     merge.add_argument("-o", "--output", type=Path, required=True, help="the merged .mcap to write")
     merge.add_argument("--names", help="namespaces, comma-separated, one per file (default runA,runB,...)")
@@ -81,51 +85,95 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     _add_build_options(build)
     build.set_defaults(func=_usage_errors(_build))
     collect = dataset_commands.add_parser(
-        "collect", help="drive the explicit brain on each circuit with recording on, then build the dataset")
+        "collect", help="drive the explicit brain on each circuit with recording on, then build the dataset"
+    )
     collect.add_argument("--circuits", required=True, help="comma-separated circuit names")
-    collect.add_argument("--direction", choices=("forward", "reverse", "both"), default="forward",
-                         help="drive each circuit forward (its own direction: clockwise for the built-ins), reverse, "
-                              "or both, one episode each (default: forward)")
+    collect.add_argument(
+        "--direction",
+        choices=("forward", "reverse", "both"),
+        default="forward",
+        help="drive each circuit forward (its own direction: clockwise for the built-ins), reverse, "
+        "or both, one episode each (default: forward)",
+    )
     collect.add_argument("--laps", type=int, default=1, help="laps per circuit (default 1)")
     collect.add_argument("--brain", default="explicit", help="the brain whose driving is recorded (default explicit)")
-    collect.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
-                         help="simulator camera (default 320x240); --size sets the dataset's image size")
-    collect.add_argument("--renderer", choices=("pybullet", "gl", "auto"),
-                         help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
-                              "else auto (gl where EGL works, else pybullet)")
-    collect.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
-                         help="world variation for every circuit, as in drivebench run (with --randomise: pins "
-                              "what it names, e.g. line=none,walls=off, and the rest is still drawn)")
-    collect.add_argument("--randomise", action="store_true",
-                         help="domain randomisation: each episode draws its own line, road, walls, lighting, camera "
-                              "mount and camera noise from its seed (use with a brain that does not look, e.g. "
-                              "--brain expert, which drives on ground truth)")
+    collect.add_argument(
+        "--camera",
+        type=parse_camera,
+        default=(320, 240),
+        metavar="WxH",
+        help="simulator camera (default 320x240); --size sets the dataset's image size",
+    )
+    collect.add_argument(
+        "--renderer",
+        choices=("pybullet", "gl", "auto"),
+        help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
+        "else auto (gl where EGL works, else pybullet)",
+    )
+    collect.add_argument(
+        "--variation",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE,...",
+        help="world variation for every circuit, as in drivebench run (with --randomise: pins "
+        "what it names, e.g. line=none,walls=off, and the rest is still drawn)",
+    )
+    collect.add_argument(
+        "--randomise",
+        action="store_true",
+        help="domain randomisation: each episode draws its own line, road, walls, lighting, camera "
+        "mount and camera noise from its seed (use with a brain that does not look, e.g. "
+        "--brain expert, which drives on ground truth)",
+    )
     collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
-    collect.add_argument("--recovery-noise", type=float, default=0.0, metavar="RADPS",
-                         help="drive with bursts of extra yaw rate up to RADPS (the noisy brain) while --brain, "
-                              "undisturbed, labels every frame: recovery data (DART); default 0 = off")
+    collect.add_argument(
+        "--recovery-noise",
+        type=float,
+        default=0.0,
+        metavar="RADPS",
+        help="drive with bursts of extra yaw rate up to RADPS (the noisy brain) while --brain, "
+        "undisturbed, labels every frame: recovery data (DART); default 0 = off",
+    )
     _add_build_options(collect)
     collect.set_defaults(func=_usage_errors(_collect))
 
 
 def _add_build_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, required=True, help="dataset folder to create")
-    parser.add_argument("--size", default="100x50", metavar="WxH",
-                        help="image size of the samples (default 100x50; PilotNet uses 200x66)")
-    parser.add_argument("--crop", default="0:1", metavar="TOP:BOTTOM",
-                        help="rows kept before resizing, as fractions of the height (default 0:1; "
-                             "DeepestLSTMTinyPilotNet uses 0.5:1)")
+    parser.add_argument(
+        "--size",
+        default="100x50",
+        metavar="WxH",
+        help="image size of the samples (default 100x50; PilotNet uses 200x66)",
+    )
+    parser.add_argument(
+        "--crop",
+        default="0:1",
+        metavar="TOP:BOTTOM",
+        help="rows kept before resizing, as fractions of the height (default 0:1; DeepestLSTMTinyPilotNet uses 0.5:1)",
+    )
     history = parser.add_mutually_exclusive_group()
-    history.add_argument("--history", type=int, default=1, help="frames per sample: the current one and N-1 "
-                                                                "earlier ones (default 1)")
-    history.add_argument("--offsets", help="explicit frame offsets, e.g. --offsets=-9,-5,0 (the paper's memory "
-                                              "models; write the = because the value starts with -)")
+    history.add_argument(
+        "--history", type=int, default=1, help="frames per sample: the current one and N-1 earlier ones (default 1)"
+    )
+    history.add_argument(
+        "--offsets",
+        help="explicit frame offsets, e.g. --offsets=-9,-5,0 (the paper's memory "
+        "models; write the = because the value starts with -)",
+    )
     parser.add_argument("--stride", type=int, default=1, help="frames between history frames (default 1)")
-    parser.add_argument("--camera-key", choices=("perturbed", "truth"), default="perturbed",
-                        help="pair the frames the brain saw (default) or the simulator's ground truth")
+    parser.add_argument(
+        "--camera-key",
+        choices=("perturbed", "truth"),
+        default="perturbed",
+        help="pair the frames the brain saw (default) or the simulator's ground truth",
+    )
     parser.add_argument("--label-brain", help="label with this brain's commands (default: the active brain)")
-    parser.add_argument("--split", default="episode:0.2",
-                        help="episode:FRACTION, circuit:NAME,NAME or none (default episode:0.2); never by frame")
+    parser.add_argument(
+        "--split",
+        default="episode:0.2",
+        help="episode:FRACTION, circuit:NAME,NAME or none (default episode:0.2); never by frame",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the episode split (default 0)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
 
@@ -138,8 +186,11 @@ def dataset_options(args: argparse.Namespace):
     try:
         size = (int(width), int(height)) if sep else None
         crop = (float(top), float(bottom)) if colon else None
-        offsets = (tuple(int(v) for v in args.offsets.split(",")) if args.offsets
-                   else tuple(-k * args.stride for k in range(args.history - 1, -1, -1)))
+        offsets = (
+            tuple(int(v) for v in args.offsets.split(","))
+            if args.offsets
+            else tuple(-k * args.stride for k in range(args.history - 1, -1, -1))
+        )
     except ValueError:
         size = crop = offsets = None
     if size is None:
@@ -148,16 +199,25 @@ def dataset_options(args: argparse.Namespace):
         raise UsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
     if offsets is None or args.history < 1 or args.stride < 1:
         raise UsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
-    return DatasetOptions(width_px=size[0], height_px=size[1], crop_top_fraction=crop[0],
-                          crop_bottom_fraction=crop[1], camera=args.camera_key, brain=args.label_brain,
-                          offsets_frames=offsets, split=args.split, seed=args.seed)
+    return DatasetOptions(
+        width_px=size[0],
+        height_px=size[1],
+        crop_top_fraction=crop[0],
+        crop_bottom_fraction=crop[1],
+        camera=args.camera_key,
+        brain=args.label_brain,
+        offsets_frames=offsets,
+        split=args.split,
+        seed=args.seed,
+    )
 
 
 def _build(args: argparse.Namespace) -> int:
     from orchestrator.collect import build_from_recordings
 
-    return build_from_recordings(args.recordings, output=args.output, options=dataset_options(args),
-                                 overwrite=args.overwrite)
+    return build_from_recordings(
+        args.recordings, output=args.output, options=dataset_options(args), overwrite=args.overwrite
+    )
 
 
 def _collect(args: argparse.Namespace) -> int:
@@ -173,8 +233,11 @@ def _merge(args: argparse.Namespace) -> int:
     names = [n.strip() for n in args.names.split(",")] if args.names else None
     report = merge(args.files, output=args.output, names=names, overwrite=args.overwrite)
     runs = ", ".join(f"/{ns} <- {source}" for ns, source in report.namespaces.items())
-    print(f"merged {report.messages} messages -> {report.output} ({runs}); open it in Foxglove with "
-          f"docs/foxglove/drivebench-compare-layout.json", file=sys.stderr)
+    print(
+        f"merged {report.messages} messages -> {report.output} ({runs}); open it in Foxglove with "
+        f"docs/foxglove/drivebench-compare-layout.json",
+        file=sys.stderr,
+    )
     return EXIT_OK
 
 
@@ -185,8 +248,10 @@ def _info(args: argparse.Namespace) -> int:
     for channel in sorted(info.channels, key=lambda c: c.topic):
         kind = "bus " if channel.bus_key else "view"
         key = f"  <- {channel.key}" if channel.key and channel.key != channel.topic else ""  # stable topics
-        print(f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
-              f"{channel.schema} ({channel.message_encoding}){key}")
+        print(
+            f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
+            f"{channel.schema} ({channel.message_encoding}){key}"
+        )
     missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
     if any(missing.values()):
         print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")
@@ -216,8 +281,17 @@ def _replay(args: argparse.Namespace) -> int:
         raise UsageError(f"--rate must be > 0, got {args.rate}")
     recording_info(args.file)  # a bad file fails here, before a bus session is opened
     with Bus(BusConfig(connect=[router]), name="replay") as bus:
-        report = replay(args.file, bus, rate=None if args.max_speed else args.rate, run_id=args.run_id,
-                        keys_glob=args.keys, progress=sys.stderr.isatty())
-    print(f"replayed {report.messages} messages on {len(report.counts)} keys "
-          f"({report.span_s:.1f} s of recording in {report.wall_s:.1f} s)", file=sys.stderr)
+        report = replay(
+            args.file,
+            bus,
+            rate=None if args.max_speed else args.rate,
+            run_id=args.run_id,
+            keys_glob=args.keys,
+            progress=sys.stderr.isatty(),
+        )
+    print(
+        f"replayed {report.messages} messages on {len(report.counts)} keys "
+        f"({report.span_s:.1f} s of recording in {report.wall_s:.1f} s)",
+        file=sys.stderr,
+    )
     return EXIT_OK

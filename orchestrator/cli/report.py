@@ -12,13 +12,14 @@ from orchestrator.cli.errors import EXIT_OK, UsageError
 def add(commands: argparse._SubParsersAction) -> None:
     """``drivebench report DIR [-o FOLDER]``."""
     parser = commands.add_parser(
-        "report", help="tables and plots of a matrix's results (HTML, Markdown, CSV)",
+        "report",
+        help="tables and plots of a matrix's results (HTML, Markdown, CSV)",
         description="Read DIR/results.sqlite (written by `drivebench matrix`) and write report.html (self-contained), "
-                    "report.md, episodes.csv and plots/*.png: the paper's main table per brain and circuit, "
-                    "generalisation and robustness grids, internal metrics, failures, trajectories on the circuit.")
+        "report.md, episodes.csv and plots/*.png: the paper's main table per brain and circuit, "
+        "generalisation and robustness grids, internal metrics, failures, trajectories on the circuit.",
+    )
     parser.add_argument("dir", type=Path, metavar="DIR", help="the matrix's output folder")
-    parser.add_argument("-o", "--output", type=Path, metavar="FOLDER",
-                        help="write the report here instead of into DIR")
+    parser.add_argument("-o", "--output", type=Path, metavar="FOLDER", help="write the report here instead of into DIR")
     parser.set_defaults(func=run_report)
 
 

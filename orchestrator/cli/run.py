@@ -47,55 +47,119 @@ def parse_camera(text: str) -> tuple[int, int]:
 def add(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
-    run.add_argument("--direction", choices=("forward", "reverse"), default="forward",
-                     help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
-                          "way round (default: forward; also --variation direction=reverse)")
-    run.add_argument("--brain", help="brain to drive (default: explicit; with --attach: the bus name of a running "
-                                     "brain, by default the only one alive)")
-    run.add_argument("--weights", type=Path, metavar="CKPT",
-                     help="checkpoint (or exported .onnx) of a neural brain (drivebench train makes them)")
-    run.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
-                     help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
-    run.add_argument("--shadow", action="append", default=[], metavar="BRAIN[=CKPT]",
-                     help="a shadow brain: sees the same frames, drives nothing; the score says how far its commands "
-                          "were from the driver's (repeatable; bus name BRAIN, or BRAIN-shadowN when taken)")
+    run.add_argument(
+        "--direction",
+        choices=("forward", "reverse"),
+        default="forward",
+        help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
+        "way round (default: forward; also --variation direction=reverse)",
+    )
+    run.add_argument(
+        "--brain",
+        help="brain to drive (default: explicit; with --attach: the bus name of a running "
+        "brain, by default the only one alive)",
+    )
+    run.add_argument(
+        "--weights",
+        type=Path,
+        metavar="CKPT",
+        help="checkpoint (or exported .onnx) of a neural brain (drivebench train makes them)",
+    )
+    run.add_argument(
+        "--brain-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)",
+    )
+    run.add_argument(
+        "--shadow",
+        action="append",
+        default=[],
+        metavar="BRAIN[=CKPT]",
+        help="a shadow brain: sees the same frames, drives nothing; the score says how far its commands "
+        "were from the driver's (repeatable; bus name BRAIN, or BRAIN-shadowN when taken)",
+    )
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
-    run.add_argument("--camera", type=parse_camera, default=(320, 240), metavar="WxH",
-                     help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)")
-    run.add_argument("--renderer", choices=RENDERERS,
-                     help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same "
-                          "scene, ~10x faster) or auto (gl where EGL works, else pybullet); default: "
-                          "$DRIVEBENCH_RENDERER, else pybullet")
-    run.add_argument("--variation", action="append", default=[], metavar="KEY=VALUE,...",
-                     help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
-                          "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
-                          "direction=reverse")
-    run.add_argument("--noise", action="append", default=[], metavar="MODEL[=VALUE]",
-                     help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
-                          "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
-                          "drop=0.1")
+    run.add_argument(
+        "--camera",
+        type=parse_camera,
+        default=(320, 240),
+        metavar="WxH",
+        help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)",
+    )
+    run.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same "
+        "scene, ~10x faster) or auto (gl where EGL works, else pybullet); default: "
+        "$DRIVEBENCH_RENDERER, else pybullet",
+    )
+    run.add_argument(
+        "--variation",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE,...",
+        help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
+        "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
+        "direction=reverse",
+    )
+    run.add_argument(
+        "--noise",
+        action="append",
+        default=[],
+        metavar="MODEL[=VALUE]",
+        help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
+        "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
+        "drop=0.1",
+    )
     run.add_argument("--seed", type=int, default=0, help="seed of every random generator (default: 0)")
-    run.add_argument("--realtime", action="store_true",
-                     help="free-running at wall-clock rate with the latest command (default: lock-step)")
-    run.add_argument("--brain-timeout", type=float, default=10.0, metavar="SECONDS",
-                     help="lock-step: wall seconds to wait for the brain's answer to a frame (default: 10)")
-    run.add_argument("--run-id", help="run id used in every key (default: random; with --attach: "
-                                      "$DRIVEBENCH_RUN_ID, else the only run alive on the router)")
+    run.add_argument(
+        "--realtime",
+        action="store_true",
+        help="free-running at wall-clock rate with the latest command (default: lock-step)",
+    )
+    run.add_argument(
+        "--brain-timeout",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="lock-step: wall seconds to wait for the brain's answer to a frame (default: 10)",
+    )
+    run.add_argument(
+        "--run-id",
+        help="run id used in every key (default: random; with --attach: "
+        "$DRIVEBENCH_RUN_ID, else the only run alive on the router)",
+    )
     run.add_argument("--out", type=Path, help="run folder (default: RUNS_DIR/<time>-<run id>)")
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run folders go (default: runs)")
-    run.add_argument("--attach", action="store_true",
-                     help="drive an episode on a stack that is already running (docker compose, other machines) "
-                          "instead of starting one: nothing is started or stopped")
-    run.add_argument("--router", metavar="ENDPOINT",
-                     help="with --attach: the router of that stack, e.g. tcp/10.0.0.5:7447 "
-                          "(default: $DRIVEBENCH_ROUTER)")
-    run.add_argument("--wait", type=float, default=120.0, metavar="SECONDS",
-                     help="with --attach: how long to wait for the stack's processes to be alive (default: 120)")
+    run.add_argument(
+        "--attach",
+        action="store_true",
+        help="drive an episode on a stack that is already running (docker compose, other machines) "
+        "instead of starting one: nothing is started or stopped",
+    )
+    run.add_argument(
+        "--router",
+        metavar="ENDPOINT",
+        help="with --attach: the router of that stack, e.g. tcp/10.0.0.5:7447 (default: $DRIVEBENCH_ROUTER)",
+    )
+    run.add_argument(
+        "--wait",
+        type=float,
+        default=120.0,
+        metavar="SECONDS",
+        help="with --attach: how long to wait for the stack's processes to be alive (default: 120)",
+    )
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
-    run.add_argument("--record-images", choices=("raw", "jpeg"), default="raw",
-                     help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)")
+    run.add_argument(
+        "--record-images",
+        choices=("raw", "jpeg"),
+        default="raw",
+        help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)",
+    )
     run.set_defaults(func=command_run)
 
 
@@ -106,12 +170,19 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         raise UsageError(str(error)) from None
     width, height = args.camera
     try:
-        spec = EpisodeSpec(circuit=args.circuit, laps=args.laps, max_sim_seconds=args.max_sim_seconds, seed=args.seed,
-                           realtime=args.realtime, camera=CameraSpec(width_px=width, height_px=height),
-                           active_brain=args.brain if args.attach else bus_name(args.brain),
-                           brain_timeout_s=args.brain_timeout,
-                           noise=[noise_stage(item) for item in args.noise], direction=args.direction,
-                           renderer=choose_renderer(args.renderer, local=not args.attach))
+        spec = EpisodeSpec(
+            circuit=args.circuit,
+            laps=args.laps,
+            max_sim_seconds=args.max_sim_seconds,
+            seed=args.seed,
+            realtime=args.realtime,
+            camera=CameraSpec(width_px=width, height_px=height),
+            active_brain=args.brain if args.attach else bus_name(args.brain),
+            brain_timeout_s=args.brain_timeout,
+            noise=[noise_stage(item) for item in args.noise],
+            direction=args.direction,
+            renderer=choose_renderer(args.renderer, local=not args.attach),
+        )
         for variation in args.variation:
             spec = apply_variation(spec, variation)
         return spec
@@ -140,21 +211,36 @@ def command_run(args: argparse.Namespace) -> int:
     run_id = args.run_id or uuid.uuid4().hex[:8]
     run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(filename=run_dir / "launcher.log", level=logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    (run_dir / "config.yaml").write_text(yaml.safe_dump({
-        "run_id": run_id, "episode": msgspec.to_builtins(spec),
-        "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
-    }, sort_keys=False))
-    print(f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
-          f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
-          f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}", file=sys.stderr)
+    logging.basicConfig(
+        filename=run_dir / "launcher.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
+    )
+    (run_dir / "config.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "run_id": run_id,
+                "episode": msgspec.to_builtins(spec),
+                "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
+            },
+            sort_keys=False,
+        )
+    )
+    print(
+        f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
+        f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
+        f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}",
+        file=sys.stderr,
+    )
     if args.record is not None and args.record.suffix != ".mcap":
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
     try:
-        with LocalStack(run_id=run_id, run_dir=run_dir, brains=brains, record=args.record,
-                        record_options=(f"image_format={args.record_images}",)) as stack:
+        with LocalStack(
+            run_id=run_id,
+            run_dir=run_dir,
+            brains=brains,
+            record=args.record,
+            record_options=(f"image_format={args.record_images}",),
+        ) as stack:
             stack.write_stack_file()  # drivebench swap finds the running stack through it
             with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
                 score = stack.run_episode(spec, on_live=progress.update)
@@ -163,8 +249,9 @@ def command_run(args: argparse.Namespace) -> int:
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
     report(score, run_dir, as_json=args.json)
     if stack.recording_failure is not None:
-        (run_dir / "recording_failure.json").write_text(json.dumps(stack.recording_failure.record(run_id=run_id),
-                                                                   indent=2) + "\n")
+        (run_dir / "recording_failure.json").write_text(
+            json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n"
+        )
         print(f"drivebench: the recording is incomplete: {stack.recording_failure}", file=sys.stderr)
     elif args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
@@ -189,29 +276,48 @@ def command_run_attached(args: argparse.Namespace) -> int:
     """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
     from orchestrator.launcher import AttachedStack
 
-    for flag, given in (("--weights", args.weights), ("--brain-option", args.brain_option), ("--shadow", args.shadow),
-                        ("--record", args.record)):
+    for flag, given in (
+        ("--weights", args.weights),
+        ("--brain-option", args.brain_option),
+        ("--shadow", args.shadow),
+        ("--record", args.record),
+    ):
         if given:
-            raise UsageError(f"{flag} cannot be used with --attach: the running stack's processes are already "
-                             f"configured (record with the compose profile 'record' or `python -m recorder`)")
+            raise UsageError(
+                f"{flag} cannot be used with --attach: the running stack's processes are already "
+                f"configured (record with the compose profile 'record' or `python -m recorder`)"
+            )
     if not (args.router or os.environ.get("DRIVEBENCH_ROUTER")):
         raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
     wait_for_router(args.router or os.environ["DRIVEBENCH_ROUTER"], wait_s=args.wait)
     run_id = args.run_id or os.environ.get("DRIVEBENCH_RUN_ID") or only_running_run(args.router, wait_s=args.wait)
     run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(filename=run_dir / "driver.log", level=logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    stack = AttachedStack(run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain,
-                          startup_timeout_s=args.wait)
+    logging.basicConfig(
+        filename=run_dir / "driver.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
+    )
+    stack = AttachedStack(
+        run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain, startup_timeout_s=args.wait
+    )
     with stack:
         args.brain = stack.brain_name
         spec = episode_spec(args)
-        (run_dir / "config.yaml").write_text(yaml.safe_dump({
-            "run_id": run_id, "router": stack.endpoint, "attached": True, "episode": msgspec.to_builtins(spec),
-        }, sort_keys=False))
-        print(f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
-              f"{spec.laps} lap(s); run folder {run_dir}", file=sys.stderr)
+        (run_dir / "config.yaml").write_text(
+            yaml.safe_dump(
+                {
+                    "run_id": run_id,
+                    "router": stack.endpoint,
+                    "attached": True,
+                    "episode": msgspec.to_builtins(spec),
+                },
+                sort_keys=False,
+            )
+        )
+        print(
+            f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
+            f"{spec.laps} lap(s); run folder {run_dir}",
+            file=sys.stderr,
+        )
         progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
             with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
@@ -271,8 +377,11 @@ def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]
                 raise UsageError(f"--shadow {brain}: no such weights file {weights}")
             options = (f"weights={json.dumps(str(Path(weights).resolve()))}",)
         base = bus_name(brain)
-        name = base if base not in taken else next(f"{base}-shadow{n}" for n in range(1, len(taken) + 2)
-                                                   if f"{base}-shadow{n}" not in taken)
+        name = (
+            base
+            if base not in taken
+            else next(f"{base}-shadow{n}" for n in range(1, len(taken) + 2) if f"{base}-shadow{n}" not in taken)
+        )
         taken.add(name)
         launches.append(BrainLaunch(brain, name=name, options=options))
     return launches
@@ -284,5 +393,3 @@ def report(score: EpisodeScore, run_dir: Path, *, as_json: bool) -> None:
         return
     print(metrics_table(score))
     print(f"\nscore: {run_dir / 'score.json'}", file=sys.stderr)
-
-

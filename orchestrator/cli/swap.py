@@ -17,17 +17,32 @@ def add(commands: argparse._SubParsersAction) -> None:
     swap = commands.add_parser("swap", help="make another brain drive a running stack, live (lock-step: no step lost)")
     swap.add_argument("brain", help=f"brain to start ({', '.join(brain_names())})")
     swap.add_argument("--weights", type=Path, metavar="CKPT", help="checkpoint (or .onnx) of a neural brain")
-    swap.add_argument("--brain-option", action="append", default=[], metavar="KEY=VALUE",
-                      help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)")
+    swap.add_argument(
+        "--brain-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="brain constructor option, e.g. --brain-option speed_mps=2 (repeatable)",
+    )
     swap.add_argument("--name", help="its name on the bus (default: the brain's name, or BRAIN-2, -3... if taken)")
     swap.add_argument("--run", dest="swap_run", metavar="RUN_ID", help="run id (default: the newest running stack)")
-    swap.add_argument("--router", dest="swap_router", metavar="EP",
-                      help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: from the run's stack.json)")
-    swap.add_argument("--runs-dir", type=Path, default=Path("runs"),
-                      help="where drivebench run keeps its run folders (default: runs)")
+    swap.add_argument(
+        "--router",
+        dest="swap_router",
+        metavar="EP",
+        help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: from the run's stack.json)",
+    )
+    swap.add_argument(
+        "--runs-dir", type=Path, default=Path("runs"), help="where drivebench run keeps its run folders (default: runs)"
+    )
     swap.add_argument("--keep-old", action="store_true", help="leave the old brain running (as a shadow)")
-    swap.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
-                      help=f"for the new brain to come up and answer a frame (default: {DEFAULT_TIMEOUT_S:.0f})")
+    swap.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="SECONDS",
+        help=f"for the new brain to come up and answer a frame (default: {DEFAULT_TIMEOUT_S:.0f})",
+    )
     swap.set_defaults(func=run_swap_command)
 
 
@@ -54,9 +69,16 @@ def run_swap_command(args: argparse.Namespace) -> int:
     try:
         stack = locate_stack(runs_dir=args.runs_dir, run_id=args.swap_run, router=args.swap_router)
         logs = stack.run_dir / "logs" if stack.run_dir is not None else None
-        result = swap_brain(router=stack.router, run_id=stack.run_id, brain=args.brain, name=args.name or None,
-                            options=options, log_path=logs if logs is not None and logs.is_dir() else None,
-                            timeout_s=args.timeout, keep_old=args.keep_old)
+        result = swap_brain(
+            router=stack.router,
+            run_id=stack.run_id,
+            brain=args.brain,
+            name=args.name or None,
+            options=options,
+            log_path=logs if logs is not None and logs.is_dir() else None,
+            timeout_s=args.timeout,
+            keep_old=args.keep_old,
+        )
     except (SwapError, BusError) as error:
         raise CommandFailed(f"swap failed: {error}") from None
     print(result.summary())

@@ -27,38 +27,82 @@ class HyperError(ValueError):
 
 def add(subparsers: argparse._SubParsersAction) -> None:
     """Add ``train`` to the ``drivebench`` sub-commands."""
-    parser = subparsers.add_parser("train", help="train a network on a dataset folder (needs torch)",
-                                   description="Train one of the paper's networks on a dataset built with "
-                                               "'drivebench dataset build|collect'.")
+    parser = subparsers.add_parser(
+        "train",
+        help="train a network on a dataset folder (needs torch)",
+        description="Train one of the paper's networks on a dataset built with 'drivebench dataset build|collect'.",
+    )
     parser.add_argument("--model", required=True, metavar="NAME", help=f"network: {', '.join(MODELS)}")
     parser.add_argument("--data", required=True, type=Path, metavar="DIR", help="dataset folder")
-    parser.add_argument("-o", "--output", required=True, type=Path, metavar="RUN_DIR",
-                        help="run folder: model.ckpt (best), last.ckpt, metrics.json, curve.png")
+    parser.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        type=Path,
+        metavar="RUN_DIR",
+        help="run folder: model.ckpt (best), last.ckpt, metrics.json, curve.png",
+    )
     parser.add_argument("--epochs", type=int, default=50, help="maximum epochs (default 50)")
     parser.add_argument("--batch-size", type=int, default=64, help="samples per batch (default 64)")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
-    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
-                        help="auto = cuda if available, else cpu (default auto)")
+    parser.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="auto = cuda if available, else cpu (default auto)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of weights, sampling and augmentation (default 0)")
-    parser.add_argument("--patience", type=int, default=10,
-                        help="stop after this many epochs without a lower validation loss (default 10)")
-    parser.add_argument("--labels", choices=("zscore", "paper"), default="zscore",
-                        help="label normalisation: zscore with the train split's mean/std (default) or the "
-                             "paper's fixed ranges")
-    parser.add_argument("--hyper", action="append", default=[], metavar="KEY=VALUE",
-                        help="model constructor option, e.g. --hyper clean=true, --hyper lstm_units=16 (repeatable)")
+    parser.add_argument(
+        "--patience",
+        type=int,
+        default=10,
+        help="stop after this many epochs without a lower validation loss (default 10)",
+    )
+    parser.add_argument(
+        "--labels",
+        choices=("zscore", "paper"),
+        default="zscore",
+        help="label normalisation: zscore with the train split's mean/std (default) or the paper's fixed ranges",
+    )
+    parser.add_argument(
+        "--hyper",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="model constructor option, e.g. --hyper clean=true, --hyper lstm_units=16 (repeatable)",
+    )
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--max-samples-per-epoch", type=int, metavar="N",
-                        help="shorter epochs: N weighted draws instead of the train split's size")
-    parser.add_argument("--limit-train-samples", type=int, metavar="N",
-                        help="train on a fixed random subset of N training samples only (overfitting sanity check)")
-    parser.add_argument("--no-augment", dest="augment", action="store_false",
-                        help="no mirror / colour jitter / blur on training batches")
-    parser.add_argument("--augment-noise", type=float, default=0.0, metavar="DENSITY",
-                        help="also salt and pepper noise of density up to DENSITY on half the training samples "
-                             "(default 0: off)")
-    parser.add_argument("--no-balance", dest="balance", action="store_false",
-                        help="uniform sampling instead of 1/frequency of the |yaw rate| bin")
+    parser.add_argument(
+        "--max-samples-per-epoch",
+        type=int,
+        metavar="N",
+        help="shorter epochs: N weighted draws instead of the train split's size",
+    )
+    parser.add_argument(
+        "--limit-train-samples",
+        type=int,
+        metavar="N",
+        help="train on a fixed random subset of N training samples only (overfitting sanity check)",
+    )
+    parser.add_argument(
+        "--no-augment",
+        dest="augment",
+        action="store_false",
+        help="no mirror / colour jitter / blur on training batches",
+    )
+    parser.add_argument(
+        "--augment-noise",
+        type=float,
+        default=0.0,
+        metavar="DENSITY",
+        help="also salt and pepper noise of density up to DENSITY on half the training samples (default 0: off)",
+    )
+    parser.add_argument(
+        "--no-balance",
+        dest="balance",
+        action="store_false",
+        help="uniform sampling instead of 1/frequency of the |yaw rate| bin",
+    )
     restart = parser.add_mutually_exclusive_group()
     restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
     restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
@@ -95,20 +139,39 @@ def run_train(args: argparse.Namespace) -> int:
         raise UsageError(f"training needs torch ({error}); install the 'ml' extra") from None
     try:
         options = training.TrainOptions(
-            model=args.model, data=args.data, output=args.output, epochs=args.epochs, batch_size=args.batch_size,
-            lr=args.lr, device=args.device, seed=args.seed, patience=args.patience, labels=args.labels,
-            hyper=parse_hyper(args.hyper), threads=args.threads, max_samples_per_epoch=args.max_samples_per_epoch,
+            model=args.model,
+            data=args.data,
+            output=args.output,
+            epochs=args.epochs,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            device=args.device,
+            seed=args.seed,
+            patience=args.patience,
+            labels=args.labels,
+            hyper=parse_hyper(args.hyper),
+            threads=args.threads,
+            max_samples_per_epoch=args.max_samples_per_epoch,
             limit_train_samples=args.limit_train_samples,
-            augment=args.augment, augment_noise=args.augment_noise, balance=args.balance, resume=args.resume,
-            overwrite=args.overwrite)
+            augment=args.augment,
+            augment_noise=args.augment_noise,
+            balance=args.balance,
+            resume=args.resume,
+            overwrite=args.overwrite,
+        )
         result = training.train(options, progress=sys.stderr.isatty(), log=_log)
     except training.TrainInterrupted as stop:
-        print(f"drivebench: interrupted in epoch {stop.epoch} after batch {stop.batch}; saved {stop.last_checkpoint}; "
-              f"run the same command with --resume to continue", file=sys.stderr)
+        print(
+            f"drivebench: interrupted in epoch {stop.epoch} after batch {stop.batch}; saved {stop.last_checkpoint}; "
+            f"run the same command with --resume to continue",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     except KeyboardInterrupt:  # while loading, or a second Ctrl-C: nothing saved beyond the last epoch
-        print(f"drivebench: interrupted; {args.output / 'last.ckpt'} (if any) holds the last completed epoch",
-              file=sys.stderr)
+        print(
+            f"drivebench: interrupted; {args.output / 'last.ckpt'} (if any) holds the last completed epoch",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     except (training.TrainError, HyperError) as error:
         raise UsageError(str(error)) from None
@@ -126,9 +189,11 @@ def _summary(result) -> str:
     metrics = result.metrics
     scores = metrics["val"] or metrics["train"]
     where = "val" if metrics["val"] else "train (no val split)"
-    return (f"{result.checkpoint}: best epoch {result.best_epoch} of {result.epochs_run}; {where} MAE "
-            f"v {scores['mae_speed_mps']:.3f} m/s, w {scores['mae_yaw_rate_radps']:.3f} rad/s, "
-            f"MSE {scores['mse_normalised']:.4f} (normalised); {result.samples_per_s:.0f} training samples/s")
+    return (
+        f"{result.checkpoint}: best epoch {result.best_epoch} of {result.epochs_run}; {where} MAE "
+        f"v {scores['mae_speed_mps']:.3f} m/s, w {scores['mae_yaw_rate_radps']:.3f} rad/s, "
+        f"MSE {scores['mse_normalised']:.4f} (normalised); {result.samples_per_s:.0f} training samples/s"
+    )
 
 
 __all__ = ["HyperError", "add", "parse_hyper", "run_train"]

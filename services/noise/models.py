@@ -49,8 +49,17 @@ from protocol.messages import (
 )
 
 __all__ = [
-    "BlurModel", "BrightnessModel", "DelayModel", "DropModel", "GaussianModel", "JpegModel", "NoiseModel",
-    "NoisePipeline", "OcclusionModel", "SaltPepperModel", "make_model",
+    "BlurModel",
+    "BrightnessModel",
+    "DelayModel",
+    "DropModel",
+    "GaussianModel",
+    "JpegModel",
+    "NoiseModel",
+    "NoisePipeline",
+    "OcclusionModel",
+    "SaltPepperModel",
+    "make_model",
 ]
 
 _U16_LEVELS = 1 << 16
@@ -263,7 +272,7 @@ class OcclusionModel(NoiseModel):
         lefts = self._rng.integers(0, width - patch_w + 1, size=stage.patches)
         out = image.copy()
         for top, left in zip(tops.tolist(), lefts.tolist(), strict=True):
-            out[top:top + patch_h, left:left + patch_w] = 0
+            out[top : top + patch_h, left : left + patch_w] = 0
         return out
 
 
@@ -357,8 +366,9 @@ def make_model(stage: NoiseStage) -> NoiseModel:
     try:
         model_class = _MODELS[type(stage)]
     except KeyError:
-        raise TypeError(f"not a noise stage: {stage!r} (expected one of "
-                        f"{', '.join(t.__name__ for t in _MODELS)})") from None
+        raise TypeError(
+            f"not a noise stage: {stage!r} (expected one of {', '.join(t.__name__ for t in _MODELS)})"
+        ) from None
     return model_class(stage)
 
 

@@ -91,8 +91,9 @@ class NoiseService:
                 return
             perturbed = self._pipeline.apply(image)
             if perturbed is None:
-                out = CameraFrame(header=frame.header, width_px=frame.width_px, height_px=frame.height_px,
-                                  data=b"", dropped=True)
+                out = CameraFrame(
+                    header=frame.header, width_px=frame.width_px, height_px=frame.height_px, data=b"", dropped=True
+                )
             else:
                 out = image_frame(frame.header, perturbed)
             payload = codec.encode(out)
@@ -103,5 +104,10 @@ class NoiseService:
 def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import service_main
 
-    return service_main("noise", "drivebench noise injector: ground-truth camera in, perturbed camera out",
-                        NoiseConfig, NoiseService, argv)
+    return service_main(
+        "noise",
+        "drivebench noise injector: ground-truth camera in, perturbed camera out",
+        NoiseConfig,
+        NoiseService,
+        argv,
+    )

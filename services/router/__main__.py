@@ -65,17 +65,25 @@ def main(argv: list[str] | None = None) -> int:
         log_config(config)
         bus_config = config.bus
         resolved = resolve_bus(bus_config)
-        extra = router_settings(mtls=config.mtls, tls_root_ca=resolved.tls_root_ca, tls_cert=resolved.tls_cert,
-                                listen=resolved.listen, users_file=config.users_file, roles=config.roles,
-                                access_control_file=config.access_control_file)
+        extra = router_settings(
+            mtls=config.mtls,
+            tls_root_ca=resolved.tls_root_ca,
+            tls_cert=resolved.tls_cert,
+            listen=resolved.listen,
+            users_file=config.users_file,
+            roles=config.roles,
+            access_control_file=config.access_control_file,
+        )
         if "access_control" in extra and any(e.split("/", 1)[0] not in ("tls", "quic") for e in resolved.listen):
             log.warning("access control with a plain (non-TLS) listener: links on it carry no certificate")
         with Bus(bus_config, name="router", extra=extra) as bus:
-            features = (("mTLS", config.mtls), ("user/password", bool(config.users_file)),
-                        ("access control", "access_control" in extra))
+            features = (
+                ("mTLS", config.mtls),
+                ("user/password", bool(config.users_file)),
+                ("access control", "access_control" in extra),
+            )
             security = ", ".join(name for name, on in features if on)
-            log.info("router listening on %s%s", ", ".join(bus.resolved.listen),
-                     f" ({security})" if security else "")
+            log.info("router listening on %s%s", ", ".join(bus.resolved.listen), f" ({security})" if security else "")
             while not stop_requested():
                 time.sleep(0.2)
         return 0

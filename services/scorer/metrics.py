@@ -274,8 +274,7 @@ def cross_track_stats(lateral_m: Sequence[float]) -> tuple[float, float, float, 
     lat = np.abs(np.asarray(lateral_m, dtype=float))
     if len(lat) == 0:
         return 0.0, 0.0, 0.0, 0.0
-    return (float(np.mean(lat)), float(np.sqrt(np.mean(lat**2))), float(np.max(lat)),
-            float(np.percentile(lat, 95)))
+    return (float(np.mean(lat)), float(np.sqrt(np.mean(lat**2))), float(np.max(lat)), float(np.percentile(lat, 95)))
 
 
 def count_off_track_events(lateral_m: Sequence[float], half_width_m: float) -> int:
@@ -337,15 +336,17 @@ class EpisodeScorer:
 
     # -- input ----------------------------------------------------------------------------------------------------
 
-    def add_pose(self, *, seq: int, stamp_ns: int, x_m: float, y_m: float, yaw_rad: float,
-                 command_latency_ns: int = 0) -> None:
+    def add_pose(
+        self, *, seq: int, stamp_ns: int, x_m: float, y_m: float, yaw_rad: float, command_latency_ns: int = 0
+    ) -> None:
         """Add one ground-truth pose (world frame, metres; stamp in simulated ns). ``yaw_rad`` is accepted for
         completeness; no metric needs it. ``command_latency_ns``: the Pose message's field, 0 = not measured."""
         if self._seq and seq <= self._seq[-1]:
             self.dropped_poses += 1
             return
-        projection = self.circuit.centreline.project(float(x_m), float(y_m),
-                                                     near_s_m=self._s_prev if self._progress else None)
+        projection = self.circuit.centreline.project(
+            float(x_m), float(y_m), near_s_m=self._s_prev if self._progress else None
+        )
         s, lateral = projection.s_m, projection.lateral_m
         if self._progress:
             progress = self._progress[-1] + float(self.circuit.centreline.wrap_ds(s - self._s_prev))
@@ -512,7 +513,7 @@ class _SplineNearest:
         last = len(self._gx) - 1
         lo = min(last, max(0, math.ceil(t_lo * self.oversample - 1e-9)))
         hi = min(last, max(lo, math.floor(t_hi * self.oversample + 1e-9)))
-        window = self._grid[lo:hi + 1]
+        window = self._grid[lo : hi + 1]
         d_sq = (window[:, 0] - qx) ** 2 + (window[:, 1] - qy) ** 2
         return self._refine(qx, qy, lo + int(np.argmin(d_sq)))
 

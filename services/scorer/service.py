@@ -136,8 +136,9 @@ class ScorerService:
     def _on_switch(current: _Episode, event: EpisodeEvent) -> None:
         # The event's stamp is that of the first frame the new brain drove.
         seq = round(event.header.stamp_ns / current.spec.step_ns)
-        current.commands.add_switch(BrainSwitch(stamp_ns=event.header.stamp_ns, seq=seq, from_brain=event.detail,
-                                                to_brain=event.brain))
+        current.commands.add_switch(
+            BrainSwitch(stamp_ns=event.header.stamp_ns, seq=seq, from_brain=event.detail, to_brain=event.brain)
+        )
         current.active_brain = event.brain
         log.info("episode %d: %s drives from frame %d on (was %s)", current.number, event.brain, seq, event.detail)
 
@@ -149,16 +150,23 @@ class ScorerService:
             return
         scorer = EpisodeScorer(circuit=circuit, laps_target=spec.laps, step_s=spec.step_s)
         commands = CommandMatcher(first_driver=spec.active_brain, on_driver=_driver_feed(scorer))
-        self._episode = _Episode(number=number, spec=spec, scorer=scorer, commands=commands,
-                                 active_brain=spec.active_brain)
+        self._episode = _Episode(
+            number=number, spec=spec, scorer=scorer, commands=commands, active_brain=spec.active_brain
+        )
 
     def _on_pose(self, pose: Pose) -> None:
         current = self._current(pose.header.episode)
         if current is None or pose.header.seq <= current.last_pose_seq:
             return
         current.last_pose_seq = pose.header.seq
-        current.scorer.add_pose(seq=pose.header.seq, stamp_ns=pose.header.stamp_ns, x_m=pose.x_m, y_m=pose.y_m,
-                                yaw_rad=pose.yaw_rad, command_latency_ns=pose.command_latency_ns)
+        current.scorer.add_pose(
+            seq=pose.header.seq,
+            stamp_ns=pose.header.stamp_ns,
+            x_m=pose.x_m,
+            y_m=pose.y_m,
+            yaw_rad=pose.yaw_rad,
+            command_latency_ns=pose.command_latency_ns,
+        )
 
     def _on_command(self, command: Command) -> None:
         current = self._current(command.header.episode)
@@ -173,21 +181,36 @@ class ScorerService:
         if not complete and time.monotonic() - current.end_arrival < POSE_GRACE_S:
             return
         if not complete:
-            log.warning("episode %d: scoring without poses %d..%d (never arrived)", current.number,
-                        current.last_pose_seq + 1, current.end.last_pose_seq)
+            log.warning(
+                "episode %d: scoring without poses %d..%d (never arrived)",
+                current.number,
+                current.last_pose_seq + 1,
+                current.end.last_pose_seq,
+            )
         wall_time_s = current.end.wall_elapsed_ns / 1e9 or (time.monotonic() - current.wall_start)
         shadows = current.commands.finish()  # first: it hands the last driver commands to the metrics
         metrics = current.scorer.finish(wall_time_s=wall_time_s)
         score = EpisodeScore(
-            header=Header(run_id=self.config.run_id, episode=current.number, seq=0,
-                          stamp_ns=current.end.header.stamp_ns),
-            spec=current.spec, reason=current.end.reason or EndReason.STOPPED, brain=current.active_brain,
-            metrics=metrics, switches=list(current.commands.switches), shadows=shadows)
+            header=Header(
+                run_id=self.config.run_id, episode=current.number, seq=0, stamp_ns=current.end.header.stamp_ns
+            ),
+            spec=current.spec,
+            reason=current.end.reason or EndReason.STOPPED,
+            brain=current.active_brain,
+            metrics=metrics,
+            switches=list(current.commands.switches),
+            shadows=shadows,
+        )
         self._scores.publish(score)
         self._scored.add(current.number)
         self._episode = None
-        log.info("episode %d scored: %s, %.1f %% of a lap, %d laps", current.number, score.reason,
-                 metrics.percentage_completed, metrics.completed_laps)
+        log.info(
+            "episode %d scored: %s, %.1f %% of a lap, %d laps",
+            current.number,
+            score.reason,
+            metrics.percentage_completed,
+            metrics.completed_laps,
+        )
 
     def _maybe_publish_live(self) -> None:
         current = self._episode
@@ -197,13 +220,23 @@ class ScorerService:
         self._next_live = now + 1.0 / self.config.live_rate_hz
         live = current.scorer.live()
         wall_s = now - current.wall_start
-        self._live.publish(LiveMetrics(
-            header=Header(run_id=self.config.run_id, episode=current.number, seq=self._live_seq,
-                          stamp_ns=int(live["sim_time_s"] * 1e9)),
-            progress_laps=live["progress_laps"], laps_target=current.spec.laps,
-            completed_laps=live["completed_laps"], sim_time_s=live["sim_time_s"],
-            real_time_factor=live["sim_time_s"] / wall_s if wall_s > 0 else 0.0,
-            cross_track_m=live["cross_track_m"], speed_mps=live["speed_mps"]))
+        self._live.publish(
+            LiveMetrics(
+                header=Header(
+                    run_id=self.config.run_id,
+                    episode=current.number,
+                    seq=self._live_seq,
+                    stamp_ns=int(live["sim_time_s"] * 1e9),
+                ),
+                progress_laps=live["progress_laps"],
+                laps_target=current.spec.laps,
+                completed_laps=live["completed_laps"],
+                sim_time_s=live["sim_time_s"],
+                real_time_factor=live["sim_time_s"] / wall_s if wall_s > 0 else 0.0,
+                cross_track_m=live["cross_track_m"],
+                speed_mps=live["speed_mps"],
+            )
+        )
         self._live_seq += 1
 
 
@@ -211,8 +244,12 @@ def _driver_feed(scorer: EpisodeScorer):
     """The driving brain's commands, as the metrics take them."""
 
     def feed(command: Command) -> None:
-        scorer.add_command(stamp_ns=command.header.stamp_ns, speed_mps=command.speed_mps,
-                           yaw_rate_radps=command.yaw_rate_radps, inference_ns=command.inference_ns)
+        scorer.add_command(
+            stamp_ns=command.header.stamp_ns,
+            speed_mps=command.speed_mps,
+            yaw_rate_radps=command.yaw_rate_radps,
+            inference_ns=command.inference_ns,
+        )
 
     return feed
 
@@ -220,5 +257,6 @@ def _driver_feed(scorer: EpisodeScorer):
 def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import service_main
 
-    return service_main("scorer", "drivebench scorer: live metrics and one final score per episode", ScorerConfig,
-                        ScorerService, argv)
+    return service_main(
+        "scorer", "drivebench scorer: live metrics and one final score per episode", ScorerConfig, ScorerService, argv
+    )

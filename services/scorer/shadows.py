@@ -35,15 +35,19 @@ class _Distance:
         self.frames += 1
         self.speed_abs_sum += abs(speed_diff_mps)
         self.yaw_rate_abs_sum += abs(yaw_rate_diff_radps)
-        self.yaw_rate_sq_sum += yaw_rate_diff_radps ** 2
+        self.yaw_rate_sq_sum += yaw_rate_diff_radps**2
         self.yaw_rate_max_abs = max(self.yaw_rate_max_abs, abs(yaw_rate_diff_radps))
 
     def result(self, brain: str) -> ShadowDistance:
         n = self.frames
-        return ShadowDistance(brain=brain, frames=n, speed_mae_mps=self.speed_abs_sum / n if n else 0.0,
-                              yaw_rate_mae_radps=self.yaw_rate_abs_sum / n if n else 0.0,
-                              yaw_rate_rmse_radps=math.sqrt(self.yaw_rate_sq_sum / n) if n else 0.0,
-                              yaw_rate_max_abs_radps=self.yaw_rate_max_abs)
+        return ShadowDistance(
+            brain=brain,
+            frames=n,
+            speed_mae_mps=self.speed_abs_sum / n if n else 0.0,
+            yaw_rate_mae_radps=self.yaw_rate_abs_sum / n if n else 0.0,
+            yaw_rate_rmse_radps=math.sqrt(self.yaw_rate_sq_sum / n) if n else 0.0,
+            yaw_rate_max_abs_radps=self.yaw_rate_max_abs,
+        )
 
 
 class CommandMatcher:
@@ -53,8 +57,9 @@ class CommandMatcher:
     on_driver: called once per settled frame with the driver's command (in frame order while nothing is late).
     """
 
-    def __init__(self, *, first_driver: str, on_driver: Callable[[Command], None],
-                 max_pending_frames: int = MAX_PENDING_FRAMES):
+    def __init__(
+        self, *, first_driver: str, on_driver: Callable[[Command], None], max_pending_frames: int = MAX_PENDING_FRAMES
+    ):
         self._first_driver = first_driver
         self._on_driver = on_driver
         self._max_pending = max_pending_frames
@@ -100,5 +105,6 @@ class CommandMatcher:
         self._on_driver(driving)
         for brain, command in answers.items():
             if command is not driving:
-                self._distances.setdefault(brain, _Distance()).add(command.speed_mps - driving.speed_mps,
-                                                                   command.yaw_rate_radps - driving.yaw_rate_radps)
+                self._distances.setdefault(brain, _Distance()).add(
+                    command.speed_mps - driving.speed_mps, command.yaw_rate_radps - driving.yaw_rate_radps
+                )

@@ -33,8 +33,9 @@ class SceneCache:
         self._scenes: dict[tuple[str, WorldVariation, str], Renderer] = {}
         self._capacity = capacity
 
-    def get(self, circuit: Circuit, world: WorldVariation = WorldVariation(), *,
-            renderer: str = "pybullet") -> Renderer:
+    def get(
+        self, circuit: Circuit, world: WorldVariation = WorldVariation(), *, renderer: str = "pybullet"
+    ) -> Renderer:
         """The scene, drawn by ``renderer`` ("pybullet" or "gl"; "auto" is resolved here, in the rendering thread)."""
         renderer = resolve_renderer(renderer).name
         key = (circuit.name, world, renderer)
@@ -93,8 +94,9 @@ class EpisodeSim:
 
     def step(self, *, speed_mps: float, yaw_rate_radps: float) -> StepResult:
         """Move the car for one period with the command, then check how the episode stands."""
-        self.car = integrate_unicycle(self.car, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps,
-                                      dt_s=self.spec.step_s)
+        self.car = integrate_unicycle(
+            self.car, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps, dt_s=self.spec.step_s
+        )
         self.seq += 1
         projection = self.circuit.centreline.project(self.car.x_m, self.car.y_m, near_s_m=self._s_m)
         self.progress_m += float(self.circuit.centreline.wrap_ds(projection.s_m - self._s_m))
@@ -103,8 +105,14 @@ class EpisodeSim:
         laps_now = int(self.progress_m // self.circuit.length_m)
         if laps_now > self.laps_completed:
             self.laps_completed = lap = laps_now
-        return StepResult(car=self.car, stamp_ns=self.stamp_ns, seq=self.seq, lateral_m=projection.lateral_m,
-                          lap=lap, end=self._end_reason(projection.lateral_m))
+        return StepResult(
+            car=self.car,
+            stamp_ns=self.stamp_ns,
+            seq=self.seq,
+            lateral_m=projection.lateral_m,
+            lap=lap,
+            end=self._end_reason(projection.lateral_m),
+        )
 
     def _end_reason(self, lateral_m: float) -> EndReason | None:
         if abs(lateral_m) > self._edge_m:

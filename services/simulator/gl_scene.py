@@ -153,7 +153,8 @@ class GLScene:
         if framebuffer is None:
             framebuffer = self._ctx.framebuffer(
                 color_attachments=[self._ctx.renderbuffer((width_px, height_px), components=4)],
-                depth_attachment=self._ctx.depth_renderbuffer((width_px, height_px)))
+                depth_attachment=self._ctx.depth_renderbuffer((width_px, height_px)),
+            )
             self._framebuffers[(width_px, height_px)] = framebuffer
         return framebuffer
 

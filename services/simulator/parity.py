@@ -41,10 +41,10 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
         raise ValueError(f"images of at least {2 * _RADIUS + 1} px per side needed, got {a.shape[1]}x{a.shape[0]}")
     x, y = _luma(a), _luma(b)
     mu_x, mu_y = _blur(x), _blur(y)
-    var_x = _blur(x * x) - mu_x ** 2
-    var_y = _blur(y * y) - mu_y ** 2
+    var_x = _blur(x * x) - mu_x**2
+    var_y = _blur(y * y) - mu_y**2
     cov = _blur(x * y) - mu_x * mu_y
-    index = ((2 * mu_x * mu_y + _C1) * (2 * cov + _C2)) / ((mu_x ** 2 + mu_y ** 2 + _C1) * (var_x + var_y + _C2))
+    index = ((2 * mu_x * mu_y + _C1) * (2 * cov + _C2)) / ((mu_x**2 + mu_y**2 + _C1) * (var_x + var_y + _C2))
     return float(index.mean())
 
 

@@ -108,8 +108,9 @@ class Scene:
     ):
         if cull_margin_m is not None and cull_margin_m < 0:
             raise ValueError(f"cull_margin_m must be >= 0 or None, got {cull_margin_m}")
-        description = describe(circuit, line_colour=line_colour, road_colour=road_colour, walls=walls,
-                               lighting=lighting)
+        description = describe(
+            circuit, line_colour=line_colour, road_colour=road_colour, walls=walls, lighting=lighting
+        )
         self.description = description
         self._lighting = LIGHTING[lighting]
         self._sky_rgb = description.sky_rgb
@@ -134,8 +135,7 @@ class Scene:
     @classmethod
     def for_world(cls, circuit: Circuit, world: WorldVariation) -> Scene:
         """The scene of ``circuit`` with a world variation (line, road, walls, lighting)."""
-        return cls(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls,
-                   lighting=world.lighting)
+        return cls(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls, lighting=world.lighting)
 
     # -- building ---------------------------------------------------------------------------------------------------
 
@@ -150,8 +150,7 @@ class Scene:
             physicsClientId=self._client,
         )
         body = pybullet.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self._client)
-        self._chunks.append(_Chunk(body, mesh.rgba, mesh.centre_m, mesh.radius_m, mesh.triangles,
-                                   mesh.kind == "grass"))
+        self._chunks.append(_Chunk(body, mesh.rgba, mesh.centre_m, mesh.radius_m, mesh.triangles, mesh.kind == "grass"))
 
     # -- rendering --------------------------------------------------------------------------------------------------
 

@@ -134,8 +134,9 @@ class SimulatorService:
         works on keys) must not answer for another brain by naming it in the message."""
         if keys.brain_of_command_key(received.key) == received.message.brain:
             return True
-        self.bus.rejects.reject(received.key, ValueError(f"command names brain {received.message.brain!r}, not the "
-                                                         "brain of its key"))
+        self.bus.rejects.reject(
+            received.key, ValueError(f"command names brain {received.message.brain!r}, not the brain of its key")
+        )
         return False
 
     def _brain_alive(self, name: str) -> bool:
@@ -153,14 +154,24 @@ class SimulatorService:
 
     def _status(self) -> ControlReply:
         running = self._state == "running"
-        return ControlReply(ok=True, state=self._state, episode=self._episode, active_brain=self._active(),
-                            spec=self._spec if running else None)
+        return ControlReply(
+            ok=True,
+            state=self._state,
+            episode=self._episode,
+            active_brain=self._active(),
+            spec=self._spec if running else None,
+        )
 
     def _switch(self, brain: str) -> ControlReply:
         """Make ``brain`` the active brain from the frame whose command is awaited next (callback thread)."""
         if self._state != "running":
-            return ControlReply(ok=False, detail=f"no episode is running (simulator {self._state})", state=self._state,
-                                episode=self._episode, active_brain=self._active())
+            return ControlReply(
+                ok=False,
+                detail=f"no episode is running (simulator {self._state})",
+                state=self._state,
+                episode=self._episode,
+                active_brain=self._active(),
+            )
         if not brain:
             return ControlReply(ok=False, detail="switch needs a brain name", state=self._state)
         with self._alive_lock:
@@ -174,11 +185,17 @@ class SimulatorService:
                 self._active_brain = brain
                 self._switches.append((previous, brain))
         if detail:
-            return ControlReply(ok=False, detail=detail, state=self._state, episode=self._episode,
-                                active_brain=previous)
+            return ControlReply(
+                ok=False, detail=detail, state=self._state, episode=self._episode, active_brain=previous
+            )
         log.info("switch requested: %s -> %s", previous, brain)
-        return ControlReply(ok=True, detail=f"{previous} -> {brain} from the next frame", state=self._state,
-                            episode=self._episode, active_brain=brain)
+        return ControlReply(
+            ok=True,
+            detail=f"{previous} -> {brain} from the next frame",
+            state=self._state,
+            episode=self._episode,
+            active_brain=brain,
+        )
 
     def _on_status(self, payload: bytes) -> bytes:
         """The read-only status queryable (``keys.sim_status``): any payload, the status reply."""
@@ -270,10 +287,12 @@ class SimulatorService:
                 break
         wall_ns = time.monotonic_ns() - wall_start
         self._announce_switches(sim, header)  # one accepted after the last frame: the score names the brain
-        self._publish_event(header, EventKind.END, sim.stamp_ns, reason=reason, last_pose_seq=sim.seq,
-                            wall_elapsed_ns=wall_ns)
-        log.info("episode %d ended: %s after %.2f s sim, %.2f s wall", episode, reason, sim.stamp_ns / 1e9,
-                 wall_ns / 1e9)
+        self._publish_event(
+            header, EventKind.END, sim.stamp_ns, reason=reason, last_pose_seq=sim.seq, wall_elapsed_ns=wall_ns
+        )
+        log.info(
+            "episode %d ended: %s after %.2f s sim, %.2f s wall", episode, reason, sim.stamp_ns / 1e9, wall_ns / 1e9
+        )
         return reason
 
     def _publish_event(self, header, kind: EventKind, stamp_ns: int, **fields) -> None:
@@ -298,23 +317,34 @@ class SimulatorService:
             time.sleep(0.01)
         log.warning("starting without a subscriber to camera frames or events")
 
-    def _publish_observation(self, sim: EpisodeSim, header, *, speed_mps: float, yaw_rate_radps: float,
-                             latency_ns: int, frame: bool = True) -> int:
+    def _publish_observation(
+        self, sim: EpisodeSim, header, *, speed_mps: float, yaw_rate_radps: float, latency_ns: int, frame: bool = True
+    ) -> int:
         """Publish frame (optional) and pose of the current step; return when the frame went out (monotonic ns)."""
         h = header(sim.seq, sim.stamp_ns)
         if frame:
             self._frames.publish(image_frame(h, sim.render()))
         sent_ns = time.monotonic_ns()
-        self._poses.publish(Pose(header=h, x_m=sim.car.x_m, y_m=sim.car.y_m, yaw_rad=sim.car.yaw_rad,
-                                 speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps, command_latency_ns=latency_ns))
+        self._poses.publish(
+            Pose(
+                header=h,
+                x_m=sim.car.x_m,
+                y_m=sim.car.y_m,
+                yaw_rad=sim.car.yaw_rad,
+                speed_mps=speed_mps,
+                yaw_rate_radps=yaw_rate_radps,
+                command_latency_ns=latency_ns,
+            )
+        )
         return sent_ns
 
     def _lockstep_steps(self, sim: EpisodeSim, header):
         spec = sim.spec
         speed, yaw_rate, latency_ns = 0.0, 0.0, 0
         while True:
-            frame_sent_ns = self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate,
-                                                      latency_ns=latency_ns)
+            frame_sent_ns = self._publish_observation(
+                sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=latency_ns
+            )
             command, ending = self._await_command(sim, header, spec, frame_sent_ns)
             if ending is not None:
                 yield StepResult(car=sim.car, stamp_ns=sim.stamp_ns, seq=sim.seq, lateral_m=0.0, lap=0, end=ending)
@@ -323,8 +353,9 @@ class SimulatorService:
             speed, yaw_rate = command.message.speed_mps, command.message.yaw_rate_radps
             result = sim.step(speed_mps=speed, yaw_rate_radps=yaw_rate)
             if result.end is not None:  # the last pose, without a frame nobody would answer
-                self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate,
-                                          latency_ns=latency_ns, frame=False)
+                self._publish_observation(
+                    sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=latency_ns, frame=False
+                )
             yield result
 
     def _await_command(self, sim: EpisodeSim, header, spec: EpisodeSpec, frame_sent_ns: int):
@@ -375,8 +406,9 @@ class SimulatorService:
         active_since_ns = time.monotonic_ns()
         next_tick = time.monotonic()
         while True:
-            sent_ns[sim.seq] = self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate,
-                                                         latency_ns=latency_ns)
+            sent_ns[sim.seq] = self._publish_observation(
+                sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=latency_ns
+            )
             sent_ns.pop(sim.seq - REALTIME_LATENCY_FRAMES, None)
             latency_ns = 0
             next_tick += spec.step_s
@@ -407,8 +439,9 @@ class SimulatorService:
                 return
             result = sim.step(speed_mps=speed, yaw_rate_radps=yaw_rate)
             if result.end is not None:
-                self._publish_observation(sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=0,
-                                          frame=False)
+                self._publish_observation(
+                    sim, header, speed_mps=speed, yaw_rate_radps=yaw_rate, latency_ns=0, frame=False
+                )
             yield result
 
     def close(self) -> None:
@@ -418,8 +451,13 @@ class SimulatorService:
 def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import service_main
 
-    return service_main("simulator", "drivebench simulator: PyBullet world, camera frames, poses, episode events",
-                        SimulatorConfig, SimulatorService, argv)
+    return service_main(
+        "simulator",
+        "drivebench simulator: PyBullet world, camera frames, poses, episode events",
+        SimulatorConfig,
+        SimulatorService,
+        argv,
+    )
 
 
 __all__ = ["SimulatorConfig", "SimulatorService", "main"]

@@ -102,12 +102,12 @@ class SceneDescription:
 
 def describe_world(circuit: Circuit, world: WorldVariation = WorldVariation()) -> SceneDescription:
     """The scene of ``circuit`` with a world variation (line colour, road colour, walls, lighting)."""
-    return describe(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls,
-                    lighting=world.lighting)
+    return describe(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls, lighting=world.lighting)
 
 
-def describe(circuit: Circuit, *, line_colour: str = "red", road_colour: str = "grey", walls: bool = True,
-             lighting: str = "sun") -> SceneDescription:
+def describe(
+    circuit: Circuit, *, line_colour: str = "red", road_colour: str = "grey", walls: bool = True, lighting: str = "sun"
+) -> SceneDescription:
     """The scene description; ValueError names a bad option."""
     if lighting not in LIGHTING:
         raise ValueError(f"lighting must be 'sun' or 'no_sun', got {lighting!r}")
@@ -131,18 +131,30 @@ def describe(circuit: Circuit, *, line_colour: str = "red", road_colour: str = "
     meshes += _grass(points)
     light = np.array(DEFAULT_LIGHT_TOWARDS) / np.linalg.norm(DEFAULT_LIGHT_TOWARDS)
     coefficients = LIGHTING[lighting]
-    return SceneDescription(circuit=circuit, meshes=tuple(meshes), lighting=lighting,
-                            ambient=coefficients["lightAmbientCoeff"], diffuse=coefficients["lightDiffuseCoeff"],
-                            light_towards=tuple(float(v) for v in light), sky_rgb=SKY_RGB_BY_LIGHTING[lighting],
-                            walls=walls)
+    return SceneDescription(
+        circuit=circuit,
+        meshes=tuple(meshes),
+        lighting=lighting,
+        ambient=coefficients["lightAmbientCoeff"],
+        diffuse=coefficients["lightDiffuseCoeff"],
+        light_towards=tuple(float(v) for v in light),
+        sky_rgb=SKY_RGB_BY_LIGHTING[lighting],
+        walls=walls,
+    )
 
 
 def _mesh(kind: MeshKind, vertices: np.ndarray, indices: list[int], rgba: tuple[float, ...]) -> Mesh:
     assert len(indices) // 3 <= MAX_TRIANGLES_PER_CHUNK, len(indices)
     centre = vertices.mean(axis=0)
     radius = float(np.max(np.linalg.norm(vertices - centre, axis=1)))
-    return Mesh(kind=kind, vertices_m=vertices, indices=np.asarray(indices, dtype=np.int32), rgba=tuple(rgba),
-                centre_m=centre, radius_m=radius)
+    return Mesh(
+        kind=kind,
+        vertices_m=vertices,
+        indices=np.asarray(indices, dtype=np.int32),
+        rgba=tuple(rgba),
+        centre_m=centre,
+        radius_m=radius,
+    )
 
 
 def _grass(points: np.ndarray) -> list[Mesh]:
@@ -155,14 +167,16 @@ def _grass(points: np.ndarray) -> list[Mesh]:
     for x0 in np.arange(low[0], high[0], tile):
         for y0 in np.arange(low[1], high[1], tile):
             x1, y1 = x0 + tile, y0 + tile
-            vertices = np.array([[x0, y0, GRASS_HEIGHT_M], [x1, y0, GRASS_HEIGHT_M], [x1, y1, GRASS_HEIGHT_M],
-                                 [x0, y1, GRASS_HEIGHT_M]])
+            vertices = np.array(
+                [[x0, y0, GRASS_HEIGHT_M], [x1, y0, GRASS_HEIGHT_M], [x1, y1, GRASS_HEIGHT_M], [x0, y1, GRASS_HEIGHT_M]]
+            )
             meshes.append(_mesh("grass", vertices, [0, 1, 2, 0, 2, 3], GRASS_COLOUR))
     return meshes
 
 
-def _strip(points: np.ndarray, normals: np.ndarray, half_width_m: float, z_m: float, rgba: tuple[float, ...],
-           kind: MeshKind) -> list[Mesh]:
+def _strip(
+    points: np.ndarray, normals: np.ndarray, half_width_m: float, z_m: float, rgba: tuple[float, ...], kind: MeshKind
+) -> list[Mesh]:
     """A closed ribbon of width 2*half_width_m along the points, facing up, split into chunks."""
     left = points + half_width_m * normals
     right = points - half_width_m * normals
@@ -241,8 +255,13 @@ def view_matrix(car: CarState, camera: CameraSpec) -> np.ndarray:
     eye, forward, up = camera_eye_and_axes(car, camera)
     # forward and up are orthonormal by construction, so side = forward x up is a unit vector and up is already
     # gluLookAt's recomputed up; written out, since np.cross costs more than the rest of a small frame's set-up.
-    side = np.array([forward[1] * up[2] - forward[2] * up[1], forward[2] * up[0] - forward[0] * up[2],
-                     forward[0] * up[1] - forward[1] * up[0]])
+    side = np.array(
+        [
+            forward[1] * up[2] - forward[2] * up[1],
+            forward[2] * up[0] - forward[0] * up[2],
+            forward[0] * up[1] - forward[1] * up[0],
+        ]
+    )
     view = np.eye(4)
     view[0, :3], view[1, :3], view[2, :3] = side, up, -forward
     view[:3, 3] = -view[:3, :3] @ eye

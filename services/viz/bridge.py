@@ -108,9 +108,20 @@ class LiveBridge:
     from one thread.
     """
 
-    def __init__(self, *, run_id: str, host: str, port: int, backlog: int, jpeg_quality: int = 90,
-                 name: str = "drivebench", brains: Iterable[str] = (), perturbed: bool = False,
-                 max_viewers: int | None = None, backlog_bytes: int | None = None):
+    def __init__(
+        self,
+        *,
+        run_id: str,
+        host: str,
+        port: int,
+        backlog: int,
+        jpeg_quality: int = 90,
+        name: str = "drivebench",
+        brains: Iterable[str] = (),
+        perturbed: bool = False,
+        max_viewers: int | None = None,
+        backlog_bytes: int | None = None,
+    ):
         self.run_id = run_id
         self.jpeg_quality = jpeg_quality
         self.sent: Counter[str] = Counter()  # messages sent per topic (logged while some viewer subscribed)
@@ -138,9 +149,13 @@ class LiveBridge:
         # advertisement. One created later races its viewers' subscriptions (see _LostSubscriptions): the perturbed
         # camera and each brain's commands when their process comes up later (``advertise_*``) or at their first
         # message.
-        for key, message_type in ((keys.camera_raw(run_id), CameraFrame), (keys.pose(run_id), Pose),
-                                  (keys.events(run_id), EpisodeEvent), (keys.live_metrics(run_id), LiveMetrics),
-                                  (keys.score(run_id), EpisodeScore)):
+        for key, message_type in (
+            (keys.camera_raw(run_id), CameraFrame),
+            (keys.pose(run_id), Pose),
+            (keys.events(run_id), EpisodeEvent),
+            (keys.live_metrics(run_id), LiveMetrics),
+            (keys.score(run_id), EpisodeScore),
+        ):
             self._bus_channel(key, message_type)
         for brain in brains:
             self.advertise_command(brain)
@@ -151,10 +166,18 @@ class LiveBridge:
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-        for name_, message_class in (("car_pose", PoseInFrame), ("world_from_car", FrameTransform),
-                                     ("track", SceneUpdate), ("episode_log", Log)):
-            self._channel(self._view_topics[name_], "protobuf", protobuf_schema(message_class),
-                          {VIEW_METADATA: "1", RUN_ID_METADATA: run_id})
+        for name_, message_class in (
+            ("car_pose", PoseInFrame),
+            ("world_from_car", FrameTransform),
+            ("track", SceneUpdate),
+            ("episode_log", Log),
+        ):
+            self._channel(
+                self._view_topics[name_],
+                "protobuf",
+                protobuf_schema(message_class),
+                {VIEW_METADATA: "1", RUN_ID_METADATA: run_id},
+            )
         _SDK_LOG.addHandler(self._lost)
         self.gate: ViewerGate | None = None
         # With limits, viewers reach the SDK's server only through the gate (services.viz.gate), which listens on
@@ -162,20 +185,32 @@ class LiveBridge:
         gated = max_viewers is not None or backlog_bytes is not None
         try:
             self._server = foxglove.start_server(
-                name=name, host="127.0.0.1" if gated else host, port=0 if gated else port, context=self._context,
-                message_backlog_size=backlog, server_listener=_Listener(self))
+                name=name,
+                host="127.0.0.1" if gated else host,
+                port=0 if gated else port,
+                context=self._context,
+                message_backlog_size=backlog,
+                server_listener=_Listener(self),
+            )
         except RuntimeError as error:
             _SDK_LOG.removeHandler(self._lost)
-            raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
-                              f"{str(error).removeprefix('FoxgloveError: ')}") from None
+            raise BridgeError(
+                f"cannot serve Foxglove WebSocket on {host}:{port}: {str(error).removeprefix('FoxgloveError: ')}"
+            ) from None
         if gated:
             try:
-                self.gate = ViewerGate(host=host, port=port, upstream_port=self._server.port,
-                                       max_viewers=max_viewers or 1_000_000, backlog_bytes=backlog_bytes or 1 << 40)
+                self.gate = ViewerGate(
+                    host=host,
+                    port=port,
+                    upstream_port=self._server.port,
+                    max_viewers=max_viewers or 1_000_000,
+                    backlog_bytes=backlog_bytes or 1 << 40,
+                )
             except OSError as error:
                 self.close()
-                raise BridgeError(f"cannot serve Foxglove WebSocket on {host}:{port}: "
-                                  f"{error.strerror or error}") from None
+                raise BridgeError(
+                    f"cannot serve Foxglove WebSocket on {host}:{port}: {error.strerror or error}"
+                ) from None
 
     @property
     def port(self) -> int:
@@ -184,14 +219,19 @@ class LiveBridge:
 
     # -- channels --
 
-    def _channel(self, topic: str, encoding: str, schema: Schema,
-                 metadata: dict[str, str] | None = None) -> foxglove.Channel:
+    def _channel(
+        self, topic: str, encoding: str, schema: Schema, metadata: dict[str, str] | None = None
+    ) -> foxglove.Channel:
         with self._channels_lock:
             channel = self._channels.get(topic)
             if channel is None:
                 channel = self._channels[topic] = foxglove.Channel(
-                    topic, message_encoding=encoding, context=self._context, metadata=metadata,
-                    schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data))
+                    topic,
+                    message_encoding=encoding,
+                    context=self._context,
+                    metadata=metadata,
+                    schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
+                )
                 self._ids[channel.id()] = topic
             return channel
 
@@ -208,7 +248,8 @@ class LiveBridge:
                 # Closed first: the SDK hands back the open channel of the same topic and schema, same id and all.
                 old.close()
                 new = self._channels[topic] = foxglove.Channel(
-                    topic, message_encoding=encoding, context=self._context, schema=schema, metadata=metadata)
+                    topic, message_encoding=encoding, context=self._context, schema=schema, metadata=metadata
+                )
                 self._ids[new.id()] = topic
             self.readvertised += 1
             log.info("advertised %s again: a viewer's subscription to it was lost", topic)
@@ -281,8 +322,9 @@ class LiveBridge:
                 self.sent[key] += 1
         if isinstance(message, Pose):
             # The geometry is stamped with the viewer's clock (see the module docstring).
-            message = msgspec.structs.replace(message, header=msgspec.structs.replace(message.header,
-                                                                                      stamp_ns=log_time))
+            message = msgspec.structs.replace(
+                message, header=msgspec.structs.replace(message.header, stamp_ns=log_time)
+            )
         if isinstance(message, (Pose, EpisodeEvent)):
             for view in self._views.on_message(message, log_time_ns=log_time):
                 self._publish_view(view, log_time)
@@ -312,4 +354,3 @@ class LiveBridge:
         with self._channels_lock:
             for channel in self._channels.values():
                 channel.close()
-

@@ -60,8 +60,10 @@ class ViewerGate:
         self._connections: set[asyncio.Task] = set()
         try:
             self._server = self._loop.run_until_complete(
-                asyncio.start_server(self._on_viewer, host=host or None, port=port, reuse_address=True,
-                                     limit=HANDSHAKE_LIMIT_BYTES))
+                asyncio.start_server(
+                    self._on_viewer, host=host or None, port=port, reuse_address=True, limit=HANDSHAKE_LIMIT_BYTES
+                )
+            )
         except OSError:
             self._loop.close()
             raise
@@ -82,11 +84,17 @@ class ViewerGate:
                 return
             if self.stats.viewers >= self.max_viewers:
                 self.stats.refused += 1
-                log.warning("refused a viewer from %s: %d viewers already connected (max_viewers %d)",
-                            _peer(writer), self.stats.viewers, self.max_viewers)
+                log.warning(
+                    "refused a viewer from %s: %d viewers already connected (max_viewers %d)",
+                    _peer(writer),
+                    self.stats.viewers,
+                    self.max_viewers,
+                )
                 body = f"drivebench view: {self.stats.viewers} viewers already connected (max_viewers)\n".encode()
-                writer.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n"
-                             b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body)
+                writer.write(
+                    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n"
+                    b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body
+                )
                 await writer.drain()
                 return
             self.stats.viewers += 1
@@ -144,6 +152,7 @@ class ViewerGate:
 
     def close(self) -> None:
         """Stop listening and disconnect every viewer."""
+
         async def stop() -> None:
             self._server.close()
             for task in list(self._connections):

@@ -60,32 +60,71 @@ class _Builder:
     def three_d(self, name: str, *, namespaces: tuple[str, ...] | None, follow: str) -> str:
         shown = {}
         for ns in namespaces or (None,):
+
             def topic(t: str, ns=ns) -> str:
                 return t if ns is None else topics.namespaced(t, ns)
+
             shown[topic(topics.CIRCUIT)] = {"visible": True}
             shown[topic(topics.CAR_POSE)] = {"visible": True, "type": "arrow"}
-        return self.panel("3D", name, "car on the circuit", {
-            "cameraState": {"perspective": True, "distance": 25, "phi": 55, "thetaOffset": 45, "fovy": 45,
-                            "near": 0.5, "far": 5000, "target": [0, 0, 0], "targetOffset": [0, 0, 0],
-                            "targetOrientation": [0, 0, 0, 1]},
-            "followMode": "follow-position" if follow != WORLD_FRAME else "follow-none",
-            "followTf": follow,
-            "scene": {}, "transforms": {}, "topics": shown,
-            "layers": {"grid": {"visible": True, "layerId": "foxglove.Grid", "frameId": WORLD_FRAME, "size": 60,
-                                "divisions": 60, "lineWidth": 1, "color": "#248eff40", "position": [0, 0, 0],
-                                "rotation": [0, 0, 0]}},
-        })
+        return self.panel(
+            "3D",
+            name,
+            "car on the circuit",
+            {
+                "cameraState": {
+                    "perspective": True,
+                    "distance": 25,
+                    "phi": 55,
+                    "thetaOffset": 45,
+                    "fovy": 45,
+                    "near": 0.5,
+                    "far": 5000,
+                    "target": [0, 0, 0],
+                    "targetOffset": [0, 0, 0],
+                    "targetOrientation": [0, 0, 0, 1],
+                },
+                "followMode": "follow-position" if follow != WORLD_FRAME else "follow-none",
+                "followTf": follow,
+                "scene": {},
+                "transforms": {},
+                "topics": shown,
+                "layers": {
+                    "grid": {
+                        "visible": True,
+                        "layerId": "foxglove.Grid",
+                        "frameId": WORLD_FRAME,
+                        "size": 60,
+                        "divisions": 60,
+                        "lineWidth": 1,
+                        "color": "#248eff40",
+                        "position": [0, 0, 0],
+                        "rotation": [0, 0, 0],
+                    }
+                },
+            },
+        )
 
     def image(self, name: str, title: str, topic: str) -> str:
         return self.panel("Image", name, title, {"imageMode": {"imageTopic": topic}})
 
     def plot(self, name: str, title: str, series: list[tuple[str, str]]) -> str:
-        return self.panel("Plot", name, title, {
-            "paths": [{"value": path, "label": label, "enabled": True, "timestampMethod": "receiveTime"}
-                      for label, path in series],
-            "showLegend": True, "legendDisplay": "floating", "showXAxisLabels": True, "showYAxisLabels": True,
-            "isSynced": True, "xAxisVal": "timestamp",
-        })
+        return self.panel(
+            "Plot",
+            name,
+            title,
+            {
+                "paths": [
+                    {"value": path, "label": label, "enabled": True, "timestampMethod": "receiveTime"}
+                    for label, path in series
+                ],
+                "showLegend": True,
+                "legendDisplay": "floating",
+                "showXAxisLabels": True,
+                "showYAxisLabels": True,
+                "isSynced": True,
+                "xAxisVal": "timestamp",
+            },
+        )
 
     def log(self, name: str, title: str, topic: str) -> str:
         return self.panel("RosOut", name, title, {"searchTerms": [], "minLogLevel": 1, "topicToRender": topic})
@@ -94,20 +133,34 @@ class _Builder:
         return self.panel("Table", name, title, {"topicPath": topic})
 
     def layout(self, tree: Any) -> dict[str, Any]:
-        return {"configById": self.config_by_id, "globalVariables": {}, "userNodes": {},
-                "playbackConfig": {"speed": 1.0}, "layout": tree}
+        return {
+            "configById": self.config_by_id,
+            "globalVariables": {},
+            "userNodes": {},
+            "playbackConfig": {"speed": 1.0},
+            "layout": tree,
+        }
 
 
 def single_run_layout() -> dict[str, Any]:
     """The layout of one run (a recording or ``drivebench view``)."""
     b = _Builder()
     scene = b.three_d("scene", namespaces=None, follow=CAR_FRAME)
-    cameras = _split("row", b.image("truth", "camera: ground truth", topics.CAMERA_TRUTH),
-                     b.image("brain", "camera: what the brain sees (perturbed)", topics.CAMERA_BRAIN))
-    plots = [b.plot(f"plot{i}", title, [(title.split(" (")[0], f"{topic}.{field}")])
-             for i, (title, topic, field) in enumerate(PLOTS)]
-    bottom = _split("row", b.log("events", "episode events", topics.EPISODE_LOG),
-                    b.table("score", "score", topics.EPISODE_SCORE), 55)
+    cameras = _split(
+        "row",
+        b.image("truth", "camera: ground truth", topics.CAMERA_TRUTH),
+        b.image("brain", "camera: what the brain sees (perturbed)", topics.CAMERA_BRAIN),
+    )
+    plots = [
+        b.plot(f"plot{i}", title, [(title.split(" (")[0], f"{topic}.{field}")])
+        for i, (title, topic, field) in enumerate(PLOTS)
+    ]
+    bottom = _split(
+        "row",
+        b.log("events", "episode events", topics.EPISODE_LOG),
+        b.table("score", "score", topics.EPISODE_SCORE),
+        55,
+    )
     left = _split("column", scene, cameras, 60)
     right = _split("column", _chain("column", plots), bottom, 70)
     return b.layout(_split("row", left, right, 55))
@@ -117,14 +170,28 @@ def compare_layout(namespaces: tuple[str, ...] = topics.DEFAULT_NAMESPACES[:2]) 
     """The layout of runs merged by ``drivebench recorder merge`` (default namespaces ``runA``, ``runB``)."""
     b = _Builder()
     scene = b.three_d("scene", namespaces=namespaces, follow=WORLD_FRAME)
-    cameras = _chain("row", [b.image(f"brain-{ns}", f"{ns}: camera the brain sees",
-                                     topics.namespaced(topics.CAMERA_BRAIN, ns)) for ns in namespaces])
-    plots = [b.plot(f"plot{i}", title, [(ns, f"{topics.namespaced(topic, ns)}.{field}") for ns in namespaces])
-             for i, (title, topic, field) in enumerate(PLOTS)]
-    logs = _chain("row", [b.log(f"events-{ns}", f"{ns}: episode events", topics.namespaced(topics.EPISODE_LOG, ns))
-                          for ns in namespaces])
-    scores = _chain("row", [b.table(f"score-{ns}", f"{ns}: score", topics.namespaced(topics.EPISODE_SCORE, ns))
-                            for ns in namespaces])
+    cameras = _chain(
+        "row",
+        [
+            b.image(f"brain-{ns}", f"{ns}: camera the brain sees", topics.namespaced(topics.CAMERA_BRAIN, ns))
+            for ns in namespaces
+        ],
+    )
+    plots = [
+        b.plot(f"plot{i}", title, [(ns, f"{topics.namespaced(topic, ns)}.{field}") for ns in namespaces])
+        for i, (title, topic, field) in enumerate(PLOTS)
+    ]
+    logs = _chain(
+        "row",
+        [
+            b.log(f"events-{ns}", f"{ns}: episode events", topics.namespaced(topics.EPISODE_LOG, ns))
+            for ns in namespaces
+        ],
+    )
+    scores = _chain(
+        "row",
+        [b.table(f"score-{ns}", f"{ns}: score", topics.namespaced(topics.EPISODE_SCORE, ns)) for ns in namespaces],
+    )
     left = _split("column", scene, cameras, 60)
     right = _split("column", _chain("column", plots), _split("column", logs, scores), 65)
     return b.layout(_split("row", left, right, 55))

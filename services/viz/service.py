@@ -118,11 +118,18 @@ class VizService:
         # The processes alive now, so that their channels exist before the first viewer connects.
         alive = [keys.parse_alive(key)[1:] for key in bus.alive_now(keys.alive_all(run))]
         try:
-            self.bridge = LiveBridge(run_id=run, host=config.host, port=config.port, backlog=config.backlog,
-                                     jpeg_quality=config.jpeg_quality, name=f"drivebench {run}",
-                                     brains=[name for role, name in alive if role == "brain"],
-                                     perturbed=config.perturbed and any(role == "noise" for role, _ in alive),
-                                     max_viewers=config.max_viewers, backlog_bytes=config.backlog_bytes)
+            self.bridge = LiveBridge(
+                run_id=run,
+                host=config.host,
+                port=config.port,
+                backlog=config.backlog,
+                jpeg_quality=config.jpeg_quality,
+                name=f"drivebench {run}",
+                brains=[name for role, name in alive if role == "brain"],
+                perturbed=config.perturbed and any(role == "noise" for role, _ in alive),
+                max_viewers=config.max_viewers,
+                backlog_bytes=config.backlog_bytes,
+            )
         except BridgeError as error:
             raise UserError(str(error)) from None
         self._bus = bus
@@ -150,9 +157,14 @@ class VizService:
         self._started: set[int] = set()  # episodes whose START was sent
         self._asked: set[int] = set()  # episodes whose missed START we asked the simulator for
         bus.declare_alive(keys.alive(run, "viz", config.name))
-        log.info("serving run %s to Foxglove at %s (at most %d viewers; backlog %d messages, %d bytes per viewer)",
-                 run, viewer_url(config.host, self.bridge.port), config.max_viewers, config.backlog,
-                 config.backlog_bytes)
+        log.info(
+            "serving run %s to Foxglove at %s (at most %d viewers; backlog %d messages, %d bytes per viewer)",
+            run,
+            viewer_url(config.host, self.bridge.port),
+            config.max_viewers,
+            config.backlog,
+            config.backlog_bytes,
+        )
 
     @property
     def port(self) -> int:
@@ -219,16 +231,31 @@ class VizService:
 
     def _log_episode_end(self, episode: int) -> None:
         sent = self.bridge.sent
-        cameras = ", ".join(f"{p.key.rsplit('/', 2)[-2]}: {p.inbox.received} in, {p.handled} taken, "
-                            f"{sent[p.key]} sent" for p in self._pumps)
-        log.info("episode %d ended; so far: %d messages sent; camera frames %s; %d not encoded (no viewer)",
-                 episode, sum(sent.values()), cameras, self.bridge.frames_skipped)
+        cameras = ", ".join(
+            f"{p.key.rsplit('/', 2)[-2]}: {p.inbox.received} in, {p.handled} taken, {sent[p.key]} sent"
+            for p in self._pumps
+        )
+        log.info(
+            "episode %d ended; so far: %d messages sent; camera frames %s; %d not encoded (no viewer)",
+            episode,
+            sum(sent.values()),
+            cameras,
+            self.bridge.frames_skipped,
+        )
         if (gate := self.bridge.gate) is not None:
             stats = gate.stats
-            log.info("viewers: %d connected, %d served, %d refused (max %d); %d messages (%d bytes) dropped for "
-                     "slow viewers; peak backlog %d bytes (limit %d)", stats.viewers, stats.served, stats.refused,
-                     gate.max_viewers, stats.dropped_messages, stats.dropped_bytes, stats.peak_backlog_bytes,
-                     gate.backlog_bytes)
+            log.info(
+                "viewers: %d connected, %d served, %d refused (max %d); %d messages (%d bytes) dropped for "
+                "slow viewers; peak backlog %d bytes (limit %d)",
+                stats.viewers,
+                stats.served,
+                stats.refused,
+                gate.max_viewers,
+                stats.dropped_messages,
+                stats.dropped_bytes,
+                stats.peak_backlog_bytes,
+                gate.backlog_bytes,
+            )
 
     def close(self) -> None:
         self._stop.set()
@@ -243,5 +270,10 @@ class VizService:
 def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import service_main
 
-    return service_main("viz", "drivebench viz: a run's camera, pose, commands and metrics live in Foxglove "
-                        "(WebSocket)", VizConfig, VizService, argv)
+    return service_main(
+        "viz",
+        "drivebench viz: a run's camera, pose, commands and metrics live in Foxglove (WebSocket)",
+        VizConfig,
+        VizService,
+        argv,
+    )

@@ -4,5 +4,12 @@ from brains.nets.info import ModelInfo
 
 # What the network expects (torch-free: read by recorders and brains); its model is in model.py, loaded on demand.
 # The only one trained on the lower half of the 480-row frame (rows 240:480).
-INFO = ModelInfo("deepest_lstm_tiny_pilotnet", 50, 100, 1, 0.5,
-                 "brains.nets.deepest_lstm_tiny_pilotnet.model:DeepestLSTMTinyPilotNet", 62_470)
+INFO = ModelInfo(
+    "deepest_lstm_tiny_pilotnet",
+    50,
+    100,
+    1,
+    0.5,
+    "brains.nets.deepest_lstm_tiny_pilotnet.model:DeepestLSTMTinyPilotNet",
+    62_470,
+)

@@ -34,9 +34,12 @@ class DeepestLSTMTinyPilotNet(nn.Module):
 def tiny_convs(filters: int, dropout: float) -> nn.Sequential:
     """Three 3x3 stride-2 valid ReLU convs (50x100 -> 24x49 -> 11x24 -> 5x11) and Dropout."""
     return nn.Sequential(
-        nn.Conv2d(3, filters, 3, stride=2), nn.ReLU(),
-        nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
-        nn.Conv2d(filters, filters, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(3, filters, 3, stride=2),
+        nn.ReLU(),
+        nn.Conv2d(filters, filters, 3, stride=2),
+        nn.ReLU(),
+        nn.Conv2d(filters, filters, 3, stride=2),
+        nn.ReLU(),
         nn.Dropout(dropout),
     )
 
@@ -49,4 +52,3 @@ def tiny_conv_lstms(filters: int) -> nn.Sequential:
         ConvLSTM2d(8, 8, 5, return_sequences=True),
         ConvLSTM2d(8, 8, 5, return_sequences=False),
     )
-

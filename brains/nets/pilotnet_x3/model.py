@@ -33,16 +33,15 @@ class PilotNetX3(nn.Module):
     We build the code's version and expose the LSTM width as ``lstm_units``.
     """
 
-    def __init__(self, lstm_units: int = 4, lstm_layers: int = 4, input_height_px: int = 50,
-                 input_width_px: int = 100):
+    def __init__(self, lstm_units: int = 4, lstm_layers: int = 4, input_height_px: int = 50, input_width_px: int = 100):
         super().__init__()
         self.input_norm = nn.BatchNorm2d(3, eps=BN_EPS, momentum=BN_MOMENTUM)
         self.features = pilotnet_convs(KerasSameConv2d)  # applied to each frame (Keras TimeDistributed)
         h, w = pilotnet_feature_map(input_height_px, input_width_px)
         sizes = [64 * h * w] + [lstm_units] * lstm_layers
-        self.memory = nn.Sequential(*(
-            KerasLSTM(sizes[i], sizes[i + 1], return_sequences=i < lstm_layers - 1) for i in range(lstm_layers)
-        ))
+        self.memory = nn.Sequential(
+            *(KerasLSTM(sizes[i], sizes[i + 1], return_sequences=i < lstm_layers - 1) for i in range(lstm_layers))
+        )
         self.head = dense_head(lstm_units, [1164, 100, 50, 10, 2])
         keras_init_(self)
 
