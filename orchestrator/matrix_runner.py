@@ -280,16 +280,8 @@ class MatrixRunner:
             (folder / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
         trajectory = trace.save(folder / "trajectory.npz")
         recording = folder / "recording.mcap"
-        return EpisodeResult(
-            key=episode.key,
-            index=episode.index,
-            brain=episode.brain.label,
-            circuit=episode.circuit,
-            variation=episode.variation,
-            perturbation=episode.perturbation,
-            repetition=episode.repetition,
-            spec=episode.spec,
-            brain_entry=episode.brain.to_dict(),
+        return EpisodeResult.of(
+            episode,
             status=outcome["status"],
             run_id=run_id,
             started_at=started_at,

@@ -281,16 +281,8 @@ class RayMatrixRunner(MatrixRunner):
         now = time.time()
         if failure is None:
             failure = f"node_died: lost {len(lost)} time(s), last: {lost[-1]['error']}"
-        return EpisodeResult(
-            key=episode.key,
-            index=episode.index,
-            brain=episode.brain.label,
-            circuit=episode.circuit,
-            variation=episode.variation,
-            perturbation=episode.perturbation,
-            repetition=episode.repetition,
-            spec=episode.spec,
-            brain_entry=episode.brain.to_dict(),
+        return EpisodeResult.of(
+            episode,
             status="failed",
             run_id="-",
             started_at=now,
@@ -452,16 +444,8 @@ def _timed_out(
     failure = f"wall_timeout: the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
     if result is not None:
         return dataclasses.replace(result, status="failed", failure=failure)
-    return EpisodeResult(
-        key=episode.key,
-        index=episode.index,
-        brain=episode.brain.label,
-        circuit=episode.circuit,
-        variation=episode.variation,
-        perturbation=episode.perturbation,
-        repetition=episode.repetition,
-        spec=episode.spec,
-        brain_entry=episode.brain.to_dict(),
+    return EpisodeResult.of(
+        episode,
         status="failed",
         run_id="-",
         started_at=started_at,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from orchestrator.matrix_plan import PlannedEpisode
 from protocol import codec
 from protocol.messages import EpisodeScore, EpisodeSpec
 
@@ -99,6 +100,23 @@ class EpisodeResult:
     logs: str | None = None
     node: str | None = None  # where it ran (None in results written before this was recorded)
     lost_attempts: tuple[dict, ...] = ()  # earlier attempts whose node died ({"node", "error"}), never results
+
+    @classmethod
+    def of(cls, episode: PlannedEpisode, **outcome: Any) -> EpisodeResult:
+        """The result of a planned episode: what the plan says of it (key, index, brain, circuit, variation,
+        perturbation, repetition, spec) is taken from ``episode`` here, in one place; ``outcome`` is the rest."""
+        return cls(
+            key=episode.key,
+            index=episode.index,
+            brain=episode.brain.label,
+            circuit=episode.circuit,
+            variation=episode.variation,
+            perturbation=episode.perturbation,
+            repetition=episode.repetition,
+            spec=episode.spec,
+            brain_entry=episode.brain.to_dict(),
+            **outcome,
+        )
 
     @property
     def wall_s(self) -> float:
