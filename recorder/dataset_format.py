@@ -1,13 +1,19 @@
 """The on-disk form of a training dataset (``recorder.dataset`` builds it, ``recorder.dataset_reading`` reads it):
-its file names, format version, label names, the yaw-rate bins it balances on, and its manifest."""
+its file names, format version, label names, the yaw-rate bins it balances on, its manifest, and the options that
+shape its samples (size, crop, frame offsets, split)."""
 
 from __future__ import annotations
 
+import dataclasses
+import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
 import numpy as np
+
+from protocol import keys
 
 FORMAT_VERSION = 1
 LABEL_NAMES = ("speed_mps", "yaw_rate_radps")
@@ -160,3 +166,76 @@ def valid_windows(episode: np.ndarray, frame_seq: np.ndarray, offsets_frames: Se
         source = np.clip(source, 0, max(count - 1, 0))
         ok &= (episode[source] == episode) & (frame_seq[source] == frame_seq + offset)
     return np.flatnonzero(ok).astype(np.int64)
+
+
+_SPLIT = re.compile(r"^(none|episode:(?P<fraction>[0-9.]+)|circuit:(?P<circuits>[^,\s]+(,[^,\s]+)*))$")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetOptions:
+    """How recordings become samples.
+
+    width_px, height_px: output image size (the paper's models: 100x50; PilotNet 200x66).
+    crop_top_fraction, crop_bottom_fraction: rows kept of the source image, as fractions of its height, before
+        resizing (DeepestLSTMTinyPilotNet keeps 0.5..1.0, the lower half).
+    camera: "perturbed" (``noise/camera``, what the brain saw and answered) or "truth" (``sim/camera``).
+    brain: pair with this brain's commands; None = the episode's active brain (START spec, then BRAIN_SWITCH events).
+    offsets_frames: history window in frames relative to the labelled frame t, strictly increasing, ending at 0,
+        e.g. (-9, -5, 0); seconds = offset x the episode's step_s.
+    split: "episode:FRACTION" (a seeded random choice of whole episodes is validation), "circuit:NAME,NAME" (episodes
+        on those circuits are validation) or "none" (everything is training).
+    seed: seeds the episode split.
+    """
+
+    width_px: int = 100
+    height_px: int = 50
+    crop_top_fraction: float = 0.0
+    crop_bottom_fraction: float = 1.0
+    camera: str = "perturbed"
+    brain: str | None = None
+    offsets_frames: tuple[int, ...] = (0,)
+    split: str = "episode:0.2"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "offsets_frames", check_offsets(self.offsets_frames))
+        if not (1 <= self.width_px <= 4096 and 1 <= self.height_px <= 4096):
+            raise DatasetError(
+                f"bad options: image size must be 1..4096 px per side, got {self.width_px}x{self.height_px}"
+            )
+        if not 0.0 <= self.crop_top_fraction < self.crop_bottom_fraction <= 1.0:
+            raise DatasetError(
+                f"bad options: need 0 <= crop_top_fraction < crop_bottom_fraction <= 1, got "
+                f"{self.crop_top_fraction} and {self.crop_bottom_fraction}"
+            )
+        if self.camera not in ("perturbed", "truth"):
+            raise DatasetError(f"bad options: camera must be 'perturbed' or 'truth', got {self.camera!r}")
+        if self.brain is not None:
+            try:
+                keys.check_name(self.brain, what="brain name")
+            except ValueError as error:
+                raise DatasetError(f"bad options: {error}") from None
+        parse_split(self.split)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**dataclasses.asdict(self), "offsets_frames": list(self.offsets_frames)}
+
+
+def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
+    """("none", None), ("episode", fraction) or ("circuit", names); DatasetError for anything else."""
+    match = _SPLIT.match(split)
+    if match is None:
+        raise DatasetError(
+            f"bad options: split must be 'episode:FRACTION', 'circuit:NAME,NAME' or 'none', got {split!r}"
+        )
+    if match["fraction"] is not None:
+        try:
+            fraction = float(match["fraction"])
+        except ValueError:
+            fraction = -1.0
+        if not 0.0 <= fraction < 1.0:
+            raise DatasetError(f"bad options: split fraction must be within 0 <= f < 1, got {split!r}")
+        return "episode", fraction
+    if match["circuits"] is not None:
+        return "circuit", tuple(match["circuits"].split(","))
+    return "none", None
