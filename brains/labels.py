@@ -12,6 +12,8 @@ import torch
 from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, V_OFFSET, V_SCALE, W_OFFSET, W_SCALE
 from recorder.dataset import ABS_YAW_RATE_EDGES_RADPS
 
+# A bin's sampling weight is at most this many times that of the most common bin: a lone sample in an otherwise
+# empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
 BALANCE_CAP = 50.0
 
 

@@ -31,7 +31,6 @@ Deterministic on CPU for a given seed and thread count; a resumed run ends bit-i
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import math
 import os
@@ -48,266 +47,25 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 from tqdm import tqdm
 
-from brains.augment import augment_batch, to_unit_float
 from brains.labels import BALANCE_CAP, LabelNorm, balance_weights, label_norm
-from brains.nets import MODELS, ModelInfo, make_model
-from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, V_SCALE, W_SCALE
+from brains.nets import MODELS, make_model
 from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from brains.neural.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from brains.training_curve import plot_curve
-from recorder.dataset import MANIFEST_FILE, DatasetError, DrivingDataset
-
-BEST_FILE, LAST_FILE, METRICS_FILE, CURVE_FILE = "model.ckpt", "last.ckpt", "metrics.json", "curve.png"
-LABEL_KINDS = ("zscore", "paper")
-DEVICES = ("auto", "cpu", "cuda")
-# A bin's sampling weight is at most this many times that of the most common bin: a lone sample in an otherwise
-# empty bin would otherwise be drawn as often as a whole common bin. DLS added up to 50 copies of rare samples.
-EVAL_BATCH = 256
-# Options a resumed run must share with the run that wrote last.ckpt; epochs, patience, device, threads may change.
-RESUME_FIXED = (
-    "model",
-    "data",
-    "hyper",
-    "seed",
-    "lr",
-    "batch_size",
-    "labels",
-    "max_samples_per_epoch",
-    "augment",
-    "augment_noise",
-    "balance",
-    "eval_train_samples",
-    "limit_train_samples",
+from brains.training_data import Split, crop_notes, evaluate, input_section, open_dataset, sha256
+from brains.training_options import (
+    BEST_FILE,
+    CURVE_FILE,
+    LAST_FILE,
+    METRICS_FILE,
+    TrainError,
+    TrainInterrupted,
+    TrainOptions,
+    TrainResult,
 )
-
-
-class TrainError(RuntimeError):
-    """A training request that cannot run (bad options, dataset, model/dataset mismatch): one line."""
-
-
-class TrainInterrupted(KeyboardInterrupt):
-    """Ctrl-C during training: last.ckpt was saved at ``epoch``/``batch``; resume continues from there."""
-
-    def __init__(self, last_checkpoint: Path, epoch: int, batch: int):
-        super().__init__(f"interrupted in epoch {epoch} after batch {batch}; state saved to {last_checkpoint}")
-        self.last_checkpoint, self.epoch, self.batch = last_checkpoint, epoch, batch
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrainOptions:
-    """What ``train`` does.
-
-    model: a brains.nets.MODELS key. data: dataset folder. output: run folder.
-    epochs: maximum epochs (an epoch = len(train split) samples, or max_samples_per_epoch if smaller).
-    lr: Adam learning rate. device: "auto" (cuda if available), "cpu" or "cuda".
-    patience: epochs without a lower monitored loss before stopping early.
-    labels: "zscore" (train-split mean/std) or "paper" (DLS's fixed ranges).
-    hyper: make_model keyword arguments (int, float, bool or str values). threads: torch intra-op threads.
-    augment: mirror/colour-jitter/blur training batches. balance: sample ∝ 1/frequency of the |w| bin.
-    augment_noise: with augment, salt and pepper noise of density up to this on half the training samples (as the
-        camera's noise looks after the network's resize: see ``salt_pepper_resized``); 0 = off.
-    resume: continue from output/last.ckpt. overwrite: replace an existing run in output.
-    eval_train_samples: size of the fixed training subset evaluated each epoch (no augmentation).
-    limit_train_samples: draw from a fixed random subset of this many training samples only (overfitting sanity
-        checks, quick experiments); an epoch keeps the train split's size.
-    """
-
-    model: str
-    data: Path
-    output: Path
-    epochs: int = 50
-    batch_size: int = 64
-    lr: float = 1e-3
-    device: str = "auto"
-    seed: int = 0
-    patience: int = 10
-    labels: str = "zscore"
-    hyper: dict[str, Any] = field(default_factory=dict)
-    threads: int | None = None
-    max_samples_per_epoch: int | None = None
-    augment: bool = True
-    augment_noise: float = 0.0
-    balance: bool = True
-    resume: bool = False
-    overwrite: bool = False
-    eval_train_samples: int = 2000
-    limit_train_samples: int | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "patience", "eval_train_samples"):
-            if getattr(self, name) < 1:
-                raise TrainError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("threads", "max_samples_per_epoch", "limit_train_samples"):
-            if getattr(self, name) is not None and getattr(self, name) < 1:
-                raise TrainError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 <= self.augment_noise <= 1.0:
-            raise TrainError(f"augment_noise must be within 0..1, got {self.augment_noise}")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise TrainError(f"lr must be a positive number, got {self.lr}")
-        if self.labels not in LABEL_KINDS:
-            raise TrainError(f"labels must be one of {', '.join(LABEL_KINDS)}, got {self.labels!r}")
-        if self.device not in DEVICES:
-            raise TrainError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
-        if self.model not in MODELS:
-            raise TrainError(f"unknown model {self.model!r} (known: {', '.join(sorted(MODELS))})")
-        if bad := {k: v for k, v in self.hyper.items() if not isinstance(v, (bool, int, float, str))}:
-            raise TrainError(f"hyper-parameters must be int, float, bool or str, got {bad!r}")
-
-    def fixed(self) -> dict[str, Any]:
-        """The options that identify a run for resuming, as plain types."""
-        plain = {**asdict(self), "data": str(Path(self.data).resolve())}
-        return {name: plain[name] for name in RESUME_FIXED}
-
-
-@dataclass(frozen=True)
-class TrainResult:
-    """A finished run: paths, the best checkpoint's metrics, throughput (training samples per second) and the
-    model with the best weights (eval mode, on the training device)."""
-
-    output: Path
-    checkpoint: Path
-    metrics: dict[str, Any]
-    epochs_run: int
-    best_epoch: int
-    samples_per_s: float
-    model: nn.Module
-
-
-# -- data ------------------------------------------------------------------------------------------------------------
-
-
-class _Split:
-    """One split of the dataset as model-ready tensors on the training device."""
-
-    def __init__(self, dataset: DrivingDataset, frames: int, device: torch.device, *, noise_max: float = 0.0):
-        self.dataset, self.frames, self.device, self.noise_max = dataset, frames, device, noise_max
-        self._mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 1, 3, 1, 1)
-        self._std = torch.tensor(IMAGENET_STD, device=device).view(1, 1, 3, 1, 1)
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    def labels(self) -> np.ndarray:
-        """Raw labels (N, 2) [v m/s, w rad/s] of this split's samples."""
-        return np.asarray(self.dataset.labels[self.dataset.index])
-
-    def batch(
-        self, positions: np.ndarray, norm: LabelNorm, generator: torch.Generator | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Inputs (B, 3, H, W) or (B, T, 3, H, W) float32 and normalised labels (B, 2); augmented iff generator."""
-        frames, labels = self.dataset.batch(positions)
-        frames = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
-        y = torch.from_numpy(labels).to(self.device)
-        if generator is not None:
-            x, y = augment_batch(frames, y, generator, noise_max=self.noise_max)
-        else:
-            x = to_unit_float(frames)
-        x = (x - self._mean) / self._std
-        return (x[:, -1] if self.frames == 1 else x).contiguous(), norm.normalise(y)
-
-
-def _open_dataset(options: TrainOptions, info: ModelInfo) -> tuple[DrivingDataset, DrivingDataset | None]:
-    """Train and val splits (val None when empty) with the windows the model needs; TrainError on a mismatch."""
-    try:
-        train = DrivingDataset(options.data, split="train")
-        manifest = train.manifest
-        if info.frames == 1 and tuple(manifest["offsets_frames"]) != (0,):
-            # A one-frame model uses the newest frame of any window: every frame of the split is a sample.
-            train = DrivingDataset(options.data, split="train", offsets_frames=(0,))
-        val = DrivingDataset(options.data, split="val", offsets_frames=train.offsets_frames)
-    except DatasetError as error:
-        raise TrainError(str(error)) from None
-    _check_compatible(options, info, manifest)
-    if len(train) == 0:
-        raise TrainError(f"dataset {options.data}: the train split has no sample")
-    return train, (val if len(val) else None)
-
-
-def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str, Any]) -> None:
-    width = options.hyper.get("input_width_px", info.input_width_px)
-    height = options.hyper.get("input_height_px", info.input_height_px)
-    got = (manifest["image_width_px"], manifest["image_height_px"])
-    if got != (width, height):
-        crop = f" --crop {info.crop_top_fraction:g}:1" if info.crop_top_fraction else ""
-        raise TrainError(
-            f"model {info.name} takes {width}x{height} images (WxH) but dataset {options.data} holds "
-            f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop}"
-        )
-    offsets = manifest["offsets_frames"]
-    if info.frames > 1 and len(offsets) != info.frames:
-        raise TrainError(
-            f"model {info.name} needs {info.frames} frames per sample but dataset {options.data} has "
-            f"offsets {offsets}; build it with --history {info.frames} or --offsets -9,-5,0"
-        )
-
-
-def _crop_notes(info: ModelInfo, manifest: dict[str, Any]) -> list[str]:
-    """A crop other than the reference model's is allowed (the checkpoint records the dataset's crop, and serving
-    applies that one), but worth saying."""
-    crop = (float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"]))
-    if crop == (info.crop_top_fraction, 1.0):
-        return []
-    return [
-        f"dataset rows {crop[0]:g}..{crop[1]:g} of the camera frame differ from the reference {info.name}'s "
-        f"{info.crop_top_fraction:g}..1; the checkpoint records the dataset's crop"
-    ]
-
-
-def _input_section(manifest: dict[str, Any], offsets_frames: tuple[int, ...]) -> dict[str, Any]:
-    step_s = manifest["step_s"]
-    crop = manifest["options"]
-    return {
-        "width_px": manifest["image_width_px"],
-        "height_px": manifest["image_height_px"],
-        "crop_top_fraction": float(crop["crop_top_fraction"]),
-        "crop_bottom_fraction": float(crop["crop_bottom_fraction"]),
-        "offsets_frames": list(offsets_frames),
-        "offsets_s": None if step_s is None else [round(o * step_s, 9) for o in offsets_frames],
-        "step_s": step_s,
-    }
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-# -- evaluation ------------------------------------------------------------------------------------------------------
-
-
-@torch.no_grad()
-def evaluate(model: nn.Module, split: _Split, positions: np.ndarray, norm: LabelNorm) -> dict[str, float]:
-    """The paper's internal metrics on ``positions`` of ``split``, without augmentation, in eval mode.
-
-    mae_speed_mps, mae_yaw_rate_radps: mean |error| in physical units; mse_normalised: MSE of normalised outputs
-    (in the checkpoint's own label normalisation); mae_paper / mse_paper: MAE and MSE of both outputs in the paper's
-    fixed normalisation (v / 17.5, w / 14.2), the figures of its Table 1, whatever normalisation trained the model.
-    """
-    was_training = model.training
-    model.eval()
-    abs_sum = torch.zeros(2, dtype=torch.float64)
-    phys_sq_sum = torch.zeros(2, dtype=torch.float64)
-    sq_sum = 0.0
-    for start in range(0, len(positions), EVAL_BATCH):
-        x, y_n = split.batch(positions[start : start + EVAL_BATCH], norm)
-        out = model(x)
-        sq_sum += float(((out - y_n) ** 2).sum(dtype=torch.float64))
-        error = norm.denormalise(out) - norm.denormalise(y_n)
-        abs_sum += error.abs().sum(0, dtype=torch.float64).cpu()
-        phys_sq_sum += (error.double() ** 2).sum(0).cpu()
-    model.train(was_training)
-    n = max(len(positions), 1)
-    paper_scale = torch.tensor([V_SCALE, W_SCALE], dtype=torch.float64)
-    return {
-        "mae_speed_mps": float(abs_sum[0]) / n,
-        "mae_yaw_rate_radps": float(abs_sum[1]) / n,
-        "mse_normalised": sq_sum / (2 * n),
-        "mae_paper": float((abs_sum / paper_scale).sum()) / (2 * n),
-        "mse_paper": float((phys_sq_sum / paper_scale**2).sum()) / (2 * n),
-    }
-
+from recorder.dataset import MANIFEST_FILE
 
 # -- training --------------------------------------------------------------------------------------------------------
 
@@ -401,9 +159,9 @@ class _Trainer:
         self.info = MODELS[options.model]
         self.device = _resolve_device(options.device)
         self.output = Path(options.output)
-        train, val = _open_dataset(options, self.info)
-        self.train_split = _Split(train, self.info.frames, self.device, noise_max=options.augment_noise)
-        self.val_split = _Split(val, self.info.frames, self.device) if val is not None else None
+        train, val = open_dataset(options, self.info)
+        self.train_split = Split(train, self.info.frames, self.device, noise_max=options.augment_noise)
+        self.val_split = Split(val, self.info.frames, self.device) if val is not None else None
         labels = self.train_split.labels()
         self.norm = label_norm(options.labels, labels, mirrored=options.augment)
         rng = np.random.default_rng(options.seed)
@@ -414,7 +172,7 @@ class _Trainer:
         # A fixed subset: the per-epoch training metric then compares like with like across epochs.
         self.train_eval = self.pool[_subset(rng, len(self.pool), options.eval_train_samples)]
         self.epoch_size = min(len(train), options.max_samples_per_epoch or len(train))
-        self.notes = _crop_notes(self.info, train.manifest)
+        self.notes = crop_notes(self.info, train.manifest)
         self.state = _Progress()
         self.session_start = time.perf_counter()
 
@@ -460,7 +218,7 @@ class _Trainer:
                     if resume["options"].get(k) != v
                 }
                 raise TrainError(f"cannot resume {path}: options differ (saved, now): {diff}")
-            if last["dataset"]["manifest_sha256"] != _sha256(Path(self.options.data) / MANIFEST_FILE):
+            if last["dataset"]["manifest_sha256"] != sha256(Path(self.options.data) / MANIFEST_FILE):
                 raise TrainError(f"cannot resume {path}: the dataset {self.options.data} changed since")
             self.model.load_state_dict(last["state_dict"])
             self.optimizer.load_state_dict(last["optimizer_state"])
@@ -646,11 +404,11 @@ class _Trainer:
             "model": options.model,
             "hyper": dict(options.hyper),
             "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
-            "input": _input_section(self.train_split.dataset.manifest, self.train_split.dataset.offsets_frames),
+            "input": input_section(self.train_split.dataset.manifest, self.train_split.dataset.offsets_frames),
             "normalisation": self.norm.to_dict(),
             "dataset": {
                 "path": str(Path(options.data).resolve()),
-                "manifest_sha256": _sha256(manifest_path),
+                "manifest_sha256": sha256(manifest_path),
                 "samples_train": len(self.pool),
                 "samples_val": len(self.val_split) if self.val_split is not None else 0,
             },

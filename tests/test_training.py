@@ -270,7 +270,7 @@ def test_training_inputs_equal_the_serving_preprocessing(datasets):
     """What the network sees in training (without augmentation) is what brains.nets.preprocess gives at run time."""
     for name, frames_per_sample in (("seq3", 3), ("crop", 1)):
         dataset = DrivingDataset(datasets[name], split="train")
-        split = training._Split(dataset, frames_per_sample, torch.device("cpu"))
+        split = training.Split(dataset, frames_per_sample, torch.device("cpu"))
         norm = label_norm("zscore", split.labels())
         positions = np.arange(0, len(dataset), 25)
         x, y_n = split.batch(positions, norm)
