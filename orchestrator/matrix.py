@@ -48,7 +48,6 @@ Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong 
 from __future__ import annotations
 
 import itertools
-import json
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -58,9 +57,9 @@ from typing import Any
 import msgspec
 import yaml
 
-from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain
 from circuits import circuit_names
 from circuits.library import GENERATED_NAMES, is_circuit_name
+from orchestrator.matrix_brains import check_unique_labels, read_brain_entries
 from orchestrator.matrix_conditions import (
     VARIATION_KEYS,
     Axis,
@@ -116,13 +115,11 @@ TOP_LEVEL_KEYS = (
 )
 # What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
 PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
-BRAIN_KEYS = ("name", "weights", "label", "options")
 LIMIT_KEYS = ("laps", "max_sim_seconds", "brain_timeout_s", "step_s")
 CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
 MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 
-_OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
 
 
@@ -210,98 +207,6 @@ def _name(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], sourc
     if "name" in top:
         return reader.text(top["name"][1], what="name")
     return "matrix" if source.startswith("<") else Path(source).stem
-
-
-# -- brains ------------------------------------------------------------------------------------------------------
-
-
-def _brain_entries(
-    reader: NodeReader, node: yaml.Node, *, what: str, base_dir: Path
-) -> list[tuple[BrainEntry, yaml.Node]]:
-    return [(_brain_entry(reader, item, what=what, base_dir=base_dir), item) for item in reader.items(node, what=what)]
-
-
-def _brain_entry(reader: NodeReader, node: yaml.Node, *, what: str, base_dir: Path) -> BrainEntry:
-    if isinstance(node, yaml.MappingNode):
-        fields = reader.mapping(node, what=f"a {what} entry", allowed=BRAIN_KEYS)
-    else:
-        fields = {"name": (node, node)}
-    if "name" not in fields:
-        raise reader.error(node, f"a {what} entry needs a name (keys: {', '.join(BRAIN_KEYS)})")
-    name_node = fields["name"][1]
-    name = reader.text(name_node, what="a brain name")
-    if is_brain_file(name):  # a Behavior Metrics brain file, next to the matrix file unless absolute
-        name = str((base_dir / Path(name).expanduser()).resolve())
-    try:
-        require_brain(name)
-    except UnknownBrainError as error:
-        raise reader.error(name_node, str(error)) from None
-    weights = _weights(reader, fields["weights"][1], base_dir=base_dir) if "weights" in fields else None
-    options = _options(reader, fields["options"][1]) if "options" in fields else ()
-    label = _label(reader, fields.get("label", (node, None))[1], name=name, weights=weights, entry=node)
-    return BrainEntry(label=label, brain=name, weights=weights, options=options)
-
-
-def _weights(reader: NodeReader, node: yaml.Node, *, base_dir: Path) -> Path:
-    written = reader.text(node, what="weights")
-    path = base_dir / written
-    try:
-        path = Path(written).expanduser()
-        path = (path if path.is_absolute() else base_dir / path).resolve()
-        found = path.exists()
-    except (OSError, ValueError, RuntimeError):  # a NUL byte, an unknown ~user, a symlink loop
-        found = False
-    if not found:
-        raise reader.error(
-            node,
-            f"weights file {written!r} not found (looked for {path}; relative paths start at the matrix file's folder)",
-        )
-    return path
-
-
-def _options(reader: NodeReader, node: yaml.Node) -> tuple[tuple[str, Any], ...]:
-    options = []
-    for key, (key_node, value_node) in reader.mapping(node, what="options").items():
-        if key == "weights":
-            raise reader.error(key_node, "give weights as the entry's own `weights`, not as an option")
-        if not _OPTION_KEY.fullmatch(key):
-            raise reader.error(key_node, f"option name {key!r} must be an identifier (letters, digits, '_')")
-        value = reader.value(value_node)
-        try:
-            json.dumps(value, allow_nan=False)
-        except (TypeError, ValueError):
-            raise reader.error(
-                value_node, f"option {key!r} must be a JSON value (text, number, boolean, list, mapping), got {value!r}"
-            ) from None
-        options.append((key, value))
-    return tuple(options)
-
-
-def _label(reader: NodeReader, node: yaml.Node | None, *, name: str, weights: Path | None, entry: yaml.Node) -> str:
-    if node is not None:
-        label = reader.text(node, what="label")
-        where = node
-    else:
-        # "-" and not "@": the label is the brain's bus name, and key chunks allow letters, digits, _ . - only.
-        label = bus_name(name) if weights is None else f"{bus_name(name)}-{weights.stem}"
-        where = entry
-    try:
-        return check_name(label, what="brain label")
-    except ValueError as error:
-        hint = "" if node is not None else "; give the entry a `label`"
-        raise reader.error(where, f"{error} (it is the brain's bus name{hint})") from None
-
-
-def _check_unique_labels(reader: NodeReader, entries: list[tuple[BrainEntry, yaml.Node]]) -> None:
-    first: dict[str, int] = {}
-    for entry, node in entries:
-        if entry.label in first:
-            raise reader.error(
-                node,
-                f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
-                f"labels of brains and shadows must differ: give one a `label`)",
-            )
-        first[entry.label] = line_of(node)
 
 
 # -- circuits, settings ------------------------------------------------------------------------------------------
@@ -433,11 +338,11 @@ class _Plan:
     def read(
         cls, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path, part: str = ""
     ) -> _Plan:
-        brains = _brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
+        brains = read_brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
         shadows = (
-            _brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir) if "shadows" in top else []
+            read_brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir) if "shadows" in top else []
         )
-        _check_unique_labels(reader, brains + shadows)
+        check_unique_labels(reader, brains + shadows)
         repetitions = (
             reader.integer(top["repetitions"][1], what="repetitions", minimum=1) if "repetitions" in top else 1
         )

@@ -35,7 +35,6 @@ trajectory files and circuit drawings (:mod:`orchestrator.report_trajectories`) 
 
 from __future__ import annotations
 
-import csv
 import functools
 import importlib.util
 import time
@@ -62,10 +61,10 @@ from orchestrator.report_cells import (
     reached_target,
 )
 from orchestrator.report_document import FAIL_MARK, Section, Table, render_html, render_markdown
+from orchestrator.report_export import episode_rows, write_csv, write_parquet
 from orchestrator.report_plots import ReportPlots
 from orchestrator.report_trajectories import _Track, load_trajectory
 from orchestrator.results import DATABASE_NAME, EpisodeResult, ResultStore
-from protocol.messages import EpisodeMetrics
 
 __all__ = [
     # this module's own
@@ -110,7 +109,6 @@ BASELINE_FACT = "baseline_variation"  # results-database fact: the variation lab
 PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
 
 # Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').
-METRIC_FIELDS: tuple[str, ...] = EpisodeMetrics.__struct_fields__
 
 
 class ReportError(RuntimeError):
@@ -537,62 +535,6 @@ _CELL_LEGEND = (
 )
 
 
-def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
-    """One flat dict per episode: conditions, status, timings, every scalar of EpisodeMetrics, files."""
-    rows = []
-    for r in results:
-        row: dict[str, Any] = {
-            "key": r.key,
-            "brain": r.brain,
-            "circuit": r.circuit,
-            "variation": r.variation,
-            "perturbation": r.perturbation,
-            "repetition": r.repetition,
-            "seed": r.spec.seed,
-            "laps_target": r.spec.laps,
-            "status": r.status,
-            "reason": r.reason or "",
-            "failure": r.failure or "",
-            "wall_s": round(r.wall_s, 3),
-        }
-        metrics = r.score.metrics if r.score is not None else None
-        for name in METRIC_FIELDS:
-            value = getattr(metrics, name) if metrics is not None else None
-            if name == "lap_times_s":
-                value = ";".join(repr(float(v)) for v in value) if value else ""
-            row[name] = "" if value is None else value
-        row.update(
-            {
-                "recording": r.recording or "",
-                "trajectory": r.trajectory or "",
-                "logs": r.logs or "",
-                "node": r.node or "",
-                "lost_attempts": len(r.lost_attempts),
-            }
-        )
-        rows.append(row)
-    return rows
-
-
-def _write_csv(rows: list[dict[str, Any]], path: Path) -> None:
-    with open(path, "w", newline="", encoding="utf-8") as file:
-        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-
-
-def _write_parquet(rows: list[dict[str, Any]], path: Path) -> Path | None:
-    if importlib.util.find_spec("pyarrow") is None:
-        return None
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    # Empty strings of unscored episodes become nulls, so numeric columns keep a numeric type.
-    columns = {name: [None if row[name] == "" else row[name] for row in rows] for name in rows[0]}
-    pq.write_table(pa.table(columns), path)
-    return path
-
-
 def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     """Read ``folder/results.sqlite`` and write the report into ``output`` (default: ``folder``).
 
@@ -608,8 +550,8 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     markdown_path.write_text(render_markdown(sections, output), encoding="utf-8")
     html_path.write_text(render_html(sections, f"drivebench report: {report.name}"), encoding="utf-8")
     rows = episode_rows(report.results)
-    _write_csv(rows, csv_path)
-    parquet = _write_parquet(rows, output / PARQUET_FILE)
+    write_csv(rows, csv_path)
+    parquet = write_parquet(rows, output / PARQUET_FILE)
     paper = output / PAPER_MARKDOWN if report.is_paper else None
     if paper is not None:
         paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
