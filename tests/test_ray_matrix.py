@@ -178,7 +178,7 @@ name: dying
 brains: [explicit]
 circuits: [simple]
 repetitions: 3
-limits: {laps: 1, max_sim_seconds: 12}
+limits: {laps: 2, max_sim_seconds: 600}
 camera: 96x72
 """,
         )
@@ -231,13 +231,15 @@ name: unlucky
 brains: [explicit]
 circuits: [simple]
 repetitions: 2
-limits: {laps: 1, max_sim_seconds: 12}
+limits: {laps: 2, max_sim_seconds: 600}
 camera: 96x72
 """,
         )
     )
     removed = threading.Event()
 
+    # Two laps each (seconds of wall time), so that both episodes surely drive at once even on a loaded machine:
+    # 12 s of sim once let the first end before the second's stack was up, and the node was never removed.
     def remove_the_second_node_once_both_drive(progress) -> None:
         driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
         if not removed.is_set() and len(driving) == 2:
