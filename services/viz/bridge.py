@@ -327,24 +327,26 @@ class LiveBridge:
             )
         if isinstance(message, (Pose, EpisodeEvent)):
             for view in self._views.on_message(message, log_time_ns=log_time):
-                self._publish_view(view, log_time)
-                if view.topic == self._view_topics["track"]:
-                    self._track_wanted.clear()
+                sent = self._publish_view(view, log_time)
+                if sent and view.topic == self._view_topics["track"]:
+                    self._track_wanted.clear()  # only once a viewer really got it (its sink may lag its subscribe)
 
     def maintain(self) -> None:
         """Periodic work (call a few times a second): advertise again the channels whose subscription was lost, send
         the track to a viewer that subscribed since."""
         self._readvertise_lost()
-        if self._track_wanted.is_set():
-            self._track_wanted.clear()
-            if (track := self._views.track) is not None:
-                self._publish_view(track, self._last_log_time_ns)
+        if self._track_wanted.is_set() and (track := self._views.track) is not None:
+            if self._publish_view(track, self._last_log_time_ns):
+                self._track_wanted.clear()  # else the new viewer's sink is not there yet: again on the next call
 
-    def _publish_view(self, view: ViewMessage, log_time: int) -> None:
+    def _publish_view(self, view: ViewMessage, log_time: int) -> bool:
+        """Send a view to its channel's viewers; False when it has none."""
         channel = self._channel(view.topic, "protobuf", view.schema)
-        if channel.has_sinks():
-            channel.log(view.message.SerializeToString(), log_time=log_time)
-            self.sent[view.topic] += 1
+        if not channel.has_sinks():
+            return False
+        channel.log(view.message.SerializeToString(), log_time=log_time)
+        self.sent[view.topic] += 1
+        return True
 
     def close(self) -> None:
         _SDK_LOG.removeHandler(self._lost)
