@@ -17,6 +17,7 @@ from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
 from orchestrator.cli.ray import add_ray_options, ray_options_from
+from protocol.messages import RENDERERS
 
 
 def add(commands: argparse._SubParsersAction) -> None:
@@ -67,7 +68,7 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
     parser.add_argument(
         "--renderer",
-        choices=("pybullet", "gl", "auto"),
+        choices=RENDERERS,
         help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
         "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)",
     )

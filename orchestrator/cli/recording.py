@@ -21,6 +21,7 @@ from pathlib import Path
 from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.cli.run import parse_camera
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
+from protocol.messages import RENDERERS
 from recorder.dataset import DatasetError
 from recorder.reading import RecordingError, recording_info
 
@@ -106,7 +107,7 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     )
     collect.add_argument(
         "--renderer",
-        choices=("pybullet", "gl", "auto"),
+        choices=RENDERERS,
         help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
         "else auto (gl where EGL works, else pybullet)",
     )
