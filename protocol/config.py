@@ -1,7 +1,8 @@
 """One loader for every process config: a YAML file plus ``key.path=value`` overrides, checked against a struct.
 
-Errors name the file and the field (``simulator.yaml: Expected `int`, got `str` - at `$.bus.lease_ms```), so a
-typo in a config never surfaces as a traceback deep inside a service.
+Errors are one line naming the file, the line and the field (``simulator.yaml:3: bus.lease_ms must be an integer,
+got 'soon'``), or ``command line:`` for a value an override set, so a typo in a config never surfaces as a
+traceback deep inside a service.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from typing import Any, TypeVar
 
 import msgspec
 import yaml
+
+from protocol.typed_yaml import Document, Fault, FileError, compose, explain
 
 T = TypeVar("T")
 
@@ -48,18 +51,22 @@ def apply_overrides(data: dict[str, Any], overrides: Iterable[str]) -> dict[str,
     return data
 
 
-def read_yaml_mapping(path: Path) -> dict[str, Any]:
+def read_yaml_document(path: Path) -> Document:
+    """The config file at ``path``, a mapping (empty for an empty file), with the line of every value."""
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
     except OSError as error:
         raise ConfigError(f"cannot read config {path}: {error.strerror}") from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
-    return data
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not UTF-8 text") from None
+    try:
+        document = compose(text, source=str(path))
+    except FileError as error:
+        raise ConfigError(str(error)) from None
+    if not isinstance(document.data, dict):
+        got = "a list" if isinstance(document.data, list) else repr(document.data)
+        raise ConfigError(f"{path}:{document.line(())}: expected a mapping at the top level, got {got}")
+    return document
 
 
 def load_config(
@@ -71,15 +78,31 @@ def load_config(
 ) -> T:
     """Build ``config_type`` from ``base`` <- the YAML file at ``path`` <- ``overrides`` (later wins)."""
     data: dict[str, Any] = dict(base or {})
-    source = "command line"
+    document = None
     if path is not None:
-        data.update(read_yaml_mapping(Path(path)))
-        source = str(path)
+        document = read_yaml_document(Path(path))
+        data.update(document.data)
+    overrides = list(overrides)
     apply_overrides(data, overrides)
     try:
         return msgspec.convert(data, config_type)
     except msgspec.ValidationError as error:
-        raise ConfigError(f"{source}: {error}") from None
+        fault = explain(error, config_type, data, what="the config")
+        set_paths = [tuple(parse_override(text)[0]) for text in overrides]
+        raise ConfigError(_where(fault, document, set_paths) + fault.message) from None
+
+
+def _where(fault: Fault, document: Document | None, set_paths: list[tuple[str, ...]]) -> str:
+    """``FILE:LINE: `` for a value the file wrote, ``command line: `` for one an override set (or set inside)."""
+    path = fault.path
+    if any(path[: len(keys)] == keys for keys in set_paths):
+        return "command line: "
+    if document is not None and (not path or path[0] in document.data):
+        line = document.key_line(path) if fault.at_key else document.line(path)
+        return f"{document.source}:{line}: "
+    if any(keys[: len(path)] == path for keys in set_paths):
+        return "command line: "
+    return "command line: " if document is None else f"{document.source}: "
 
 
 def dump_config(config: Any) -> str:

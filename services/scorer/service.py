@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import msgspec
 
@@ -52,7 +53,7 @@ class ScorerConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     bus: BusConfig = OBSERVER_BUS
     run_id: str = "default"
     name: str = "scorer"
-    live_rate_hz: float = 4.0
+    live_rate_hz: Annotated[float, msgspec.Meta(gt=0)] = 4.0  # 0 would divide by zero at the first frame
 
 
 @dataclass
