@@ -55,7 +55,6 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
-import yaml
 
 from circuits import circuit_names
 from circuits.library import GENERATED_NAMES, is_circuit_name
@@ -65,6 +64,7 @@ from orchestrator.matrix_conditions import (
     Axis,
     Perturbation,
     World,
+    label_text,
     read_axes,
     read_listed_worlds,
     read_perturbation,
@@ -84,43 +84,21 @@ from orchestrator.matrix_plan import (
     smoke_form,
     with_renderer,
 )
-from orchestrator.yaml_nodes import NodeReader, label_text, line_of
+from orchestrator.matrix_schema import MatrixFile, items, read_matrix_file, text_at, written
 from protocol.keys import check_name
 from protocol.messages import CameraSpec, EpisodeSpec
-
-# The protocol's own lists of world and camera variation keys (it has no public name for them).
-from protocol.variations import (
-    VariationError,
-    apply_variation,
-)
+from protocol.typed_yaml import Document, compose, convert
+from protocol.typed_yaml import Path as At
+from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer
 
-TOP_LEVEL_KEYS = (
-    "name",
-    "brains",
-    "circuits",
-    "variations",
-    "worlds",
-    "perturbations",
-    "repetitions",
-    "limits",
-    "camera",
-    "seed",
-    "realtime",
-    "renderer",
-    "shadows",
-    "exclude",
-    "include",
-    "parts",
-)
-# What a part may set for itself; everything else (brains, shadows, camera, seed, realtime) is the matrix's.
-PART_KEYS = ("circuits", "variations", "worlds", "perturbations", "repetitions", "limits", "exclude", "include")
-LIMIT_KEYS = ("laps", "max_sim_seconds", "brain_timeout_s", "step_s")
-CAMERA_FIELDS = tuple(field.name for field in msgspec.structs.fields(CameraSpec))
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
 MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
 
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
+
+# A key of the file (or of one part) -> (its typed value, where it was written).
+Entries = dict[str, tuple[Any, At]]
 
 
 def load_matrix(path: Path) -> Matrix:
@@ -141,23 +119,22 @@ def load_matrix(path: Path) -> Matrix:
 def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path(".")) -> Matrix:
     """Expand the matrix in ``text``. ``source`` names it in errors (and gives the default name: its stem);
     relative weights paths are resolved from ``base_dir``. Raises :class:`MatrixError` for every mistake."""
-    reader = NodeReader(source, error_type=MatrixError, top_level_keys=TOP_LEVEL_KEYS)
-    root = reader.compose(text)
-    top = reader.mapping(root, what="the matrix", allowed=TOP_LEVEL_KEYS)
-    if "brains" not in top:
-        raise reader.error(root, "missing 'brains' (a matrix needs brains and circuits)")
-    _check_one_world_form(reader, top)
-    parts = _parts(reader, root, top)
+    document = compose(text, source=source, error_type=MatrixError)
+    matrix = read_matrix_file(document)
+    parts = _parts(document, matrix)
     episodes: list[PlannedEpisode] = []
     variation_keys: dict[str, None] = {}
     for part, entries in parts:
-        plan = _Plan.read(reader, entries, base_dir=Path(base_dir), part=part)
-        episodes += plan.expand(reader, entries, first_index=len(episodes))
+        plan = _Plan.read(document, entries, base_dir=Path(base_dir), part=part)
+        episodes += plan.expand(document, entries, first_index=len(episodes))
         variation_keys.update(dict.fromkeys(axis.key for axis in plan.axes))
     if len(episodes) > MAX_EPISODES:
-        raise reader.error(top["parts"][0], f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})")
+        raise document.error(
+            ("parts",), f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})", at_key=True
+        )
+    name = text_at(document, matrix.name, ("name",)) if isinstance(matrix.name, str) else None
     return Matrix(
-        name=_name(reader, top, source),
+        name=name or ("matrix" if source.startswith("<") else Path(source).stem),
         source=source,
         text=text,
         brains=plan.brains,
@@ -168,128 +145,98 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
     )
 
 
-def _check_one_world_form(reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
+def _check_one_world_form(document: Document, entries: Entries) -> None:
     if "variations" in entries and "worlds" in entries:
-        raise reader.error(entries["worlds"][0], "give variations (a product) or worlds (a list), not both")
+        raise document.error(
+            entries["worlds"][1], "give variations (a product) or worlds (a list), not both", at_key=True
+        )
 
 
-def _parts(
-    reader: NodeReader, root: yaml.Node, top: dict[str, tuple[yaml.Node, yaml.Node]]
-) -> list[tuple[str, dict[str, tuple[yaml.Node, yaml.Node]]]]:
+def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
     """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
-    if "parts" not in top:
+    top = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
+    _check_one_world_form(document, top)
+    if not isinstance(matrix.parts, dict):
         if "circuits" not in top:
-            raise reader.error(root, "missing 'circuits' (a matrix needs brains and circuits)")
+            raise document.error((), "missing 'circuits' (a matrix needs brains and circuits)")
         return [("", top)]
-    shared = {key: entry for key, entry in top.items() if key != "parts"}
     parts = []
-    for name, (name_node, part_node) in reader.mapping(top["parts"][1], what="parts").items():
+    for name, part in matrix.parts.items():
+        where = ("parts", name)
         try:
             check_name(name, what="part name")
         except ValueError as error:
-            raise reader.error(name_node, str(error)) from None
-        entries = reader.mapping(part_node, what=f"part {name!r}", allowed=PART_KEYS)
-        _check_one_world_form(reader, entries)
-        merged = dict(shared)
+            raise document.error(where, str(error), at_key=True) from None
+        entries = {key: (value, (*where, key)) for key, value in written(part).items()}
+        _check_one_world_form(document, entries)
+        merged = dict(top)
         if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
             merged.pop("variations", None)
             merged.pop("worlds", None)
         merged.update(entries)
         if "circuits" not in merged:
-            raise reader.error(name_node, f"part {name!r} has no circuits (give them in the part or at the top level)")
+            raise document.error(
+                where, f"part {name!r} has no circuits (give them in the part or at the top level)", at_key=True
+            )
         parts.append((name, merged))
-    if not parts:
-        raise reader.error(top["parts"][1], "parts is empty (give at least one part, or leave parts out)")
     return parts
-
-
-def _name(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], source: str) -> str:
-    if "name" in top:
-        return reader.text(top["name"][1], what="name")
-    return "matrix" if source.startswith("<") else Path(source).stem
 
 
 # -- circuits, settings ------------------------------------------------------------------------------------------
 
 
-def _circuit(reader: NodeReader, node: yaml.Node) -> str:
-    name = reader.text(node, what="a circuit")
+def _circuit(document: Document, value: Any, path: At) -> str:
+    name = text_at(document, value, path)
     if not is_circuit_name(name):
-        raise reader.error(
-            node,
+        raise document.error(
+            path,
             f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
             f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
         )
     return name
 
 
-def _circuits(reader: NodeReader, node: yaml.Node) -> list[str]:
+def _circuits(document: Document, value: Any, path: At) -> list[str]:
     circuits: dict[str, int] = {}
-    for item in reader.items(node, what="circuits"):
-        name = _circuit(reader, item)
+    for item, item_path in items(value, path):
+        name = _circuit(document, item, item_path)
         if name in circuits:
-            raise reader.error(item, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
-        circuits[name] = line_of(item)
+            raise document.error(item_path, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
+        circuits[name] = document.line(item_path)
     return list(circuits)
 
 
-def _spec_error(error: msgspec.ValidationError) -> str:
-    return re.sub(r" - at `\$[^`]*`$", "", str(error))
-
-
-def _base_spec(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> EpisodeSpec:
-    """The spec every episode starts from: limits, camera and realtime (circuit, seed, brain set per episode)."""
+def _base_spec(document: Document, entries: Entries) -> EpisodeSpec:
+    """The spec every episode starts from: limits, camera and realtime (circuit, seed, brain set per episode). The
+    schema has checked each value; what is left are the bounds that tie values together."""
     fields: dict[str, Any] = {}
-    if "limits" in top:
-        for key, (_, value_node) in reader.mapping(top["limits"][1], what="limits", allowed=LIMIT_KEYS).items():
-            fields[key] = _spec_field(reader, value_node, key=key, what=f"limits.{key}")
-    if "realtime" in top:
-        fields["realtime"] = _spec_field(reader, top["realtime"][1], key="realtime", what="realtime")
-    if "renderer" in top:
-        fields["renderer"] = _spec_field(reader, top["renderer"][1], key="renderer", what="renderer")
+    if "limits" in entries:
+        fields.update(written(entries["limits"][0]))
+    if "realtime" in entries:
+        fields["realtime"] = entries["realtime"][0]
+    if "renderer" in entries:
+        fields["renderer"] = entries["renderer"][0]
     else:
         try:
             fields["renderer"] = default_renderer(MATRIX_RENDERER)
         except ValueError as error:
-            raise MatrixError(str(error), source=reader.source, line=None) from None
-    if "camera" in top:
-        fields["camera"] = _camera(reader, top["camera"][1])
-    try:
-        return msgspec.convert(fields, EpisodeSpec)
-    except msgspec.ValidationError as error:
-        raise reader.error(top.get("limits", (None, None))[1], f"limits: {_spec_error(error)}") from None
+            raise MatrixError(str(error), source=document.source, line=None) from None
+    if "camera" in entries:
+        fields["camera"] = _camera(document, *entries["camera"])
+    return convert(fields, EpisodeSpec, document=document, path=entries.get("limits", (None, ()))[1])
 
 
-def _spec_field(reader: NodeReader, node: yaml.Node, *, key: str, what: str) -> Any:
-    value = reader.scalar(node, what=what)
-    try:
-        msgspec.convert({key: value}, EpisodeSpec)
-    except msgspec.ValidationError as error:
-        raise reader.error(node, f"bad {what} {value!r}: {_spec_error(error)}") from None
-    return value
-
-
-def _camera(reader: NodeReader, node: yaml.Node) -> CameraSpec:
-    if isinstance(node, yaml.ScalarNode):
-        match = _CAMERA_SIZE.fullmatch(str(reader.value(node)))
+def _camera(document: Document, value: Any, path: At) -> CameraSpec:
+    if isinstance(value, str):
+        match = _CAMERA_SIZE.fullmatch(value)
         if not match:
-            raise reader.error(
-                node, f"camera must look like 320x240 or {{width_px: 320, height_px: 240}}, got {node.value!r}"
+            raise document.error(
+                path, f"camera must look like 320x240 or {{width_px: 320, height_px: 240}}, got {value!r}"
             )
         fields: dict[str, Any] = {"width_px": int(match[1]), "height_px": int(match[2])}
     else:
-        fields = {}
-        for key, (_, value_node) in reader.mapping(node, what="camera", allowed=CAMERA_FIELDS).items():
-            fields[key] = reader.scalar(value_node, what=f"camera.{key}")
-            _convert_camera(reader, value_node, {key: fields[key]}, what=f"camera.{key} {fields[key]!r}")
-    return _convert_camera(reader, node, fields, what="camera")
-
-
-def _convert_camera(reader: NodeReader, node: yaml.Node, fields: dict[str, Any], *, what: str) -> CameraSpec:
-    try:
-        return msgspec.convert(fields, CameraSpec)
-    except msgspec.ValidationError as error:
-        raise reader.error(node, f"bad {what}: {_spec_error(error)}") from None
+        fields = written(value)
+    return convert(fields, CameraSpec, document=document, path=path)
 
 
 # -- combinations, exclude, include --------------------------------------------------------------------------------
@@ -335,66 +282,60 @@ class _Plan:
     part: str = ""
 
     @classmethod
-    def read(
-        cls, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, base_dir: Path, part: str = ""
-    ) -> _Plan:
-        brains = read_brain_entries(reader, top["brains"][1], what="brains", base_dir=base_dir)
-        shadows = (
-            read_brain_entries(reader, top["shadows"][1], what="shadows", base_dir=base_dir) if "shadows" in top else []
-        )
-        check_unique_labels(reader, brains + shadows)
-        repetitions = (
-            reader.integer(top["repetitions"][1], what="repetitions", minimum=1) if "repetitions" in top else 1
-        )
-        seed = reader.integer(top["seed"][1], what="seed", minimum=0) if "seed" in top else 0
-        if "worlds" in top:
-            worlds, axes = read_listed_worlds(reader, top["worlds"][1])
+    def read(cls, document: Document, entries: Entries, *, base_dir: Path, part: str = "") -> _Plan:
+        brains = read_brain_entries(document, *entries["brains"], base_dir=base_dir)
+        shadows = read_brain_entries(document, *entries["shadows"], base_dir=base_dir) if "shadows" in entries else []
+        check_unique_labels(document, brains + shadows)
+        if "worlds" in entries:
+            worlds, axes = read_listed_worlds(document, *entries["worlds"])
         else:
-            axes = read_axes(reader, _value_node(top, "variations"))
+            axes = read_axes(document, *entries.get("variations", (None, ())))
             worlds = read_worlds(axes)
         return cls(
             brains=tuple(entry for entry, _ in brains),
             shadows=tuple(entry for entry, _ in shadows),
-            circuits=_circuits(reader, top["circuits"][1]),
+            circuits=_circuits(document, *entries["circuits"]),
             axes=axes,
             worlds=worlds,
-            perturbations=read_perturbations(reader, _value_node(top, "perturbations")),
-            repetitions=repetitions,
-            seed=seed,
-            base=_base_spec(reader, top),
+            perturbations=read_perturbations(document, *entries.get("perturbations", (None, ()))),
+            repetitions=entries.get("repetitions", (1, ()))[0],
+            seed=entries.get("seed", (0, ()))[0],
+            base=_base_spec(document, entries),
             part=part,
         )
 
-    def expand(
-        self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], *, first_index: int = 0
-    ) -> list[PlannedEpisode]:
-        self._check_size(reader, top)
-        excludes = [self._exclude(reader, item) for item in _list_of(reader, top, "exclude")]
+    def expand(self, document: Document, entries: Entries, *, first_index: int = 0) -> list[PlannedEpisode]:
+        self._check_size(document, entries)
+        excludes = [self._exclude(document, *item) for item in _list_of(entries, "exclude")]
         planned: dict[str, tuple[_Combination, int]] = {}
         for combination in self._product():
             for repetition in range(self.repetitions):
                 coordinates = combination.coordinates(repetition)
                 if not any(_matches(exclude, coordinates) for exclude in excludes):
                     planned[combination.key(repetition, part=self.part)] = (combination, repetition)
-        for item in _list_of(reader, top, "include"):
-            combination = self._include(reader, item)
+        for item in _list_of(entries, "include"):
+            combination = self._include(document, *item)
             for repetition in range(self.repetitions):
                 planned.setdefault(combination.key(repetition, part=self.part), (combination, repetition))
         if not planned:
-            where = top["exclude"][0] if "exclude" in top else None
             what = f"part {self.part!r}" if self.part else "the matrix"
-            raise reader.error(where, f"{what} expands to no episodes (every combination is excluded)")
+            raise document.error(
+                entries.get("exclude", (None, ()))[1],
+                f"{what} expands to no episodes (every combination is excluded)",
+                at_key=True,
+            )
         return [
-            self._episode(reader, key, first_index + index, combination, repetition)
+            self._episode(document, key, first_index + index, combination, repetition)
             for index, (key, (combination, repetition)) in enumerate(planned.items())
         ]
 
-    def _check_size(self, reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]]) -> None:
+    def _check_size(self, document: Document, entries: Entries) -> None:
         count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
         count *= len(self.worlds)
         if count > MAX_EPISODES:
-            raise reader.error(
-                _value_node(top, "repetitions"), f"the matrix expands to {count} episodes (at most {MAX_EPISODES})"
+            raise document.error(
+                entries.get("repetitions", (None, ()))[1],
+                f"the matrix expands to {count} episodes (at most {MAX_EPISODES})",
             )
 
     def _product(self) -> Iterator[_Combination]:
@@ -403,34 +344,40 @@ class _Plan:
         ):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
-    def _exclude(self, reader: NodeReader, node: yaml.Node) -> dict[str, str]:
+    def _exclude(self, document: Document, entry: dict[str, Any], path: At) -> dict[str, str]:
         """An exclude entry as axis -> label text; every value must be one the matrix has (typos fail here)."""
         allowed = ("brain", "circuit", "repetition", "perturbation", *(axis.key for axis in self.axes))
-        entries = reader.mapping(node, what="an exclude entry")
-        for key, (key_node, _) in entries.items():
+        for key in entry:
             if key in VARIATION_KEYS and key not in allowed:
-                raise reader.error(
-                    key_node,
+                raise document.error(
+                    (*path, key),
                     f"exclude key {key!r} is not a variation axis of this matrix (allowed: {', '.join(allowed)})",
+                    at_key=True,
                 )
             if key not in allowed:
-                raise reader.error(key_node, f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})")
-        if not entries:
-            raise reader.error(node, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
-        return {key: self._exclude_value(reader, key, value_node) for key, (_, value_node) in entries.items()}
+                raise document.error(
+                    (*path, key),
+                    f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})",
+                    at_key=True,
+                )
+        if not entry:
+            raise document.error(path, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
+        return {key: self._exclude_value(document, key, value, (*path, key)) for key, value in entry.items()}
 
-    def _exclude_value(self, reader: NodeReader, key: str, node: yaml.Node) -> str:
+    def _exclude_value(self, document: Document, key: str, value: Any, path: At) -> str:
         if key == "perturbation":
-            text = read_perturbation(reader, node).label
+            text = read_perturbation(document, value, path).label
             known = [perturbation.label for perturbation in self.perturbations]
         elif key == "repetition":
-            text = str(reader.integer(node, what="exclude repetition", minimum=0))
+            text = str(_repetition(document, value, path))
             known = [str(repetition) for repetition in range(self.repetitions)]
         else:
-            text = label_text(reader.scalar(node, what=f"exclude {key}"))
+            if isinstance(value, (dict, list)):
+                raise document.error(path, f"exclude {key} must be a single value, got {value!r}")
+            text = label_text(value)
             known = self._known(key)
         if text not in known:
-            raise reader.error(node, f"exclude {key} {text!r} is not in this matrix (known: {', '.join(known)})")
+            raise document.error(path, f"exclude {key} {text!r} is not in this matrix (known: {', '.join(known)})")
         return text
 
     def _known(self, key: str) -> list[str]:
@@ -440,41 +387,47 @@ class _Plan:
             return list(self.circuits)
         return [text for axis in self.axes if axis.key == key for text, _, _ in axis.values]
 
-    def _include(self, reader: NodeReader, node: yaml.Node) -> _Combination:
+    def _include(self, document: Document, entry: dict[str, Any], path: At) -> _Combination:
         allowed = ("brain", "circuit", "perturbation", *VARIATION_KEYS)
-        entries = reader.mapping(node, what="an include entry", allowed=allowed)
-        if "brain" not in entries or "circuit" not in entries:
-            raise reader.error(
-                node, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
+        for key in entry:
+            if key not in allowed:
+                raise document.error(
+                    (*path, key),
+                    f"unknown key {key!r} in an include entry (allowed: {', '.join(allowed)})",
+                    at_key=True,
+                )
+        if "brain" not in entry or "circuit" not in entry:
+            raise document.error(
+                path, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
             )
-        brain_node = entries["brain"][1]
-        label = reader.text(brain_node, what="include brain")
+        label = text_at(document, entry["brain"], (*path, "brain"))
         brains = {brain.label: brain for brain in self.brains}
         if label not in brains:
-            raise reader.error(
-                brain_node, f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})"
+            raise document.error(
+                (*path, "brain"),
+                f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})",
             )
         perturbation = (
-            read_perturbation(reader, entries["perturbation"][1])
-            if "perturbation" in entries
-            else Perturbation(label=NO_PERTURBATION, line=line_of(node))
+            read_perturbation(document, entry["perturbation"], (*path, "perturbation"))
+            if "perturbation" in entry
+            else Perturbation(label=NO_PERTURBATION, line=document.line(path))
         )
         return _Combination(
             brain=brains[label],
-            circuit=_circuit(reader, entries["circuit"][1]),
-            world=self._include_world(reader, entries),
+            circuit=_circuit(document, entry["circuit"], (*path, "circuit")),
+            world=self._include_world(document, entry, path),
             perturbation=perturbation,
         )
 
-    def _include_world(self, reader: NodeReader, entries: dict[str, tuple[yaml.Node, yaml.Node]]) -> World:
+    def _include_world(self, document: Document, entry: dict[str, Any], path: At) -> World:
         # Matrix axes first, in their order, so an include of an existing combination has the same label.
         axis_keys = [axis.key for axis in self.axes]
-        keys = [key for key in axis_keys if key in entries]
-        keys += [key for key in entries if key in VARIATION_KEYS and key not in axis_keys]
-        return read_world([(key, read_variation_value(reader, entries[key][1], key=key)) for key in keys])
+        keys = [key for key in axis_keys if key in entry]
+        keys += [key for key in entry if key in VARIATION_KEYS and key not in axis_keys]
+        return read_world([(key, read_variation_value(document, entry[key], (*path, key), key=key)) for key in keys])
 
     def _episode(
-        self, reader: NodeReader, key: str, index: int, combination: _Combination, repetition: int
+        self, document: Document, key: str, index: int, combination: _Combination, repetition: int
     ) -> PlannedEpisode:
         spec = msgspec.structs.replace(
             self.base,
@@ -490,7 +443,7 @@ class _Plan:
                 spec = apply_variation(spec, {item_key: value})
         except VariationError as error:
             raise MatrixError(
-                f"episode {key}: {error}", source=reader.source, line=combination.perturbation.line
+                f"episode {key}: {error}", source=document.source, line=combination.perturbation.line
             ) from None
         return PlannedEpisode(
             key=key,
@@ -505,12 +458,15 @@ class _Plan:
         )
 
 
-def _value_node(top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> yaml.Node | None:
-    return top[key][1] if key in top else None
+def _list_of(entries: Entries, key: str) -> list[tuple[Any, At]]:
+    return items(*entries[key]) if key in entries else []
 
 
-def _list_of(reader: NodeReader, top: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> list[yaml.Node]:
-    return reader.items(top[key][1], what=key) if key in top else []
+def _repetition(document: Document, value: Any, path: At) -> int:
+    """An exclude entry's repetition: an integer from 0."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise document.error(path, f"exclude repetition must be an integer >= 0, got {value!r}")
+    return value
 
 
 def _matches(exclude: dict[str, str], coordinates: dict[str, str]) -> bool:

@@ -12,8 +12,8 @@ from typing import Any
 
 import msgspec
 
-from orchestrator.yaml_nodes import FileError
 from protocol.messages import EpisodeSpec
+from protocol.typed_yaml import FileError
 
 DEFAULT_VARIATION = "default"
 NO_PERTURBATION = "none"

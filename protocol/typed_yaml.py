@@ -227,7 +227,11 @@ def display(path: Path) -> str:
 
 
 def _expected(expected: str, rest: str, *, value: Any, subject: str, top: bool, type_: Any) -> str:
-    kinds = " or ".join(_TYPE_WORDS.get(kind, f"`{kind}`") for kind in expected.split(" | "))
+    names = expected.split(" | ")
+    if "int" in names and "float" in names:
+        names.remove("int")  # "a number" says both
+    words = {**_TYPE_WORDS, "bool": "a boolean"} if len(names) > 1 else _TYPE_WORDS
+    kinds = " or ".join(words.get(kind, f"`{kind}`") for kind in names)
     kinds = re.sub(r" or (?=.* or )", ", ", kinds)  # "text, a mapping or nothing"
     got = re.fullmatch(r", got `([^`]*)`", rest)
     if got and top and got[1] != "object":

@@ -291,7 +291,7 @@ def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it(monk
     matrix = parse_matrix(text)
     assert {episode.spec.renderer for episode in matrix.episodes} == {"gl"}
     assert {e.spec.renderer for e in with_renderer(matrix, lambda _: "pybullet").episodes} == {"pybullet"}
-    with pytest.raises(MatrixError, match=r"<matrix>:3: bad renderer 'vulkan'"):
+    with pytest.raises(MatrixError, match=r"^<matrix>:3: renderer must be one of pybullet, gl, auto, got 'vulkan'$"):
         parse_matrix(text.replace("gl", "vulkan"))
 
 
