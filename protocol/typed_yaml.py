@@ -160,6 +160,8 @@ class _Builder:
             self.key_lines[(*path, key)] = line_of(key_node)
             self.value_lines.pop((*path, key), None)  # a written key overrides a merged one: its line wins
             result[key] = self.build(value_node, (*path, key))
+            if isinstance(value_node, yaml.CollectionNode):  # a block under its key: the key's line names it best
+                self.value_lines[(*path, key)] = line_of(key_node)
         return result
 
     def _key(self, node: yaml.Node) -> Any:

@@ -10,6 +10,8 @@ from typing import Annotated
 import msgspec
 import pytest
 
+from orchestrator.cli.errors import EXIT_USAGE
+from orchestrator.matrix import MatrixError, load_matrix
 from protocol.config import ConfigError, load_config
 from protocol.typed_yaml import FileError, compose, convert, display
 from services.scorer.service import ScorerConfig
@@ -99,3 +101,54 @@ def test_a_real_service_config_constraint_and_its_command_line(tmp_path):
     )
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines() == [f"scorer: error: {path}:2: live_rate_hz must be a number > 0.0, got 0"]
+
+
+# -- matrix files: the same typed reading, each mistake at its line ----------------------------------------------
+
+MATRIX = "name: m\nbrains: [explicit]\ncircuits: [simple]\n"
+MATRIX_ERRORS = [
+    (MATRIX + "seed: seven\n", 4, "seed must be an integer, got 'seven'"),
+    (MATRIX + "limits:\n  laps: 1\n  max_sim_secs: 9\n", 6, "unknown key 'max_sim_secs' in limits (allowed: laps, "),
+    (MATRIX + "brains:\n  - explicit\n", 4, "duplicate key 'brains' (first on line 2)"),
+    (MATRIX + "repetitions: 0\n", 4, "repetitions must be an integer >= 1, got 0"),
+    (MATRIX + "limits:\n  laps: -1\n", 5, "limits.laps must be an integer >= 1, got -1"),
+    (MATRIX + "camera:\n  height_px: 120\n  width_px: 0\n", 6, "camera.width_px must be an integer >= 8, got 0"),
+    (
+        MATRIX + "parts:\n  a:\n    repetitions: 2\n    limits: {step_s: 2}\n",
+        7,
+        "parts.a.limits.step_s must be a number <= 1.0",
+    ),
+    (MATRIX + "parts:\n  a:\n    circuits: [simple]\n    brains: [constant]\n", 7, "unknown key 'brains' in parts.a"),
+    (MATRIX + "renderer: vulkan\n", 4, "renderer must be one of pybullet, gl, auto, got 'vulkan'"),
+    (
+        MATRIX + "shadows:\n  - name: constant\n    lable: slow\n",
+        6,
+        "unknown key 'lable' in shadows[0] (allowed: name,",
+    ),
+    (MATRIX + "camera:\n  near_m: 2\n  far_m: 1\n", 4, "need 0 < near_m < far_m, got 2.0 and 1.0 (at camera)"),
+    (MATRIX + "limits: {laps: 1\n", 5, "invalid YAML:"),
+]
+
+
+@pytest.mark.parametrize(("text", "line", "message"), MATRIX_ERRORS, ids=[f"{i}" for i in range(len(MATRIX_ERRORS))])
+def test_matrix_mistakes_are_one_line_at_their_line(tmp_path, text, line, message):
+    path = tmp_path / "m.yaml"
+    path.write_text(text)
+    with pytest.raises(MatrixError) as caught:
+        load_matrix(path)
+    assert str(caught.value).startswith(f"{path}:{line}: {message}"), str(caught.value)
+    assert "\n" not in str(caught.value) and caught.value.line == line
+
+
+def test_drivebench_matrix_with_a_bad_file_is_a_usage_error_in_one_line(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(MATRIX + "limits:\n  laps: -1\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "--plan"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == EXIT_USAGE
+    assert done.stdout == ""
+    assert done.stderr.splitlines() == [f"drivebench: error: {path}:5: limits.laps must be an integer >= 1, got -1"]
