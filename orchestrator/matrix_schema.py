@@ -105,9 +105,6 @@ class MatrixFile(Part, forbid_unknown_fields=True, kw_only=True):
     parts: Annotated[dict[str, Part], Meta(min_length=1)] | UnsetType = UNSET
 
 
-PART_KEYS = tuple(field.name for field in msgspec.structs.fields(Part))
-
-
 def read_matrix_file(document: Document) -> MatrixFile:
     """The file's data as a :class:`MatrixFile`; raises ``document.error_type`` at the line of the first mistake."""
     return convert(document.data, MatrixFile, document=document, what="the matrix")

@@ -268,6 +268,8 @@ def _shown(value: Any) -> str:
         return "a mapping"
     if isinstance(value, list):
         return "a list"
+    if isinstance(value, bool):
+        return "true" if value else "false"  # as YAML writes them
     return repr(value)
 
 

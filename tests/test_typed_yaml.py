@@ -108,6 +108,7 @@ def test_a_real_service_config_constraint_and_its_command_line(tmp_path):
 MATRIX = "name: m\nbrains: [explicit]\ncircuits: [simple]\n"
 MATRIX_ERRORS = [
     (MATRIX + "seed: seven\n", 4, "seed must be an integer, got 'seven'"),
+    (MATRIX + "repetitions: yes\n", 4, "repetitions must be an integer, got true"),
     (MATRIX + "limits:\n  laps: 1\n  max_sim_secs: 9\n", 6, "unknown key 'max_sim_secs' in limits (allowed: laps, "),
     (MATRIX + "brains:\n  - explicit\n", 4, "duplicate key 'brains' (first on line 2)"),
     (MATRIX + "repetitions: 0\n", 4, "repetitions must be an integer >= 1, got 0"),
