@@ -28,7 +28,7 @@ import msgspec
 from brains.base import Brain, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, bus_name, make_brain
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Traffic
+from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
 from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header, Pose
@@ -38,6 +38,7 @@ log = logging.getLogger("drivebench.brain")
 
 FRAME_BACKLOG = 64  # lock-step: frames kept for a brain that lags (a shadow); older ones are skipped
 STOP_LINGER_S = 0.2  # after a stop request: time for the reply to leave before the session closes
+CAMERA_SOURCES = ("auto", "perturbed", "raw")
 GROUND_TRUTH_WAIT_S = 2.0  # a privileged brain: how long a frame waits for its pose (published just after it)
 POSES_KEPT = 256  # a privileged brain: poses kept, by (episode, seq), for frames still to come
 
@@ -48,8 +49,10 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     brain: registered brain name (``explicit``, ``constant``, ...).
     name: this brain's name on the bus (its command key and liveliness token); defaults to ``brain``.
     options: keyword options for the brain's constructor (e.g. ``{speed_mps: 2.0}`` for ``constant``).
-    camera: which stream to drive from: ``perturbed`` (after the noise injector, the default) or ``raw`` (straight
-        from the simulator, for a stack without a noise injector).
+    camera: which stream to drive from: ``auto`` (the default: per episode, the simulator's frames when the episode
+        has no noise, else the noise injector's; identity noise forwards the same bytes, so this saves a hop and
+        changes nothing the brain sees), ``perturbed`` (always the noise injector's) or ``raw`` (always the
+        simulator's, for a stack without a noise injector).
     orphan_timeout_s: exit (code 0) when the run has had no simulator for this long: nothing a stack or a swap
         starts outlives its stack. 0 (default): wait for a simulator forever (services started by hand, compose).
     """
@@ -59,14 +62,14 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     brain: str = "explicit"
     name: str = ""
     options: dict[str, Any] = {}
-    camera: str = "perturbed"
+    camera: str = "auto"
     orphan_timeout_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.orphan_timeout_s < 0:
             raise ValueError(f"orphan_timeout_s must be >= 0, got {self.orphan_timeout_s}")
-        if self.camera not in ("raw", "perturbed"):
-            raise ValueError(f"camera must be raw or perturbed, got {self.camera!r}")
+        if self.camera not in CAMERA_SOURCES:
+            raise ValueError(f"camera must be {', '.join(CAMERA_SOURCES)}, got {self.camera!r}")
 
     @property
     def bus_name(self) -> str:
@@ -80,10 +83,16 @@ class BrainHost:
         self.bus = bus
         self.name = keys.check_name(config.bus_name, what="brain name")
         run = config.run_id
-        camera_key = keys.camera_raw(run) if config.camera == "raw" else keys.camera_perturbed(run)
-        self._frames = bus.subscribe(camera_key, CameraFrame, keep_last=FRAME_BACKLOG)
+        self._frames = Inbox(keep_last=FRAME_BACKLOG)
+        self._sources = {  # the camera streams it may drive from: "raw" (simulator) and "perturbed" (noise)
+            source: bus.subscribe(key, CameraFrame, inbox=self._frames)
+            for source, key in (("raw", keys.camera_raw(run)), ("perturbed", keys.camera_perturbed(run)))
+            if config.camera in (source, "auto")
+        }
+        self._source_keys = {source: subscription.key for source, subscription in self._sources.items()}
+        self._source = next(iter(self._sources))  # the stream of the current episode
         self._realtime = False  # the current episode's mode: real-time takes the newest frame only
-        self._starts = EpisodeStarts(bus, run)
+        self._starts = EpisodeStarts(bus, run, on_start=self._open_source if config.camera == "auto" else None)
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
         self._last: Command | None = None
@@ -100,16 +109,23 @@ class BrainHost:
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
+    def _open_source(self, spec: EpisodeSpec | None) -> None:
+        """At an episode's START (callback thread, before its first frame), or once a late joiner knows the episode:
+        let in only the stream it drives from, so the other copy of each frame is dropped unread."""
+        source = source_of(spec)
+        for name, subscription in self._sources.items():
+            subscription.open = name == source
+
     def serve_forever(self) -> None:
         """Answer frames until a "stop" request (or, with ``orphan_timeout_s``, until the run has lost its simulator);
         then return (the process exits with code 0)."""
         log.info("brain %s (%s) ready on run %s", self.name, self.config.brain, self.config.run_id)
         while not self._stop.is_set() and not self._orphaned() and not stop_requested():
             received = self._frames.recv(timeout_s=0.1)
-            if received is not None and self._realtime and (newer := self._frames.inbox.drain()):
+            if received is not None and self._realtime and (newer := self._frames.drain()):
                 received = newer[-1]
             if received is not None and not self._stop.is_set():
-                self.answer(received.message)
+                self.answer(received.message, key=received.key)
         time.sleep(STOP_LINGER_S)
         if self._stop.is_set():
             log.info("brain %s stopped on request", self.name)
@@ -144,28 +160,40 @@ class BrainHost:
             ControlReply(ok=False, detail=f"unknown action {request.action!r} (brain hosts know status and stop)")
         )
 
+    def _from_source(self, key: str) -> bool:
+        """Whether a frame that came on ``key`` is on the current episode's stream ("" counts as on it)."""
+        return not key or key == self._source_keys[self._source]
+
     def _seed_for(self, episode: int) -> int:
         """The episode's seed (and mode) from its START event, or from the simulator's status for a late joiner."""
         spec = self._starts.spec(episode) or running_spec(self.bus, self.config.run_id, episode)
         self._spec = spec
+        if self.config.camera == "auto":
+            self._source = source_of(spec)
+            self._open_source(spec)
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
         self._realtime = spec.realtime
         return spec.seed
 
-    def answer(self, frame: CameraFrame) -> None:
+    def answer(self, frame: CameraFrame, *, key: str = "") -> None:
+        """Answer one frame with a command; ``key``: the stream it came on ("" = the current episode's)."""
         h = frame.header
+        if h.episode == self._episode and not self._from_source(key):
+            return  # the other copy of a frame (a late joiner lets both in until it knows the episode)
         if self._last is not None and (self._last.header.episode, self._last.frame_seq) == (h.episode, h.seq):
             self._commands.publish(self._last)  # a repeated frame: same answer, the brain sees each frame once
             return
         image = None if frame.dropped else self._reader.image(frame)
         if image is None and not frame.dropped:
-            return
+            return  # unreadable: ignored (logged by the reader), and no reason to start a new episode
         if h.episode != self._episode:
             self._episode = h.episode
             self._last = None
             self.brain.reset(seed=self._seed_for(h.episode))
+            if not self._from_source(key):
+                return
         if image is None:  # lost on the way: keep doing what the brain last decided
             speed_mps = self._last.speed_mps if self._last is not None else 0.0
             yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0
@@ -205,6 +233,12 @@ class BrainHost:
         return GroundTruth(
             x_m=pose.x_m, y_m=pose.y_m, yaw_rad=pose.yaw_rad, circuit=spec.circuit, direction=spec.direction
         )
+
+
+def source_of(spec: EpisodeSpec | None) -> str:
+    """The camera stream an ``auto`` brain drives from in an episode: the simulator's when it has no noise (the
+    noise injector would forward the same bytes), else the noise injector's; the latter when the spec is unknown."""
+    return "raw" if spec is not None and not spec.noise else "perturbed"
 
 
 def main(argv: list[str] | None = None) -> int:

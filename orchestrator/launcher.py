@@ -95,11 +95,13 @@ def free_loopback_port() -> int:
 
 @dataclass(frozen=True)
 class BrainLaunch:
-    """A brain host to start: registered brain, its bus name, constructor options as ``key=value`` YAML overrides."""
+    """A brain host to start: registered brain, its bus name, constructor options as ``key=value`` YAML overrides,
+    and overrides of the host's own config (``brains.host.BrainHostConfig``, e.g. ``("camera=perturbed",)``)."""
 
     brain: str
     name: str = ""
     options: tuple[str, ...] = ()
+    host: tuple[str, ...] = ()
 
     @property
     def bus_name(self) -> str:
@@ -203,6 +205,8 @@ class LocalStack:
             argv = ["--brain", launch.brain, "--name", launch.bus_name]
             for option in launch.options:
                 argv += ["--set", f"options.{option}"]
+            for setting in launch.host:
+                argv += ["--set", setting]
             wanted.add(self._spawn_role(graph.role("brain"), argv, name=launch.bus_name))
         missing = watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
         if (dead := self._dead_child_reason()) is not None:

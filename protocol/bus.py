@@ -56,6 +56,7 @@ from protocol.bus_config import (
     zenoh_section,
     zenoh_settings,
 )
+from protocol.trace import Tracer
 
 # How to join the bus is protocol.bus_config's; its names are this module's too (the bus's one public face).
 __all__ = [
@@ -120,16 +121,22 @@ _QOS: dict[Traffic, dict[str, Any]] = {
 class Publisher(Generic[T]):
     """Publishes messages of one type on one key."""
 
-    def __init__(self, session: zenoh.Session, key: str, traffic: Traffic):
+    def __init__(self, session: zenoh.Session, key: str, traffic: Traffic, tracer: Tracer):
         self.key = key
         self._publisher = session.declare_publisher(key, **_QOS[traffic])
+        self._tracer = tracer
 
     def publish(self, message: T) -> None:
-        self._publisher.put(codec.encode(message))
+        payload = codec.encode(message)
+        self._tracer.mark("put", self.key, message)
+        self._publisher.put(payload)
+        self._tracer.mark("sent", self.key, message)
 
     def publish_bytes(self, payload: bytes) -> None:
         """Put raw bytes (tests use this to send garbage; replay uses it for recorded wire bytes)."""
+        self._tracer.mark("put", self.key)
         self._publisher.put(payload)
+        self._tracer.mark("sent", self.key)
 
     def has_subscribers(self) -> bool:
         status: Any = self._publisher.matching_status  # a MatchingStatus (zenoh's stub says bool)
@@ -181,6 +188,7 @@ class Inbox:
         self._queue: collections.deque[Received] = collections.deque(maxlen=keep_last)
         self._ready = threading.Condition()
         self.received = 0
+        self.tracer: Tracer | None = None  # set by a subscription of a traced bus: marks when the loop takes each
 
     def put(self, item: Received) -> None:
         with self._ready:
@@ -193,32 +201,62 @@ class Inbox:
         with self._ready:
             if not self._queue and not self._ready.wait_for(lambda: bool(self._queue), timeout=timeout_s):
                 return None
-            return self._queue.popleft()
+            return self._taken(self._queue.popleft())
 
     def try_recv(self) -> Received | None:
         with self._ready:
-            return self._queue.popleft() if self._queue else None
+            return self._taken(self._queue.popleft()) if self._queue else None
 
     def drain(self) -> list[Received]:
         with self._ready:
             items = list(self._queue)
             self._queue.clear()
-            return items
+        for item in items:
+            self._taken(item)
+        return items
+
+    def _taken(self, item: Received) -> Received:
+        if self.tracer is not None:
+            self.tracer.mark("taken", item.key, item.message)
+        return item
 
 
 class Subscription(Generic[T]):
-    """Decodes messages of one type on one key expression into an :class:`Inbox`."""
+    """Decodes messages of one type on one key expression into an :class:`Inbox`.
 
-    def __init__(self, session: zenoh.Session, key: str, message_type: type[T], rejects: RejectCounter, inbox: Inbox):
+    ``open`` is a gate: while it is False, samples are dropped on arrival, before they are copied or decoded (a
+    brain host that subscribes to two camera streams and drives from one per episode pays nothing for the other).
+    ``on_message(received)``, if given, runs on the callback thread for each decoded message before it is queued:
+    keep it short, and never block in it.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        message_type: type[T],
+        rejects: RejectCounter,
+        inbox: Inbox,
+        on_message: Callable[[Received[T]], None] | None = None,
+        tracer: Tracer | None = None,
+    ):
         self.key = key
         self.inbox = inbox
+        self._tracer = tracer if tracer is not None and tracer.on else None
+        if self._tracer is not None:
+            inbox.tracer = self._tracer
+        self.open = True
         self._type = message_type
         self._rejects = rejects
+        self._on_message = on_message
         # A Python callback runs on the session's one Python callback thread: decode there (cheap, and bad input
         # is rejected before it reaches the loop), then wake the loop.
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        if not self.open:
+            return
+        arrived_ns = time.monotonic_ns()
         key = str(sample.key_expr)
         payload = sample.payload.to_bytes()
         try:
@@ -226,7 +264,13 @@ class Subscription(Generic[T]):
         except codec.DecodeError as error:
             self._rejects.reject(key, error)
             return
-        self.inbox.put(Received(key=key, message=message, arrival_ns=time.monotonic_ns(), payload=payload))
+        received = Received(key=key, message=message, arrival_ns=time.monotonic_ns(), payload=payload)
+        if self._tracer is not None:
+            self._tracer.mark("arrived", key, message, ns=arrived_ns)
+            self._tracer.mark("decoded", key, message, ns=received.arrival_ns)
+        if self._on_message is not None:
+            self._on_message(received)
+        self.inbox.put(received)
 
     def recv(self, timeout_s: float | None = None) -> Received[T] | None:
         return self.inbox.recv(timeout_s)
@@ -312,6 +356,7 @@ class Bus:
             raise BusError(f"cannot open the bus ({self.resolved.describe()}): {zenoh_message(error)}{hint}") from None
         self._tokens: list[zenoh.LivelinessToken] = []
         self._queryables: list[zenoh.Queryable] = []
+        self.tracer = Tracer(name)  # on only with $DRIVEBENCH_TRACE_DIR (protocol.trace)
 
     def __enter__(self) -> Bus:
         return self
@@ -321,13 +366,21 @@ class Bus:
 
     def publisher(self, key: str, message_type: type[T], traffic: Traffic) -> Publisher[T]:
         del message_type  # documents the type at the call site; the codec encodes any struct
-        return Publisher(self.session, key, traffic)
+        return Publisher(self.session, key, traffic, self.tracer)
 
     def subscribe(
-        self, key: str, message_type: type[T], *, keep_last: int | None = None, inbox: Inbox | None = None
+        self,
+        key: str,
+        message_type: type[T],
+        *,
+        keep_last: int | None = None,
+        inbox: Inbox | None = None,
+        on_message: Callable[[Received[T]], None] | None = None,
     ) -> Subscription[T]:
-        """Messages of ``message_type`` on ``key`` into ``inbox`` (a new one with ``keep_last`` if not given)."""
-        return Subscription(self.session, key, message_type, self.rejects, inbox or Inbox(keep_last=keep_last))
+        """Messages of ``message_type`` on ``key`` into ``inbox`` (a new one with ``keep_last`` if not given);
+        ``on_message`` sees each one first, on the callback thread (see :class:`Subscription`)."""
+        inbox = inbox or Inbox(keep_last=keep_last)
+        return Subscription(self.session, key, message_type, self.rejects, inbox, on_message, self.tracer)
 
     def declare_alive(self, key: str) -> None:
         """Declare a liveliness token, kept until the bus closes (or the process dies)."""
@@ -374,3 +427,4 @@ class Bus:
     def close(self) -> None:
         if not self.session.is_closed():
             self.session.close()
+        self.tracer.write()

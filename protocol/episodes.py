@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusError, Inbox
+from protocol.bus import Bus, BusError, Inbox, Received
 from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EpisodeSpec, EventKind, Header
 
 log = logging.getLogger("drivebench.episodes")
@@ -52,10 +53,20 @@ class EpisodeStarts:
     first; ``spec`` waits briefly for it otherwise (a process that joined late never sees it and gets None).
     """
 
-    def __init__(self, bus: Bus, run_id: str):
+    def __init__(self, bus: Bus, run_id: str, *, on_start: Callable[[EpisodeSpec], None] | None = None):
+        """``on_start(spec)`` runs on the bus's callback thread as each START arrives, before the episode's first
+        frame is handed to any subscriber of the same process (the simulator sends START first, and one
+        session's samples reach its callbacks in order): a process can set up for the episode in time."""
         self._inbox = Inbox()
-        bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox)
+        self._on_start = on_start
+        hook = self._started if on_start is not None else None
+        bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox, on_message=hook)
         self._specs: dict[int, EpisodeSpec] = {}
+
+    def _started(self, received: Received[EpisodeEvent]) -> None:
+        event = received.message
+        if event.kind == EventKind.START and event.spec is not None and self._on_start is not None:
+            self._on_start(event.spec)
 
     def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
         """The spec of ``episode`` (each is handed out once), or None if its START is not seen within ``wait_s``."""
