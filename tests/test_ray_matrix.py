@@ -86,10 +86,6 @@ WALL_METRICS = {
     "command_latency_p95_ms",
     "inference_p50_ms",
     "inference_p95_ms",
-    # Over the commands that reached the scorer before it scored: it waits for every pose, not for the last
-    # command, so on a loaded machine one command more or less (seen twice in CI-like runs, local and Ray alike
-    # would differ). A scorer issue, noted for a fix; the trajectories above are compared bit for bit.
-    "suddenness_distance",
 }
 
 

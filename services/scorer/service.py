@@ -178,15 +178,24 @@ class ScorerService:
         current = self._episode
         if current is None or current.end is None:
             return
-        complete = current.last_pose_seq >= current.end.last_pose_seq
+        poses_in = current.last_pose_seq >= current.end.last_pose_seq
+        # Lock-step: the driver answered every frame before the last pose, and its commands come straight from the
+        # brain, not with END: wait for the last one too, or the score would depend on which arrived first.
+        last_answered_frame = current.end.last_pose_seq - 1
+        commands_in = current.spec.realtime or current.commands.driver_answered(last_answered_frame)
+        complete = poses_in and commands_in
         if not complete and time.monotonic() - current.end_arrival < POSE_GRACE_S:
             return
-        if not complete:
+        if not poses_in:
             log.warning(
                 "episode %d: scoring without poses %d..%d (never arrived)",
                 current.number,
                 current.last_pose_seq + 1,
                 current.end.last_pose_seq,
+            )
+        if not commands_in:
+            log.warning(
+                "episode %d: scoring without the driver's answer to frame %d", current.number, last_answered_frame
             )
         wall_time_s = current.end.wall_elapsed_ns / 1e9 or (time.monotonic() - current.wall_start)
         shadows = current.commands.finish()  # first: it hands the last driver commands to the metrics

@@ -68,6 +68,7 @@ class CommandMatcher:
         self._switch_seqs: list[int] = []
         self.switches: list[BrainSwitch] = []
         self._distances: dict[str, _Distance] = {}
+        self._last_answered: dict[str, int] = {}  # brain -> the latest frame it answered
         self.late_commands = 0
 
     def add_switch(self, switch: BrainSwitch) -> None:
@@ -78,12 +79,17 @@ class CommandMatcher:
 
     def add_command(self, command: Command) -> None:
         """One brain's answer to frame ``command.frame_seq`` (the first answer per brain and frame counts)."""
+        self._last_answered[command.brain] = max(command.frame_seq, self._last_answered.get(command.brain, -1))
         if command.frame_seq < self._settled_below:
             self.late_commands += 1
             return
         self._pending.setdefault(command.frame_seq, {}).setdefault(command.brain, command)
         while len(self._pending) > self._max_pending:
             self._settle(min(self._pending))
+
+    def driver_answered(self, frame_seq: int) -> bool:
+        """Whether the driver of frame ``frame_seq`` has answered it (or a later frame); True below frame 0."""
+        return frame_seq < 0 or self._last_answered.get(self.driver(frame_seq), -1) >= frame_seq
 
     def driver(self, frame_seq: int) -> str:
         """The brain whose command drove frame ``frame_seq``, from the switches known so far."""

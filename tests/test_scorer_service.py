@@ -1,0 +1,92 @@
+"""Integration: the scorer process, fed by hand over a real bus, scores a lock-step episode only once the driver's
+last command is in, however late it arrives after the END event (it comes from the brain, END from the simulator)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+from circuits import load_circuit
+from orchestrator.launcher import free_loopback_port
+from protocol import keys
+from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.messages import (
+    Command,
+    EndReason,
+    EpisodeEvent,
+    EpisodeScore,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    Pose,
+)
+
+pytestmark = pytest.mark.integration
+FRAMES = 40
+LATE_S = 0.6  # the driver's last command arrives this long after END (well inside the scorer's grace)
+
+
+@pytest.fixture
+def scorer_bus(tmp_path):
+    """(bus, run id): a router bus in this process and a scorer process on it, stopped after the test."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    run_id = "scorerlate"
+    with Bus(BusConfig(mode="router", listen=[endpoint]), name="test", env={}) as bus:
+        log = (tmp_path / "scorer.log").open("w")
+        process = subprocess.Popen(
+            [sys.executable, "-m", "services.scorer", "--router", endpoint, "--run-id", run_id],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            alive = bus.watch_alive(keys.alive_all(run_id))
+            deadline = time.monotonic() + 30
+            while not any(keys.parse_alive(k)[1] == "scorer" for k in alive.alive()):
+                assert process.poll() is None and time.monotonic() < deadline, "the scorer did not start"
+                time.sleep(0.05)
+            yield bus, run_id
+        finally:
+            process.terminate()
+            process.wait(timeout=10)
+            log.close()
+
+
+def test_a_late_last_command_still_counts(scorer_bus):
+    bus, run_id = scorer_bus
+    spec = EpisodeSpec(circuit="simple", max_sim_seconds=FRAMES * 0.05)
+    events = bus.publisher(keys.events(run_id), EpisodeEvent, Traffic.EVENTS)
+    poses = bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS)
+    commands = bus.publisher(keys.command(run_id, spec.active_brain), Command, Traffic.COMMANDS)
+    scores = Inbox()
+    bus.subscribe(keys.score(run_id), EpisodeScore, inbox=scores)
+    while not (events.has_subscribers() and poses.has_subscribers() and commands.has_subscribers()):
+        time.sleep(0.05)
+    time.sleep(0.3)  # the scorer's subscriptions reach this session
+
+    def header(seq: int) -> Header:
+        return Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * spec.step_ns)
+
+    def command(seq: int, speed_mps: float) -> Command:
+        return Command(
+            header=header(seq), brain=spec.active_brain, frame_seq=seq, speed_mps=speed_mps, yaw_rate_radps=0.0
+        )
+
+    points = load_circuit("simple").centreline.points_m
+    events.publish(EpisodeEvent(header=header(0), kind=EventKind.START, spec=spec))
+    for seq in range(FRAMES + 1):
+        x_m, y_m = points[seq % len(points)]
+        poses.publish(Pose(header=header(seq), x_m=float(x_m), y_m=float(y_m), yaw_rad=0.0, speed_mps=1.0))
+        if seq < FRAMES - 1:
+            commands.publish(command(seq, 1.0))  # the same command every frame: no suddenness at all
+    events.publish(
+        EpisodeEvent(header=header(FRAMES), kind=EventKind.END, reason=EndReason.TIME_LIMIT, last_pose_seq=FRAMES)
+    )
+    time.sleep(LATE_S)
+    assert scores.try_recv() is None, "scored before the driver's last command came"
+    commands.publish(command(FRAMES - 1, 3.0))  # the driver's answer to the last frame: a jump of 2 m/s
+    received = scores.recv(timeout_s=10.0)
+    assert received is not None, "no score"
+    assert received.message.metrics.suddenness_distance > 0
