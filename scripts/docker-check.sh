@@ -19,7 +19,8 @@
 #    `docker compose down`.
 # Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
 # under $CACHE/results), EXTRAS (empty), PORT (7447, or a free one when taken), DOCKERD (a dockerd to use),
-# DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own every result file).
+# DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own every result file), DRIVEBENCH_RENDERER
+# (empty; gl: the episode must be drawn by OpenGL on the image's Mesa EGL, checked in score.json).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -200,13 +201,17 @@ while kill -0 "$UP" 2>/dev/null; do
   if [ -z "$healthy_at" ]; then
     ok=1
     for s in $SERVICES; do grep -q "^$s running .*(healthy)" <<<"$states" || ok=""; done
-    [ -n "$ok" ] && healthy_at=$(date +%s) && say "all of {$SERVICES} healthy after $(elapsed "$t") s"
+    if [ -n "$ok" ]; then
+      healthy_at=$(date +%s); say "all of {$SERVICES} healthy after $(elapsed "$t") s"
+      # Connected before the episode starts: with --renderer gl a lap can be over in a few seconds.
+      say "a Foxglove client probes the live view on port $VIZ_PORT"
+      "$PYTHON" "$ROOT/scripts/foxglove_probe.py" "ws://127.0.0.1:$VIZ_PORT" --seconds 20 \
+        >"$RESULTS_DIR/viz-probe.json" 2>>"$LOG" &
+      PROBE=$!
+    fi
   fi
   if [ -z "$run_started_at" ] && grep -qE '^run (running|exited)' <<<"$states"; then
-    run_started_at=$(date +%s); say "run started; a Foxglove client probes the live view on port $VIZ_PORT"
-    "$PYTHON" "$ROOT/scripts/foxglove_probe.py" "ws://127.0.0.1:$VIZ_PORT" --seconds 8 >"$RESULTS_DIR/viz-probe.json" \
-      2>>"$LOG" &
-    PROBE=$!
+    run_started_at=$(date +%s); say "run started"
   fi
   sleep 1
 done
@@ -242,8 +247,13 @@ metrics = score["metrics"]
 keys = ("completed_laps", "lap_times_s", "percentage_completed", "sim_time_s", "wall_time_s", "real_time_factor",
         "cross_track_mean_m", "cross_track_max_m", "off_track_events", "command_rate_hz")
 print(json.dumps({"reason": score["reason"], "brain": score["brain"], "circuit": score["spec"]["circuit"],
-                  **{k: metrics[k] for k in keys if k in metrics}}))
+                  "renderer": score["spec"].get("renderer"), **{k: metrics[k] for k in keys if k in metrics}}))
 EOF
+if [ -n "${DRIVEBENCH_RENDERER:-}" ]; then
+  drew=$("$PYTHON" -c 'import json, sys; print(json.load(open(sys.argv[1]))["spec"]["renderer"])' "${scores[0]}")
+  [ "$drew" = "$DRIVEBENCH_RENDERER" ] || die "asked for renderer $DRIVEBENCH_RENDERER, the episode was drawn by $drew"
+  say "the episode was drawn by the $drew renderer, as DRIVEBENCH_RENDERER asked"
+fi
 say "recording: ${recordings[0]} ($(stat -c %s "${recordings[0]}") bytes)"
 "$ROOT/.venv/bin/drivebench" recorder info "${recordings[0]}" 2>&1 | tee -a "$LOG" \
   || die "the project's reader rejects ${recordings[0]}"

@@ -3,8 +3,9 @@
     .venv/bin/python scripts/foxglove_probe.py ws://127.0.0.1:8765 --seconds 8
 
 Subscribes to the ground-truth camera (``/camera/truth``; ``.../sim/camera`` on servers from before stable topics),
-decodes the JPEGs it receives, and prints one JSON line: images, rate, picture size. Exit 0 when at least one
-decodable image arrived, 1 otherwise. Needs ``websockets`` (the test extra).
+decodes the JPEGs it receives until ``--seconds`` pass or the server goes away, and prints one JSON line: images,
+rate, picture size. Exit 0 when at least one decodable image arrived, 1 otherwise. Needs ``websockets`` (the test
+extra).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import time
 import cv2
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -32,7 +34,7 @@ def probe(url: str, *, seconds: float) -> dict:
         while (left := deadline - time.monotonic()) > 0:
             try:
                 message = ws.recv(timeout=left)
-            except TimeoutError:
+            except (TimeoutError, ConnectionClosed):  # the server going away ends the count, it does not void it
                 break
             if isinstance(message, str):
                 body = json.loads(message)
