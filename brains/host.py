@@ -31,7 +31,17 @@ from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
-from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeSpec, Header, Pose
+from protocol.messages import (
+    CameraFrame,
+    Command,
+    ControlReply,
+    ControlRequest,
+    EpisodeEvent,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    Pose,
+)
 from protocol.runtime import stop_requested
 
 log = logging.getLogger("drivebench.brain")
@@ -51,7 +61,8 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     options: keyword options for the brain's constructor (e.g. ``{speed_mps: 2.0}`` for ``constant``).
     camera: which stream to drive from: ``auto`` (the default: per episode, the simulator's frames when the episode
         has no noise, else the noise injector's; identity noise forwards the same bytes, so this saves a hop and
-        changes nothing the brain sees), ``perturbed`` (always the noise injector's) or ``raw`` (always the
+        changes nothing the brain sees; once a frame of the episode came on its stream the other one is dropped
+        unread until the episode's END), ``perturbed`` (always the noise injector's) or ``raw`` (always the
         simulator's, for a stack without a noise injector).
     orphan_timeout_s: exit (code 0) when the run has had no simulator for this long: nothing a stack or a swap
         starts outlives its stack. 0 (default): wait for a simulator forever (services started by hand, compose).
@@ -92,7 +103,7 @@ class BrainHost:
         self._source_keys = {source: subscription.key for source, subscription in self._sources.items()}
         self._source = next(iter(self._sources))  # the stream of the current episode
         self._realtime = False  # the current episode's mode: real-time takes the newest frame only
-        self._starts = EpisodeStarts(bus, run, on_start=self._open_source if config.camera == "auto" else None)
+        self._starts = EpisodeStarts(bus, run, on_event=self._on_event if config.camera == "auto" else None)
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
         self._last: Command | None = None
@@ -109,12 +120,17 @@ class BrainHost:
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
-    def _open_source(self, spec: EpisodeSpec | None) -> None:
-        """At an episode's START (callback thread, before its first frame), or once a late joiner knows the episode:
-        let in only the stream it drives from, so the other copy of each frame is dropped unread."""
-        source = source_of(spec)
+    def _on_event(self, event: EpisodeEvent) -> None:
+        """Callback thread: at the end of an episode let every stream in again, so that the next episode's first
+        frame gets through whichever stream it drives from."""
+        if event.kind == EventKind.END:
+            for subscription in self._sources.values():
+                subscription.open = True
+
+    def _drive_only_from_source(self) -> None:
+        """Main loop, once a frame of the current episode came on its stream: drop the other copies unread."""
         for name, subscription in self._sources.items():
-            subscription.open = name == source
+            subscription.open = name == self._source
 
     def serve_forever(self) -> None:
         """Answer frames until a "stop" request (or, with ``orphan_timeout_s``, until the run has lost its simulator);
@@ -170,7 +186,7 @@ class BrainHost:
         self._spec = spec
         if self.config.camera == "auto":
             self._source = source_of(spec)
-            self._open_source(spec)
+            self._sources[self._source].open = True  # in case its first frame was shut out: the resend gets in
         if spec is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
@@ -180,8 +196,10 @@ class BrainHost:
     def answer(self, frame: CameraFrame, *, key: str = "") -> None:
         """Answer one frame with a command; ``key``: the stream it came on ("" = the current episode's)."""
         h = frame.header
-        if h.episode == self._episode and not self._from_source(key):
-            return  # the other copy of a frame (a late joiner lets both in until it knows the episode)
+        if h.episode <= self._episode and not self._from_source(key):
+            # The other copy of a frame (a late joiner lets both in until it knows the episode), or one of an earlier
+            # episode that trailed in after the next one began (a noise injector running behind).
+            return
         if self._last is not None and (self._last.header.episode, self._last.frame_seq) == (h.episode, h.seq):
             self._commands.publish(self._last)  # a repeated frame: same answer, the brain sees each frame once
             return
@@ -194,6 +212,8 @@ class BrainHost:
             self.brain.reset(seed=self._seed_for(h.episode))
             if not self._from_source(key):
                 return
+        if len(self._sources) > 1:
+            self._drive_only_from_source()
         if image is None:  # lost on the way: keep doing what the brain last decided
             speed_mps = self._last.speed_mps if self._last is not None else 0.0
             yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0

@@ -203,6 +203,11 @@ class Inbox:
                 return None
             return self._taken(self._queue.popleft())
 
+    def keep_last(self, count: int | None) -> None:
+        """From now on keep only the newest ``count`` messages (None: keep everything); the newest queued stay."""
+        with self._ready:
+            self._queue = collections.deque(self._queue, maxlen=count)
+
     def try_recv(self) -> Received | None:
         with self._ready:
             return self._taken(self._queue.popleft()) if self._queue else None

@@ -53,20 +53,19 @@ class EpisodeStarts:
     first; ``spec`` waits briefly for it otherwise (a process that joined late never sees it and gets None).
     """
 
-    def __init__(self, bus: Bus, run_id: str, *, on_start: Callable[[EpisodeSpec], None] | None = None):
-        """``on_start(spec)`` runs on the bus's callback thread as each START arrives, before the episode's first
-        frame is handed to any subscriber of the same process (the simulator sends START first, and one
-        session's samples reach its callbacks in order): a process can set up for the episode in time."""
+    def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[EpisodeEvent], None] | None = None):
+        """``on_event(event)`` runs on the bus's callback thread as each episode event arrives. Zenoh runs each
+        subscription's callbacks on a thread of its own, so it may run before or after frames that were published
+        after the event: use it to let more in early, never to shut something out."""
         self._inbox = Inbox()
-        self._on_start = on_start
-        hook = self._started if on_start is not None else None
+        self._on_event = on_event
+        hook = self._arrived if on_event is not None else None
         bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox, on_message=hook)
         self._specs: dict[int, EpisodeSpec] = {}
 
-    def _started(self, received: Received[EpisodeEvent]) -> None:
-        event = received.message
-        if event.kind == EventKind.START and event.spec is not None and self._on_start is not None:
-            self._on_start(event.spec)
+    def _arrived(self, received: Received[EpisodeEvent]) -> None:
+        if self._on_event is not None:
+            self._on_event(received.message)
 
     def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
         """The spec of ``episode`` (each is handed out once), or None if its START is not seen within ``wait_s``."""

@@ -17,7 +17,7 @@ SMALL = CameraSpec(width_px=96, height_px=72)
 
 
 def brain_frames(trace_dir, run_id: str) -> dict[tuple[int, str], set[int]]:
-    """(episode, "raw" | "perturbed" ) -> frame seqs whose bytes reached the brain host's Python at all
+    """(episode, "raw" | "perturbed") -> frame seqs whose bytes reached the brain host's Python at all
     ("arrived"), from its trace."""
     names = {keys.camera_raw(run_id): "raw", keys.camera_perturbed(run_id): "perturbed"}
     seen: dict[tuple[int, str], set[int]] = {}
@@ -42,10 +42,13 @@ def test_auto_camera_takes_the_simulators_frames_without_noise_and_the_noise_inj
     stack.close()  # the processes write their traces as they stop
     seen = brain_frames(trace_dir, stack.run_id)
     every_frame = set(range(40))
-    # Without noise only the simulator's copy is let in; with noise only the noise injector's.
-    assert seen.get((0, "raw")) == every_frame and (0, "perturbed") not in seen
-    assert seen.get((1, "perturbed")) == every_frame and (1, "raw") not in seen
-    assert seen.get((2, "raw")) == every_frame and (2, "perturbed") not in seen
+    # Without noise the simulator's copy of every frame gets in; with noise the noise injector's. The other copy is
+    # dropped unread from the moment the first frame of the episode came on its stream, until the episode's END
+    # opens both for the next one: only frame 0's, and the last frames' when the noise injector trails behind.
+    for episode, source, other in ((0, "raw", "perturbed"), (1, "perturbed", "raw"), (2, "raw", "perturbed")):
+        assert seen.get((episode, source)) == every_frame, (episode, source)
+        let_in = seen.get((episode, other), set())
+        assert len(let_in) <= 4 and let_in <= {0} | set(range(36, 40)), (episode, other, let_in)
 
 
 def test_auto_camera_drives_exactly_as_the_noise_injectors_frames_do(make_stack):

@@ -76,6 +76,9 @@ def test_a_late_last_command_still_counts(scorer_bus):
 
     points = load_circuit("simple").centreline.points_m
     events.publish(EpisodeEvent(header=header(0), kind=EventKind.START, spec=spec))
+    # As the simulator does (it renders first): the scorer's callbacks run on a thread per subscription, so a pose
+    # sent at once could be handled before START, and with no simulator to ask for the spec it would be dropped.
+    time.sleep(0.3)
     for seq in range(FRAMES + 1):
         x_m, y_m = points[seq % len(points)]
         poses.publish(Pose(header=header(seq), x_m=float(x_m), y_m=float(y_m), yaw_rad=0.0, speed_mps=1.0))

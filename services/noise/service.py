@@ -23,8 +23,10 @@ from services.noise.models import NoisePipeline
 
 log = logging.getLogger("drivebench.noise")
 
-# Frames waiting to be perturbed; lock-step has one in flight, real-time mode a few at most.
-FRAME_BACKLOG = 8
+# Real time: frames kept waiting to be perturbed (newest win). In lock-step every frame is kept: a brain that drives
+# from the simulator's own frames (an episode without noise) does not wait for this process, yet the recorder and
+# datasets need every perturbed frame.
+REALTIME_FRAME_BACKLOG = 8
 
 
 class NoiseConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -39,7 +41,7 @@ class NoiseService:
     def __init__(self, config: NoiseConfig, bus: Bus):
         self.config = config
         run = config.run_id
-        self._frames = bus.subscribe(keys.camera_raw(run), CameraFrame, keep_last=FRAME_BACKLOG)
+        self._frames = bus.subscribe(keys.camera_raw(run), CameraFrame)
         self._starts = EpisodeStarts(bus, run)
         self._out_latest = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES)
         self._out_lossless = bus.publisher(keys.camera_perturbed(run), CameraFrame, Traffic.FRAMES_LOSSLESS)
@@ -58,6 +60,13 @@ class NoiseService:
             received = self._frames.recv(timeout_s=0.5)
             if received is not None:
                 self.perturb(received)
+        # Frames still queued are an episode's last steps, which the recorder (stopped after us) must still get: a
+        # brain that drives from the simulator's frames lets this process fall behind on a busy machine.
+        backlog = self._frames.inbox.drain()
+        for received in backlog:
+            self.perturb(received)
+        if backlog:
+            log.info("forwarded the %d frames still queued at stop", len(backlog))
 
     def _start_episode(self, episode: int) -> bool:
         """Build the episode's pipeline; False (and pass the frame through) when its START was never seen."""
@@ -69,6 +78,7 @@ class NoiseService:
             return False
         self._episode = episode
         self._out = self._out_latest if spec.realtime else self._out_lossless
+        self._frames.inbox.keep_last(REALTIME_FRAME_BACKLOG if spec.realtime else None)
         self._pipeline = NoisePipeline(list(spec.noise)) if spec.noise else None
         if self._pipeline is not None:
             self._pipeline.reset(seed=spec.seed)

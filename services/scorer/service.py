@@ -182,7 +182,8 @@ class ScorerService:
         # Lock-step: the driver answered every frame before the last pose, and its commands come straight from the
         # brain, not with END: wait for the last one too, or the score would depend on which arrived first.
         last_answered_frame = current.end.last_pose_seq - 1
-        commands_in = current.spec.realtime or current.commands.driver_answered(last_answered_frame)
+        driver_gone = current.end.reason == EndReason.BRAIN_LOST  # its last command may have died with it
+        commands_in = current.spec.realtime or driver_gone or current.commands.driver_answered(last_answered_frame)
         complete = poses_in and commands_in
         if not complete and time.monotonic() - current.end_arrival < POSE_GRACE_S:
             return
