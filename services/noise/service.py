@@ -2,7 +2,9 @@
 
 Per episode it builds the spec's noise pipeline, seeded from the spec, so the same spec twice perturbs the same
 frames the same way. The scorer and the recorder keep reading ground truth on the simulator's key.
-With no noise configured the received bytes are forwarded as they are: identity costs one hop, no decode/encode.
+With no noise configured the received bytes are forwarded as they are (no decode/encode), for recordings, datasets
+and viewers of the brain's camera; brain hosts then drive from the simulator's own frames and do not wait for this
+process, so in lock-step it keeps every frame queued, however far behind it falls, and forwards the rest at stop.
 A frame the simulator sends again (lock-step resend, byte for byte the same) gets the same output again; the
 pipeline sees it once.
 """
