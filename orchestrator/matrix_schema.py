@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import UNSET, Meta, UnsetType
 
-from protocol.messages import RENDERERS, CameraSpec
+from protocol.messages import CAMERA_BOUNDS, RENDERERS, SPEC_BOUNDS, CameraSpec
 from protocol.typed_yaml import Document, Path, convert, display
 
 Text = Annotated[str, Meta(min_length=1)]
@@ -43,12 +43,12 @@ Perturbations = _one_or_more(str | Mapping | None, single=str | Mapping)  # none
 
 
 class Limits(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
-    """The episode limits a matrix sets (``EpisodeSpec``'s own defaults for the rest; the same bounds)."""
+    """The episode limits a matrix sets (``EpisodeSpec``'s own defaults for the rest; its bounds, SPEC_BOUNDS)."""
 
-    laps: Count | UnsetType = UNSET
-    max_sim_seconds: Annotated[float, Meta(gt=0)] | UnsetType = UNSET
-    brain_timeout_s: Annotated[float, Meta(gt=0)] | UnsetType = UNSET
-    step_s: Annotated[float, Meta(ge=0.001, le=1.0)] | UnsetType = UNSET
+    laps: Annotated[int, SPEC_BOUNDS["laps"]] | UnsetType = UNSET
+    max_sim_seconds: Annotated[float, SPEC_BOUNDS["max_sim_seconds"]] | UnsetType = UNSET
+    brain_timeout_s: Annotated[float, SPEC_BOUNDS["brain_timeout_s"]] | UnsetType = UNSET
+    step_s: Annotated[float, SPEC_BOUNDS["step_s"]] | UnsetType = UNSET
 
 
 def _partial(base: type[msgspec.Struct], *, name: str, bounds: dict[str, Meta]) -> Any:
@@ -64,19 +64,8 @@ def _partial(base: type[msgspec.Struct], *, name: str, bounds: dict[str, Meta]) 
     return msgspec.defstruct(name, fields, forbid_unknown_fields=True, kw_only=True)
 
 
-_SIDE_PX = Meta(ge=8, le=4096)
-# CameraSpec's own fields (a new one is a new key here); its __post_init__ bounds, so each fails at its own line.
-CameraFields = _partial(
-    CameraSpec,
-    name="CameraFields",
-    bounds={
-        "width_px": _SIDE_PX,
-        "height_px": _SIDE_PX,
-        "hfov_rad": Meta(ge=0.1, le=3.0),
-        "near_m": Meta(gt=0),
-        "far_m": Meta(gt=0),
-    },
-)
+# CameraSpec's own fields (a new one is a new key here) and bounds (CAMERA_BOUNDS), each failing at its own line.
+CameraFields = _partial(CameraSpec, name="CameraFields", bounds=CAMERA_BOUNDS)
 
 
 class Part(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):

@@ -59,6 +59,45 @@ class EventKind(enum.StrEnum):
 DIRECTIONS: tuple[str, ...] = ("forward", "reverse")
 RENDERERS: tuple[str, ...] = ("pybullet", "gl", "auto")  # EpisodeSpec.renderer
 
+# Bounds of spec fields, one table for both places that check them: a spec built in code (``__post_init__``, via
+# :func:`check_bounds`) and a matrix file (``orchestrator.matrix_schema``, as msgspec constraints at the value's line;
+# msgspec applies ``Meta`` only when it converts data, never when a struct is built).
+CAMERA_BOUNDS: dict[str, msgspec.Meta] = {
+    "width_px": msgspec.Meta(ge=8, le=4096),
+    "height_px": msgspec.Meta(ge=8, le=4096),
+    "hfov_rad": msgspec.Meta(ge=0.1, le=3.0),
+    "near_m": msgspec.Meta(gt=0),
+    "far_m": msgspec.Meta(gt=0),
+}
+SPEC_BOUNDS: dict[str, msgspec.Meta] = {
+    "laps": msgspec.Meta(ge=1),
+    "max_sim_seconds": msgspec.Meta(gt=0),
+    "step_s": msgspec.Meta(ge=0.001, le=1.0),
+    "brain_timeout_s": msgspec.Meta(gt=0),
+}
+
+
+def bound_text(bound: msgspec.Meta) -> str:
+    """``within 8..4096``, ``>= 1`` or ``> 0``: a bound as an error message says it."""
+    if bound.ge is not None and bound.le is not None:
+        return f"within {bound.ge}..{bound.le}"
+    limits = [(">=", bound.ge), (">", bound.gt), ("<=", bound.le), ("<", bound.lt)]
+    return " and ".join(f"{sign} {value}" for sign, value in limits if value is not None)
+
+
+def check_bounds(struct: msgspec.Struct, bounds: dict[str, msgspec.Meta]) -> None:
+    """Raise ValueError naming the first field of ``struct`` outside its bound in ``bounds``."""
+    for name, bound in bounds.items():
+        value = getattr(struct, name)
+        inside = (
+            (bound.ge is None or value >= bound.ge)
+            and (bound.gt is None or value > bound.gt)
+            and (bound.le is None or value <= bound.le)
+            and (bound.lt is None or value < bound.lt)
+        )
+        if not inside:
+            raise ValueError(f"{name} must be {bound_text(bound)}, got {value}")
+
 
 class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Visual variations of a circuit's world (Behavior Metrics ships them as separate worlds).
@@ -210,10 +249,7 @@ class CameraSpec(msgspec.Struct, frozen=True, kw_only=True):
     far_m: float = 15.0
 
     def __post_init__(self) -> None:
-        if not (8 <= self.width_px <= 4096 and 8 <= self.height_px <= 4096):
-            raise ValueError(f"camera size must be 8..4096 px per side, got {self.width_px}x{self.height_px}")
-        if not 0.1 <= self.hfov_rad <= 3.0:
-            raise ValueError(f"hfov_rad must be within 0.1..3.0, got {self.hfov_rad}")
+        check_bounds(self, CAMERA_BOUNDS)
         if not 0 < self.near_m < self.far_m:
             raise ValueError(f"need 0 < near_m < far_m, got {self.near_m} and {self.far_m}")
 
@@ -258,14 +294,7 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
             raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {self.renderer!r}")
         if self.direction not in DIRECTIONS:
             raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, got {self.direction!r}")
-        if self.laps < 1:
-            raise ValueError(f"laps must be >= 1, got {self.laps}")
-        if not self.max_sim_seconds > 0:
-            raise ValueError(f"max_sim_seconds must be > 0, got {self.max_sim_seconds}")
-        if not 0.001 <= self.step_s <= 1.0:
-            raise ValueError(f"step_s must be within 0.001..1.0, got {self.step_s}")
-        if not self.brain_timeout_s > 0:
-            raise ValueError(f"brain_timeout_s must be > 0, got {self.brain_timeout_s}")
+        check_bounds(self, SPEC_BOUNDS)
 
     @property
     def step_ns(self) -> int:

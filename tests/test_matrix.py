@@ -350,7 +350,7 @@ ERRORS = [
     (MINIMAL + "limits:\n  lap: 1\n", 4, ["'lap'", "laps"]),
     (MINIMAL + "limits: 3\n", 3, ["limits", "mapping"]),
     (MINIMAL + "camera: 320by240\n", 3, ["camera", "320by240", "320x240"]),
-    (MINIMAL + "camera: 4x240\n", 3, ["8..4096", "4x240"]),
+    (MINIMAL + "camera: 4x240\n", 3, ["width_px must be within 8..4096, got 4"]),
     (MINIMAL + "camera:\n  width_px: 320\n  height_px: tall\n", 5, ["camera.height_px", "integer", "'tall'"]),
     (MINIMAL + "camera:\n  depth_px: 3\n", 4, ["'depth_px'", "width_px"]),
     (MINIMAL + "seed: -1\n", 3, ["seed", ">= 0", "-1"]),
