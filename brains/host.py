@@ -238,6 +238,8 @@ class BrainHost:
 
     def _ground_truth(self, episode: int, seq: int) -> GroundTruth | None:
         """The pose of frame (episode, seq), waiting up to GROUND_TRUTH_WAIT_S for it; None (logged) without it."""
+        if self._poses is None:
+            return None
         deadline = time.monotonic() + GROUND_TRUTH_WAIT_S
         while (episode, seq) not in self._pose_by_frame:
             received = self._poses.recv(timeout_s=max(0.0, deadline - time.monotonic()))

@@ -9,6 +9,6 @@ if command -v node >/dev/null 2>&1; then export DRIVEBENCH_REQUIRE_MCAP_VALIDATO
 # Lint first: a minute of tests is not worth spending on a file that does not pass it.
 .venv/bin/ruff check --quiet . || { echo "scripts/test.sh: ruff found the problems above" >&2; exit 1; }
 .venv/bin/ruff format --check --quiet . || { echo "scripts/test.sh: run .venv/bin/ruff format . (files above)" >&2; exit 1; }
-# Types of protocol/ (pyproject's [tool.mypy] names the packages checked).
+# Types of the packages pyproject's [tool.mypy] names (protocol/, the brain host, the driving loop's services).
 .venv/bin/mypy --no-error-summary || { echo "scripts/test.sh: mypy found the problems above" >&2; exit 1; }
 exec .venv/bin/python -m pytest "$@"

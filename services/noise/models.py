@@ -168,7 +168,8 @@ class SaltPepperModel(NoiseModel):
             out[words < self._white_below] = 255
             out[(words >= self._white_below) & (words < self._changed_below)] = 0
             return out
-        cv2.compare(words, self._white_below, cv2.CMP_LT, dst=self._white)  # 255 where white
+        # 255 where white. OpenCV takes a scalar for src2; its stubs only list arrays.
+        cv2.compare(words, self._white_below, cv2.CMP_LT, dst=self._white)  # type: ignore[call-overload]
         # 255 where kept (not black): outside [white_below, changed_below - 1]
         cv2.inRange(words, self._white_below, self._changed_below - 1, dst=self._keep)
         cv2.bitwise_not(self._keep, dst=self._keep)
@@ -295,7 +296,8 @@ class JpegModel(NoiseModel):
         if self._decode_rgb is not None:
             decoded = cv2.imdecode(encoded, self._decode_rgb)
         else:
-            decoded = cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            bgr = cv2.imdecode(encoded, cv2.IMREAD_COLOR)  # None when it fails: the check below says so
+            decoded = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         if decoded is None or decoded.shape != image.shape:
             raise RuntimeError(f"OpenCV failed to decode its own JPEG of a {image.shape} image")
         return decoded

@@ -287,7 +287,7 @@ def count_off_track_events(lateral_m: Sequence[float], half_width_m: float) -> i
     return int(out[0]) + int(np.count_nonzero(out[1:] & ~out[:-1]))
 
 
-def percentiles_ms(durations_ns: Sequence[int], qs: Sequence[float] = (50, 95)) -> list[float]:
+def percentiles_ms(durations_ns: Sequence[int] | np.ndarray, qs: Sequence[float] = (50, 95)) -> list[float]:
     """Percentiles (linear interpolation) of durations given in ns, in ms; zeros when empty."""
     d = np.asarray(durations_ns, dtype=float)
     if len(d) == 0:

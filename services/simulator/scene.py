@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import pybullet
@@ -135,7 +136,10 @@ class Scene:
     @classmethod
     def for_world(cls, circuit: Circuit, world: WorldVariation) -> Scene:
         """The scene of ``circuit`` with a world variation (line, road, walls, lighting)."""
-        return cls(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls, lighting=world.lighting)
+        # WorldVariation checks its values against these names; its fields are plain str on the wire.
+        line = cast(LineColour, world.line)
+        road = cast(RoadColour, world.road)
+        return cls(circuit, line_colour=line, road_colour=road, walls=world.walls, lighting=world.lighting)
 
     # -- building ---------------------------------------------------------------------------------------------------
 
@@ -215,9 +219,10 @@ class Scene:
 
     def close(self) -> None:
         """Disconnect the PyBullet client; idempotent."""
-        if getattr(self, "_client", None) is not None and self._client >= 0:
+        client = getattr(self, "_client", None)
+        if client is not None and client >= 0:
             try:
-                pybullet.disconnect(physicsClientId=self._client)
+                pybullet.disconnect(physicsClientId=client)
             except pybullet.error:
                 pass
         self._client = None

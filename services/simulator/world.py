@@ -33,10 +33,11 @@ GRASS_TILE_M = 25.0  # grass tile side: one culling chunk (2 triangles) each
 MAX_GRASS_TILES_PER_SIDE = 24
 
 # RGBA in 0..1. Rendered values are about 0.89-1.0 times these (ambient 0.9 + a little diffuse).
-ROAD_COLOURS = {"grey": (0.35, 0.35, 0.35, 1.0), "white": (0.8, 0.8, 0.8, 1.0)}
-LINE_COLOURS = {"red": (1.0, 0.0, 0.0, 1.0), "white": (1.0, 1.0, 1.0, 1.0)}
-WALL_COLOUR = (0.6, 0.6, 0.6, 1.0)  # light grey: unsaturated, R < 170 once rendered
-GRASS_COLOUR = (0.42, 0.55, 0.38, 1.0)  # muted green: HSV S ~ 79 < 110, so the explicit brain ignores it
+RGBA = tuple[float, float, float, float]
+ROAD_COLOURS: dict[str, RGBA] = {"grey": (0.35, 0.35, 0.35, 1.0), "white": (0.8, 0.8, 0.8, 1.0)}
+LINE_COLOURS: dict[str, RGBA] = {"red": (1.0, 0.0, 0.0, 1.0), "white": (1.0, 1.0, 1.0, 1.0)}
+WALL_COLOUR: RGBA = (0.6, 0.6, 0.6, 1.0)  # light grey: unsaturated, R < 170 once rendered
+GRASS_COLOUR: RGBA = (0.42, 0.55, 0.38, 1.0)  # muted green: HSV S ~ 79 < 110, so the explicit brain ignores it
 SKY_RGB = (180, 192, 210)  # pale blue-grey: HSV S ~ 37, R >= 170 (the "sun" sky)
 
 # Lighting presets: "sun" is flat and bright (Gazebo-like); "no_sun" is Behavior Metrics' darker *_no_sun worlds.
@@ -137,13 +138,13 @@ def describe(
         lighting=lighting,
         ambient=coefficients["lightAmbientCoeff"],
         diffuse=coefficients["lightDiffuseCoeff"],
-        light_towards=tuple(float(v) for v in light),
+        light_towards=(float(light[0]), float(light[1]), float(light[2])),
         sky_rgb=SKY_RGB_BY_LIGHTING[lighting],
         walls=walls,
     )
 
 
-def _mesh(kind: MeshKind, vertices: np.ndarray, indices: list[int], rgba: tuple[float, ...]) -> Mesh:
+def _mesh(kind: MeshKind, vertices: np.ndarray, indices: list[int], rgba: RGBA) -> Mesh:
     assert len(indices) // 3 <= MAX_TRIANGLES_PER_CHUNK, len(indices)
     centre = vertices.mean(axis=0)
     radius = float(np.max(np.linalg.norm(vertices - centre, axis=1)))
@@ -151,7 +152,7 @@ def _mesh(kind: MeshKind, vertices: np.ndarray, indices: list[int], rgba: tuple[
         kind=kind,
         vertices_m=vertices,
         indices=np.asarray(indices, dtype=np.int32),
-        rgba=tuple(rgba),
+        rgba=rgba,
         centre_m=centre,
         radius_m=radius,
     )
@@ -175,7 +176,7 @@ def _grass(points: np.ndarray) -> list[Mesh]:
 
 
 def _strip(
-    points: np.ndarray, normals: np.ndarray, half_width_m: float, z_m: float, rgba: tuple[float, ...], kind: MeshKind
+    points: np.ndarray, normals: np.ndarray, half_width_m: float, z_m: float, rgba: RGBA, kind: MeshKind
 ) -> list[Mesh]:
     """A closed ribbon of width 2*half_width_m along the points, facing up, split into chunks."""
     left = points + half_width_m * normals
