@@ -254,8 +254,8 @@ class Subscription(Generic[T]):
         self._type = message_type
         self._rejects = rejects
         self._on_message = on_message
-        # A Python callback runs on the session's one Python callback thread: decode there (cheap, and bad input
-        # is rejected before it reaches the loop), then wake the loop.
+        # zenoh-python runs each subscription's Python callback on a thread of its own (no order across keys):
+        # decode there (cheap, and bad input is rejected before it reaches the loop), then wake the loop.
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:

@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 
 from protocol import codec, keys
-from protocol.bus import Bus, BusError, Inbox, Received
+from protocol.bus import Bus, BusError, Inbox
 from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EpisodeSpec, EventKind, Header
 
 log = logging.getLogger("drivebench.episodes")
@@ -58,14 +58,9 @@ class EpisodeStarts:
         subscription's callbacks on a thread of its own, so it may run before or after frames that were published
         after the event: use it to let more in early, never to shut something out."""
         self._inbox = Inbox()
-        self._on_event = on_event
-        hook = self._arrived if on_event is not None else None
+        hook = None if on_event is None else lambda received: on_event(received.message)
         bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox, on_message=hook)
         self._specs: dict[int, EpisodeSpec] = {}
-
-    def _arrived(self, received: Received[EpisodeEvent]) -> None:
-        if self._on_event is not None:
-            self._on_event(received.message)
 
     def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
         """The spec of ``episode`` (each is handed out once), or None if its START is not seen within ``wait_s``."""

@@ -17,11 +17,14 @@ hop (:func:`read_traces`). Recording costs a tuple append per event; at most ``M
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger("drivebench.trace")
 
 TRACE_DIR_ENV = "DRIVEBENCH_TRACE_DIR"
 MAX_EVENTS = 1_000_000
@@ -70,7 +73,10 @@ class Tracer:
         if self._path is None or not self._events:
             return
         lines = [f"{ns} {event} {key} {episode} {seq}\n" for ns, event, key, episode, seq in self._events]
-        self._path.write_text("".join(lines))
+        try:
+            self._path.write_text("".join(lines))
+        except OSError as error:  # a trace must never keep a process from closing its bus
+            log.warning("cannot write the trace %s (%s): %s", self._path, TRACE_DIR_ENV, error.strerror or error)
         self._events.clear()
 
 
