@@ -26,6 +26,8 @@ COPY services services
 COPY brains brains
 COPY recorder recorder
 COPY orchestrator orchestrator
+# orchestrator/experiments links here: the wheel carries the matrix files that commands default to.
+COPY experiments experiments
 RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"
 # Smaller by ~290 MB: pybullet's wheel carries 126 MB of debug symbols and ~170 MB of example robots, meshes and
 # environments (pybullet_data, _envs, _examples, _robots, _utils) that drivebench never loads: it builds its own scene.

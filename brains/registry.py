@@ -29,6 +29,7 @@ from brains.base import Brain
 from brains.nets import MODELS
 
 ENTRY_POINT_GROUP = "drivebench.brains"
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights"  # brains/weights/<network>.ckpt, in a wheel too
 BEHAVIOR_METRICS = "behavior_metrics"
 
 # name -> "module:factory". The factory takes keyword options and returns a Brain.
@@ -97,6 +98,12 @@ def is_module_target(name: str) -> bool:
     module, sep, attribute = name.partition(":")
     parts = module.split(".") + attribute.split(".")
     return bool(sep and module and attribute) and all(part.isidentifier() for part in parts)
+
+
+def shipped_weights(name: str) -> Path | None:
+    """The checkpoint drivebench ships for the network brain ``name`` (``pilotnet``, ``memdccp``, ...), or None."""
+    path = SHIPPED_WEIGHTS / f"{name}.ckpt"
+    return path if name in MODELS and path.is_file() else None
 
 
 def is_brain_file(name: str) -> bool:

@@ -14,7 +14,6 @@ import logging
 import os
 import socket
 import subprocess
-import sys
 import time
 import uuid
 from collections.abc import Callable
@@ -255,7 +254,7 @@ class LocalStack:
         # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
         group = (self.process_group or 0) if self.one_group else None
         process = processes.spawn(
-            [sys.executable, "-m", module, *joins, *argv], log_path=log_path, env=env, process_group=group
+            [*processes.python_module(module), *joins, *argv], log_path=log_path, env=env, process_group=group
         )
         if self.one_group and self.process_group is None:
             self.process_group = process.pid

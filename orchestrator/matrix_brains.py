@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain
+from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain, shipped_weights
 from orchestrator.matrix_plan import BrainEntry
 from orchestrator.matrix_schema import BrainFields, items, text_at
 from protocol.keys import check_name
@@ -40,10 +40,9 @@ def _brain_entry(document: Document, item: str | BrainFields, path: At, *, base_
     if isinstance(fields.weights, str):
         weights = _weights(document, fields.weights, (*path, "weights"), base_dir=base_dir)
     options = _options(document, fields.options, (*path, "options"))
-    label = fields.label if isinstance(fields.label, str) else None
-    return BrainEntry(
-        label=_label(document, label, path, name=name, weights=weights), brain=name, weights=weights, options=options
-    )
+    label = _label(document, fields.label if isinstance(fields.label, str) else None, path, name=name, weights=weights)
+    # A network named without weights serves its shipped checkpoint: say which, for the reports (tables 1 and 2).
+    return BrainEntry(label=label, brain=name, weights=weights or shipped_weights(name), options=options)
 
 
 def _weights(document: Document, written: str, path: At, *, base_dir: Path) -> Path:

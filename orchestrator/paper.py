@@ -33,7 +33,8 @@ from orchestrator.report_cells import lap_seconds, outcome, reached_target
 from orchestrator.report_document import FAIL_MARK, Section, Table
 from orchestrator.results import EpisodeResult
 
-PAPER_FILE = Path(__file__).resolve().parents[1] / "experiments" / "paper.yaml"
+# orchestrator/experiments links to the top-level experiments/ in a checkout and holds the files in a wheel.
+PAPER_FILE = Path(__file__).resolve().parent / "experiments" / "paper.yaml"
 PAPER_ONLY = "–"  # no figure in the paper for this cell (a brain or a world the paper did not run)
 
 # The paper's rows, by brain label in experiments/paper.yaml, and how the paper names them.

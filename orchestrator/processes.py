@@ -10,12 +10,23 @@ from __future__ import annotations
 import logging
 import signal
 import subprocess
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 log = logging.getLogger("drivebench.processes")
 
 LOG_LINE_CHARS = 200  # a dead process's last log line, quoted in its failure (a simulator's may hold a whole spec)
+
+
+def python_module(module: str) -> list[str]:
+    """The command line that runs ``python -m module`` for a child process, in Python's safe-path mode (``-P``).
+
+    Without ``-P`` the current folder comes first on ``sys.path``, so a user's own ``circuits/`` or ``brains/``
+    folder (imported circuits, a Behavior Metrics checkout) would shadow drivebench's packages and the child would
+    die at import. ``module:Class`` brains still resolve from the current folder: the brain registry appends it to
+    ``sys.path`` after drivebench's packages."""
+    return [sys.executable, "-P", "-m", module]
 
 
 def spawn(

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -273,9 +272,7 @@ def _start_brain(
     """The brain host, detached: its own session, and no parent watch (DRIVEBENCH_PARENT_PID), so that it lives on
     after this command; the stack stops it (over its control key) when the stack closes."""
     argv = [
-        sys.executable,
-        "-m",
-        "brains",
+        *processes.python_module("brains"),
         "--router",
         router,
         "--run-id",

@@ -44,7 +44,7 @@ from brains.neural.checkpoint import (
 )
 from brains.neural.export import SOURCE_SHA256_KEY, export_onnx, file_sha256
 from brains.neural.runners import OrtRunner, TorchRunner
-from brains.registry import BrainOptionsError
+from brains.registry import BrainOptionsError, shipped_weights
 
 log = logging.getLogger("drivebench.brain.neural")
 
@@ -205,26 +205,28 @@ def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | N
 # -- registry factories ----------------------------------------------------------------------------------------------
 
 
-SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights"  # brains/weights/<brain>.ckpt
-
-
 def _factory(brain: str, model: str | None):
-    def make(*, weights: str | None = None, **options: Any) -> NeuralBrain:
-        if not weights and (SHIPPED_WEIGHTS / f"{brain}.ckpt").is_file():
-            weights = str(SHIPPED_WEIGHTS / f"{brain}.ckpt")  # the network drivebench ships weights for
-            log.info("no weights given: serving the shipped %s", weights)
+    def default_weights(weights: str | None) -> str:
+        if not weights and (shipped := shipped_weights(brain)) is not None:
+            return str(shipped)  # the network drivebench ships weights for
         if not weights:
             raise BrainOptionsError(f"brain {brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
+        return weights
+
+    def make(*, weights: str | None = None, **options: Any) -> NeuralBrain:
+        if not weights:
+            weights = default_weights(weights)
+            log.info("no weights given: serving the shipped %s", weights)
         if model is not None:
             options["model"] = model
         return NeuralBrain(weights=weights, **options)
 
     def preflight(*, weights: str | None = None, **options: Any) -> None:
-        """Check the weights before any process starts: loadable, the right network (CheckpointError, one line)."""
-        if weights:
-            path = Path(weights)
-            ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
-            _check_model(ckpt, model)
+        """Check the weights before any process starts, the shipped ones too (their shards are read and verified):
+        loadable, the right network (CheckpointError or BrainOptionsError, one line)."""
+        path = Path(default_weights(weights))
+        ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
+        _check_model(ckpt, model)
 
     make.preflight = preflight
     make.__name__ = make.__qualname__ = brain
