@@ -163,10 +163,12 @@ def collect(args: argparse.Namespace, options) -> int:
 
 def build_from_recordings(recordings: list[Path], *, output: Path, options, overwrite: bool) -> int:
     """A dataset in ``output`` from MCAP recordings (``drivebench dataset build``), with a summary line on stderr."""
-    from recorder.dataset import build_dataset
+    from recorder.dataset import DatasetError, build_dataset
     from recorder.reading import read_messages, recording_info
 
     for path in recordings:
+        if output.resolve() in path.resolve().parents:
+            raise DatasetError(f"output folder {output} holds the input {path}: write the dataset to another folder")
         recording_info(path)  # a missing or broken file fails before any work
     sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
     manifest = build_dataset(
