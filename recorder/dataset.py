@@ -48,6 +48,7 @@ from recorder.dataset_format import (
     Totals,
     TrainStats,
     check_offsets,
+    describe_offsets,
     parse_split,
     valid_windows,
 )
@@ -124,7 +125,7 @@ def _common_step_s(used: list[dict[str, Any]], offsets: tuple[int, ...]) -> floa
         return steps[0]
     if len(offsets) > 1:
         raise DatasetError(
-            f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {offsets} "
+            f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {describe_offsets(offsets)} "
             f"would span different times; build one dataset per step_s"
         )
     return None
@@ -295,7 +296,7 @@ def _annotate_episodes(infos: list[dict[str, Any]], window_episodes: np.ndarray,
 def _check_split_sides(
     options: DatasetOptions, train_index: np.ndarray, val_index: np.ndarray, val_episodes: set[int]
 ) -> None:
-    window = f"offsets {options.offsets_frames}"
+    window = f"offsets {describe_offsets(options.offsets_frames)}"
     if len(train_index) == 0:
         raise DatasetError(f"split {options.split!r}: no training sample has a complete window for {window}")
     if val_episodes and len(val_index) == 0:
@@ -374,6 +375,7 @@ __all__ = [
     "TrainStats",
     "build_dataset",
     "check_offsets",
+    "describe_offsets",
     "parse_split",
     "samples_per_second",
     "train_label_stats",

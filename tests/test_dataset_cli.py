@@ -10,6 +10,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+import pytest
 from test_dataset import episode_stream
 
 from recorder.dataset import DrivingDataset
@@ -50,8 +51,8 @@ def drivebench(*argv: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProce
     )
 
 
-def build(*argv: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    return drivebench("dataset", "build", *argv, "--size", "40x20", cwd=cwd)
+def build(*argv: str | Path, cwd: Path = ROOT, size: str = "40x20") -> subprocess.CompletedProcess:
+    return drivebench("dataset", "build", *argv, "--size", size, cwd=cwd)
 
 
 def one_line_error(result: subprocess.CompletedProcess) -> str:
@@ -127,3 +128,33 @@ def test_two_recordings_of_one_run_are_refused_naming_both(tmp_path):
     assert len(episodes) == len(set(episodes)) == 8
     train, val = DrivingDataset(out, split="train"), DrivingDataset(out, split="val")
     assert not set(np.unique(train.episode[train.index])) & set(np.unique(val.episode[val.index]))
+
+
+# -- item 17: options named, in one short line -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("recordings")
+    return record(folder / "a.mcap", "ra"), record(folder / "b.mcap", "rb")
+
+
+def test_a_negative_seed_names_the_option(recordings, tmp_path):
+    error = one_line_error(build(*recordings, "-o", tmp_path / "d", "--seed", "-3"))
+    assert "--seed" in error and "-3" in error
+    assert not (tmp_path / "d").exists()
+
+
+def test_a_long_history_is_summarised_not_printed_whole(recordings, tmp_path):
+    error = one_line_error(build(*recordings, "-o", tmp_path / "d", "--history", "1000"))
+    assert "1000 frames" in error and "-999" in error and len(error) < 300
+
+
+def test_stride_with_offsets_is_refused_instead_of_ignored(recordings, tmp_path):
+    error = one_line_error(build(*recordings, "-o", tmp_path / "d", "--offsets=-2,0", "--stride", "5"))
+    assert "--stride" in error and "--offsets" in error
+    assert not (tmp_path / "d").exists()
+    # --stride with --history still shapes the windows
+    result = build(*recordings, "-o", tmp_path / "h", "--history", "3", "--stride", "2")
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "h" / "manifest.json").read_text())["offsets_frames"] == [-4, -2, 0]

@@ -162,7 +162,9 @@ def _add_build_options(parser: argparse.ArgumentParser) -> None:
         help="explicit frame offsets, e.g. --offsets=-9,-5,0 (the paper's memory "
         "models; write the = because the value starts with -)",
     )
-    parser.add_argument("--stride", type=int, default=1, help="frames between history frames (default 1)")
+    parser.add_argument(
+        "--stride", type=int, help="frames between the frames of --history (default 1; --offsets says it itself)"
+    )
     parser.add_argument(
         "--camera-key",
         choices=("perturbed", "truth"),
@@ -187,19 +189,14 @@ def dataset_options(args: argparse.Namespace):
     try:
         size = (int(width), int(height)) if sep else None
         crop = (float(top), float(bottom)) if colon else None
-        offsets = (
-            tuple(int(v) for v in args.offsets.split(","))
-            if args.offsets
-            else tuple(-k * args.stride for k in range(args.history - 1, -1, -1))
-        )
     except ValueError:
-        size = crop = offsets = None
+        size = crop = None
     if size is None:
         raise UsageError(f"--size must look like 100x50, got {args.size!r}")
     if crop is None:
         raise UsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
-    if offsets is None or args.history < 1 or args.stride < 1:
-        raise UsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
+    if args.seed < 0:
+        raise UsageError(f"--seed must be >= 0, got {args.seed}")
     return DatasetOptions(
         width_px=size[0],
         height_px=size[1],
@@ -207,10 +204,25 @@ def dataset_options(args: argparse.Namespace):
         crop_bottom_fraction=crop[1],
         camera=args.camera_key,
         brain=args.label_brain,
-        offsets_frames=offsets,
+        offsets_frames=_offsets(args),
         split=args.split,
         seed=args.seed,
     )
+
+
+def _offsets(args: argparse.Namespace) -> tuple[int, ...]:
+    """--offsets, or --history frames --stride apart."""
+    if args.offsets and args.stride is not None:  # argparse would otherwise drop it without a word
+        raise UsageError(f"--stride {args.stride} applies to --history; with --offsets put the spacing in the offsets")
+    stride = 1 if args.stride is None else args.stride
+    if args.history < 1 or stride < 1:
+        raise UsageError(f"--history and --stride must be >= 1, got {args.history} and {stride}")
+    if not args.offsets:
+        return tuple(-k * stride for k in range(args.history - 1, -1, -1))
+    try:
+        return tuple(int(v) for v in args.offsets.split(","))
+    except ValueError:
+        raise UsageError(f"--offsets must be comma-separated integers ending in 0, got {args.offsets!r}") from None
 
 
 def _build(args: argparse.Namespace) -> int:
