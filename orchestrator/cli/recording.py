@@ -11,6 +11,7 @@ drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build 
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import functools
 import json
 import os
@@ -259,19 +260,25 @@ def _info(args: argparse.Namespace) -> int:
     print(f"{info.path}: {info.messages} messages over {info.duration_s:.1f} s of recording time")
     width = max((len(c.topic) for c in info.channels), default=10)
     for channel in sorted(info.channels, key=lambda c: c.topic):
-        kind = "bus " if channel.bus_key else "view"
+        kind = "bus  " if channel.bus_key else "view " if channel.view else "other"  # other: not drivebench's
         key = f"  <- {channel.key}" if channel.key and channel.key != channel.topic else ""  # stable topics
         print(
             f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
             f"{channel.schema} ({channel.message_encoding}){key}"
         )
-    missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
-    if any(missing.values()):
-        print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")
     for name, data in info.metadata.items():
-        if name.startswith("episode:"):
+        # A merged file (recorder merge) keeps each run's metadata under its namespace: "runA/episode:0".
+        namespace, _, base = name.rpartition("/")
+        run = f"/{namespace} " if namespace else ""
+        missing = json.loads(data.get("missing", "{}")) if base == "drivebench.recording" else {}
+        if any(missing.values()):
+            print(f"  WARNING: {run}messages that never reached the recorder (sequence gaps): {missing}")
+        if base.startswith("episode:"):
             spec = json.loads(data.get("spec", "{}"))
-            print(f"  {name}: circuit {spec.get('circuit')}, brain {spec.get('active_brain')}, seed {spec.get('seed')}")
+            print(
+                f"  {run}{base}: run {data.get('run_id')}, circuit {spec.get('circuit')}, "
+                f"brain {spec.get('active_brain')}, seed {spec.get('seed')}"
+            )
     return EXIT_OK
 
 
@@ -292,7 +299,7 @@ def _replay(args: argparse.Namespace) -> int:
         raise UsageError(f"replay needs a router to publish to: --router tcp/HOST:7447 or ${ROUTER_ENV}")
     if not args.max_speed and not args.rate > 0:
         raise UsageError(f"--rate must be > 0, got {args.rate}")
-    recording_info(args.file)  # a bad file fails here, before a bus session is opened
+    _check_one_run(args)  # a bad file fails here, before a bus session is opened
     with Bus(BusConfig(connect=[router]), name="replay") as bus:
         report = replay(
             args.file,
@@ -308,3 +315,20 @@ def _replay(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return EXIT_OK
+
+
+def _check_one_run(args: argparse.Namespace) -> None:
+    """--run-id on a file of several runs (a merged file) would fold their episodes into one run: refused."""
+    info = recording_info(args.file)
+    runs = sorted(
+        {
+            c.run_id
+            for c in info.channels
+            if c.bus_key and c.run_id and (args.keys is None or fnmatch.fnmatchcase(c.key, args.keys))
+        }
+    )
+    if args.run_id is not None and len(runs) > 1:
+        raise UsageError(
+            f"{args.file} holds {len(runs)} runs ({', '.join(runs)}): --run-id {args.run_id} would fold them into "
+            f"one; replay one at a time, e.g. --keys 'drivebench/run/{runs[0]}/*'"
+        )
