@@ -131,9 +131,14 @@ def collect(args: argparse.Namespace, options) -> int:
     specs = collection_specs(args)
     if args.recovery_noise > 0 and options.brain is None:
         options = dataclasses.replace(options, brain=args.brain)  # the undisturbed brain's commands are the labels
-    output: Path = args.output
-    if output.exists() and any(output.iterdir()) and not args.overwrite:
-        raise CollectError(f"output folder {output} is not empty (pass --overwrite to replace it)")
+    output: Path = args.output.resolve()  # "-o ." has no name until resolved: its recordings go beside it, not in it
+    if output.exists() and not output.is_dir():
+        raise CollectError(f"output {args.output} exists and is not a folder")
+    if output.is_dir() and any(output.iterdir()) and not args.overwrite:
+        raise CollectError(
+            f"output folder {args.output} is not empty (--overwrite replaces the dataset files in it and keeps the "
+            f"others)"
+        )
     work = output.parent / f"{output.name}.recordings"
     recordings = []
     for spec in specs:

@@ -158,3 +158,32 @@ def test_stride_with_offsets_is_refused_instead_of_ignored(recordings, tmp_path)
     result = build(*recordings, "-o", tmp_path / "h", "--history", "3", "--stride", "2")
     assert result.returncode == 0, result.stderr
     assert json.loads((tmp_path / "h" / "manifest.json").read_text())["offsets_frames"] == [-4, -2, 0]
+
+
+@pytest.mark.integration
+def test_collect_into_the_current_folder_keeps_its_files_and_records_beside_it(tmp_path):
+    here = tmp_path / "here"
+    here.mkdir()
+    (here / "notes.txt").write_text("mine")
+    (tmp_path / "file").write_text("not a folder")
+    options = (
+        "--circuits",
+        "simple",
+        "--max-sim-seconds",
+        "1",
+        "--camera",
+        "64x48",
+        "--size",
+        "40x20",
+        "--split",
+        "none",
+    )
+    error = one_line_error(drivebench("dataset", "collect", *options, "-o", tmp_path / "file"))
+    assert "not a folder" in error
+    error = one_line_error(drivebench("dataset", "collect", *options, "-o", ".", cwd=here))
+    assert "--overwrite" in error
+    result = drivebench("dataset", "collect", *options, "-o", ".", "--overwrite", cwd=here)
+    assert result.returncode == 0, result.stderr
+    assert (here / "notes.txt").read_text() == "mine" and len(DrivingDataset(here)) == 20
+    assert sorted(p.name for p in here.iterdir()) == sorted([*DATASET_FILES, "notes.txt"])
+    assert [p.name for p in (tmp_path / "here.recordings").glob("*.mcap")] == ["simple.mcap"]
