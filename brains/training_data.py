@@ -16,7 +16,7 @@ from brains.labels import LabelNorm
 from brains.nets import ModelInfo
 from brains.nets.preprocess import IMAGENET_MEAN, IMAGENET_STD, V_SCALE, W_SCALE
 from brains.training_options import EVAL_BATCH, TrainError, TrainOptions
-from recorder.dataset import DatasetError, DrivingDataset
+from recorder.dataset import DatasetError, DrivingDataset, describe_offsets
 
 # -- data ------------------------------------------------------------------------------------------------------------
 
@@ -80,16 +80,28 @@ def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str
         )
     offsets = manifest["offsets_frames"]
     if info.frames > 1 and len(offsets) != info.frames:
+        # "--offsets=": argparse takes a value that starts with "-" for an option of its own
         raise TrainError(
             f"model {info.name} needs {info.frames} frames per sample but dataset {options.data} has "
-            f"offsets {offsets}; build it with --history {info.frames} or --offsets -9,-5,0"
+            f"offsets {describe_offsets(offsets)}; build it with --history {info.frames} or --offsets=-9,-5,0"
+        )
+    crop = _crop(manifest)
+    if crop != (info.crop_top_fraction, 1.0) and not options.any_crop:
+        raise TrainError(
+            f"model {info.name} takes rows {info.crop_top_fraction:g}..1 of the camera frame but dataset "
+            f"{options.data} holds rows {crop[0]:g}..{crop[1]:g}; build it with --crop {info.crop_top_fraction:g}:1 "
+            f"(or train on the dataset's rows with --any-crop)"
         )
 
 
+def _crop(manifest: dict[str, Any]) -> tuple[float, float]:
+    return float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"])
+
+
 def crop_notes(info: ModelInfo, manifest: dict[str, Any]) -> list[str]:
-    """A crop other than the reference model's is allowed (the checkpoint records the dataset's crop, and serving
-    applies that one), but worth saying."""
-    crop = (float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"]))
+    """A crop other than the reference model's, allowed with ``any_crop`` (the checkpoint records the dataset's crop,
+    and serving applies that one), is worth saying."""
+    crop = _crop(manifest)
     if crop == (info.crop_top_fraction, 1.0):
         return []
     return [

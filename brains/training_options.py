@@ -60,6 +60,7 @@ class TrainOptions:
     augment_noise: with augment, salt and pepper noise of density up to this on half the training samples (as the
         camera's noise looks after the network's resize: see ``salt_pepper_resized``); 0 = off.
     resume: continue from output/last.ckpt. overwrite: replace an existing run in output.
+    any_crop: train on a dataset whose rows are not the model's (its crop is recorded and served); else an error.
     eval_train_samples: size of the fixed training subset evaluated each epoch (no augmentation).
     limit_train_samples: draw from a fixed random subset of this many training samples only (overfitting sanity
         checks, quick experiments); an epoch keeps the train split's size.
@@ -85,6 +86,7 @@ class TrainOptions:
     overwrite: bool = False
     eval_train_samples: int = 2000
     limit_train_samples: int | None = None
+    any_crop: bool = False
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "patience", "eval_train_samples"):

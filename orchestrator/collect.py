@@ -131,9 +131,14 @@ def collect(args: argparse.Namespace, options) -> int:
     specs = collection_specs(args)
     if args.recovery_noise > 0 and options.brain is None:
         options = dataclasses.replace(options, brain=args.brain)  # the undisturbed brain's commands are the labels
-    output: Path = args.output
-    if output.exists() and any(output.iterdir()) and not args.overwrite:
-        raise CollectError(f"output folder {output} is not empty (pass --overwrite to replace it)")
+    output: Path = args.output.resolve()  # "-o ." has no name until resolved: its recordings go beside it, not in it
+    if output.exists() and not output.is_dir():
+        raise CollectError(f"output {args.output} exists and is not a folder")
+    if output.is_dir() and any(output.iterdir()) and not args.overwrite:
+        raise CollectError(
+            f"output folder {args.output} is not empty (--overwrite replaces the dataset files in it and keeps the "
+            f"others)"
+        )
     work = output.parent / f"{output.name}.recordings"
     recordings = []
     for spec in specs:
@@ -163,10 +168,12 @@ def collect(args: argparse.Namespace, options) -> int:
 
 def build_from_recordings(recordings: list[Path], *, output: Path, options, overwrite: bool) -> int:
     """A dataset in ``output`` from MCAP recordings (``drivebench dataset build``), with a summary line on stderr."""
-    from recorder.dataset import build_dataset
+    from recorder.dataset import DatasetError, build_dataset
     from recorder.reading import read_messages, recording_info
 
     for path in recordings:
+        if output.resolve() in path.resolve().parents:
+            raise DatasetError(f"output folder {output} holds the input {path}: write the dataset to another folder")
         recording_info(path)  # a missing or broken file fails before any work
     sources = [(str(path), lambda path=path: read_messages(path)) for path in recordings]
     manifest = build_dataset(

@@ -21,12 +21,12 @@ from __future__ import annotations
 import re
 
 ROOT = "drivebench"
-_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+_NAME = re.compile(r"[\w.-]+")  # \w: Unicode letters and digits too (a label "élève"): Zenoh keys are UTF-8
 
 
 def check_name(name: str, *, what: str) -> str:
     """Run ids, brain names and roles become key chunks: no '/', '*', '$', '?', '#' or spaces."""
-    if not _NAME.match(name):
+    if not _NAME.fullmatch(name):  # fullmatch: "$" would let a trailing newline through
         raise ValueError(f"{what} {name!r} may only contain letters, digits, '_', '.', '-'")
     return name
 

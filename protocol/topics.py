@@ -61,8 +61,8 @@ _BUS_TOPICS = {
 }
 # View name -> topic. The names are those of old files' ``<p>/view/<name>`` topics (the legacy mapping).
 VIEW_TOPICS = {"car_pose": CAR_POSE, "world_from_car": TF, "track": CIRCUIT, "episode_log": EPISODE_LOG}
-_COMMAND = re.compile(r"^brain/([A-Za-z0-9_.-]+)/cmd$")
-_STABLE_COMMAND = re.compile(r"^/brain/([A-Za-z0-9_.-]+)/cmd$")
+_COMMAND = re.compile(r"brain/([\w.-]+)/cmd")  # brain names as keys.check_name takes them
+_STABLE_COMMAND = re.compile(r"/brain/([\w.-]+)/cmd")
 
 
 def command_topic(brain: str) -> str:
@@ -78,7 +78,7 @@ def topic_of_key(key: str) -> str:
     rest = key.split("/", 3)[3]
     if rest in _BUS_TOPICS:
         return _BUS_TOPICS[rest]
-    if (match := _COMMAND.match(rest)) is not None:
+    if (match := _COMMAND.fullmatch(rest)) is not None:
         return command_topic(match.group(1))
     return f"/{rest}"
 
@@ -109,7 +109,7 @@ def is_stable_topic(topic: str, *, brains: tuple[str, ...] | None = None) -> boo
     """True for a topic of :data:`TOPICS` or a brain's command topic (of one of ``brains`` when given)."""
     if topic in TOPICS:
         return True
-    match = _STABLE_COMMAND.match(topic)
+    match = _STABLE_COMMAND.fullmatch(topic)
     return match is not None and (brains is None or match.group(1) in brains)
 
 

@@ -48,6 +48,7 @@ from recorder.dataset_format import (
     Totals,
     TrainStats,
     check_offsets,
+    describe_offsets,
     parse_split,
     valid_windows,
 )
@@ -124,7 +125,7 @@ def _common_step_s(used: list[dict[str, Any]], offsets: tuple[int, ...]) -> floa
         return steps[0]
     if len(offsets) > 1:
         raise DatasetError(
-            f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {offsets} "
+            f"episodes have different step_s ({', '.join(map(str, steps))} s): offsets {describe_offsets(offsets)} "
             f"would span different times; build one dataset per step_s"
         )
     return None
@@ -167,16 +168,19 @@ def build_dataset(
     renamed into place when complete. Raises DatasetError (one line) for bad input, an existing non-empty
     ``out_dir`` without ``overwrite``, no pairs at all, or a split that leaves train (or val, unless asked) empty.
     """
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).resolve()  # "." has no name to put a partial folder beside
     _check_out_dir(out_dir, overwrite)
-    partial = out_dir.parent / f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
-    partial.mkdir(parents=True)
+    # Inside an existing folder, so that nothing is written beside it; beside a new one, so that it appears whole.
+    home = out_dir if out_dir.is_dir() else out_dir.parent
+    partial = home / f".{out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
     try:
+        partial.mkdir(parents=True)
         manifest = _build_into(partial, sources, options, progress)
         _move_into_place(partial, out_dir)
-    except BaseException:
+    except OSError as error:
+        raise DatasetError(f"cannot write dataset {out_dir}: {error.strerror or error}") from None
+    finally:
         shutil.rmtree(partial, ignore_errors=True)
-        raise
     return manifest
 
 
@@ -184,17 +188,22 @@ def _check_out_dir(out_dir: Path, overwrite: bool) -> None:
     if out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"output {out_dir} exists and is not a folder")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise DatasetError(f"output folder {out_dir} is not empty (pass overwrite=True to replace it)")
+        raise DatasetError(
+            f"output folder {out_dir} is not empty (--overwrite replaces the dataset files in it and keeps the others)"
+        )
 
 
 def _move_into_place(partial: Path, out_dir: Path) -> None:
-    if out_dir.exists():
-        old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-        out_dir.rename(old)
+    """Rename ``partial`` to ``out_dir``, or, where that folder exists, replace only the files a build writes: a
+    user's other files there (recordings, notes) are never a dataset's to delete."""
+    if not out_dir.exists():
         partial.rename(out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        partial.rename(out_dir)
+        return
+    # The manifest goes first and comes back last: a build stopped in between leaves no manifest, so the folder never
+    # reads as a dataset that mixes two builds.
+    (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
+    for name in (*ARRAY_FILES, *INDEX_FILES.values(), MANIFEST_FILE):
+        (partial / name).replace(out_dir / name)
 
 
 def _build_into(
@@ -212,6 +221,7 @@ def _build_into(
         for name, open_stream in sources:
             pairer = SourcePairer(options, writer, next_index)
             read_source(name, open_stream, pairer, progress)
+            _check_runs_unique(name, pairer, pairers)
             pairers.append((name, pairer))
             next_index = pairer.next_index
     finally:
@@ -220,6 +230,16 @@ def _build_into(
         raise DatasetError(_no_pairs_message(options, pairers))
     _group_by_episode(folder)
     return _finish(folder, options, pairers, samples)
+
+
+def _check_runs_unique(name: str, pairer: SourcePairer, earlier: list[tuple[str, SourcePairer]]) -> None:
+    """Two sources holding one run (a copied or repaired file) would put the same episode in train and validation."""
+    for other_name, other in earlier:
+        if shared := [run_id for run_id in pairer.run_ids if run_id in other.run_ids]:
+            raise DatasetError(
+                f"{name} and {other_name} both hold run {shared[0]!r} (a copy of one recording?): its episodes "
+                f"would be in the dataset twice, on both sides of the split; give each run once"
+            )
 
 
 def _no_pairs_message(options: DatasetOptions, pairers: list[tuple[str, SourcePairer]]) -> str:
@@ -276,7 +296,7 @@ def _annotate_episodes(infos: list[dict[str, Any]], window_episodes: np.ndarray,
 def _check_split_sides(
     options: DatasetOptions, train_index: np.ndarray, val_index: np.ndarray, val_episodes: set[int]
 ) -> None:
-    window = f"offsets {options.offsets_frames}"
+    window = f"offsets {describe_offsets(options.offsets_frames)}"
     if len(train_index) == 0:
         raise DatasetError(f"split {options.split!r}: no training sample has a complete window for {window}")
     if val_episodes and len(val_index) == 0:
@@ -355,6 +375,7 @@ __all__ = [
     "TrainStats",
     "build_dataset",
     "check_offsets",
+    "describe_offsets",
     "parse_split",
     "samples_per_second",
     "train_label_stats",

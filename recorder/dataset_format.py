@@ -141,6 +141,14 @@ def one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
+def describe_offsets(offsets_frames: Sequence[int]) -> str:
+    """Offsets for a message: all of them when few, else the ends and the count (``--history 1000`` is 1,000)."""
+    offsets = [int(o) for o in offsets_frames]
+    if len(offsets) <= 6:
+        return f"({', '.join(map(str, offsets))})"
+    return f"({offsets[0]}, {offsets[1]}, ..., {offsets[-2]}, {offsets[-1]}: {len(offsets)} frames)"
+
+
 def check_offsets(offsets_frames: Sequence[int]) -> tuple[int, ...]:
     """The offsets as a tuple of ints; DatasetError unless they are strictly increasing and end at 0."""
     offsets = tuple(offsets_frames)
@@ -148,7 +156,9 @@ def check_offsets(offsets_frames: Sequence[int]) -> tuple[int, ...]:
         raise DatasetError(f"bad options: offsets_frames must be a non-empty sequence of ints, got {offsets_frames!r}")
     offsets = tuple(int(o) for o in offsets)
     if offsets[-1] != 0 or any(b <= a for a, b in zip(offsets, offsets[1:])):
-        raise DatasetError(f"bad options: offsets_frames must be strictly increasing and end at 0, got {offsets}")
+        raise DatasetError(
+            f"bad options: offsets_frames must be strictly increasing and end at 0, got {describe_offsets(offsets)}"
+        )
     return offsets
 
 
@@ -184,7 +194,7 @@ class DatasetOptions:
         e.g. (-9, -5, 0); seconds = offset x the episode's step_s.
     split: "episode:FRACTION" (a seeded random choice of whole episodes is validation), "circuit:NAME,NAME" (episodes
         on those circuits are validation) or "none" (everything is training).
-    seed: seeds the episode split.
+    seed: seeds the episode split (>= 0).
     """
 
     width_px: int = 100
@@ -216,6 +226,8 @@ class DatasetOptions:
             except ValueError as error:
                 raise DatasetError(f"bad options: {error}") from None
         parse_split(self.split)
+        if self.seed < 0:  # numpy's generator would refuse it later, without saying which value
+            raise DatasetError(f"bad options: seed must be >= 0, got {self.seed}")
 
     def to_dict(self) -> dict[str, Any]:
         return {**dataclasses.asdict(self), "offsets_frames": list(self.offsets_frames)}

@@ -17,7 +17,7 @@ from mcap.stream_reader import CRCValidationError
 
 from protocol import keys
 from protocol.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
-from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA
+from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA, VIEW_METADATA
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
@@ -95,7 +95,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
 @dataclass(frozen=True)
 class ChannelInfo:
     """One channel of a recording. topic: its name in viewers (stable, ``protocol.topics``, in files recorded since
-    format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not say."""
+    format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not say.
+    view: a channel the recorder made for viewers; neither bus nor view: another tool's channel."""
 
     topic: str
     schema: str
@@ -104,6 +105,7 @@ class ChannelInfo:
     bus_key: bool
     key: str = ""
     run_id: str = ""
+    view: bool = False
 
 
 @dataclass(frozen=True)
@@ -137,6 +139,7 @@ def recording_info(path: Path) -> RecordingInfo:
                 bus_key=is_bus_channel(dict(c.metadata)),
                 key=c.metadata.get(KEY_METADATA, ""),
                 run_id=_run_id(dict(c.metadata)),
+                view=VIEW_METADATA in c.metadata,
             )
             for c in summary.channels.values()
         ]

@@ -401,13 +401,13 @@ def test_manifest_records_sources_and_their_episodes(tmp_path):
     out, manifest = build(
         tmp_path,
         source("first.mcap", ep(episode=0, frames=8, unanswered=frozenset({2}))),
-        source("second.mcap", ep(episode=0, frames=6, circuit="monaco")),  # same run id, again
+        source("second.mcap", ep(run_id="r2", episode=0, frames=6, circuit="monaco")),
         offsets_frames=(-1, 0),
     )
     assert [s["name"] for s in manifest["sources"]] == ["first.mcap", "second.mcap"]
-    assert [s["run_ids"] for s in manifest["sources"]] == [["r1"], ["r1"]]
+    assert [s["run_ids"] for s in manifest["sources"]] == [["r1"], ["r2"]]
     first, second = manifest["sources"][0]["episodes"][0], manifest["sources"][1]["episodes"][0]
-    assert (first["index"], second["index"]) == (0, 1)  # same run id and episode number: still two episodes
+    assert (first["index"], second["index"]) == (0, 1)  # the same episode number in two runs: two episodes
     assert first["circuit"] == "simple" and second["circuit"] == "monaco"
     assert first["frames_kept"] == 7 and first["frames_skipped"] == {"no_command": 1}
     assert first["noise"] == [{"model": "gaussian", "sigma": 3.0}]
@@ -443,7 +443,15 @@ def test_a_non_empty_output_folder_is_refused_unless_overwriting(tmp_path):
         build_dataset([source("a", ep(frames=5))], out_dir=out, options=options, progress=False)
     assert (out / "precious.txt").read_text() == "keep"
     build_dataset([source("a", ep(frames=5))], out_dir=out, options=options, progress=False, overwrite=True)
-    assert not (out / "precious.txt").exists() and len(DrivingDataset(out)) == 5
+    assert (out / "precious.txt").read_text() == "keep" and len(DrivingDataset(out)) == 5
+    build_dataset([source("a", ep(frames=7))], out_dir=out, options=options, progress=False, overwrite=True)
+    assert (out / "precious.txt").read_text() == "keep" and len(DrivingDataset(out)) == 7
+
+
+def test_one_run_in_two_sources_is_refused(tmp_path):
+    with pytest.raises(DatasetError, match=r"copy and a both hold run 'r1'"):
+        build(tmp_path, source("a", ep(run_id="r1")), source("copy", ep(run_id="r1", episode=1)))
+    assert not (tmp_path / "ds").exists() and list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(

@@ -339,7 +339,7 @@ def test_model_and_dataset_mismatches_are_one_line_errors(datasets, tmp_path):
     message = one_line_error(TrainError, lambda: train(options(datasets["crop"], tmp_path / "a", model="pilotnet")))
     assert "200x66" in message and "100x50" in message
     message = one_line_error(TrainError, lambda: train(options(datasets["crop"], tmp_path / "b", model="memdccp")))
-    assert "3 frames" in message and "[0]" in message
+    assert "3 frames" in message and "(0)" in message
     message = one_line_error(TrainError, lambda: options(datasets["crop"], tmp_path / "c", model="alexnet"))
     assert "alexnet" in message and TINY in message
     message = one_line_error(

@@ -41,7 +41,13 @@ def add(subparsers: argparse._SubParsersAction) -> None:
 
 def run_export(args: argparse.Namespace) -> int:
     """Export, then print the measured parity. 0 on success, 2 (one line on stderr) for a bad checkpoint."""
+    _check_parity_batch(args)  # before the file is written: a bad value must not leave an unchecked export behind
     return _reporting_errors("export needs torch, onnx and onnxruntime", args.output, lambda: _export(args))
+
+
+def _check_parity_batch(args: argparse.Namespace) -> None:
+    if args.parity_batch < 1:
+        raise UsageError(f"--parity-batch must be >= 1, got {args.parity_batch}")
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -78,6 +84,7 @@ def run_pack(args: argparse.Namespace) -> int:
     shard_bytes = int(args.shard_mb * 2**20)
     if shard_bytes < 1:
         raise UsageError(f"--shard-mb must be > 0, got {args.shard_mb}")
+    _check_parity_batch(args)
     if args.output.resolve() == args.checkpoint.resolve():
         raise UsageError(f"{args.output}: write the packed form to another file than the original")
     return _reporting_errors("pack needs torch", args.output, lambda: _pack(args, shard_bytes))

@@ -11,6 +11,7 @@ drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build 
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import functools
 import json
 import os
@@ -162,7 +163,9 @@ def _add_build_options(parser: argparse.ArgumentParser) -> None:
         help="explicit frame offsets, e.g. --offsets=-9,-5,0 (the paper's memory "
         "models; write the = because the value starts with -)",
     )
-    parser.add_argument("--stride", type=int, default=1, help="frames between history frames (default 1)")
+    parser.add_argument(
+        "--stride", type=int, help="frames between the frames of --history (default 1; --offsets says it itself)"
+    )
     parser.add_argument(
         "--camera-key",
         choices=("perturbed", "truth"),
@@ -187,19 +190,14 @@ def dataset_options(args: argparse.Namespace):
     try:
         size = (int(width), int(height)) if sep else None
         crop = (float(top), float(bottom)) if colon else None
-        offsets = (
-            tuple(int(v) for v in args.offsets.split(","))
-            if args.offsets
-            else tuple(-k * args.stride for k in range(args.history - 1, -1, -1))
-        )
     except ValueError:
-        size = crop = offsets = None
+        size = crop = None
     if size is None:
         raise UsageError(f"--size must look like 100x50, got {args.size!r}")
     if crop is None:
         raise UsageError(f"--crop must look like 0.5:1, got {args.crop!r}")
-    if offsets is None or args.history < 1 or args.stride < 1:
-        raise UsageError("--offsets must be comma-separated integers ending in 0; --history and --stride >= 1")
+    if args.seed < 0:
+        raise UsageError(f"--seed must be >= 0, got {args.seed}")
     return DatasetOptions(
         width_px=size[0],
         height_px=size[1],
@@ -207,10 +205,25 @@ def dataset_options(args: argparse.Namespace):
         crop_bottom_fraction=crop[1],
         camera=args.camera_key,
         brain=args.label_brain,
-        offsets_frames=offsets,
+        offsets_frames=_offsets(args),
         split=args.split,
         seed=args.seed,
     )
+
+
+def _offsets(args: argparse.Namespace) -> tuple[int, ...]:
+    """--offsets, or --history frames --stride apart."""
+    if args.offsets and args.stride is not None:  # argparse would otherwise drop it without a word
+        raise UsageError(f"--stride {args.stride} applies to --history; with --offsets put the spacing in the offsets")
+    stride = 1 if args.stride is None else args.stride
+    if args.history < 1 or stride < 1:
+        raise UsageError(f"--history and --stride must be >= 1, got {args.history} and {stride}")
+    if not args.offsets:
+        return tuple(-k * stride for k in range(args.history - 1, -1, -1))
+    try:
+        return tuple(int(v) for v in args.offsets.split(","))
+    except ValueError:
+        raise UsageError(f"--offsets must be comma-separated integers ending in 0, got {args.offsets!r}") from None
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -247,19 +260,25 @@ def _info(args: argparse.Namespace) -> int:
     print(f"{info.path}: {info.messages} messages over {info.duration_s:.1f} s of recording time")
     width = max((len(c.topic) for c in info.channels), default=10)
     for channel in sorted(info.channels, key=lambda c: c.topic):
-        kind = "bus " if channel.bus_key else "view"
+        kind = "bus  " if channel.bus_key else "view " if channel.view else "other"  # other: not drivebench's
         key = f"  <- {channel.key}" if channel.key and channel.key != channel.topic else ""  # stable topics
         print(
             f"  {kind} {channel.topic:<{width}}  {channel.messages:>7}  "
             f"{channel.schema} ({channel.message_encoding}){key}"
         )
-    missing = json.loads(info.metadata.get("drivebench.recording", {}).get("missing", "{}"))
-    if any(missing.values()):
-        print(f"  WARNING: messages that never reached the recorder (sequence gaps): {missing}")
     for name, data in info.metadata.items():
-        if name.startswith("episode:"):
+        # A merged file (recorder merge) keeps each run's metadata under its namespace: "runA/episode:0".
+        namespace, _, base = name.rpartition("/")
+        run = f"/{namespace} " if namespace else ""
+        missing = json.loads(data.get("missing", "{}")) if base == "drivebench.recording" else {}
+        if any(missing.values()):
+            print(f"  WARNING: {run}messages that never reached the recorder (sequence gaps): {missing}")
+        if base.startswith("episode:"):
             spec = json.loads(data.get("spec", "{}"))
-            print(f"  {name}: circuit {spec.get('circuit')}, brain {spec.get('active_brain')}, seed {spec.get('seed')}")
+            print(
+                f"  {run}{base}: run {data.get('run_id')}, circuit {spec.get('circuit')}, "
+                f"brain {spec.get('active_brain')}, seed {spec.get('seed')}"
+            )
     return EXIT_OK
 
 
@@ -280,7 +299,7 @@ def _replay(args: argparse.Namespace) -> int:
         raise UsageError(f"replay needs a router to publish to: --router tcp/HOST:7447 or ${ROUTER_ENV}")
     if not args.max_speed and not args.rate > 0:
         raise UsageError(f"--rate must be > 0, got {args.rate}")
-    recording_info(args.file)  # a bad file fails here, before a bus session is opened
+    _check_one_run(args)  # a bad file fails here, before a bus session is opened
     with Bus(BusConfig(connect=[router]), name="replay") as bus:
         report = replay(
             args.file,
@@ -296,3 +315,20 @@ def _replay(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return EXIT_OK
+
+
+def _check_one_run(args: argparse.Namespace) -> None:
+    """--run-id on a file of several runs (a merged file) would fold their episodes into one run: refused."""
+    info = recording_info(args.file)
+    runs = sorted(
+        {
+            c.run_id
+            for c in info.channels
+            if c.bus_key and c.run_id and (args.keys is None or fnmatch.fnmatchcase(c.key, args.keys))
+        }
+    )
+    if args.run_id is not None and len(runs) > 1:
+        raise UsageError(
+            f"{args.file} holds {len(runs)} runs ({', '.join(runs)}): --run-id {args.run_id} would fold them into "
+            f"one; replay one at a time, e.g. --keys 'drivebench/run/{runs[0]}/*'"
+        )

@@ -4,7 +4,7 @@
     drivebench train --model deepest_lstm_tiny_pilotnet --data DATASET -o RUN_DIR [--epochs 50] [--batch-size 64]
         [--lr 1e-3] [--device auto|cpu|cuda] [--seed 0] [--patience 10] [--labels zscore|paper]
         [--hyper KEY=VALUE ...] [--threads N] [--max-samples-per-epoch N] [--limit-train-samples N]
-        [--no-augment] [--no-balance] [--resume | --overwrite]
+        [--no-augment] [--no-balance] [--any-crop] [--resume | --overwrite]
 
 Exit codes: 0 trained; 2 a request that cannot run (one line on stderr, ``drivebench: error: ...``); 130 after
 Ctrl-C, with last.ckpt saved and a line saying how to resume.
@@ -103,6 +103,11 @@ def add(subparsers: argparse._SubParsersAction) -> None:
         action="store_false",
         help="uniform sampling instead of 1/frequency of the |yaw rate| bin",
     )
+    parser.add_argument(
+        "--any-crop",
+        action="store_true",
+        help="train on a dataset whose crop is not the network's (the checkpoint records it; serving applies it)",
+    )
     restart = parser.add_mutually_exclusive_group()
     restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
     restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
@@ -158,6 +163,7 @@ def run_train(args: argparse.Namespace) -> int:
             balance=args.balance,
             resume=args.resume,
             overwrite=args.overwrite,
+            any_crop=args.any_crop,
         )
         result = training.train(options, progress=sys.stderr.isatty(), log=_log)
     except training.TrainInterrupted as stop:
