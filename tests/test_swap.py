@@ -249,3 +249,17 @@ def _read(path) -> str:
         return path.read_text()
     except OSError:
         return ""
+
+
+def test_a_neural_brain_without_weights_is_refused_before_anything_starts(tmp_path):
+    """``swap neural`` and ``run --shadow neural`` with no weights (and none shipped for "neural"): exit 2 at once,
+    like every other bad option, not exit 1 after a stack or a brain host came up."""
+    swapped = drivebench("swap", "neural", "--runs-dir", str(tmp_path), timeout=60)  # no stack: a later check
+    assert swapped.returncode == 2, swapped.stderr
+    assert "brain 'neural' needs --weights" in swapped.stderr and "Traceback" not in swapped.stderr
+    assert len(swapped.stderr.strip().splitlines()) == 1
+    out = tmp_path / "run"
+    run = drivebench("run", "--shadow", "neural", "--max-sim-seconds", "1", "--out", str(out), timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "brain 'neural' needs --weights" in run.stderr and "Traceback" not in run.stderr
+    assert not (out / "logs").exists()  # no process was started

@@ -208,19 +208,26 @@ def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | N
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights"  # brains/weights/<brain>.ckpt
 
 
+def _needs_weights(brain: str) -> BrainOptionsError:
+    return BrainOptionsError(f"brain {brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
+
+
 def _factory(brain: str, model: str | None):
     def make(*, weights: str | None = None, **options: Any) -> NeuralBrain:
         if not weights and (SHIPPED_WEIGHTS / f"{brain}.ckpt").is_file():
             weights = str(SHIPPED_WEIGHTS / f"{brain}.ckpt")  # the network drivebench ships weights for
             log.info("no weights given: serving the shipped %s", weights)
         if not weights:
-            raise BrainOptionsError(f"brain {brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
+            raise _needs_weights(brain)
         if model is not None:
             options["model"] = model
         return NeuralBrain(weights=weights, **options)
 
     def preflight(*, weights: str | None = None, **options: Any) -> None:
-        """Check the weights before any process starts: loadable, the right network (CheckpointError, one line)."""
+        """Check the weights before any process starts: given or shipped (BrainOptionsError), loadable, the right
+        network (CheckpointError, one line)."""
+        if not weights and not (SHIPPED_WEIGHTS / f"{brain}.ckpt").is_file():
+            raise _needs_weights(brain)  # now, not in a brain host started only to fail
         if weights:
             path = Path(weights)
             ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
