@@ -2,6 +2,7 @@
 
     drivebench swap BRAIN [--weights CKPT] [--brain-option K=V] [--name NAME] [--run RUN_ID] [--router EP]
                           [--runs-dir runs] [--keep-old] [--timeout S]
+                          [--brain-cert PEM --brain-key KEY | --brain-user U --brain-password-file F]
 
 How (:func:`swap_brain`): ask the simulator's status for the active brain and the running episode; start the new
 brain host as a detached process (it outlives this command, and is not tied to it as the stack's children are to
