@@ -13,6 +13,10 @@ determinism   the same frames after ``reset(seed=1)`` give the same actions, aft
 memory        memory does not grow over a few hundred frames (a brain must not keep every frame)
 
 The contract tests in ``tests/test_brain_contract.py`` run this over every registered brain.
+
+A slow brain takes minutes here (the checks act on ~700 frames): :func:`iter_checks` reports progress and yields
+each result as it is known (an interrupted check still shows those), and once the answer times already fail the
+answer-time check whatever the remaining frames take, it stops acting and skips the checks after it.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import os
 import statistics
 import time
 import tracemalloc
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +42,10 @@ MAX_SPEED_MPS = 40.0  # F1 cars here drive up to ~24 m/s; far beyond that it is 
 MAX_YAW_RATE_RADPS = 2 * math.pi  # a turn a second; beyond it it is degrees per second or a bug
 MEMORY_GROWTH_LIMIT_BYTES = 20 * 2**20  # ~90 raw 320x240 frames: what keeping every frame costs in 300 steps
 STEP_NS = 50_000_000
+ANSWER_PERCENTILE = 95  # the answer-time check judges this percentile of the time per frame
+PROGRESS_EVERY_S = 2.0  # how often a slow stage says how far it got
+
+Progress = Callable[[str], None]  # told what a stage is doing (one short line), at most every PROGRESS_EVERY_S
 
 # Worlds the frames are rendered in: the paper's default, its white line, no line on a white road, and no sun.
 CHECK_WORLDS: tuple[dict[str, Any], ...] = (
@@ -50,7 +58,8 @@ CHECK_WORLDS: tuple[dict[str, Any], ...] = (
 
 @dataclass(frozen=True)
 class Check:
-    """One check's outcome. status: "pass", "warn" (works, with a caveat) or "fail" (the host will misbehave)."""
+    """One check's outcome. status: "pass", "warn" (works, with a caveat), "fail" (the host will misbehave) or "skip"
+    (not run: an earlier check already failed)."""
 
     name: str
     status: str
@@ -98,38 +107,81 @@ def render_frames(
 
 
 def check_brain(
-    name: str, *, options: dict[str, Any] | None = None, frames: list[Frame] | None = None, memory_steps: int = 300
+    name: str,
+    *,
+    options: dict[str, Any] | None = None,
+    frames: list[Frame] | None = None,
+    memory_steps: int = 300,
+    brain_timeout_s: float = LOCKSTEP_TIMEOUT_S,
 ) -> list[Check]:
     """Run every check on brain ``name`` built with ``options``; one :class:`Check` per check, in order."""
+    return list(
+        iter_checks(name, options=options, frames=frames, memory_steps=memory_steps, brain_timeout_s=brain_timeout_s)
+    )
+
+
+def iter_checks(
+    name: str,
+    *,
+    options: dict[str, Any] | None = None,
+    frames: list[Frame] | None = None,
+    memory_steps: int = 300,
+    brain_timeout_s: float = LOCKSTEP_TIMEOUT_S,
+    progress: Progress | None = None,
+) -> Iterator[Check]:
+    """:func:`check_brain`, one :class:`Check` at a time as each is known; ``progress`` hears how far a stage got.
+    brain_timeout_s: the lock-step timeout of the runs the brain is meant for (answers slower end episodes)."""
     options = dict(options or {})
+    say = _Throttled(progress)
+    say("make: building the brain", now=True)
     try:
         origin = resolve(name).origin
         brain = make_brain(name, **options)
     except (UnknownBrainError, BrainOptionsError) as error:
-        return [Check("make", "fail", str(error), "check the name (drivebench brains list) and its options")]
+        yield Check("make", "fail", str(error), "check the name (drivebench brains list) and its options")
+        return
     except Exception as error:  # the user's constructor: whatever it raises, report it as one line
-        return [
-            Check(
-                "make",
-                "fail",
-                f"building it raised {type(error).__name__}: {error}",
-                "the constructor must accept the options given (keyword arguments) and load what it needs",
-            )
-        ]
-    results = [Check("make", "pass", f"{type(brain).__name__} from {name} ({origin})")]
-    results.append(_check_protocol(brain))
-    if results[-1].status == "fail":
-        return results
-    frames = frames if frames is not None else render_frames()
-    stage = _check_act(brain, frames)
-    results += stage.checks
+        yield Check(
+            "make",
+            "fail",
+            f"building it raised {type(error).__name__}: {error}",
+            "the constructor must accept the options given (keyword arguments) and load what it needs",
+        )
+        return
+    yield Check("make", "pass", f"{type(brain).__name__} from {name} ({origin})")
+    yield (protocol := _check_protocol(brain))
+    if protocol.status == "fail":
+        return
+    if frames is None:
+        say(f"rendering {len(CHECK_WORLDS)} worlds of simple", now=True)
+        frames = render_frames()
+    stage = _check_act(brain, frames, brain_timeout_s=brain_timeout_s, say=say)
+    yield from stage.checks
     if stage.actions is None:
-        return results
-    results.append(_check_units(stage.actions))
-    results.append(_check_answer_time(stage.seconds))
-    results.append(_check_determinism(brain, lambda: make_brain(name, **options), frames, stage.actions))
-    results.append(_check_memory(brain, frames, steps=memory_steps))
-    return results
+        return
+    yield _check_units(stage.actions)
+    yield _check_answer_time(stage.seconds, brain_timeout_s=brain_timeout_s, total=len(frames))
+    if stage.stopped:
+        skipped = f"not run: at over {brain_timeout_s:g} s a frame, the answer-time check failed (see above)"
+        yield Check("determinism", "skip", skipped)
+        yield Check("memory", "skip", skipped)
+        return
+    yield _check_determinism(brain, lambda: make_brain(name, **options), frames, stage.actions, say=say)
+    yield _check_memory(brain, frames, steps=memory_steps, say=say)
+
+
+class _Throttled:
+    """Passes a progress line on at most every PROGRESS_EVERY_S (``now``: at once, for a new stage)."""
+
+    def __init__(self, progress: Progress | None):
+        self._progress = progress
+        self._last = -math.inf
+
+    def __call__(self, text: str, *, now: bool = False) -> None:
+        if self._progress is None or (not now and time.monotonic() - self._last < PROGRESS_EVERY_S):
+            return
+        self._last = time.monotonic()
+        self._progress(text)
 
 
 def passed(results: list[Check]) -> bool:
@@ -172,13 +224,24 @@ class _ActStage:
     checks: list[Check]
     actions: list[tuple[float, float]] | None = None
     seconds: list[float] | None = None
+    stopped: bool = False  # cut short: the answer times already fail the answer-time check
 
 
-def _drive(brain: Any, frames: list[Frame], *, seed: int) -> tuple[list[tuple[float, float]], list[float]]:
-    """Reset with ``seed`` and act on every frame in order: (speed, yaw rate) per frame and the seconds each took."""
+def _drive(
+    brain: Any,
+    frames: list[Frame],
+    *,
+    seed: int,
+    say: Callable[[str], None] = lambda text: None,
+    what: str = "",
+    enough: Callable[[list[float]], bool] = lambda seconds: False,
+) -> tuple[list[tuple[float, float]], list[float]]:
+    """Reset with ``seed`` and act on frames in order: (speed, yaw rate) per frame and the seconds each took; until
+    ``enough(seconds so far)`` or the last frame. ``say`` hears ``what`` and how far it got."""
     brain.reset(seed=seed)
     truth = getattr(brain, "needs_ground_truth", False)
-    actions, seconds = [], []
+    actions: list[tuple[float, float]] = []
+    seconds: list[float] = []
     for seq, frame in enumerate(frames):
         observation = Observation(
             image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq, ground_truth=frame.truth if truth else None
@@ -187,7 +250,18 @@ def _drive(brain: Any, frames: list[Frame], *, seed: int) -> tuple[list[tuple[fl
         action = brain.act(observation)
         seconds.append(time.perf_counter() - started)
         actions.append(_as_pair(action))
+        say(f"{what}: frame {seq + 1}/{len(frames)}, {seconds[-1]:.2f} s for the last")
+        if enough(seconds):
+            break
     return actions, seconds
+
+
+def answer_time_fails(seconds: list[float], *, total: int, brain_timeout_s: float) -> bool:
+    """Whether the answer times of the first frames already fail the answer-time check over ``total`` frames, however
+    fast the rest are: enough of them are over the timeout that the percentile is, whatever else comes."""
+    slow = sum(value > brain_timeout_s for value in seconds)
+    rank = math.floor(ANSWER_PERCENTILE / 100 * (total - 1))  # np.percentile interpolates from this sorted index up
+    return slow >= total - rank
 
 
 class _BadAction(Exception):
@@ -206,9 +280,17 @@ def _as_pair(action: Any) -> tuple[float, float]:
     return pair
 
 
-def _check_act(brain: Any, frames: list[Frame]) -> _ActStage:
+def _check_act(brain: Any, frames: list[Frame], *, brain_timeout_s: float, say: Callable[..., None]) -> _ActStage:
+    say("act: the first frame", now=True)
     try:
-        actions, seconds = _drive(brain, frames, seed=1)
+        actions, seconds = _drive(
+            brain,
+            frames,
+            seed=1,
+            say=say,
+            what="act",
+            enough=lambda seconds: answer_time_fails(seconds, total=len(frames), brain_timeout_s=brain_timeout_s),
+        )
     except _BadAction as error:
         return _ActStage(
             [Check("act", "fail", str(error), "return Action(speed_mps=float, yaw_rate_radps=float), both finite")]
@@ -230,17 +312,21 @@ def _check_act(brain: Any, frames: list[Frame]) -> _ActStage:
     except Exception as error:
         return _ActStage([_raised("act", error)])
     sizes = sorted({f"{f.image_rgb.shape[1]}x{f.image_rgb.shape[0]}" for f in frames})
+    stopped = len(actions) < len(frames)
+    answered = f"{len(actions)} of {len(frames)}" if stopped else f"{len(frames)}"
     return _ActStage(
         [
             Check(
                 "act",
                 "pass",
-                f"{len(frames)} frames of {len(CHECK_WORLDS)} worlds ({', '.join(sizes)}) answered with finite Actions",
+                f"{answered} frames of {len(CHECK_WORLDS)} worlds ({', '.join(sizes)}) answered with finite Actions"
+                + (" (stopped early: see answer time)" if stopped else ""),
             ),
             Check("read-only", "pass", "the camera image was left untouched"),
         ],
         actions,
         seconds,
+        stopped,
     )
 
 
@@ -268,15 +354,25 @@ def _check_units(actions: list[tuple[float, float]]) -> Check:
     return Check("units", "pass", detail)
 
 
-def _check_answer_time(seconds: list[float]) -> Check:
-    p50, p95 = statistics.median(seconds), float(np.percentile(seconds, 95))
+def _check_answer_time(seconds: list[float], *, brain_timeout_s: float, total: int) -> Check:
+    p50, p95 = statistics.median(seconds), float(np.percentile(seconds, ANSWER_PERCENTILE))
     detail = f"p50 {1e3 * p50:.2f} ms, p95 {1e3 * p95:.2f} ms per frame"
-    if p95 > LOCKSTEP_TIMEOUT_S:
+    fix = "answer faster, or raise the episode's brain_timeout_s (run --brain-timeout)"
+    if len(seconds) < total:
+        slow = sum(value > brain_timeout_s for value in seconds)
         return Check(
             "answer time",
             "fail",
-            detail + f" (lock-step episodes end after {LOCKSTEP_TIMEOUT_S:.0f} s)",
-            "answer faster, or raise the episode's brain_timeout_s (run --brain-timeout)",
+            f"{slow} of the first {len(seconds)} frames took over the lock-step timeout of {brain_timeout_s:g} s, "
+            f"too many for the p95 of {total} frames to be under it: stopped early ({detail} so far)",
+            fix,
+        )
+    if p95 > brain_timeout_s:
+        return Check(
+            "answer time",
+            "fail",
+            detail + f" (lock-step episodes end after {brain_timeout_s:g} s)",
+            fix,
         )
     if p50 > REALTIME_BUDGET_S:
         return Check(
@@ -286,13 +382,19 @@ def _check_answer_time(seconds: list[float]) -> Check:
 
 
 def _check_determinism(
-    brain: Any, make_new: Callable[[], Any], frames: list[Frame], first: list[tuple[float, float]]
+    brain: Any,
+    make_new: Callable[[], Any],
+    frames: list[Frame],
+    first: list[tuple[float, float]],
+    *,
+    say: Callable[..., None],
 ) -> Check:
     fix = "seed every random generator from reset(seed=...) and clear everything the brain remembers in reset"
+    say("determinism: 3 more runs over the frames", now=True)
     try:
-        _drive(brain, frames[::-1], seed=2)
-        again, _ = _drive(brain, frames, seed=1)
-        fresh, _ = _drive(make_new(), frames, seed=1)
+        _drive(brain, frames[::-1], seed=2, say=say, what="determinism, run 1 of 3 (other frames)")
+        again, _ = _drive(brain, frames, seed=1, say=say, what="determinism, run 2 of 3 (seed 1 again)")
+        fresh, _ = _drive(make_new(), frames, seed=1, say=say, what="determinism, run 3 of 3 (a new brain)")
     except Exception as error:
         return Check("determinism", "fail", f"a second run raised {type(error).__name__}: {error}", fix)
     if again != first:
@@ -316,18 +418,20 @@ def _first_difference(a: list, b: list) -> int:
     return next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
 
 
-def _check_memory(brain: Any, frames: list[Frame], *, steps: int) -> Check:
+def _check_memory(brain: Any, frames: list[Frame], *, steps: int, say: Callable[..., None]) -> Check:
     """Python/NumPy heap (tracemalloc) and resident memory growth between step 30 and step ``steps``."""
     long_run = [frames[i % len(frames)] for i in range(steps)]
     warm = min(30, steps // 2)
+    say(f"memory: {warm} warm-up frames, then {steps}", now=True)
     tracemalloc.start()
     try:
-        _drive(brain, long_run[:warm], seed=3)
+        _drive(brain, long_run[:warm], seed=3, say=say, what="memory, warm-up")
         heap_before, rss_before = tracemalloc.get_traced_memory()[0], _rss_bytes()
         brain.reset(seed=3)  # _drive resets; run the rest without a reset in between, as one long episode does
         for seq, frame in enumerate(long_run):
             truth = frame.truth if getattr(brain, "needs_ground_truth", False) else None
             brain.act(Observation(image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq, ground_truth=truth))
+            say(f"memory: frame {seq + 1}/{steps}")
         heap_growth = tracemalloc.get_traced_memory()[0] - heap_before
         rss_growth = _rss_bytes() - rss_before
     except Exception as error:

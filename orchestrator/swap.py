@@ -2,6 +2,7 @@
 
     drivebench swap BRAIN [--weights CKPT] [--brain-option K=V] [--name NAME] [--run RUN_ID] [--router EP]
                           [--runs-dir runs] [--keep-old] [--timeout S]
+                          [--brain-cert PEM --brain-key KEY | --brain-user U --brain-password-file F]
 
 How (:func:`swap_brain`): ask the simulator's status for the active brain and the running episode; start the new
 brain host as a detached process (it outlives this command, and is not tied to it as the stack's children are to
@@ -9,6 +10,14 @@ the stack); wait for its liveliness token and for its first command answering a 
 "switch" to the simulator (its command for the next frame drives; in lock-step no step is lost); then ask the old
 brain to stop (its control key), unless ``--keep-old``. Without an episode running there is nothing to switch: the
 new brain is left running for the next episode to name it, and the old one is kept.
+
+Names: a new brain's name is reserved on the bus (a liveliness token under ``keys.name_claims``) before its host
+starts, so two swaps at once start two differently named brains (:func:`_claim_name`).
+
+On a secure stack (TLS, access control: ``docs/security.md``) the swap itself runs with the orchestrator's identity
+(only it may switch brains and stop them), and the brain host it starts gets a brain's identity of its own
+(:class:`BrainIdentity`), never the swap's: a brain host with the orchestrator's rights could start runs and switch
+to itself, and the orchestrator's identity may not declare a brain's token or put commands.
 
 Finding the stack: ``drivebench run`` writes ``<run folder>/stack.json`` ({"router", "run_id", "pid"}) while it runs.
 Without ``--router``, the newest such file under ``--runs-dir`` whose process is alive (with ``--run``: that run's)
@@ -19,9 +28,11 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import subprocess
 import tempfile
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +40,16 @@ from brains.registry import UnknownBrainError, bus_name, require_brain
 from orchestrator import processes
 from orchestrator.launcher import STACK_FILE
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig
+from protocol.bus import (
+    PASSWORD_ENV,
+    TLS_CERT_ENV,
+    TLS_KEY_ENV,
+    USER_ENV,
+    Bus,
+    BusConfig,
+    BusError,
+    resolve_bus,
+)
 from protocol.messages import Command, ControlReply, ControlRequest
 from protocol.runtime import UsageError
 
@@ -37,10 +57,50 @@ DEFAULT_TIMEOUT_S = 60.0
 STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
 STOP_WAIT_S = 5.0  # how long to wait for the old brain's token to go after it accepted "stop"
 ORPHAN_TIMEOUT_S = 10.0  # a swapped-in brain exits when the run has had no simulator this long (its stack is gone)
+# A name claim reaches every other session of the run well within this; of two claims on one name, the later claimant
+# then always sees the earlier one (see _claim_name).
+CLAIM_SETTLE_S = 1.0
 
 
 class SwapError(RuntimeError):
     """The swap could not be done (no stack, the new brain died or never answered, the switch was refused)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class BrainIdentity:
+    """Who the new brain host is to a secure router: a certificate and its key (mutual TLS) and/or a user name and a
+    file holding its password. The brain host gets this instead of the swap's own identity."""
+
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    user: str = ""
+    password_file: Path | None = None
+
+    def __post_init__(self) -> None:
+        for path, option in (
+            (self.tls_cert, "--brain-cert"),
+            (self.tls_key, "--brain-key"),
+            (self.password_file, "--brain-password-file"),
+        ):
+            if path is not None and not path.is_file():
+                raise UsageError(f"{option}: no such file {path}")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise UsageError("--brain-cert and --brain-key go together (the brain host's certificate and its key)")
+        if bool(self.user) != (self.password_file is not None):
+            raise UsageError("--brain-user and --brain-password-file go together")
+        if self.tls_cert is None and not self.user:
+            raise UsageError("a brain identity needs --brain-cert and --brain-key, or --brain-user")
+
+    def overrides(self) -> list[str]:
+        """The brain host's ``--set`` arguments (a config wins over the environment)."""
+        settings = []
+        if self.tls_cert is not None and self.tls_key is not None:
+            settings += [f"bus.tls_cert={json.dumps(str(self.tls_cert.resolve()))}"]
+            settings += [f"bus.tls_key={json.dumps(str(self.tls_key.resolve()))}"]
+        if self.user and self.password_file is not None:
+            settings += [f"bus.user={json.dumps(self.user)}"]
+            settings += [f"bus.password_file={json.dumps(str(self.password_file.resolve()))}"]
+        return [arg for setting in settings for arg in ("--set", setting)]
 
 
 @dataclass(frozen=True)
@@ -103,6 +163,7 @@ def swap_brain(
     log_path: Path | None,
     timeout_s: float = DEFAULT_TIMEOUT_S,
     keep_old: bool = False,
+    identity: BrainIdentity | None = None,
 ) -> SwapResult:
     """Start brain ``brain`` as ``name`` on the stack at ``router`` / ``run_id`` and make it the driving brain.
 
@@ -110,21 +171,35 @@ def swap_brain(
     name: its bus name; None = the brain's name, or ``<brain>-2``, ``-3``... when taken.
     log_path: the new brain host's log file, or a folder to write ``brain-<name>.log`` in (a run folder's ``logs``;
     None: the temporary folder). timeout_s: for it to come up and to answer its first frame. keep_old: leave the
-    old brain running (it goes on as a shadow).
+    old brain running (it goes on as a shadow). identity: the new brain host's on a secure stack (required when
+    this process has an identity of its own there, i.e. the orchestrator's).
     Raises :class:`UsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
     """
     _check_brain(brain)
     _check_name(run_id, what="run id")
+    if name:
+        _check_name(name, what="brain name")
     # The mode comes from the environment: a peer on a plain stack, a client of a secure router (DRIVEBENCH_TLS_*).
+    check_identity(identity)
     with Bus(BusConfig(connect=[router]), name=f"swap-{run_id}") as bus:
         _wait_for_simulator_token(bus, run_id, router=router)
         status = _sim_status(bus, run_id, router=router)
-        name = _pick_name(brain, name, _alive_brains(bus, run_id, driving=status.active_brain), run_id=run_id)
+        name = _claim_name(
+            bus, run_id, brain=brain, name=name, driving=status.active_brain, deadline=time.monotonic() + timeout_s
+        )
         if log_path is None:
             log_path = Path(tempfile.gettempdir()) / f"drivebench-{run_id}-brain-{name}.log"
         elif log_path.is_dir():
             log_path = log_path / f"brain-{name}.log"
-        process = _start_brain(router=router, run_id=run_id, brain=brain, name=name, options=options, log_path=log_path)
+        process = _start_brain(
+            router=router,
+            run_id=run_id,
+            brain=brain,
+            name=name,
+            options=options,
+            log_path=log_path,
+            identity=identity,
+        )
         try:
             return _take_over(
                 bus,
@@ -177,10 +252,14 @@ def _take_over(
     if episode < 0:
         return result
     reply = _request(bus, keys.sim_control(run_id), ControlRequest(action="switch", brain=name))
-    if reply is None or not reply.ok:
+    if reply is None:
+        # A secure router drops the switch of any identity but the orchestrator's without a word.
         raise SwapError(
-            f"the simulator refused the switch to {name}: {reply.detail if reply is not None else 'no answer'}"
+            f"the simulator did not answer the switch to {name} (on a secure stack, run swap with the "
+            f"orchestrator's identity: {TLS_CERT_ENV}/{TLS_KEY_ENV} or {USER_ENV})"
         )
+    if not reply.ok:
+        raise SwapError(f"the simulator refused the switch to {name}: {reply.detail}")
     stopped = not keep_old and bool(old) and _stop_brain(bus, run_id, old)
     return SwapResult(
         run_id=run_id,
@@ -214,11 +293,26 @@ def _request(bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = 
     return codec.decode(payload, ControlReply) if payload is not None else None
 
 
+def check_identity(identity: BrainIdentity | None) -> None:
+    """On a secure stack, this process's identity (the orchestrator's: it switches and stops brains) must not pass to
+    the brain host, which needs a brain's: refuse before anything starts when none is given."""
+    try:
+        resolved = resolve_bus(BusConfig())  # the swap's bus: its identity comes from the environment
+    except BusError:
+        return  # opening the bus says what is wrong, in its own words
+    if identity is None and (resolved.tls_cert or resolved.user):
+        raise UsageError(
+            "on a secure stack swap runs with the orchestrator's identity and the new brain host needs a brain's: "
+            "give --brain-cert and --brain-key (or --brain-user and --brain-password-file)"
+        )
+
+
 def _sim_status(bus: Bus, run_id: str, *, router: str = "") -> ControlReply:
-    """The simulator's status; retried briefly while a fresh session learns of its queryable."""
+    """The simulator's status, from its read-only key (any identity of a secure stack may read it); retried briefly
+    while a fresh session learns of its queryable."""
     deadline = time.monotonic() + STATUS_ATTEMPTS_S
     while True:
-        reply = _request(bus, keys.sim_control(run_id), ControlRequest(action="status"))
+        reply = _request(bus, keys.sim_status(run_id), ControlRequest(action="status"))
         if reply is not None:
             return reply
         if time.monotonic() > deadline:
@@ -254,12 +348,41 @@ def _alive_brains(bus: Bus, run_id: str, *, driving: str) -> set[str]:
         time.sleep(0.1)
 
 
+def _claimed_names(bus: Bus, run_id: str, *, besides: str) -> set[str]:
+    """The brain names other swaps (all claimants but ``besides``) have claimed on the run."""
+    claims = (keys.parse_name_claim(key) for key in bus.alive_now(keys.name_claims(run_id)))
+    return {name for name, claimant in claims if claimant != besides}
+
+
+def _claim_name(bus: Bus, run_id: str, *, brain: str, name: str | None, driving: str, deadline: float) -> str:
+    """Pick the new brain's name (:func:`_pick_name`) and reserve it with a liveliness token kept until this swap's
+    bus closes (by then the brain's own token is up), so two swaps at once never pick the same name.
+
+    Picking and checking are not atomic, so: declare the claim, wait :data:`CLAIM_SETTLE_S`, look again. Of two
+    claims on one name the later claimant always sees the earlier, so it never keeps the name; the earlier keeps it
+    unless it saw the later too, and then both withdraw and try again after a random pause (one soon goes first)."""
+    claimant = uuid.uuid4().hex[:12]
+    while True:
+        taken = _alive_brains(bus, run_id, driving=driving) | _claimed_names(bus, run_id, besides=claimant)
+        picked = _pick_name(brain, name, taken, run_id=run_id)
+        withdraw = bus.declare_alive(keys.name_claim(run_id, picked, claimant))
+        time.sleep(CLAIM_SETTLE_S)
+        rivals = _claimed_names(bus, run_id, besides=claimant)
+        if picked not in rivals:
+            return picked
+        withdraw()
+        if time.monotonic() > deadline:
+            raise SwapError(f"could not claim the name {picked!r} on run {run_id}: other swaps keep claiming it")
+        time.sleep(random.uniform(0.0, CLAIM_SETTLE_S))
+
+
 def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) -> str:
-    """``name`` if free; by default the brain's name, else ``<brain>-2``, ``<brain>-3``, ..."""
+    """``name`` if free; by default the brain's name, else ``<brain>-2``, ``<brain>-3``, ... ``alive``: the names of
+    live brains and those other swaps claimed."""
     if name:
         _check_name(name, what="brain name")
         if name in alive:
-            raise UsageError(f"a brain named {name!r} is already alive on run {run_id}")
+            raise UsageError(f"a brain named {name!r} is already alive (or being started) on run {run_id}")
         return name
     base = bus_name(brain)
     candidates = (base if n == 1 else f"{base}-{n}" for n in range(1, len(alive) + 2))
@@ -267,10 +390,18 @@ def _pick_name(brain: str, name: str | None, alive: set[str], *, run_id: str) ->
 
 
 def _start_brain(
-    *, router: str, run_id: str, brain: str, name: str, options: tuple[str, ...], log_path: Path
+    *,
+    router: str,
+    run_id: str,
+    brain: str,
+    name: str,
+    options: tuple[str, ...],
+    log_path: Path,
+    identity: BrainIdentity | None,
 ) -> subprocess.Popen:
     """The brain host, detached: its own session, and no parent watch (DRIVEBENCH_PARENT_PID), so that it lives on
-    after this command; the stack stops it (over its control key) when the stack closes."""
+    after this command; the stack stops it (over its control key) when the stack closes. With ``identity`` it joins
+    as that brain identity, and none of this process's own identity is passed on."""
     argv = [
         *processes.python_module("brains"),
         "--router",
@@ -286,7 +417,11 @@ def _start_brain(
     ]  # it watches no parent: it ends when its stack does
     for option in options:
         argv += ["--set", f"options.{option}"]
-    env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_PARENT_PID"}
+    dropped = {"DRIVEBENCH_PARENT_PID"}
+    if identity is not None:
+        argv += identity.overrides()
+        dropped |= {TLS_CERT_ENV, TLS_KEY_ENV, USER_ENV, PASSWORD_ENV}
+    env = {key: value for key, value in os.environ.items() if key not in dropped}
     return processes.spawn(argv, log_path=log_path, env=env)
 
 

@@ -387,9 +387,18 @@ class Bus:
         inbox = inbox or Inbox(keep_last=keep_last)
         return Subscription(self.session, key, message_type, self.rejects, inbox, on_message, self.tracer)
 
-    def declare_alive(self, key: str) -> None:
-        """Declare a liveliness token, kept until the bus closes (or the process dies)."""
-        self._tokens.append(self.session.liveliness().declare_token(key))
+    def declare_alive(self, key: str) -> Callable[[], None]:
+        """Declare a liveliness token, kept until the bus closes (or the process dies) or the returned function,
+        which withdraws it, is called."""
+        token = self.session.liveliness().declare_token(key)
+        self._tokens.append(token)
+
+        def withdraw() -> None:
+            if token in self._tokens:
+                self._tokens.remove(token)
+                token.undeclare()
+
+        return withdraw
 
     def watch_alive(self, key: str, on_change: Callable[[str, bool], None] | None = None) -> LivelinessWatch:
         return LivelinessWatch(self.session, key, on_change)

@@ -63,6 +63,7 @@ class Role:
     subscribes: tuple[str, ...] = ()
     serves: tuple[str, ...] = ()  # queryables it declares (and answers)
     queries: tuple[str, ...] = ()  # queryables of others it may ask, beyond every role's status query
+    claims: tuple[str, ...] = ()  # liveliness tokens it may declare besides its own (a swap's brain-name claims)
     bus_mode: str = "peer"  # how a local stack's instance joins: peer (the driving loop) or client (observers)
     identity: str = ""  # the certificate common name of its process in a secure stack ("": no certificate)
     group: str = ""  # a group role of the access rules that has every grant of its members ("service")
@@ -221,6 +222,7 @@ ROLES: tuple[Role, ...] = (
         "failure records, matrix results and reports",
         alive_as="driver",
         queries=(keys.sim_control(RUN), keys.brain_control(RUN, NAME)),
+        claims=(keys.name_claims(RUN),),
         subscribes=(keys.live_metrics(RUN), keys.score(RUN)),
         identity="orchestrator",
         compose=(

@@ -139,3 +139,23 @@ def parse_alive(key: str) -> tuple[str, str, str]:
     if len(parts) != 5 or parts[0] != ROOT or parts[1] != "alive":
         raise ValueError(f"not a liveliness key: {key!r}")
     return parts[2], parts[3], parts[4]
+
+
+CLAIM_ROLE = "claim"
+
+
+def name_claim(run_id: str, name: str, claimant: str) -> str:
+    """Liveliness token by which ``claimant`` (a unique id) reserves brain name ``name`` while it starts that brain
+    (a live swap), so that two swaps at once never start two brains of one name."""
+    return alive(run_id, CLAIM_ROLE, f"{check_name(name, what='brain name')}.{check_name(claimant, what='claimant')}")
+
+
+def name_claims(run_id: str) -> str:
+    """Every name claim of one run."""
+    return alive_role(run_id, CLAIM_ROLE)
+
+
+def parse_name_claim(key: str) -> tuple[str, str]:
+    """(brain name, claimant) of a key made by :func:`name_claim`; the claimant holds no '.', the name may."""
+    name, _, claimant = parse_alive(key)[2].rpartition(".")
+    return name, claimant

@@ -66,6 +66,8 @@ def grants_of(row: graph.Role) -> tuple[Grant, ...]:
         grants += (("ingress", ("query",), tuple(map(wildcard, row.queries))),)
     if row.token is not None:
         grants += (("ingress", ("liveliness_token",), (wildcard(keys.alive(RUN, row.token_role, NAME)),)),)
+    if row.claims:
+        grants += (("ingress", ("liveliness_token",), tuple(map(wildcard, row.claims))),)
     return grants
 
 

@@ -43,6 +43,7 @@ from protocol.security import ROLES, Identity, build_access_control, check_users
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = EpisodeSpec(circuit="simple", max_sim_seconds=3.0, seed=5, camera=CameraSpec(width_px=160, height_px=120))
 INTRUDER_YAW_RATE = 4.321  # rad/s: absurd, and recognisable in the poses (they carry the applied command)
+SPEC_LONG = EpisodeSpec(circuit="simple", max_sim_seconds=600.0, seed=5, camera=SPEC.camera)  # stopped by the test
 FAILED_OPEN_MS = 1500  # connect timeout of the buses that must fail to open
 
 
@@ -449,6 +450,52 @@ def test_a_brain_may_put_commands_only(secure_stack):
         assert inbox.recv(timeout_s=0.5) is None  # ... the forbidden ones never did
 
 
+def drivebench_cli(args: list[str], env: dict[str, str], *, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+
+
+@pytest.mark.integration
+def test_a_live_swap_on_the_secure_stack_runs_as_the_orchestrator_and_starts_a_brain_identity(secure_stack, tmp_path):
+    """``drivebench swap`` as docs/security.md says: the orchestrator's certificate for the swap (it switches and stops
+    brains), a brain's for the host it starts. Last of the secure stack's tests: the stack's brain is retired."""
+    stack, run = secure_stack, secure_stack.run_id
+    env = clean_env(**tls_env(stack.pki, "orchestrator"))
+    swap = ["swap", "explicit", "--router", stack.endpoint, "--run", run, "--runs-dir", str(tmp_path)]
+    # Without a brain identity the new host would inherit the orchestrator's, which may not declare a brain's token:
+    # refused at once, in one line, before anything starts.
+    refused = drivebench_cli(swap, env, timeout_s=60)
+    assert refused.returncode == 2, refused.stderr
+    assert "--brain-cert and --brain-key" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+    assert stack.status().state == "idle"
+
+    scores = stack.orchestrator.subscribe(keys.score(run), EpisodeScore).inbox
+    started = stack.control(stack.orchestrator, ControlRequest(action="start", spec=SPEC_LONG))
+    assert started is not None and started.ok, started
+    brain_cert = ["--brain-cert", str(stack.pki / "brain.pem"), "--brain-key", str(stack.pki / "brain.key")]
+    try:
+        swapped = drivebench_cli([*swap, *brain_cert, "--timeout", "90"], env)
+        assert swapped.returncode == 0, swapped.stderr
+        assert "explicit-2 (explicit, pid" in swapped.stdout and "in place of explicit (stopped)" in swapped.stdout
+    finally:
+        stack.control(stack.orchestrator, ControlRequest(action="stop"))
+    score = scores.recv(timeout_s=60)
+    assert score is not None and score.message.header.episode == started.episode
+    assert score.message.brain == "explicit-2"
+    assert [(s.from_brain, s.to_brain) for s in score.message.switches] == [("explicit", "explicit-2")]
+    assert stack.processes.children["brain"].wait(timeout=10) == 0  # the old brain stopped on request
+    stopped = stack.control(
+        stack.orchestrator, ControlRequest(action="stop"), key=keys.brain_control(run, "explicit-2")
+    )
+    assert stopped is not None and stopped.ok  # the new host answers its control key: it holds the brain role
+
+
 # -- TLS without mutual TLS, with user names and passwords --
 
 
@@ -562,6 +609,10 @@ def test_acl_grants_each_role_its_own_keys_only():
     assert _allowed(acl, cn("b"), "ingress", "put") == {"drivebench/run/*/brain/*/cmd"}
     assert _allowed(acl, cn("b"), "ingress", "liveliness_token") == {"drivebench/alive/*/brain/*"}
     assert _allowed(acl, cn("b"), "ingress", "declare_queryable") == {"drivebench/run/*/brain/*/control"}
+    assert _allowed(acl, cn("o"), "ingress", "liveliness_token") == {
+        "drivebench/alive/*/driver/*",
+        "drivebench/alive/*/claim/*",  # a swap reserves its new brain's name (keys.name_claim)
+    }
     assert _allowed(acl, cn("o"), "ingress", "query") == {
         "drivebench/run/*/sim/control",
         "drivebench/run/*/sim/status",

@@ -249,3 +249,59 @@ def _read(path) -> str:
         return path.read_text()
     except OSError:
         return ""
+
+
+def test_a_neural_brain_without_weights_is_refused_before_anything_starts(tmp_path):
+    """``swap neural`` and ``run --shadow neural`` with no weights (and none shipped for "neural"): exit 2 at once,
+    like every other bad option, not exit 1 after a stack or a brain host came up."""
+    swapped = drivebench("swap", "neural", "--runs-dir", str(tmp_path), timeout=60)  # no stack: a later check
+    assert swapped.returncode == 2, swapped.stderr
+    assert "brain 'neural' needs --weights" in swapped.stderr and "Traceback" not in swapped.stderr
+    assert len(swapped.stderr.strip().splitlines()) == 1
+    out = tmp_path / "run"
+    run = drivebench("run", "--shadow", "neural", "--max-sim-seconds", "1", "--out", str(out), timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "brain 'neural' needs --weights" in run.stderr and "Traceback" not in run.stderr
+    assert not (out / "logs").exists()  # no process was started
+
+
+def test_two_swaps_at_once_start_two_differently_named_brains(tmp_path):
+    """Each swap claims its brain's name on the bus before starting it: two at once get explicit-2 and explicit-3,
+    and both switch (before the claim, both started an explicit-2 and one failed as "already the active brain")."""
+    out = tmp_path / "run"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--laps", "50"]
+        + ["--camera", "96x72", "--out", str(out), "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_for(
+            lambda: (out / "stack.json").is_file() and "started" in _read(out / "logs" / "simulator.log"),
+            timeout_s=60,
+            what="the run to start its episode",
+        )
+        stack = json.loads((out / "stack.json").read_text())
+        swaps = [
+            subprocess.Popen(
+                [sys.executable, "-m", "orchestrator.cli", "swap", "explicit", "--runs-dir", str(tmp_path)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for _ in range(2)
+        ]
+        outputs = [swap.communicate(timeout=120) for swap in swaps]
+        assert [swap.returncode for swap in swaps] == [0, 0], [stderr for _, stderr in outputs]
+        names = {stdout.split(" ")[3] for stdout, _ in outputs}  # "drivebench: run R: NAME (explicit, pid ..."
+        assert names == {"explicit-2", "explicit-3"}, outputs
+        stop_episode(stack["router"], stack["run_id"])
+        stdout, stderr = run.communicate(timeout=120)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, stderr
+    score = json.loads(stdout)
+    assert score["reason"] == "stopped" and score["brain"] in names
+    assert {s["to_brain"] for s in score["switches"]} == names and len(score["switches"]) == 2

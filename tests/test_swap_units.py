@@ -13,7 +13,7 @@ from orchestrator.cli.run import shadow_launches
 from orchestrator.cli.swap import brain_options
 from orchestrator.launcher import BrainLaunch
 from orchestrator.report import metrics_table
-from orchestrator.swap import StackInfo, SwapError, _pick_name, locate_stack
+from orchestrator.swap import BrainIdentity, StackInfo, SwapError, _pick_name, locate_stack
 from protocol import codec, keys
 from protocol.messages import (
     BrainSwitch,
@@ -185,6 +185,34 @@ def test_swap_options_check_the_weights_file(tmp_path):
     weights = tmp_path / "w.ckpt"
     weights.write_bytes(b"x")
     assert brain_options([], weights) == (f"weights={json.dumps(str(weights.resolve()))}",)
+
+
+def test_a_brain_identity_is_checked_and_becomes_the_brain_hosts_bus_settings(tmp_path):
+    cert, key, password = tmp_path / "brain.pem", tmp_path / "brain.key", tmp_path / "pw"
+    for path in (cert, key, password):
+        path.write_text("x")
+    with pytest.raises(UsageError, match="--brain-cert: no such file"):
+        BrainIdentity(tls_cert=tmp_path / "none.pem", tls_key=key)
+    with pytest.raises(UsageError, match="--brain-cert and --brain-key go together"):
+        BrainIdentity(tls_cert=cert)
+    with pytest.raises(UsageError, match="--brain-user and --brain-password-file go together"):
+        BrainIdentity(user="pilot")
+    assert BrainIdentity(tls_cert=cert, tls_key=key, user="pilot", password_file=password).overrides() == [
+        "--set",
+        f"bus.tls_cert={json.dumps(str(cert))}",
+        "--set",
+        f"bus.tls_key={json.dumps(str(key))}",
+        "--set",
+        'bus.user="pilot"',
+        "--set",
+        f"bus.password_file={json.dumps(str(password))}",
+    ]
+
+
+def test_name_claims_round_trip_names_with_dots():
+    key = keys.name_claim("r1", "my.brain-2", "abc123")
+    assert key == "drivebench/alive/r1/claim/my.brain-2.abc123"
+    assert keys.parse_name_claim(key) == ("my.brain-2", "abc123")
 
 
 def test_shadow_names_never_clash():

@@ -4,11 +4,15 @@ contract's JSON Schemas for brains written in other languages."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from orchestrator.cli.errors import UsageError
+from orchestrator.cli.errors import EXIT_INTERRUPTED, UsageError
 from protocol.config import ConfigError, parse_override
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "docs" / "protocol"
@@ -36,6 +40,14 @@ def add(commands: argparse._SubParsersAction) -> None:
     )
     check.add_argument(
         "--memory-steps", type=int, default=300, metavar="N", help="frames of the memory-growth check (default 300)"
+    )
+    check.add_argument(
+        "--brain-timeout",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="lock-step timeout of the runs it is for (run --brain-timeout; default 10): answers slower than this "
+        "fail the answer-time check, which stops the checks early once it has clearly failed",
     )
     schema = sub.add_parser("schema", help="write the JSON Schema of every message a brain process exchanges")
     schema.add_argument(
@@ -86,20 +98,78 @@ def brain_option_dict(items: list[str], weights: Path | None) -> dict[str, Any]:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from brains.checker import check_brain, passed
+    """The report on stdout, one line per check as each is known; progress on stderr; whatever the brain prints
+    to stdout is kept out of the report (it could bury or imitate it) and summed up on stderr at the end."""
+    from brains.checker import iter_checks, passed
 
     options = brain_option_dict(args.brain_option, args.weights)
     if args.memory_steps < 2:
         raise UsageError("--memory-steps must be at least 2")
+    if not args.brain_timeout > 0:
+        raise UsageError(f"--brain-timeout must be positive, got {args.brain_timeout}")
     print(f"checking brain {args.brain!r} on rendered frames of simple ...", file=sys.stderr)
-    results = check_brain(args.brain, options=options, memory_steps=args.memory_steps)
-    for result in results:
-        print(result.line())
+    results = []
+    stage = ["make"]
+
+    def progress(text: str) -> None:
+        stage[0] = text
+        print(f"  ... {text}", file=sys.stderr, flush=True)
+
+    with _brain_stdout_captured() as report:
+        try:
+            for result in iter_checks(
+                args.brain,
+                options=options,
+                memory_steps=args.memory_steps,
+                brain_timeout_s=args.brain_timeout,
+                progress=progress,
+            ):
+                results.append(result)
+                report(result.line())
+        except KeyboardInterrupt:
+            print(
+                f"{args.brain}: interrupted during {stage[0]}; {len(results)} check(s) done, above "
+                f"({sum(r.status == 'fail' for r in results)} failed)",
+                file=sys.stderr,
+            )
+            return EXIT_INTERRUPTED
     failures = sum(result.status == "fail" for result in results)
     print(
         f"{args.brain}: " + (f"{failures} check(s) failed" if failures else "meets the brain contract"), file=sys.stderr
     )
     return 0 if passed(results) else 1
+
+
+BRAIN_OUTPUT_SHOWN = 5  # lines of what the brain printed, shown on stderr after the report
+
+
+@contextlib.contextmanager
+def _brain_stdout_captured() -> Iterator[Callable[[str], None]]:
+    """Point file descriptor 1 (Python's prints and C libraries' writes alike) at a temporary file while the brain
+    runs; yield a function that writes a report line to the real stdout. Afterwards, say on stderr what the brain
+    printed, marked as its own."""
+    sys.stdout.flush()
+    real = os.dup(1)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 1)
+
+        def report(line: str) -> None:
+            os.write(real, (line + "\n").encode())
+
+        try:
+            yield report
+        finally:
+            sys.stdout.flush()
+            os.dup2(real, 1)
+            os.close(real)
+            captured.seek(0)
+            lines = captured.read().decode(errors="replace").splitlines()
+        if lines:
+            print(
+                f"the brain printed {len(lines)} line(s) to stdout (not part of the report); the last:", file=sys.stderr
+            )
+            for line in lines[-BRAIN_OUTPUT_SHOWN:]:
+                print(f"  brain| {line}", file=sys.stderr)
 
 
 def _schema(folder: Path) -> int:

@@ -9,7 +9,7 @@ from pathlib import Path
 from brains.registry import brain_names
 from orchestrator.cli.errors import EXIT_OK, CommandFailed, UsageError
 from orchestrator.launcher import BrainLaunch, preflight_launches
-from orchestrator.swap import DEFAULT_TIMEOUT_S, SwapError, locate_stack, swap_brain
+from orchestrator.swap import DEFAULT_TIMEOUT_S, BrainIdentity, SwapError, check_identity, locate_stack, swap_brain
 from protocol.bus import BusError
 
 
@@ -43,6 +43,15 @@ def add(commands: argparse._SubParsersAction) -> None:
         metavar="SECONDS",
         help=f"for the new brain to come up and answer a frame (default: {DEFAULT_TIMEOUT_S:.0f})",
     )
+    secure = swap.add_argument_group(
+        "secure stack",
+        "swap runs with the orchestrator's identity (DRIVEBENCH_TLS_CERT/KEY or DRIVEBENCH_USER: only it may switch "
+        "and stop brains); the brain host it starts gets a brain's identity, given here (docs/security.md)",
+    )
+    secure.add_argument("--brain-cert", type=Path, metavar="PEM", help="the new brain host's certificate")
+    secure.add_argument("--brain-key", type=Path, metavar="KEY", help="its private key")
+    secure.add_argument("--brain-user", default="", metavar="USER", help="the new brain host's user name")
+    secure.add_argument("--brain-password-file", type=Path, metavar="FILE", help="its password (first line)")
     swap.set_defaults(func=run_swap_command)
 
 
@@ -59,9 +68,23 @@ def brain_options(brain_option: list[str], weights: Path | None) -> tuple[str, .
     return options
 
 
+def brain_identity(args: argparse.Namespace) -> BrainIdentity | None:
+    """The new brain host's identity on a secure stack, None when no ``--brain-*`` option is given."""
+    if args.brain_cert is None and args.brain_key is None and not args.brain_user and args.brain_password_file is None:
+        return None
+    return BrainIdentity(
+        tls_cert=args.brain_cert,
+        tls_key=args.brain_key,
+        user=args.brain_user,
+        password_file=args.brain_password_file,
+    )
+
+
 def run_swap_command(args: argparse.Namespace) -> int:
     """``drivebench swap``: one line on stdout when done, one line on stderr when not (exit 2 usage, 1 stack)."""
     options = brain_options(args.brain_option, args.weights)
+    identity = brain_identity(args)
+    check_identity(identity)
     try:
         preflight_launches([BrainLaunch(args.brain, options=options)])
     except ValueError as error:
@@ -78,6 +101,7 @@ def run_swap_command(args: argparse.Namespace) -> int:
             log_path=logs if logs is not None and logs.is_dir() else None,
             timeout_s=args.timeout,
             keep_old=args.keep_old,
+            identity=identity,
         )
     except (SwapError, BusError) as error:
         raise CommandFailed(f"swap failed: {error}") from None
