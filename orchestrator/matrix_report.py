@@ -64,7 +64,7 @@ from orchestrator.report_document import FAIL_MARK, Section, Table, render_html,
 from orchestrator.report_export import episode_rows, write_csv, write_parquet
 from orchestrator.report_plots import ReportPlots
 from orchestrator.report_trajectories import _Track, load_trajectory
-from orchestrator.results import DATABASE_NAME, EpisodeResult, ResultStore
+from orchestrator.results import BASELINE_FACT, DATABASE_NAME, EpisodeResult, ResultStore
 
 __all__ = [
     # this module's own
@@ -105,7 +105,6 @@ NO_PERTURBATION = "none"
 COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns become one table
 MAX_EARLY_ROWS = 200  # rows of the "ended early" list
 PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
-BASELINE_FACT = "baseline_variation"  # results-database fact: the variation label of the matrix's first episode
 PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
 
 # Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').

@@ -43,8 +43,7 @@ from orchestrator.launcher import (
     free_loopback_port,
 )
 from orchestrator.matrix import BrainEntry, Matrix, PlannedEpisode
-from orchestrator.matrix_report import BASELINE_FACT
-from orchestrator.results import EpisodeResult, ResultStore
+from orchestrator.results import BASELINE_FACT, EpisodeResult, ResultStore
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
 from protocol.messages import EndReason, EpisodeScore, LiveMetrics, Pose

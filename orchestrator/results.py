@@ -23,6 +23,8 @@ from protocol import codec
 from protocol.messages import EpisodeScore, EpisodeSpec
 
 DATABASE_NAME = "results.sqlite"
+# A fact the runner stores for the report: the variation label of the matrix's first episode (the baseline column).
+BASELINE_FACT = "baseline_variation"
 
 # Typed failures: what went wrong with the stack (never what the brain did on the road).
 FAILURE_KINDS = (
