@@ -99,7 +99,7 @@ class ScorerService:
             if isinstance(message, Pose):
                 self._on_pose(message)
             elif isinstance(message, Command):
-                self._on_command(message)
+                self._on_command(message, key=received.key)
             elif isinstance(message, EpisodeEvent):
                 self._on_event(message)
         self._maybe_finish()
@@ -169,7 +169,12 @@ class ScorerService:
             command_latency_ns=pose.command_latency_ns,
         )
 
-    def _on_command(self, command: Command) -> None:
+    def _on_command(self, command: Command, *, key: str) -> None:
+        if problem := command.problem():
+            # It drove nothing (the simulator ends the episode on it, or it came from a shadow), and a huge finite
+            # value would overflow the metrics: dropped, said once per key.
+            self._bus.rejects.reject(key, ValueError(problem))
+            return
         current = self._current(command.header.episode)
         if current is not None:
             current.commands.add_command(command)
@@ -211,6 +216,7 @@ class ScorerService:
             metrics=metrics,
             switches=list(current.commands.switches),
             shadows=shadows,
+            detail=current.end.detail,
         )
         self._scores.publish(score)
         self._scored.add(current.number)
