@@ -96,9 +96,15 @@ def test_a_late_last_command_still_counts(scorer_bus):
     assert received.message.metrics.suddenness_distance > 0
 
 
-def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(scorer_bus, tmp_path):
+@pytest.mark.parametrize(
+    "bad_m, said",
+    [(math.nan, "got nan - at `$.x_m`"), (1e300, "pose at (1e+300, 1e+300) m: beyond +-1e+06 m")],
+    ids=["nan", "1e300"],
+)
+def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(scorer_bus, tmp_path, bad_m, said):
     """A client that publishes one Pose with x = y = NaN among the simulator's: the scorer drops it at decode (its
-    splines would fail on it at the episode's end), says so once, and scores the episode from the real poses."""
+    splines would fail on it at the episode's end), says so once, and scores the episode from the real poses. A
+    finite 1e300 decodes, but overflowed the metrics: dropped too."""
     bus, run_id = scorer_bus
     spec = EpisodeSpec(circuit="simple", max_sim_seconds=FRAMES * 0.05)
     events = bus.publisher(keys.events(run_id), EpisodeEvent, Traffic.EVENTS)
@@ -119,7 +125,7 @@ def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(s
     for seq in range(FRAMES + 1):
         x_m, y_m = points[seq % len(points)]
         if seq == FRAMES // 2:  # the intruder's pose for this frame comes first
-            poses.publish(Pose(header=header(seq), x_m=math.nan, y_m=math.nan, yaw_rad=0.0))
+            poses.publish(Pose(header=header(seq), x_m=bad_m, y_m=bad_m, yaw_rad=0.0))
         poses.publish(Pose(header=header(seq), x_m=float(x_m), y_m=float(y_m), yaw_rad=0.0, speed_mps=1.0))
         if seq < FRAMES:
             commands.publish(
@@ -133,4 +139,4 @@ def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(s
     metrics = received.message.metrics
     assert metrics.steps == FRAMES and math.isfinite(metrics.position_deviation_mae) and metrics.progress_m > 0
     log = (tmp_path / "scorer.log").read_text()
-    assert log.count("dropped bad message") == 1 and "got nan - at `$.x_m`" in log
+    assert log.count("dropped bad message") == 1 and said in log, log
