@@ -5,16 +5,19 @@ that reason was known, how many processes of that stack were still running two s
 and what data was lost. Faults: kill -9 of each process mid-episode (brain, simulator, noise injector, scorer,
 recorder, an attached driver, a separate router), the router killed and started again under an attached run on
 long-lived services (the compose deployment), a flood of garbage on the command and camera keys (with each
-process's peak memory), and bad input on the command line. Not a timed test: detection times are measured, not
-asserted; run it to see the table.
+process's peak memory), one bad value (a brain answering NaN, malformed camera frames and a NaN pose from a plain
+client: refused where they enter, typed, nothing else lost), and bad input on the command line. Not a timed test:
+detection times are measured, not asserted; run it to see the table.
 
-    .venv/bin/python benchmarks/faults.py [--flood-seconds 5] [--only brain,recorder,...]
+    .venv/bin/python benchmarks/faults.py [--flood-seconds 5] [--only brain,recorder,nan_brain,...]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -23,6 +26,7 @@ import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,8 +34,18 @@ from tqdm import tqdm
 
 from orchestrator.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
 from protocol import keys
-from protocol.bus import BusError, Inbox, Traffic, probe_router
-from protocol.messages import CameraSpec, EpisodeEvent, EpisodeSpec, EventKind, Pose
+from protocol.bus import Bus, BusError, Inbox, Traffic, probe_router
+from protocol.messages import (
+    CameraFrame,
+    CameraSpec,
+    Command,
+    EpisodeEvent,
+    EpisodeScore,
+    EpisodeSpec,
+    EventKind,
+    Header,
+    Pose,
+)
 from recorder.reading import read_messages
 from recorder.repair import repair
 from recorder.writer import part_path
@@ -320,6 +334,143 @@ def flood(folder: Path, seconds: float) -> Row:
     )
 
 
+# -- one bad value: it must be refused where it enters, typed, and cost nothing else -----------------------------------
+
+NAN_BRAIN = """
+from brains.base import Action
+
+
+class NanAfter:
+    \"\"\"Stands still, then answers NaN from frame ``after`` on.\"\"\"
+    def __init__(self, *, after=20):
+        self.after = after
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        return Action(speed_mps=float("nan") if observation.seq >= self.after else 0.0, yaw_rate_radps=0.0)
+"""
+NAN_AFTER_FRAMES = 20
+
+
+def missing_in_recording(path: Path, run_id: str, score: EpisodeScore) -> str:
+    """What the recording of a one-episode run lacks: the frames and poses of every step, the driver's answer to every
+    frame it drove, the END event and the score."""
+    frames: dict[str, set[int]] = {}  # per key: the frame numbers its messages belong to
+    ended = False
+    for recorded in read_messages(path):
+        message = recorded.message
+        if message.header.run_id == run_id:
+            frame = message.frame_seq if isinstance(message, Command) else message.header.seq
+            frames.setdefault(recorded.key, set()).add(frame)
+            ended |= isinstance(message, EpisodeEvent) and message.kind == EventKind.END
+    last_pose = score.metrics.steps  # poses 0..steps; the last one has no frame (nobody would answer it)
+    expected = {
+        "frames": (keys.camera_raw(run_id), set(range(last_pose))),
+        "poses": (keys.pose(run_id), set(range(last_pose + 1))),
+        "commands": (keys.command(run_id, score.brain), set(range(last_pose))),
+        "scores": (keys.score(run_id), {0}),
+    }
+    lost = [f"{len(want - frames.get(key, set()))} {what}" for what, (key, want) in expected.items()]
+    lost = [text for text in lost if not text.startswith("0 ")] + ([] if ended else ["the END event"])
+    kept = ", ".join(f"{len(frames.get(key, set()))} {what}" for what, (key, _) in expected.items())
+    return f"LOST {', '.join(lost)}" if lost else f"none ({kept}, END)"
+
+
+def bad_value_run(
+    folder: Path,
+    *,
+    fault: str,
+    brain: BrainLaunch,
+    active_brain: str,
+    inject: Callable[[Bus, str], None] | None = None,
+) -> Row:
+    """One recorded episode with a bad value in it: the brain's own, or ``inject(bus, run_id)`` from a plain client
+    once the episode has started. The row says how it ended, which processes dropped the bad message (each must say
+    so once, and go on), how long from a refused answer to the episode's end, and what the recording lacks."""
+    run_id = f"f{uuid.uuid4().hex[:6]}"
+    recording = folder / f"{run_id}.mcap"
+    with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[brain], record=recording) as stack:
+        seen = Inbox()
+        stack.bus.subscribe(keys.commands_all(run_id), Command, inbox=seen)
+        stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=seen)
+        injector = threading.Thread(target=_inject_after_start, args=(stack.bus, run_id, inject), daemon=True)
+        injector.start()
+        spec = EpisodeSpec(active_brain=active_brain, max_sim_seconds=5, camera=SMALL_CAMERA)
+        score = stack.run_episode(spec, wall_timeout_s=120)
+        injector.join(timeout=30)
+        recorded = "recording complete" if stack.recording_failure is None else "RECORDER DIED"
+        alive = all(child.process.poll() is None for child in stack.children)
+        logs = {child.role: child.log_path for child in stack.children}
+    arrivals = seen.drain()
+    refused = [r.arrival_ns for r in arrivals if isinstance(r.message, Command) and r.message.invalid]
+    ends = [r.arrival_ns for r in arrivals if isinstance(r.message, EpisodeEvent) and r.message.kind == EventKind.END]
+    detected = (ends[0] - refused[0]) / 1e9 if refused and ends else None
+    # "dropped bad message" (at decode, or the recorder's: once per key) or "dropped bad camera frame" (a brain host's
+    # image check: once)
+    said_by = {role: log.read_text().count("dropped bad ") for role, log in logs.items()}
+    droppers = [role if n == 1 else f"{role} (once on each of {n} keys)" for role, n in sorted(said_by.items()) if n]
+    said = f"; dropped and logged once by {', '.join(droppers)}" if droppers else ""
+    outcome = f"scored{said}; {recorded}; {'every process ran on' if alive else 'A PROCESS DIED'}"
+    reason = f"{score.reason} ({score.detail})" if score.detail else str(score.reason)
+    return Row(fault, outcome, reason, detected, orphans(run_id), missing_in_recording(recording, run_id, score))
+
+
+def _inject_after_start(bus: Bus, run_id: str, inject: Callable[[Bus, str], None] | None) -> None:
+    if inject is None:
+        return
+    events = Inbox()
+    subscription = bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=events)
+    while (received := events.recv(timeout_s=60)) is not None and received.message.kind != EventKind.START:
+        pass
+    subscription.close()
+    inject(bus, run_id)
+
+
+def nan_brain(folder: Path) -> Row:
+    """A user's brain that answers NaN mid-episode: its host refuses it, the simulator ends the episode
+    brain_invalid."""
+    (folder / "nan_brain.py").write_text(NAN_BRAIN)
+    brain = BrainLaunch("nan_brain:NanAfter", options=(f"after={NAN_AFTER_FRAMES}",))
+    with contextlib.chdir(folder):  # the brain host imports nan_brain from its working folder, as a user's would
+        return bad_value_run(folder, fault="a brain answers NaN (lock-step)", brain=brain, active_brain="NanAfter")
+
+
+def malformed_frame(folder: Path) -> Row:
+    """A client publishes camera frames of width -1 (and one whose size does not match its bytes) on the simulator's
+    camera key: the recorder, the brain host and the noise injector each drop them."""
+
+    def inject(bus: Bus, run_id: str) -> None:
+        header = Header(run_id=run_id, episode=0, seq=3, stamp_ns=150_000_000)
+        frames = bus.publisher(keys.camera_raw(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS)
+        for width_px in (-1, 640):
+            frames.publish(CameraFrame(header=header, width_px=width_px, height_px=48, data=bytes(64 * 48 * 3)))
+
+    return bad_value_run(
+        folder,
+        fault="malformed camera frames from a client (width -1, wrong size)",
+        brain=standing_still(),
+        active_brain="constant",
+        inject=inject,
+    )
+
+
+def nan_pose(folder: Path) -> Row:
+    """A client publishes a Pose with x = y = NaN among the simulator's: dropped at decode by every subscriber (the
+    scorer's splines died on it at the episode's end)."""
+
+    def inject(bus: Bus, run_id: str) -> None:
+        # For a frame still to come: it arrives before the simulator's own pose of that frame, so a scorer that took
+        # it would have it in its splines (the simulator's pose 99 is then a repeat, ignored).
+        header = Header(run_id=run_id, episode=0, seq=99, stamp_ns=99 * 50_000_000)
+        bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS).publish(
+            Pose(header=header, x_m=math.nan, y_m=math.nan, yaw_rad=0.0)
+        )
+
+    return bad_value_run(
+        folder, fault="a pose of NaN from a client", brain=standing_still(), active_brain="constant", inject=inject
+    )
+
+
 def peak_rss_mb(pid: int) -> float:
     """The process's peak resident memory (VmHWM), in MB; 0 if it is gone."""
     try:
@@ -384,7 +535,7 @@ def main() -> int:
     parser.add_argument(
         "--only",
         help="comma-separated faults: brain, simulator, noise, scorer, recorder, driver, "
-        "router, router_restart, flood, input (default: all)",
+        "router, router_restart, flood, nan_brain, bad_frame, nan_pose, input (default: all)",
     )
     args = parser.parse_args()
     faults = {
@@ -397,6 +548,9 @@ def main() -> int:
         "router": lambda f: kill_child("router", "router", f, fault="kill -9 router (separate process)"),
         "router_restart": restart_router,
         "flood": lambda f: flood(f, args.flood_seconds),
+        "nan_brain": nan_brain,
+        "bad_frame": malformed_frame,
+        "nan_pose": nan_pose,
         "input": bad_inputs,
     }
     chosen = args.only.split(",") if args.only else list(faults)

@@ -41,6 +41,7 @@ from protocol.messages import (
     EventKind,
     Header,
     Pose,
+    command_problem,
 )
 from protocol.runtime import stop_requested
 
@@ -214,6 +215,7 @@ class BrainHost:
                 return
         if len(self._sources) > 1:
             self._drive_only_from_source()
+        invalid = ""
         if image is None:  # lost on the way: keep doing what the brain last decided
             speed_mps = self._last.speed_mps if self._last is not None else 0.0
             yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0
@@ -223,7 +225,7 @@ class BrainHost:
             started = time.perf_counter_ns()
             action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq, ground_truth=truth))
             inference_ns = time.perf_counter_ns() - started
-            speed_mps, yaw_rate_radps = float(action.speed_mps), float(action.yaw_rate_radps)
+            speed_mps, yaw_rate_radps, invalid = self._checked(action, frame_seq=h.seq, episode=h.episode)
         command = Command(
             header=Header(run_id=self.config.run_id, episode=h.episode, seq=self._seq, stamp_ns=h.stamp_ns),
             brain=self.name,
@@ -231,10 +233,26 @@ class BrainHost:
             speed_mps=speed_mps,
             yaw_rate_radps=yaw_rate_radps,
             inference_ns=inference_ns,
+            invalid=invalid,
         )
         self._seq += 1
         self._commands.publish(command)
         self._last = command
+
+    def _checked(self, action: Any, *, frame_seq: int, episode: int) -> tuple[float, float, str]:
+        """(speed, yaw rate, "") of a command a car can take; else (0, 0, what was wrong), logged: the simulator
+        ends the episode ``brain_invalid`` on it. Refused here, where the value enters: a NaN cannot even cross the
+        bus (``protocol.codec``), and a huge finite value would overflow the physics or the metrics downstream."""
+        try:
+            speed_mps, yaw_rate_radps = float(action.speed_mps), float(action.yaw_rate_radps)
+        except (TypeError, ValueError, OverflowError):
+            problem = f"speed_mps={action.speed_mps!r}, yaw_rate_radps={action.yaw_rate_radps!r} (not numbers)"
+        else:
+            problem = command_problem(speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps)
+            if not problem:
+                return speed_mps, yaw_rate_radps, ""
+        log.warning("brain %s answered frame %d of episode %d with %s: refused", self.name, frame_seq, episode, problem)
+        return 0.0, 0.0, problem
 
     def _ground_truth(self, episode: int, seq: int) -> GroundTruth | None:
         """The pose of frame (episode, seq), waiting up to GROUND_TRUTH_WAIT_S for it; None (logged) without it."""

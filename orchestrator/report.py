@@ -24,7 +24,7 @@ def metrics_table(score: EpisodeScore) -> str:
             f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}, "
             f"{spec.laps} lap(s), seed {spec.seed}",
         ),
-        ("ended by", str(score.reason)),
+        ("ended by", f"{score.reason} ({score.detail})" if score.detail else str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),
         ("lap times", f"{laps} s"),
         ("progress", f"{_fmt(m.progress_m, ' m', 1)} ({_fmt(m.progress_laps * 100, ' %', 1)})"),

@@ -2,10 +2,15 @@
 
 Decoding always names the type expected, so a wrong or damaged payload fails at the boundary with the field path
 (``$.header.seq``) in the error, instead of deep inside a service. Never pickle.
+
+One rule holds for every message type: a float is finite. MessagePack carries NaN and infinities, and one of them
+passes through arithmetic silently until something (a spline, ``int()``, an exponent) fails far from its source, so
+:func:`decode` rejects them like any other bad field, naming its path.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, TypeVar
 
 import msgspec
@@ -29,10 +34,33 @@ def decode(data: bytes | bytearray | memoryview, message_type: type[T]) -> T:
     decoder = _decoders.get(message_type)
     if decoder is None:
         decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+    name = getattr(message_type, "__name__", message_type)
     try:
-        return decoder.decode(data)
+        message = decoder.decode(data)
     except (msgspec.DecodeError, msgspec.ValidationError) as error:
-        raise DecodeError(f"not a valid {getattr(message_type, '__name__', message_type)}: {error}") from None
+        raise DecodeError(f"not a valid {name}: {error}") from None
+    if (found := non_finite(message)) is not None:
+        path, value = found
+        raise DecodeError(f"not a valid {name}: Expected a finite `float`, got {value} - at `{path}`")
+    return message
+
+
+def non_finite(value: Any, path: str = "$") -> tuple[str, float] | None:
+    """(path, value) of the first NaN or infinite float in a decoded message (structs, lists, dicts), or None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else (path, value)
+    if isinstance(value, msgspec.Struct):
+        items: Any = ((f"{path}.{name}", getattr(value, name)) for name in value.__struct_fields__)
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{path}[{index}]", item) for index, item in enumerate(value))
+    elif isinstance(value, dict):
+        items = ((f"{path}[{key!r}]", item) for key, item in value.items())
+    else:
+        return None
+    for item_path, item in items:
+        if (found := non_finite(item, item_path)) is not None:
+            return found
+    return None
 
 
 def to_builtins(message: msgspec.Struct) -> Any:

@@ -14,6 +14,7 @@ The wire format is plain MessagePack maps (see ``protocol.codec``), readable by 
 from __future__ import annotations
 
 import enum
+import math
 
 import msgspec
 
@@ -44,6 +45,7 @@ class EndReason(enum.StrEnum):
     CRASH = "crash"  # touched a wall
     BRAIN_TIMEOUT = "brain_timeout"  # lock-step: the active brain did not answer a frame in time
     BRAIN_LOST = "brain_lost"  # the active brain's liveliness token vanished
+    BRAIN_INVALID = "brain_invalid"  # the active brain answered a command no car can take (see command_problem)
     DRIVER_LOST = "driver_lost"  # the process that started the episode (its driver) went away: nobody collects it
     STOPPED = "stopped"  # stopped by run control (user, orchestrator)
 
@@ -334,13 +336,38 @@ class Pose(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Pose.v1", 
     command_latency_ns: int = 0
 
 
+# The largest command a car takes, either sign: far beyond any car here (F1 cars drive up to ~24 m/s), so an answer
+# in km/h or degrees still drives (``brains check`` flags those), while NaN-like garbage such as 1e300 ends the
+# episode ``brain_invalid`` instead of overflowing the physics or the metrics.
+MAX_COMMAND_SPEED_MPS = 100.0
+MAX_COMMAND_YAW_RATE_RADPS = 100.0
+
+
+def command_problem(*, speed_mps: float, yaw_rate_radps: float) -> str:
+    """Why no car can take this command (``"speed_mps=nan (not a finite number)"``), or "" when it can."""
+    for name, value, limit, unit in (
+        ("speed_mps", speed_mps, MAX_COMMAND_SPEED_MPS, "m/s"),
+        ("yaw_rate_radps", yaw_rate_radps, MAX_COMMAND_YAW_RATE_RADPS, "rad/s"),
+    ):
+        if not math.isfinite(value):
+            return f"{name}={value} (not a finite number)"
+        if abs(value) > limit:
+            return f"{name}={value} (beyond +-{limit:g} {unit})"
+    return ""
+
+
 class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command.v1", tag_field=TAG_FIELD):
     """A brain's answer to one camera frame.
 
     header.seq: the brain's own message counter; header.stamp_ns: the sim stamp of the frame it answers.
     frame_seq: ``header.seq`` of the camera frame this command answers.
-    speed_mps: forward speed along the car's x axis; yaw_rate_radps: anticlockwise yaw rate.
+    speed_mps: forward speed along the car's x axis; yaw_rate_radps: anticlockwise yaw rate; each within
+        +-MAX_COMMAND_SPEED_MPS / +-MAX_COMMAND_YAW_RATE_RADPS (:func:`command_problem`).
     inference_ns: wall time the brain spent computing this command.
+    invalid: non-empty when the brain's answer was one no car can take (NaN, infinite, beyond the limits): what it
+        was, e.g. ``"speed_mps=nan (not a finite number)"``. Its speed and yaw rate are then 0 and mean nothing;
+        the brain host sends it so that the simulator ends the episode ``brain_invalid`` at once, with the value,
+        instead of waiting for an answer that never comes (a NaN cannot cross the bus).
     """
 
     header: Header
@@ -349,6 +376,11 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     speed_mps: float
     yaw_rate_radps: float
     inference_ns: int = 0
+    invalid: str = ""
+
+    def problem(self) -> str:
+        """Why this command cannot drive a car ("" when it can), whoever sent it."""
+        return self.invalid or command_problem(speed_mps=self.speed_mps, yaw_rate_radps=self.yaw_rate_radps)
 
 
 class EpisodeEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeEvent.v1", tag_field=TAG_FIELD):
@@ -356,7 +388,8 @@ class EpisodeEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Ep
 
     START carries the spec. LAP carries ``lap`` (1-based). BRAIN_SWITCH carries the new driving ``brain`` and the
     previous one in ``detail``; its stamp is that of the first frame whose command comes from the new brain.
-    END carries ``reason``, ``last_pose_seq`` (so a scorer knows when it has every pose) and ``wall_elapsed_ns``.
+    END carries ``reason``, ``last_pose_seq`` (so a scorer knows when it has every pose) and ``wall_elapsed_ns``;
+    with reason ``brain_invalid``, ``detail`` names the brain and its refused answer.
     """
 
     header: Header
@@ -461,7 +494,8 @@ class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Ep
     """The one final score of an episode, published by the scorer.
 
     brain: the brain driving at the end of the episode. switches: live brain switches, in order. shadows: one
-    entry per brain that answered frames it did not drive, by name.
+    entry per brain that answered frames it did not drive, by name. detail: what the reason alone does not say (the
+    END event's: for ``brain_invalid``, the brain and its refused answer), else "".
     """
 
     header: Header
@@ -471,6 +505,7 @@ class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Ep
     metrics: EpisodeMetrics
     switches: list[BrainSwitch] = []
     shadows: list[ShadowDistance] = []
+    detail: str = ""
 
 
 class ControlRequest(

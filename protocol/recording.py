@@ -29,6 +29,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from protocol import keys
+from protocol.images import frame_image
 from protocol.messages import BUS_MESSAGES, CameraFrame, Command, EpisodeEvent, EpisodeScore, Header, LiveMetrics, Pose
 from protocol.topics import RUN_ID_METADATA, topic_of_key
 
@@ -93,6 +94,29 @@ def check_image_format(image_format: str) -> str:
     if image_format not in IMAGE_FORMATS:
         raise ValueError(f"image format must be one of {', '.join(IMAGE_FORMATS)}, got {image_format!r}")
     return image_format
+
+
+# What a recording's fields hold: MCAP times and sequences are unsigned, the image's episode is a uint32, and log
+# times add one second per episode to the stamps (``EpisodeClock``), so stamps keep far below 2**64.
+_HEADER_RANGES = (("episode", 2**32), ("seq", 2**63), ("stamp_ns", 2**62))
+
+
+def check_recordable(message: msgspec.Struct) -> None:
+    """Raise :class:`RecordFormatError` for a bus message a recording cannot hold as it is (a client's bad input
+    that decoded: a negative stamp, a frame whose size does not match its bytes), before anything is written."""
+    header: Header = getattr(message, "header")
+    for name, end in _HEADER_RANGES:
+        if not 0 <= getattr(header, name) < end:
+            raise RecordFormatError(f"header.{name} must be within 0..{end - 1}, got {getattr(header, name)}")
+    if not isinstance(message, CameraFrame):
+        return
+    if message.data:
+        try:
+            frame_image(message)
+        except ValueError as error:
+            raise RecordFormatError(str(error)) from None
+    elif not (0 <= message.width_px < 2**32 and 0 <= message.height_px < 2**32):  # a dropped frame keeps its size
+        raise RecordFormatError(f"camera frame of {message.width_px}x{message.height_px}: a size must be >= 0")
 
 
 def to_record(message: msgspec.Struct, *, image_format: str = "raw", jpeg_quality: int = 90) -> bytes:

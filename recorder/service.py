@@ -21,7 +21,13 @@ from protocol import codec, keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
 from protocol.episodes import running_spec, start_event
 from protocol.messages import EpisodeEvent, EventKind
-from protocol.recording import FORMAT_VERSION, RECORDED_MESSAGES, check_image_format
+from protocol.recording import (
+    FORMAT_VERSION,
+    RECORDED_MESSAGES,
+    RecordFormatError,
+    check_image_format,
+    check_recordable,
+)
 from protocol.runtime import UserError, stop_on_signals, stop_requested
 from recorder.repair import repair_leftovers
 from recorder.writer import RecordingWriter
@@ -135,6 +141,13 @@ class RecorderService:
         return written
 
     def _write(self, key: str, message: msgspec.Struct) -> None:
+        try:
+            check_recordable(message)
+        except RecordFormatError as error:
+            # Decoded, but no file can hold it (a client's frame of width -1): dropped and counted like any bad
+            # message, so the rest of the run is still recorded.
+            self._bus.rejects.reject(key, error)
+            return
         is_start = isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None
         episode = getattr(getattr(message, "header", None), "episode", None)
         if is_start and episode in self._started:

@@ -32,6 +32,7 @@ from protocol.recording import (
     Schema,
     channel_layout,
     check_image_format,
+    check_recordable,
     record_stamps,
     to_record,
 )
@@ -115,7 +116,9 @@ class RecordingWriter:
         self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
 
     def write(self, key: str, message: msgspec.Struct) -> int:
-        """Write one bus message published on ``key``; returns its log time (ns)."""
+        """Write one bus message published on ``key``; returns its log time (ns). A message the file cannot hold
+        raises :class:`~protocol.recording.RecordFormatError` before anything is written (the file stays whole)."""
+        check_recordable(message)
         header = message.header
         log_time = self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
         channel = self._channel(

@@ -175,3 +175,68 @@ def test_the_my_brain_example_matrix_runs_in_its_smoke_form(tmp_path):
     episodes = [line.split()[1] for line in plan.splitlines()[1:]]
     assert len(episodes) == 8 and all(key.endswith("/r0") for key in episodes)  # 2 brains x 2 circuits x 2 noises
     assert {key.split("/")[0] for key in episodes} == {"my_brain", "explicit"}
+
+
+BAD_VALUE_BRAIN = '''
+from brains.base import Action
+
+
+class Wild:
+    """Drives straight for a few frames, then answers one value no car can take."""
+    def __init__(self, *, field, value, after=5):
+        self.field, self.value, self.after = field, float(value), after
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        command = {"speed_mps": 2.0, "yaw_rate_radps": 0.0}
+        if observation.seq >= self.after:
+            command[self.field] = self.value
+        return Action(**command)
+'''
+
+
+@pytest.mark.parametrize(
+    "field, value, shown, mode",
+    [
+        ("speed_mps", "nan", "nan", "--lockstep"),
+        ("yaw_rate_radps", "-inf", "-inf", "--lockstep"),
+        ("speed_mps", "1e300", "1e+300", "--lockstep"),
+        ("speed_mps", "nan", "nan", "--realtime"),
+    ],
+    ids=["nan", "-inf", "1e300", "nan-realtime"],
+)
+def test_a_brain_that_answers_a_value_no_car_can_take_ends_its_episode_brain_invalid(
+    tmp_path, field, value, shown, mode
+):
+    """NaN killed the simulator and 1e300 the scorer: the answer is refused where it enters, the episode ends typed
+    as the brain's fault with the value, and is scored; the run exits 0 (whatever the brain did)."""
+    (tmp_path / "wild_brain.py").write_text(BAD_VALUE_BRAIN)
+    run_dir = tmp_path / "run"
+    result = drivebench(
+        "run",
+        "--brain",
+        "wild_brain:Wild",
+        "--brain-option",
+        f"field={field}",
+        "--brain-option",
+        f"value={value}",
+        "--camera",
+        "64x48",
+        "--max-sim-seconds",
+        "20",
+        *(["--realtime"] if mode == "--realtime" else []),
+        "--json",
+        "--out",
+        str(run_dir),
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    score = json.loads(result.stdout)
+    assert score["reason"] == EndReason.BRAIN_INVALID
+    assert f"{field}={shown}" in score["detail"] and "Wild" in score["detail"], score["detail"]
+    if mode == "--lockstep":
+        assert score["metrics"]["steps"] == 5  # frames 0-4 were driven; the answer to frame 5 was refused
+    else:  # the latest answer drives: a few frames may pass before the refused one is the latest
+        assert 5 <= score["metrics"]["steps"] < 400
+    logs = "".join(path.read_text() for path in run_dir.rglob("*.log"))
+    assert "Traceback" not in logs

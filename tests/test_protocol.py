@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import copy
+import functools
+import math
+import operator
+
 import msgpack
 import msgspec
 import pytest
@@ -10,20 +15,26 @@ from protocol import codec, keys
 from protocol.config import ConfigError, load_config
 from protocol.messages import (
     BUS_MESSAGES,
+    Brightness,
     CameraFrame,
     CameraSpec,
     Command,
     ControlReply,
     ControlRequest,
+    Drop,
     EndReason,
     EpisodeEvent,
     EpisodeMetrics,
     EpisodeScore,
     EpisodeSpec,
     EventKind,
+    Gaussian,
     Header,
     LiveMetrics,
+    Occlusion,
     Pose,
+    SaltPepper,
+    ShadowDistance,
 )
 
 HEADER = Header(run_id="r1", episode=2, seq=7, stamp_ns=350_000_000)
@@ -187,3 +198,112 @@ def test_config_errors_name_file_and_field(tmp_path):
     path.write_text("- a list\n")
     with pytest.raises(ConfigError, match="mapping at the top level"):
         load_config(_Demo, path=path)
+
+
+# -- non-finite values: one protocol-wide rule over every float field of every message type --------------------------
+
+# The spec with every noise model that has a float field, so the floats inside the tagged union are reached too.
+FULL_SPEC = EpisodeSpec(
+    noise=[
+        SaltPepper(probability=0.2),
+        Gaussian(sigma=3.0),
+        Brightness(brightness=0.1, contrast=1.2),
+        Occlusion(size_fraction=0.3, probability=0.5),
+        Drop(probability=0.1),
+    ]
+)
+# Every message with each optional part filled in: every float field, however deep, carries a value.
+FULL_SAMPLES = SAMPLES | {
+    EpisodeEvent: EpisodeEvent(header=HEADER, kind=EventKind.START, spec=FULL_SPEC),
+    EpisodeScore: EpisodeScore(
+        header=HEADER,
+        spec=FULL_SPEC,
+        reason=EndReason.LAPS_COMPLETED,
+        brain="explicit",
+        metrics=msgspec.structs.replace(METRICS, bm_lap_seconds=40.0, lap_times_s=[41.5]),
+        shadows=[
+            ShadowDistance(
+                brain="b",
+                frames=3,
+                speed_mae_mps=0.1,
+                yaw_rate_mae_radps=0.2,
+                yaw_rate_rmse_radps=0.3,
+                yaw_rate_max_abs_radps=0.4,
+            )
+        ],
+    ),
+    ControlRequest: ControlRequest(action="start", spec=FULL_SPEC),
+    ControlReply: ControlReply(ok=True, state="running", spec=FULL_SPEC),
+}
+
+
+def _holds_floats(info: msgspec.inspect.Type) -> bool:
+    """A float, or an optional float or list of floats (the field itself holds the numbers)."""
+    if isinstance(info, msgspec.inspect.UnionType):
+        return any(_holds_floats(member) for member in info.types)
+    if isinstance(info, msgspec.inspect.ListType):
+        return _holds_floats(info.item_type)
+    return isinstance(info, msgspec.inspect.FloatType)
+
+
+def declared_floats(info: msgspec.inspect.Type) -> set[tuple[str, str]]:
+    """(struct, field) of every float field reachable from a type, through structs, unions, lists and optionals."""
+    if isinstance(info, msgspec.inspect.StructType):
+        found = {(info.cls.__name__, field.name) for field in info.fields if _holds_floats(field.type)}
+        return found.union(*(declared_floats(field.type) for field in info.fields))
+    if isinstance(info, msgspec.inspect.UnionType):
+        return set().union(*(declared_floats(member) for member in info.types))
+    if isinstance(info, msgspec.inspect.ListType):
+        return declared_floats(info.item_type)
+    return set()
+
+
+def float_values(info: msgspec.inspect.Type, raw, path: tuple = (), owner: tuple[str, str] = ("", "")):
+    """(owner (struct, field), path in the wire map) of every float in ``raw``, a message as plain msgpack data."""
+    if isinstance(raw, float):
+        yield owner, path
+    elif isinstance(info, msgspec.inspect.StructType) and isinstance(raw, dict):
+        for field in info.fields:
+            if field.encode_name in raw:
+                at = path + (field.encode_name,)
+                yield from float_values(field.type, raw[field.encode_name], at, (info.cls.__name__, field.name))
+    elif isinstance(info, msgspec.inspect.UnionType):
+        for member in info.types:
+            if isinstance(member, msgspec.inspect.StructType) and isinstance(raw, dict):
+                if member.tag is None or raw.get(member.tag_field) == member.tag:
+                    yield from float_values(member, raw, path, owner)
+            elif isinstance(member, msgspec.inspect.ListType):
+                yield from float_values(member, raw, path, owner)
+    elif isinstance(info, msgspec.inspect.ListType) and isinstance(raw, list):
+        for index, item in enumerate(raw):
+            yield from float_values(info.item_type, item, path + (index,), owner)
+
+
+def path_text(path: tuple) -> str:
+    """A wire path as msgspec writes it in errors: ``$.spec.noise[1].sigma``."""
+    return "$" + "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in path)
+
+
+@pytest.mark.parametrize("message_type", BUS_MESSAGES, ids=lambda t: t.__name__)
+def test_the_full_samples_carry_every_float_field(message_type):
+    raw = msgpack.unpackb(codec.encode(FULL_SAMPLES[message_type]))
+    covered = {owner for owner, _ in float_values(msgspec.inspect.type_info(message_type), raw)}
+    assert covered == declared_floats(msgspec.inspect.type_info(message_type))
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf], ids=["nan", "inf", "-inf"])
+@pytest.mark.parametrize("message_type", BUS_MESSAGES, ids=lambda t: t.__name__)
+def test_a_non_finite_value_in_any_float_field_is_rejected_naming_the_field(message_type, value):
+    raw = msgpack.unpackb(codec.encode(FULL_SAMPLES[message_type]))
+    for (_, field), path in float_values(msgspec.inspect.type_info(message_type), raw):
+        bad = copy.deepcopy(raw)
+        parent = functools.reduce(operator.getitem, path[:-1], bad)
+        parent[path[-1]] = value
+        with pytest.raises(codec.DecodeError) as error:
+            codec.decode(msgpack.packb(bad), message_type)
+        text = str(error.value)
+        assert text.startswith(f"not a valid {message_type.__name__}: "), text
+        # The field's path, or (a check in the struct's __post_init__, where msgspec gives the struct's path) its
+        # name and the path of the struct that holds it.
+        field_at = path[: max(i for i, part in enumerate(path) if part == field) + 1]
+        assert path_text(field_at) in text or (field in text and f"`{path_text(field_at[:-1])}`" in text), text

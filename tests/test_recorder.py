@@ -308,6 +308,42 @@ def test_a_stop_while_the_recorder_lags_behind_still_writes_every_message_intact
 
 
 @pytest.mark.integration
+@pytest.mark.parametrize("image_format", ["raw", "jpeg"])
+def test_a_malformed_camera_frame_from_any_client_is_dropped_once_and_recording_goes_on(tmp_path, router, image_format):
+    """A client publishes camera frames no image can be made of (width -1: protobuf refuses it; a size that does not
+    match the bytes) among good ones, one of them just before the stop: the recorder used to die on the first, and
+    again in close(). Now each is dropped, said once, and every good frame is in a complete file."""
+    endpoint, bus = router
+    output = tmp_path / "rec" / "bad.mcap"
+    recorder = start_recorder(endpoint, bus, "badframe", output, "--set", f"image_format={image_format}")
+    frames = bus.publisher(keys.camera_raw("badframe"), CameraFrame, Traffic.FRAMES_LOSSLESS)
+    good = [frame(seq, run_id="badframe") for seq in range(30)]
+    negative = msgspec.structs.replace(good[10], width_px=-1)
+    wrong_size = msgspec.structs.replace(good[20], width_px=640, height_px=480)
+    for message in good:
+        if message.header.seq in (10, 20):
+            frames.publish(negative if message.header.seq == 10 else wrong_size)  # it comes before the real one
+        frames.publish(message)
+        time.sleep(0.01)
+    # A pose stamped before its episode began: MCAP times are unsigned.
+    bus.publisher(keys.pose("badframe"), Pose, Traffic.EVENTS).publish(
+        Pose(header=Header(run_id="badframe", episode=0, seq=0, stamp_ns=-1), x_m=0.0, y_m=0.0, yaw_rad=0.0)
+    )
+    time.sleep(0.5)
+    frames.publish(negative)  # one more, as the recorder stops: close() writes what is still queued
+    recorder.send_signal(signal.SIGTERM)
+    assert recorder.wait(timeout=30) == 128 + signal.SIGTERM
+    log = recorder.stdout.read()
+    assert "Traceback" not in log and log.count("dropped bad message") == 2, log  # once per key
+    assert "header.stamp_ns must be within" in log, log
+    recorded = [r.message for r in read_messages(output)]
+    assert [m.header.seq for m in recorded] == list(range(30))
+    if image_format == "raw":
+        assert recorded == good
+    assert_valid_mcap(output)
+
+
+@pytest.mark.integration
 def test_sigkill_loses_at_most_about_a_second_and_the_next_recorder_repairs_it(tmp_path, router):
     endpoint, bus = router
     folder = tmp_path / "rec"

@@ -3,6 +3,7 @@ last command is in, however late it arrives after the END event (it comes from t
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import time
@@ -93,3 +94,49 @@ def test_a_late_last_command_still_counts(scorer_bus):
     received = scores.recv(timeout_s=10.0)
     assert received is not None, "no score"
     assert received.message.metrics.suddenness_distance > 0
+
+
+@pytest.mark.parametrize(
+    "bad_m, said",
+    [(math.nan, "got nan - at `$.x_m`"), (1e300, "pose at (1e+300, 1e+300) m: beyond +-1e+06 m")],
+    ids=["nan", "1e300"],
+)
+def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(scorer_bus, tmp_path, bad_m, said):
+    """A client that publishes one Pose with x = y = NaN among the simulator's: the scorer drops it at decode (its
+    splines would fail on it at the episode's end), says so once, and scores the episode from the real poses. A
+    finite 1e300 decodes, but overflowed the metrics: dropped too."""
+    bus, run_id = scorer_bus
+    spec = EpisodeSpec(circuit="simple", max_sim_seconds=FRAMES * 0.05)
+    events = bus.publisher(keys.events(run_id), EpisodeEvent, Traffic.EVENTS)
+    poses = bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS)
+    commands = bus.publisher(keys.command(run_id, spec.active_brain), Command, Traffic.COMMANDS)
+    scores = Inbox()
+    bus.subscribe(keys.score(run_id), EpisodeScore, inbox=scores)
+    while not (events.has_subscribers() and poses.has_subscribers() and commands.has_subscribers()):
+        time.sleep(0.05)
+    time.sleep(0.3)
+
+    def header(seq: int) -> Header:
+        return Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * spec.step_ns)
+
+    points = load_circuit("simple").centreline.points_m
+    events.publish(EpisodeEvent(header=header(0), kind=EventKind.START, spec=spec))
+    time.sleep(0.3)
+    for seq in range(FRAMES + 1):
+        x_m, y_m = points[seq % len(points)]
+        if seq == FRAMES // 2:  # the intruder's pose for this frame comes first
+            poses.publish(Pose(header=header(seq), x_m=bad_m, y_m=bad_m, yaw_rad=0.0))
+        poses.publish(Pose(header=header(seq), x_m=float(x_m), y_m=float(y_m), yaw_rad=0.0, speed_mps=1.0))
+        if seq < FRAMES:
+            commands.publish(
+                Command(header=header(seq), brain=spec.active_brain, frame_seq=seq, speed_mps=1.0, yaw_rate_radps=0.0)
+            )
+    events.publish(
+        EpisodeEvent(header=header(FRAMES), kind=EventKind.END, reason=EndReason.TIME_LIMIT, last_pose_seq=FRAMES)
+    )
+    received = scores.recv(timeout_s=10.0)
+    assert received is not None, "no score: " + (tmp_path / "scorer.log").read_text()[-2000:]
+    metrics = received.message.metrics
+    assert metrics.steps == FRAMES and math.isfinite(metrics.position_deviation_mae) and metrics.progress_m > 0
+    log = (tmp_path / "scorer.log").read_text()
+    assert log.count("dropped bad message") == 1 and said in log, log

@@ -8,6 +8,7 @@ import threading
 import time
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
@@ -17,9 +18,12 @@ from protocol.bus import BusError, Inbox, Traffic
 from protocol.messages import (
     CameraFrame,
     CameraSpec,
+    Command,
     ControlRequest,
     EndReason,
+    EpisodeEvent,
     EpisodeSpec,
+    EventKind,
     Header,
     Pose,
 )
@@ -143,6 +147,35 @@ def test_a_brain_that_answers_too_late_ends_the_episode_as_brain_timeout(make_st
     assert score.reason == EndReason.BRAIN_TIMEOUT
     assert score.metrics.steps == 0
     assert time.monotonic() - started < 10
+
+
+def test_a_huge_command_from_any_client_ends_the_episode_brain_invalid_and_kills_nothing(make_stack):
+    """A client (not a brain host: nothing refused it on the way) answers frame 0 for the driving brain with a speed
+    of 1e300 before the brain does; it used to overflow the scorer's metrics. The simulator refuses it where it
+    enters, ends the episode typed with the value, and the stack goes on."""
+    stack = make_stack(BrainLaunch("constant", options=("delay_s=0.3",)))
+    run = stack.run_id
+    events = Inbox()
+    stack.bus.subscribe(keys.events(run), EpisodeEvent, inbox=events)
+    intruder = stack.bus.publisher(keys.command(run, "constant"), Command, Traffic.COMMANDS)
+
+    def answer_first() -> None:
+        while (received := events.recv(timeout_s=60)) is not None and received.message.kind != EventKind.START:
+            pass
+        header = Header(run_id=run, episode=0, seq=0, stamp_ns=0)
+        intruder.publish(Command(header=header, brain="constant", frame_seq=0, speed_mps=1e300, yaw_rate_radps=0.0))
+
+    thread = threading.Thread(target=answer_first, daemon=True)
+    thread.start()
+    spec = EpisodeSpec(active_brain="constant", max_sim_seconds=2.0, camera=CameraSpec(width_px=64, height_px=48))
+    score = stack.run_episode(spec, wall_timeout_s=60)
+    thread.join()
+    assert score.reason == EndReason.BRAIN_INVALID
+    assert score.detail == "brain 'constant' answered frame 0 with speed_mps=1e+300 (beyond +-100 m/s)"
+    for child in stack.children:
+        assert child.process.poll() is None, f"{child.role} died"
+    short = msgspec.structs.replace(spec, max_sim_seconds=0.5)
+    assert stack.run_episode(short, wall_timeout_s=60).reason == EndReason.TIME_LIMIT  # the stack still works
 
 
 def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):

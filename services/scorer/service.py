@@ -40,6 +40,7 @@ from services.scorer.shadows import CommandMatcher
 
 log = logging.getLogger("drivebench.scorer")
 
+MAX_POSITION_M = 1e6  # 1000 km from the world's origin: beyond any circuit, and far below what overflows the metrics
 # After END, how long to wait for poses still in flight before scoring what arrived.
 POSE_GRACE_S = 2.0
 
@@ -97,9 +98,9 @@ class ScorerService:
         if received is not None:
             message = received.message
             if isinstance(message, Pose):
-                self._on_pose(message)
+                self._on_pose(message, key=received.key)
             elif isinstance(message, Command):
-                self._on_command(message)
+                self._on_command(message, key=received.key)
             elif isinstance(message, EpisodeEvent):
                 self._on_event(message)
         self._maybe_finish()
@@ -155,7 +156,13 @@ class ScorerService:
             number=number, spec=spec, scorer=scorer, commands=commands, active_brain=spec.active_brain
         )
 
-    def _on_pose(self, pose: Pose) -> None:
+    def _on_pose(self, pose: Pose, *, key: str) -> None:
+        if not (abs(pose.x_m) <= MAX_POSITION_M and abs(pose.y_m) <= MAX_POSITION_M):
+            # Finite, so it decoded, but no car of any circuit is there, and squared it overflows the metrics.
+            self._bus.rejects.reject(
+                key, ValueError(f"pose at ({pose.x_m}, {pose.y_m}) m: beyond +-{MAX_POSITION_M:g} m")
+            )
+            return
         current = self._current(pose.header.episode)
         if current is None or pose.header.seq <= current.last_pose_seq:
             return
@@ -169,7 +176,12 @@ class ScorerService:
             command_latency_ns=pose.command_latency_ns,
         )
 
-    def _on_command(self, command: Command) -> None:
+    def _on_command(self, command: Command, *, key: str) -> None:
+        if problem := command.problem():
+            # It drove nothing (the simulator ends the episode on it, or it came from a shadow), and a huge finite
+            # value would overflow the metrics: dropped, said once per key.
+            self._bus.rejects.reject(key, ValueError(problem))
+            return
         current = self._current(command.header.episode)
         if current is not None:
             current.commands.add_command(command)
@@ -211,6 +223,7 @@ class ScorerService:
             metrics=metrics,
             switches=list(current.commands.switches),
             shadows=shadows,
+            detail=current.end.detail,
         )
         self._scores.publish(score)
         self._scored.add(current.number)

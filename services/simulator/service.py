@@ -3,7 +3,9 @@
 Publishes camera frames (ground truth), poses and episode events; applies the active brain's commands; answers run
 control queries (start / stop / status / switch), and status queries on a read-only key of their own. Lock-step by
 default: publish frame n, wait for the active brain's command for frame n, step. A brain that does not answer in
-time, or whose liveliness token vanishes, ends the episode with a typed reason; nothing stalls silently.
+time, or whose liveliness token vanishes, ends the episode with a typed reason; nothing stalls silently. So does a
+command no car can take (``Command.problem``: a brain host's refusal, or a huge value from any client), as
+``brain_invalid``, before it reaches the physics.
 
 Live brain switch: "switch" makes another alive brain the active one at once; the command for the frame being
 waited for (lock-step) or applied next (real-time) comes from it, even when it arrived before the switch (the
@@ -86,6 +88,7 @@ class SimulatorService:
         self._switches: list[tuple[str, str]] = []  # (from, to) accepted, not yet announced by an event
         self._spec: EpisodeSpec | None = None
         self._event_seq = 0
+        self._end_detail = ""  # the END event's detail of the running episode (brain_invalid: the refused answer)
         bus.watch_alive(keys.alive_all(run), self._on_liveliness)
         self._requests: queue.Queue[tuple[EpisodeSpec, Circuit, str]] = queue.Queue()
         self._state = "idle"
@@ -270,6 +273,7 @@ class SimulatorService:
         self._wait_for_subscribers()
         self._commands.drain()  # answers to an earlier episode are stale
         self._event_seq = -1
+        self._end_detail = ""
 
         def header(seq: int, stamp_ns: int) -> Header:
             return Header(run_id=self.config.run_id, episode=episode, seq=seq, stamp_ns=stamp_ns)
@@ -288,10 +292,21 @@ class SimulatorService:
         wall_ns = time.monotonic_ns() - wall_start
         self._announce_switches(sim, header)  # one accepted after the last frame: the score names the brain
         self._publish_event(
-            header, EventKind.END, sim.stamp_ns, reason=reason, last_pose_seq=sim.seq, wall_elapsed_ns=wall_ns
+            header,
+            EventKind.END,
+            sim.stamp_ns,
+            reason=reason,
+            last_pose_seq=sim.seq,
+            wall_elapsed_ns=wall_ns,
+            detail=self._end_detail,
         )
         log.info(
-            "episode %d ended: %s after %.2f s sim, %.2f s wall", episode, reason, sim.stamp_ns / 1e9, wall_ns / 1e9
+            "episode %d ended: %s after %.2f s sim, %.2f s wall%s",
+            episode,
+            reason,
+            sim.stamp_ns / 1e9,
+            wall_ns / 1e9,
+            f" ({self._end_detail})" if self._end_detail else "",
         )
         return reason
 
@@ -372,7 +387,7 @@ class SimulatorService:
             if self._announce_switches(sim, header):
                 deadline = max(deadline, time.monotonic_ns() + timeout_ns)
             if (answer := answers.get(self._active())) is not None:
-                return answer, None
+                return (None, EndReason.BRAIN_INVALID) if self._refused(answer.message, sim) else (answer, None)
             if self._stopping():
                 return None, EndReason.STOPPED
             if not self._active_alive():
@@ -392,6 +407,16 @@ class SimulatorService:
             command: Command = received.message
             if command.header.episode == self._episode and command.frame_seq == sim.seq and self._on_own_key(received):
                 answers.setdefault(command.brain, received)  # a repeated answer to a resent frame changes nothing
+
+    def _refused(self, command: Command, sim: EpisodeSim) -> bool:
+        """Whether the driving brain's command is one no car can take (from a brain host that refused its brain's
+        answer, or from any client: NaN never gets past decoding, huge finite values get here); then the episode
+        ends ``brain_invalid`` and END's detail says what it was."""
+        problem = command.problem()
+        if problem:
+            self._end_detail = f"brain {command.brain!r} answered frame {command.frame_seq} with {problem}"
+            log.warning("episode %d: %s", self._episode, self._end_detail)
+        return bool(problem)
 
     def _realtime_steps(self, sim: EpisodeSim, header):
         """Free-running: one step per ``step_s`` of wall time with the latest command of the active brain.
@@ -426,7 +451,9 @@ class SimulatorService:
                 speed, yaw_rate = current.message.speed_mps, current.message.yaw_rate_radps
                 last_command_ns = max(last_command_ns, current.arrival_ns)
             ending = None
-            if self._stopping():
+            if current is not None and self._refused(current.message, sim):
+                ending = EndReason.BRAIN_INVALID
+            elif self._stopping():
                 ending = EndReason.STOPPED
             elif not self._active_alive():
                 ending = EndReason.BRAIN_LOST
