@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from brains.base import Observation
 from brains.registry import make_brain
-from orchestrator.launcher import BrainLaunch, LocalStack
+from orchestrator.stack.launcher import BrainLaunch, LocalStack
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.images import image_frame

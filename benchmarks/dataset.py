@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recorder.dataset import DrivingDataset
+from recorder.dataset.build import DrivingDataset
 
 ROOT = Path(__file__).resolve().parents[1]
 MEAN = np.array([0.485, 0.456, 0.406], np.float32).reshape(1, 1, 3, 1, 1)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from orchestrator.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusError, Inbox, Traffic, probe_router
 from protocol.messages import (

@@ -25,8 +25,9 @@ from pathlib import Path
 import numpy as np
 from websockets.sync.client import connect
 
-from protocol import keys, topics
+from protocol import keys
 from protocol.episodes import start_event
+from protocol.mapping import topics
 from protocol.messages import CameraFrame, Command, EpisodeSpec, Header, Pose
 from recorder.merge import merge
 from recorder.writer import RecordingWriter

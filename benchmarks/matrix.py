@@ -25,9 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from orchestrator.matrix import parse_matrix
-from orchestrator.matrix_runner import MatrixRunner, RunOptions
-from orchestrator.results import ResultStore
+from orchestrator.matrix.load import parse_matrix
+from orchestrator.matrix.results import ResultStore
+from orchestrator.matrix.runner import MatrixRunner, RunOptions
 
 
 def matrix_text(*, episodes: int, sim_seconds: float, camera: str, renderer: str = "pybullet") -> str:
@@ -43,8 +43,8 @@ def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict
         if ray_address is None:
             runner = MatrixRunner(parse_matrix(text), Path(folder), RunOptions(workers=workers))
         else:
-            from orchestrator.ray_matrix import RayMatrixRunner
-            from orchestrator.ray_options import RayOptions
+            from orchestrator.matrix.ray_options import RayOptions
+            from orchestrator.matrix.ray_runner import RayMatrixRunner
 
             runner = RayMatrixRunner(
                 parse_matrix(text), Path(folder), RunOptions(), ray_options=RayOptions(address=ray_address)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orchestrator.launcher import free_loopback_port
+from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.images import image_frame

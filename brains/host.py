@@ -29,6 +29,7 @@ from brains.base import Brain, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, bus_name, make_brain
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.deploy.runtime import stop_requested
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
 from protocol.messages import (
@@ -43,7 +44,6 @@ from protocol.messages import (
     Pose,
     command_problem,
 )
-from protocol.runtime import stop_requested
 
 log = logging.getLogger("drivebench.brain")
 
@@ -282,7 +282,7 @@ def source_of(spec: EpisodeSpec | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import UserError, load_service_config, log_config, run_service, service_parser
+    from protocol.deploy.runtime import UserError, load_service_config, log_config, run_service, service_parser
 
     parser = service_parser("drivebench brain host: camera frames in, driving commands out")
     parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")

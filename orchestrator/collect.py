@@ -19,8 +19,8 @@ import msgspec
 import numpy as np
 
 from circuits import CircuitError, load_circuit
-from orchestrator.launcher import BrainLaunch, LocalStack
-from orchestrator.progress import EpisodeProgress
+from orchestrator.stack.launcher import BrainLaunch, LocalStack
+from orchestrator.stack.progress import EpisodeProgress
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
@@ -168,7 +168,7 @@ def collect(args: argparse.Namespace, options) -> int:
 
 def build_from_recordings(recordings: list[Path], *, output: Path, options, overwrite: bool) -> int:
     """A dataset in ``output`` from MCAP recordings (``drivebench dataset build``), with a summary line on stderr."""
-    from recorder.dataset import DatasetError, build_dataset
+    from recorder.dataset.build import DatasetError, build_dataset
     from recorder.reading import read_messages, recording_info
 
     for path in recordings:

@@ -1,4 +1,5 @@
-"""Files generated from the process graph (``protocol.graph``): compose.yaml, compose.secure.yaml, the secure router's
+"""Files generated from the process graph (``protocol.deploy.graph``): compose.yaml, compose.secure.yaml, the secure
+router's
 roles (deploy/secure/router.yaml) and the README's architecture table.
 
     python -m orchestrator.compose_files --check   # exit 1, naming each file that differs from what the graph gives
@@ -17,7 +18,8 @@ from pathlib import Path
 
 import yaml
 
-from protocol import graph, keys
+from protocol import keys
+from protocol.deploy import graph
 
 ROOT = Path(__file__).resolve().parent.parent
 LINE_CHARS = 120
@@ -26,7 +28,8 @@ README_END = "<!-- end of process graph -->"
 
 COMPOSE_HEADER = """\
 # drivebench as a compose project: one image, one process per service, every service a Zenoh node of one router.
-# Generated from the process graph (protocol/graph.py) by `python -m orchestrator.compose_files --write`: edit the
+# Generated from the process graph (protocol/deploy/graph.py) by `python -m orchestrator.compose_files --write`: edit
+# the
 # graph, not this file (a test fails when they differ).
 #
 #   mkdir -p results                                   # first: the services run as your uid, not root (see `user`)
@@ -84,7 +87,7 @@ services:
 
 SECURE_HEADER = """\
 # A secure stack: mutual TLS on every link and the router's access control by role (docs/security.md).
-# Generated from the process graph (protocol/graph.py) by `python -m orchestrator.compose_files --write`.
+# Generated from the process graph (protocol/deploy/graph.py) by `python -m orchestrator.compose_files --write`.
 #   bash scripts/make-certs.sh certs                   # once: a CA and one certificate per identity in ./certs
 #   docker compose -f compose.yaml -f compose.secure.yaml up --exit-code-from run
 # Every process is a client of the router (secure processes must be: a peer's direct links would bypass the
@@ -105,7 +108,7 @@ ROUTER_ROLES_HEADER = """\
 # The router of a secure stack (compose.secure.yaml, docs/security.md): mutual TLS, and each identity (the common
 # name of its certificate, made by scripts/make-certs.sh) in its role. Its certificate, key and CA come from
 # DRIVEBENCH_TLS_CERT, DRIVEBENCH_TLS_KEY and DRIVEBENCH_TLS_ROOT_CA.
-# Generated from the process graph (protocol/graph.py) by `python -m orchestrator.compose_files --write`.
+# Generated from the process graph (protocol/deploy/graph.py) by `python -m orchestrator.compose_files --write`.
 """
 
 

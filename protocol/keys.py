@@ -56,7 +56,7 @@ def with_run_id(key: str, run_id: str) -> str:
 
 def view(run_id: str, name: str) -> str:
     """The viewer topics of recordings made before stable topics (format 1); never published. Today's recordings
-    name them ``/car/pose``, ``/tf``, ``/circuit`` (``protocol.topics``, which maps these old names)."""
+    name them ``/car/pose``, ``/tf``, ``/circuit`` (``protocol.mapping.topics``, which maps these old names)."""
     return f"{run_prefix(run_id)}/view/{check_name(name, what='view')}"
 
 

@@ -62,7 +62,7 @@ DIRECTIONS: tuple[str, ...] = ("forward", "reverse")
 RENDERERS: tuple[str, ...] = ("pybullet", "gl", "auto")  # EpisodeSpec.renderer
 
 # Bounds of spec fields, one table for both places that check them: a spec built in code (``__post_init__``, via
-# :func:`check_bounds`) and a matrix file (``orchestrator.matrix_schema``, as msgspec constraints at the value's line;
+# :func:`check_bounds`) and a matrix file (``orchestrator.matrix.schema``, as msgspec constraints at the value's line;
 # msgspec applies ``Meta`` only when it converts data, never when a struct is built).
 CAMERA_BOUNDS: dict[str, msgspec.Meta] = {
     "width_px": msgspec.Meta(ge=8, le=4096),

@@ -8,7 +8,7 @@ that one shipped layout, ``docs/foxglove/drivebench-compare-layout.json``, shows
 are namespaced too (``car`` -> ``runA/car``, ``camera`` -> ``runA/camera``) except the shared ``world`` frame, so two
 brains driving the same circuit play back as two cars on one circuit in one 3D view; each run's car box gets its own
 colour. Files recorded before stable topics (run-id topics) are mapped to stable topics first
-(``protocol.topics.stable_topic``).
+(``protocol.mapping.topics.stable_topic``).
 
 Log times are kept: each recording's clock starts at 0 at its first episode (simulated time), so the runs play back
 aligned from their starts. Messages keep their bytes except the Foxglove geometry and images, whose frame ids are
@@ -33,8 +33,9 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
 from mcap.writer import CompressionType, Writer
 
-from protocol import keys, topics
-from protocol.views import CAR_FRAME
+from protocol import keys
+from protocol.mapping import topics
+from protocol.mapping.views import CAR_FRAME
 from recorder.reading import MCAP_ERRORS, RecordingError, _indexed_reader, _open, describe_error
 from recorder.writer import CHUNK_SIZE_BYTES, LIBRARY
 

@@ -16,8 +16,8 @@ from mcap.reader import SeekingReader
 from mcap.stream_reader import CRCValidationError
 
 from protocol import keys
-from protocol.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
-from protocol.topics import NAMESPACE_METADATA, RUN_ID_METADATA, VIEW_METADATA
+from protocol.mapping.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
+from protocol.mapping.topics import NAMESPACE_METADATA, RUN_ID_METADATA, VIEW_METADATA
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
@@ -66,7 +66,7 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
         reader = _indexed_reader(stream, path)
         summary = reader.get_summary()
         # Selected by bus key (channel metadata), not topic: topics are stable names shared by every run
-        # (protocol.topics), and files recorded before them used the key as topic; both read the same way.
+        # (protocol.mapping.topics), and files recorded before them used the key as topic; both read the same way.
         selected = {
             c.id
             for c in summary.channels.values()
@@ -94,7 +94,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
 
 @dataclass(frozen=True)
 class ChannelInfo:
-    """One channel of a recording. topic: its name in viewers (stable, ``protocol.topics``, in files recorded since
+    """One channel of a recording. topic: its name in viewers (stable, ``protocol.mapping.topics``, in files recorded
+    since
     format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not say.
     view: a channel the recorder made for viewers; neither bus nor view: another tool's channel."""
 

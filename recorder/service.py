@@ -19,16 +19,16 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
+from protocol.deploy.runtime import UserError, stop_on_signals, stop_requested
 from protocol.episodes import running_spec, start_event
-from protocol.messages import EpisodeEvent, EventKind
-from protocol.recording import (
+from protocol.mapping.recording import (
     FORMAT_VERSION,
     RECORDED_MESSAGES,
     RecordFormatError,
     check_image_format,
     check_recordable,
 )
-from protocol.runtime import UserError, stop_on_signals, stop_requested
+from protocol.messages import EpisodeEvent, EventKind
 from recorder.repair import repair_leftovers
 from recorder.writer import RecordingWriter
 
@@ -110,7 +110,8 @@ class RecorderService:
         self.writer.add_metadata(f"file:{path.name}", {"path": str(path), "text": text})
 
     def serve_forever(self) -> None:
-        """Record until SIGTERM or SIGINT (:func:`~protocol.runtime.stop_requested`), then return after the current
+        """Record until SIGTERM or SIGINT (:func:`~protocol.deploy.runtime.stop_requested`), then return after the
+        current
         write (the process exits 143 or 130).
 
         The signals only set a flag: raised at an arbitrary point, an exception could interrupt the MCAP writer in
@@ -201,7 +202,7 @@ def _git_sha() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import service_main
+    from protocol.deploy.runtime import service_main
 
     return service_main(
         "recorder",

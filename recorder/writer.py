@@ -6,7 +6,8 @@
 * ``flush_if_due`` closes the open chunk every ~1 s of wall time *or* of simulated time, whichever comes first, so
   a recorder killed with SIGKILL loses at most the last second of either (lock-step runs several times faster
   than real time); ``recorder.repair`` rebuilds a complete file from what was flushed.
-* Topics are stable (``protocol.topics``: ``/camera/truth``, ``/car/pose``, ...), the same in every run; the bus key
+* Topics are stable (``protocol.mapping.topics``: ``/camera/truth``, ``/car/pose``, ...), the same in every run; the
+bus key
   and run id of each channel are in its metadata.
 * Log time is the simulated time of each message on one clock for the whole file: episode n's stamps are offset
   to start one second after the last message of episode n-1, so episodes follow each other on the timeline.
@@ -25,7 +26,7 @@ from pathlib import Path
 import msgspec
 from mcap.writer import CompressionType, Writer
 
-from protocol.recording import (
+from protocol.mapping.recording import (
     FORMAT_VERSION,
     ChannelLayout,
     EpisodeClock,
@@ -36,8 +37,8 @@ from protocol.recording import (
     record_stamps,
     to_record,
 )
-from protocol.topics import RUN_ID_METADATA, VIEW_METADATA
-from protocol.views import ViewMaker, ViewMessage
+from protocol.mapping.topics import RUN_ID_METADATA, VIEW_METADATA
+from protocol.mapping.views import ViewMaker, ViewMessage
 
 log = logging.getLogger("drivebench.recorder")
 
@@ -117,7 +118,8 @@ class RecordingWriter:
 
     def write(self, key: str, message: msgspec.Struct) -> int:
         """Write one bus message published on ``key``; returns its log time (ns). A message the file cannot hold
-        raises :class:`~protocol.recording.RecordFormatError` before anything is written (the file stays whole)."""
+        raises :class:`~protocol.mapping.recording.RecordFormatError` before anything is written (the file stays
+        whole)."""
         check_recordable(message)
         header = message.header
         log_time = self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
@@ -152,7 +154,7 @@ class RecordingWriter:
         self._last_seq[stream] = max(last, header.seq)
 
     def _write_view(self, view: ViewMessage) -> None:
-        # One channel per run and view: the topic is the same in every run (protocol.topics).
+        # One channel per run and view: the topic is the same in every run (protocol.mapping.topics).
         channel_key = f"{view.run_id}:{view.topic}"
         if channel_key not in self._channels:
             layout = ChannelLayout(

@@ -23,7 +23,7 @@ from websockets.sync.client import connect
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 1
-CAMERA_TOPICS = ("/camera/truth",)  # protocol.topics.CAMERA_TRUTH (this script imports nothing of the project)
+CAMERA_TOPICS = ("/camera/truth",)  # protocol.mapping.topics.CAMERA_TRUTH (this script imports nothing of the project)
 
 
 def probe(url: str, *, seconds: float) -> dict:

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from orchestrator.launcher import BrainLaunch, LocalStack
+from orchestrator.stack.launcher import BrainLaunch, LocalStack
 
 
 @pytest.fixture(scope="session")

@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from orchestrator.launcher import free_loopback_port
+from orchestrator.stack.launcher import free_loopback_port
 from protocol.bus import router_address
 
 

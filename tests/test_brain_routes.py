@@ -193,7 +193,7 @@ def test_schema_command_writes_the_folder(tmp_path):
 
 
 def test_matrix_files_name_brains_by_module_path_and_brain_file(tmp_path, bm_file):
-    from orchestrator.matrix import MatrixError, load_matrix
+    from orchestrator.matrix.load import MatrixError, load_matrix
 
     (tmp_path / "lap_module.py").write_text("class Mine:\n    pass\n")
     sys.path.insert(0, str(tmp_path))

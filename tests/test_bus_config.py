@@ -19,7 +19,7 @@ from protocol.bus import (
     zenoh_config,
     zenoh_settings,
 )
-from protocol.config import ConfigError, load_config
+from protocol.deploy.config import ConfigError, load_config
 
 ROUTER = "tcp/10.1.2.3:7447"
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import msgspec
 import pytest
 
-from orchestrator.launcher import BrainLaunch
+from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec, SaltPepper
 from protocol.trace import TRACE_DIR_ENV, read_traces

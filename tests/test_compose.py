@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from needs import missing
 
-from orchestrator.launcher import free_loopback_port
+from orchestrator.stack.launcher import free_loopback_port
 from protocol.messages import EventKind
 from recorder.reading import read_messages
 

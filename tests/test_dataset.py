@@ -1,4 +1,4 @@
-"""recorder.dataset: recorded bus messages -> memory-mapped training datasets, and reading them back.
+"""recorder.dataset.build: recorded bus messages -> memory-mapped training datasets, and reading them back.
 
 Streams are built from real protocol messages. Every camera frame encodes who it is in its pixels: channel 0 is
 ``seq % 256`` everywhere, channel 1 is a row gradient (10 per row), channel 2 repeats columns (240, 0, 0, 240) (its
@@ -31,7 +31,7 @@ from protocol.messages import (
     Header,
     Pose,
 )
-from recorder.dataset import (
+from recorder.dataset.build import (
     DatasetError,
     DatasetOptions,
     DrivingDataset,
@@ -551,7 +551,7 @@ def test_samples_per_second_is_measured(two_episode_dataset):
 
 def test_the_core_imports_neither_zenoh_nor_torch_nor_mcap():
     code = (
-        "import sys, recorder.dataset; "
+        "import sys, recorder.dataset.build; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('zenoh', 'torch', 'mcap')))"
     )
     result = subprocess.run(

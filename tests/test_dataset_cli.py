@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from test_dataset import episode_stream
 
-from recorder.dataset import DrivingDataset
+from recorder.dataset.build import DrivingDataset
 from recorder.writer import RecordingWriter
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,7 +14,7 @@ import pytest
 from protocol import keys
 from protocol.images import frame_image
 from protocol.messages import CameraFrame, Command
-from recorder.dataset import DrivingDataset
+from recorder.dataset.build import DrivingDataset
 from recorder.reading import read_messages
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

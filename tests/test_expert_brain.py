@@ -12,7 +12,7 @@ from brains.base import GroundTruth, Observation
 from brains.registry import make_brain
 from circuits import load_circuit
 from orchestrator.collect import collection_specs
-from orchestrator.launcher import BrainLaunch
+from orchestrator.stack.launcher import BrainLaunch
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 from protocol.variations import apply_variation
 

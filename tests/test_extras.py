@@ -12,7 +12,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-from orchestrator.launcher import LocalStack
+from orchestrator.stack.launcher import LocalStack
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from orchestrator.launcher import BrainLaunch
+from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.bus import Inbox
 from protocol.messages import EndReason, EpisodeEvent, EventKind

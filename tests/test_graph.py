@@ -1,4 +1,4 @@
-"""The process graph (protocol/graph.py) against everything that used to spell it out by hand.
+"""The process graph (protocol/deploy/graph.py) against everything that used to spell it out by hand.
 
 The generated files (compose.yaml, compose.secure.yaml, deploy/secure/router.yaml, the README's table) must be what
 the graph gives; scripts/make-certs.sh must make a certificate for every identity in it; and a real stack must put
@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 
 from orchestrator import compose_files
-from orchestrator.launcher import BrainLaunch
-from protocol import graph, keys, security
+from orchestrator.stack.launcher import BrainLaunch
+from protocol import keys
 from protocol.bus import Inbox
+from protocol.deploy import graph, security
 from protocol.messages import CameraSpec, EpisodeSpec
 from recorder.service import RecordedMessage
 

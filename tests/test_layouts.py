@@ -11,9 +11,10 @@ from typing import Any
 import pytest
 from test_topics import one_run, write
 
-from protocol import keys, topics
+from protocol import keys
+from protocol.mapping import topics
+from protocol.mapping.recording import channel_layout
 from protocol.messages import LiveMetrics, Pose
-from protocol.recording import channel_layout
 from recorder.merge import merge
 from recorder.reading import recording_info
 from services.viz import layouts

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from orchestrator.matrix import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix, part_of
+from orchestrator.matrix.load import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix, part_of
 from protocol.messages import Gaussian, Occlusion, SaltPepper
 
 EXAMPLE = """\

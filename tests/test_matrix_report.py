@@ -15,10 +15,10 @@ from needs import require
 
 from circuits import load_circuit
 from orchestrator.cli import main
-from orchestrator.matrix import parse_matrix
-from orchestrator.matrix_report import BASELINE_FACT, ReportError, write_report
-from orchestrator.report_cells import baseline_variation, grid_cell, mean_std
-from orchestrator.results import EpisodeResult, ResultStore
+from orchestrator.matrix.load import parse_matrix
+from orchestrator.matrix.results import EpisodeResult, ResultStore
+from orchestrator.report.cells import baseline_variation, grid_cell, mean_std
+from orchestrator.report.matrix import BASELINE_FACT, ReportError, write_report
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
 from services.scorer.metrics import EpisodeScorer
 

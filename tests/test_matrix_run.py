@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.matrix import load_matrix
-from orchestrator.matrix_runner import MatrixRunner, RunOptions
-from orchestrator.results import ResultStore
+from orchestrator.matrix.load import load_matrix
+from orchestrator.matrix.results import ResultStore
+from orchestrator.matrix.runner import MatrixRunner, RunOptions
 
 pytestmark = pytest.mark.integration
 

@@ -21,7 +21,7 @@ from needs import require
 mcap_writer = require("mcap.writer")
 mcap_reader = require("mcap.reader")
 raw_image_pb2 = require("foxglove_schemas_protobuf.RawImage_pb2")
-from protocol.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
+from protocol.mapping.views import protobuf_schema  # noqa: E402  (the schema the recorder itself writes)
 
 pytestmark = pytest.mark.skipif(not validator_available(), reason=SKIP_REASON)
 

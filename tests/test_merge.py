@@ -13,7 +13,8 @@ from mcap.reader import make_reader
 from mcap_validation import assert_valid_mcap
 from test_topics import LEGACY, expected_schemas, one_run, write
 
-from protocol import codec, topics
+from protocol import codec
+from protocol.mapping import topics
 from recorder.merge import MergeError, merge
 from recorder.reading import RecordingError, read_messages
 

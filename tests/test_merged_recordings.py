@@ -13,7 +13,7 @@ import pytest
 from mcap.writer import Writer
 from test_recorder import run_cli, start_recorder
 
-from orchestrator.launcher import BrainLaunch, LocalStack, free_loopback_port
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec

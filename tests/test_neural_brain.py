@@ -315,7 +315,7 @@ def test_exported_onnx_file_serves_alone_without_torch(ckpts, tmp_path):
 
 @pytest.mark.integration
 def test_brain_host_drives_the_closed_loop(make_stack, tmp_path):
-    from orchestrator.launcher import BrainLaunch
+    from orchestrator.stack.launcher import BrainLaunch
     from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 
     name = "deepest_lstm_tiny_pilotnet"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.launcher import BrainLaunch
+from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.bus import Inbox
 from protocol.images import frame_image

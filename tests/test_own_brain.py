@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.launcher import LocalStack
+from orchestrator.stack.launcher import LocalStack
 from protocol import keys
 from protocol.messages import EndReason, EpisodeSpec
 

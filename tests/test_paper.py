@@ -13,11 +13,11 @@ import pytest
 
 from brains.registry import shipped_weights
 from circuits import load_circuit
-from orchestrator.matrix import load_matrix
-from orchestrator.matrix_report import write_report
-from orchestrator.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
-from orchestrator.report_document import Table
-from orchestrator.results import EpisodeResult, ResultStore
+from orchestrator.matrix.load import load_matrix
+from orchestrator.matrix.results import EpisodeResult, ResultStore
+from orchestrator.report.document import Table
+from orchestrator.report.matrix import write_report
+from orchestrator.report.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, SaltPepper
 from protocol.variations import apply_variation
 from services.scorer.metrics import EpisodeScorer

@@ -12,7 +12,7 @@ import msgspec
 import pytest
 
 from protocol import codec, keys
-from protocol.config import ConfigError, load_config
+from protocol.deploy.config import ConfigError, load_config
 from protocol.messages import (
     BUS_MESSAGES,
     Brightness,

@@ -33,11 +33,11 @@ from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
 from test_matrix_run import finished_rows, processes_with, write_matrix  # noqa: E402
 
-from orchestrator.matrix import load_matrix  # noqa: E402
-from orchestrator.matrix_runner import MatrixRunner, RunOptions  # noqa: E402
-from orchestrator.ray_matrix import RayMatrixRunner  # noqa: E402
-from orchestrator.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
-from orchestrator.results import ResultStore  # noqa: E402
+from orchestrator.matrix.load import load_matrix  # noqa: E402
+from orchestrator.matrix.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
+from orchestrator.matrix.ray_runner import RayMatrixRunner  # noqa: E402
+from orchestrator.matrix.results import ResultStore  # noqa: E402
+from orchestrator.matrix.runner import MatrixRunner, RunOptions  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -207,7 +207,7 @@ camera: 96x72
     assert lost[0].lost_attempts[0]["error"].startswith(("NodeDiedError", "WorkerCrashedError"))
     assert {r.node for r in results} == {lost[0].node}
     # The report's episode table says where each ran and what was lost on the way.
-    from orchestrator.matrix_report import write_report
+    from orchestrator.report.matrix import write_report
 
     write_report(tmp_path / "out")
     with open(tmp_path / "out" / "episodes.csv", newline="") as file:
@@ -256,7 +256,7 @@ camera: 96x72
     assert len(failed) == 1 and failed[0].failure_kind == "node_died", failed
     assert failed[0].node == failed[0].lost_attempts[0]["node"] == f"{LOOPBACK}/{second.node_id[:8]}"
     assert failed[0].score is None  # never counted as a driven episode
-    from orchestrator.matrix_report import write_report
+    from orchestrator.report.matrix import write_report
 
     files = write_report(tmp_path / "out")  # a row with no trajectory and no logs still reports
     assert "node_died" in files.markdown.read_text()

@@ -12,9 +12,9 @@ import sys
 
 import pytest
 
-from orchestrator.ray_matrix import slots_of
-from orchestrator.ray_options import EPISODE_SLOT
-from orchestrator.results import ResultStore
+from orchestrator.matrix.ray_options import EPISODE_SLOT
+from orchestrator.matrix.ray_runner import slots_of
+from orchestrator.matrix.results import ResultStore
 
 
 def run_matrix(tmp_path, *args: str) -> subprocess.CompletedProcess:

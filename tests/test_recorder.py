@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 from mcap_validation import assert_valid_mcap
 
-from orchestrator.launcher import free_loopback_port
-from protocol import codec, keys, topics
+from orchestrator.stack.launcher import free_loopback_port
+from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
+from protocol.mapping import topics
 from protocol.messages import (
     CameraFrame,
     CameraSpec,

@@ -8,6 +8,15 @@ import numpy as np
 import pytest
 
 from protocol import codec
+from protocol.mapping.recording import (
+    RECORDED_MESSAGES,
+    RecordFormatError,
+    channel_layout,
+    from_record,
+    is_bus_channel,
+    record_stamps,
+    to_record,
+)
 from protocol.messages import (
     CameraFrame,
     CameraSpec,
@@ -24,15 +33,6 @@ from protocol.messages import (
     Pose,
     SaltPepper,
     WorldVariation,
-)
-from protocol.recording import (
-    RECORDED_MESSAGES,
-    RecordFormatError,
-    channel_layout,
-    from_record,
-    is_bus_channel,
-    record_stamps,
-    to_record,
 )
 
 HEADER = Header(run_id="r-1", episode=3, seq=41, stamp_ns=2_050_000_001)

@@ -22,7 +22,7 @@ import pytest
 from mcap.reader import make_reader
 
 from circuits import load_circuit
-from orchestrator.matrix import MatrixError, parse_matrix, with_renderer
+from orchestrator.matrix.load import MatrixError, parse_matrix, with_renderer
 from protocol.messages import CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.episode import EpisodeSim, SceneCache
@@ -348,7 +348,7 @@ def test_the_simulator_resolves_auto_itself_for_an_attached_driver(tmp_path):
     """A driver attached to a running stack sends "auto" as asked; the simulator process resolves it and the score
     names what it chose (the stack's processes share this machine's EGL, so gl here)."""
     require_gl()
-    from orchestrator.launcher import BrainLaunch, LocalStack
+    from orchestrator.stack.launcher import BrainLaunch, LocalStack
 
     with LocalStack(run_id="glauto", run_dir=tmp_path, brains=[BrainLaunch("explicit")]) as stack:
         score = stack.run_episode(EpisodeSpec(renderer="auto", max_sim_seconds=1.0))
@@ -396,7 +396,7 @@ def test_dataset_collect_puts_its_renderer_in_every_spec(monkeypatch):
 def test_a_simulator_without_egl_refuses_gl_in_one_line_and_falls_back_for_auto(tmp_path, monkeypatch):
     """The simulator's own check, for a driver that did not resolve the renderer (an attached one): gl is refused
     with the reason, auto runs with pybullet and the score says so."""
-    from orchestrator.launcher import BrainLaunch, LocalStack, StackError
+    from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError
 
     monkeypatch.setenv("GLCONTEXT_LINUX_LIBEGL", NO_EGL["GLCONTEXT_LINUX_LIBEGL"])  # the stack's processes inherit it
     with LocalStack(run_id="noegl", run_dir=tmp_path, brains=[BrainLaunch("explicit")]) as stack:

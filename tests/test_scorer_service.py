@@ -11,7 +11,7 @@ import time
 import pytest
 
 from circuits import load_circuit
-from orchestrator.launcher import free_loopback_port
+from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.messages import (

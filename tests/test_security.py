@@ -22,10 +22,11 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from orchestrator.launcher import free_loopback_port
+from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, BusError, Inbox, Received, Traffic
-from protocol.config import ConfigError
+from protocol.deploy.config import ConfigError
+from protocol.deploy.security import ROLES, Identity, build_access_control, check_users_file, router_settings
 from protocol.messages import (
     CameraFrame,
     CameraSpec,
@@ -38,7 +39,6 @@ from protocol.messages import (
     Header,
     Pose,
 )
-from protocol.security import ROLES, Identity, build_access_control, check_users_file, router_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = EpisodeSpec(circuit="simple", max_sim_seconds=3.0, seed=5, camera=CameraSpec(width_px=160, height_px=120))

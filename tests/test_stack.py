@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from orchestrator.launcher import BrainLaunch, StackFailure
+from orchestrator.stack.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
 from protocol.bus import BusError, Inbox, Traffic
 from protocol.messages import (
@@ -246,7 +246,7 @@ def test_the_simulator_refuses_bad_run_control(make_stack):
 
 
 def test_stack_with_the_router_as_its_own_process(tmp_path):
-    from orchestrator.launcher import LocalStack
+    from orchestrator.stack.launcher import LocalStack
 
     # A run id of digits only: it must stay a string through every command line and config.
     with LocalStack(run_id="0123", run_dir=tmp_path, brains=[BrainLaunch("explicit")], embed_router=False) as stack:

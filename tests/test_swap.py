@@ -11,8 +11,8 @@ import time
 import pytest
 from mcap_validation import assert_valid_mcap
 
-from orchestrator.launcher import BrainLaunch
-from orchestrator.swap import SwapError, swap_brain
+from orchestrator.stack.launcher import BrainLaunch
+from orchestrator.stack.swap import SwapError, swap_brain
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
 from protocol.messages import (

@@ -11,10 +11,12 @@ from test_protocol import METRICS  # one set of example metrics for the message 
 
 from orchestrator.cli.run import shadow_launches
 from orchestrator.cli.swap import brain_options
-from orchestrator.launcher import BrainLaunch
-from orchestrator.report import metrics_table
-from orchestrator.swap import BrainIdentity, StackInfo, SwapError, _pick_name, locate_stack
+from orchestrator.report.episode import metrics_table
+from orchestrator.stack.launcher import BrainLaunch
+from orchestrator.stack.swap import BrainIdentity, StackInfo, SwapError, _pick_name, locate_stack
 from protocol import codec, keys
+from protocol.deploy.runtime import UsageError
+from protocol.mapping.recording import channel_layout, from_record, to_record
 from protocol.messages import (
     BrainSwitch,
     Command,
@@ -26,8 +28,6 @@ from protocol.messages import (
     Header,
     ShadowDistance,
 )
-from protocol.recording import channel_layout, from_record, to_record
-from protocol.runtime import UsageError
 from services.scorer.shadows import CommandMatcher
 
 HEADER = Header(run_id="r1", episode=0, seq=0, stamp_ns=1_000_000_000)

@@ -13,8 +13,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap_validation import assert_valid_mcap
 
-from protocol import codec, keys, topics
+from protocol import codec, keys
 from protocol.episodes import start_event
+from protocol.mapping import topics
 from protocol.messages import (
     CameraFrame,
     Command,
@@ -28,7 +29,7 @@ from protocol.messages import (
     LiveMetrics,
     Pose,
 )
-from recorder.dataset import DatasetOptions, build_dataset
+from recorder.dataset.build import DatasetOptions, build_dataset
 from recorder.reading import read_messages, recording_info
 from recorder.writer import RecordingWriter
 

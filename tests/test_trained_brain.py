@@ -13,7 +13,7 @@ from needs import require
 
 from brains.base import Observation
 from brains.registry import make_brain
-from orchestrator.launcher import BrainLaunch
+from orchestrator.stack.launcher import BrainLaunch
 from protocol.messages import EndReason, EpisodeSpec
 from protocol.variations import apply_variation
 

@@ -17,11 +17,11 @@ torch = require("torch")
 
 import cv2  # noqa: E402
 
-from brains import training  # noqa: E402
-from brains.augment import augment_batch, mirror, to_unit_float  # noqa: E402
 from brains.nets.preprocess import prepare_batch  # noqa: E402
 from brains.neural.checkpoint import build_model, load_checkpoint, read_checkpoint  # noqa: E402
-from brains.training import (  # noqa: E402
+from brains.training import trainer as training  # noqa: E402
+from brains.training.augment import augment_batch, mirror, to_unit_float  # noqa: E402
+from brains.training.trainer import (  # noqa: E402
     CHECKPOINT_FORMAT,
     CheckpointError,
     TrainError,
@@ -33,7 +33,7 @@ from brains.training import (  # noqa: E402
 )
 from orchestrator.cli import main  # noqa: E402
 from orchestrator.cli import train as train_cli  # noqa: E402
-from recorder.dataset import DrivingDataset  # noqa: E402
+from recorder.dataset.build import DrivingDataset  # noqa: E402
 
 TINY = "deepest_lstm_tiny_pilotnet"
 
@@ -400,7 +400,7 @@ def test_hyper_values_are_typed():
 
 
 def test_salt_and_pepper_augmentation_looks_like_the_injectors_noise_after_the_resize():
-    from brains.augment import augment_batch, salt_pepper_resized
+    from brains.training.augment import augment_batch, salt_pepper_resized
 
     generator = torch.Generator().manual_seed(0)
     x = torch.full((2, 3, 3, 50, 100), 0.3)

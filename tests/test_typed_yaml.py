@@ -11,9 +11,9 @@ import msgspec
 import pytest
 
 from orchestrator.cli.errors import EXIT_USAGE
-from orchestrator.matrix import MatrixError, load_matrix
-from protocol.config import ConfigError, load_config
-from protocol.typed_yaml import FileError, compose, convert, display
+from orchestrator.matrix.load import MatrixError, load_matrix
+from protocol.deploy.config import ConfigError, load_config
+from protocol.deploy.typed_yaml import FileError, compose, convert, display
 from services.scorer.service import ScorerConfig
 
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from protocol import keys, topics
+from protocol import keys
+from protocol.mapping import topics
 from recorder.reading import read_messages, recording_info
 
 MATRIX = "name: unicode\nbrains: [{name: explicit, label: élève}]\ncircuits: [simple]\n"

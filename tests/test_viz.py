@@ -31,9 +31,10 @@ from websockets.frames import Opcode
 from websockets.sync.client import connect
 from websockets.uri import parse_uri
 
-from orchestrator.launcher import free_loopback_port
-from protocol import keys, topics
+from orchestrator.stack.launcher import free_loopback_port
+from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox
+from protocol.mapping import topics
 from protocol.messages import (
     CameraFrame,
     CameraSpec,

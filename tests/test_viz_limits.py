@@ -14,7 +14,8 @@ from websockets.exceptions import InvalidStatus
 from websockets.frames import Opcode
 from websockets.sync.client import connect
 
-from protocol import keys, topics
+from protocol import keys
+from protocol.mapping import topics
 from protocol.messages import CameraFrame, Header
 from services.viz.bridge import LiveBridge
 

@@ -34,9 +34,9 @@ from orchestrator.cli import (
     view,
 )
 from orchestrator.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CommandFailed, UsageError
-from orchestrator.launcher import StackError, StackFailure
+from orchestrator.stack.launcher import StackError, StackFailure
 from protocol.bus import BusError
-from protocol.runtime import exit_on_sigterm
+from protocol.deploy.runtime import exit_on_sigterm
 
 COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits)
 

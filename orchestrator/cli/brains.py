@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, UsageError
-from protocol.config import ConfigError, parse_override
+from protocol.deploy.config import ConfigError, parse_override
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "docs" / "protocol"
 

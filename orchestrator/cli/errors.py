@@ -1,6 +1,6 @@
 """What every ``drivebench`` subcommand shares: its error types and one table of exit codes.
 
-A subcommand raises :class:`UsageError` (defined in ``protocol.runtime``, so that library code can raise it too)
+A subcommand raises :class:`UsageError` (defined in ``protocol.deploy.runtime``, so that library code can raise it too)
 for a mistake the user can fix by changing the command line or a file it names (exit 2), and
 :class:`CommandFailed` when it could not do its job for another reason (exit 1). ``main`` prints either as one
 line on stderr; nothing a user does wrong ends in a traceback.
@@ -8,7 +8,7 @@ line on stderr; nothing a user does wrong ends in a traceback.
 
 from __future__ import annotations
 
-from protocol.runtime import UsageError, UserError
+from protocol.deploy.runtime import UsageError, UserError
 
 __all__ = [
     "EXIT_FAILED",

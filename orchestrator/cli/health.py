@@ -1,6 +1,6 @@
 """``drivebench health ROLE``: exit 0 when a process of a running stack is up (compose healthchecks, scripts).
 
-One line on stderr and exit 1 when it is not (``orchestrator.health`` says how each role is checked).
+One line on stderr and exit 1 when it is not (``orchestrator.stack.health`` says how each role is checked).
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import os
 import sys
 
 from orchestrator.cli.errors import EXIT_FAILED, EXIT_OK
-from orchestrator.health import ROLES, check_health
+from orchestrator.stack.health import ROLES, check_health
 from protocol.bus import ROUTER_ENV
-from protocol.runtime import RUN_ID_ENV
+from protocol.deploy.runtime import RUN_ID_ENV
 
 
 def add(commands: argparse._SubParsersAction) -> None:

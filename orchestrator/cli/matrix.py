@@ -76,7 +76,7 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
 
 def load_matrix_file(path: Path):
     """The parsed matrix file; its mistakes as a usage error (one line)."""
-    from orchestrator.matrix import MatrixError, load_matrix
+    from orchestrator.matrix.load import MatrixError, load_matrix
 
     try:
         return load_matrix(path)
@@ -85,7 +85,7 @@ def load_matrix_file(path: Path):
 
 
 def run_matrix_command(args: argparse.Namespace) -> int:
-    from orchestrator.matrix import smoke_form
+    from orchestrator.matrix.load import smoke_form
 
     matrix = load_matrix_file(args.file)
     if args.smoke:
@@ -102,8 +102,8 @@ def run_matrix_command(args: argparse.Namespace) -> int:
 
 def _preflight(matrix) -> None:
     """Every brain of the matrix checked before the first episode (weights load and fit, options are taken)."""
-    from orchestrator.launcher import preflight_launches
-    from orchestrator.matrix_runner import brain_launch
+    from orchestrator.matrix.runner import brain_launch
+    from orchestrator.stack.launcher import preflight_launches
 
     for entry in matrix.brains + matrix.shadows:
         try:
@@ -115,7 +115,7 @@ def _preflight(matrix) -> None:
 def _resolve_renderers(matrix, requested: str | None, *, here: bool = True):
     """Every episode's renderer: ``requested`` (--renderer) over the file's, with "auto" resolved here, where the
     matrix's stacks run (one notice on stderr when it falls back), and "gl" checked before the first episode."""
-    from orchestrator.matrix import with_renderer
+    from orchestrator.matrix.load import with_renderer
     from services.simulator.renderers import choose_renderer
 
     chosen: dict[str, str] = {}
@@ -151,8 +151,8 @@ def run_matrix_args(
     ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
     facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix_runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
-    from orchestrator.results import ResultsError
+    from orchestrator.matrix.results import ResultsError
+    from orchestrator.matrix.runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
 
     if args.plan:
         print(plan_table(matrix))
@@ -195,7 +195,7 @@ def run_matrix_args(
     if ray_options is None:
         runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
     else:
-        from orchestrator.ray_matrix import RayMatrixRunner
+        from orchestrator.matrix.ray_runner import RayMatrixRunner
 
         runner = RayMatrixRunner(matrix, out_dir, options, ray_options=ray_options, on_change=display.update)
     try:
@@ -220,7 +220,7 @@ def run_matrix_args(
 
 def _ray_options(args: argparse.Namespace):
     """``--ray`` and its companions (None: a local run), checked before anything starts."""
-    from orchestrator.ray_options import import_ray
+    from orchestrator.matrix.ray_options import import_ray
 
     try:
         ray_options = ray_options_from(args)
@@ -232,7 +232,7 @@ def _ray_options(args: argparse.Namespace):
 
 
 def _write_report(out_dir: Path) -> None:
-    from orchestrator.matrix_report import write_report
+    from orchestrator.report.matrix import write_report
 
     files = write_report(out_dir)
     print(f"report: {files.html} and {files.markdown}", file=sys.stderr)

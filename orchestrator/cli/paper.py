@@ -1,4 +1,4 @@
-"""``drivebench paper``: the paper's tables, ours beside its figures (``orchestrator.paper`` writes them)."""
+"""``drivebench paper``: the paper's tables, ours beside its figures (``orchestrator.report.paper`` writes them)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 
 from orchestrator.cli.errors import UsageError
 from orchestrator.cli.matrix import add_run_options, load_matrix_file, run_matrix_args
-from orchestrator.matrix_report import PAPER_FACT
-from orchestrator.paper import (
+from orchestrator.report.matrix import PAPER_FACT
+from orchestrator.report.paper import (
     PAPER_FILE,
     PARTS,
     SMOKE_BRAINS,

@@ -1,11 +1,12 @@
-"""``--ray ADDRESS`` and its companions on ``drivebench matrix``, read into ``orchestrator.ray_options.RayOptions``."""
+"""``--ray ADDRESS`` and its companions on ``drivebench matrix``, read into
+``orchestrator.matrix.ray_options.RayOptions``."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from orchestrator.ray_options import DEFAULT_NODE_RETRIES, EPISODE_SLOT, RayOptions
+from orchestrator.matrix.ray_options import DEFAULT_NODE_RETRIES, EPISODE_SLOT, RayOptions
 
 
 def add_ray_options(parser: argparse.ArgumentParser) -> None:

@@ -23,7 +23,7 @@ from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.cli.run import parse_camera
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
 from protocol.messages import RENDERERS
-from recorder.dataset import DatasetError
+from recorder.dataset.build import DatasetError
 from recorder.reading import RecordingError, recording_info
 
 
@@ -183,7 +183,7 @@ def _add_build_options(parser: argparse.ArgumentParser) -> None:
 
 
 def dataset_options(args: argparse.Namespace):
-    from recorder.dataset import DatasetOptions
+    from recorder.dataset.build import DatasetOptions
 
     width, sep, height = args.size.lower().partition("x")
     top, colon, bottom = args.crop.partition(":")

@@ -1,4 +1,4 @@
-"""``drivebench report DIR``: tables and plots of a matrix's results (``orchestrator.matrix_report`` writes them)."""
+"""``drivebench report DIR``: tables and plots of a matrix's results (``orchestrator.report.matrix`` writes them)."""
 
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ def add(commands: argparse._SubParsersAction) -> None:
 
 def run_report(args: argparse.Namespace) -> int:
     """Run ``drivebench report``: 0 with the written paths on stderr; 2 with one error line on stderr."""
-    from orchestrator.matrix_report import ReportError, write_report
-    from orchestrator.results import ResultsError
+    from orchestrator.matrix.results import ResultsError
+    from orchestrator.report.matrix import ReportError, write_report
 
     try:
         files = write_report(args.dir, output=getattr(args, "output", None))

@@ -27,9 +27,9 @@ import yaml
 from brains.registry import UnknownBrainError, bus_name, require_brain
 from circuits import CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError
-from orchestrator.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
-from orchestrator.progress import EpisodeProgress
-from orchestrator.report import metrics_table
+from orchestrator.report.episode import metrics_table
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
+from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec
 from protocol.bus import BusError
 from protocol.messages import RENDERERS, CameraSpec, EpisodeScore, EpisodeSpec
@@ -274,7 +274,7 @@ def recorded_failure(run_dir: Path, *, run_id: str, as_json: bool):
 
 def command_run_attached(args: argparse.Namespace) -> int:
     """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
-    from orchestrator.launcher import AttachedStack
+    from orchestrator.stack.launcher import AttachedStack
 
     for flag, given in (
         ("--weights", args.weights),

@@ -1,4 +1,4 @@
-"""``drivebench swap BRAIN``: make another brain drive a running stack, live (``orchestrator.swap`` does it)."""
+"""``drivebench swap BRAIN``: make another brain drive a running stack, live (``orchestrator.stack.swap`` does it)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,15 @@ from pathlib import Path
 
 from brains.registry import brain_names
 from orchestrator.cli.errors import EXIT_OK, CommandFailed, UsageError
-from orchestrator.launcher import BrainLaunch, preflight_launches
-from orchestrator.swap import DEFAULT_TIMEOUT_S, BrainIdentity, SwapError, check_identity, locate_stack, swap_brain
+from orchestrator.stack.launcher import BrainLaunch, preflight_launches
+from orchestrator.stack.swap import (
+    DEFAULT_TIMEOUT_S,
+    BrainIdentity,
+    SwapError,
+    check_identity,
+    locate_stack,
+    swap_brain,
+)
 from protocol.bus import BusError
 
 

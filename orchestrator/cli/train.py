@@ -1,5 +1,5 @@
 """``drivebench train``: fit one of the paper's networks to a dataset folder (argument parsing only; the work is in
-:mod:`brains.training`, imported, with torch, only when the command runs).
+:mod:`brains.training.trainer`, imported, with torch, only when the command runs).
 
     drivebench train --model deepest_lstm_tiny_pilotnet --data DATASET -o RUN_DIR [--epochs 50] [--batch-size 64]
         [--lr 1e-3] [--device auto|cpu|cuda] [--seed 0] [--patience 10] [--labels zscore|paper]
@@ -139,7 +139,7 @@ def _value(text: str) -> bool | int | float | str:
 def run_train(args: argparse.Namespace) -> int:
     """Run ``drivebench train``; errors are one line on stderr, never a traceback."""
     try:
-        from brains import training
+        from brains.training import trainer as training
     except ImportError as error:
         raise UsageError(f"training needs torch ({error}); install the 'ml' extra") from None
     try:

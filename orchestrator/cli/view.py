@@ -18,9 +18,9 @@ import sys
 from orchestrator.cli.errors import EXIT_OK, CommandFailed, UsageError
 from protocol import keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
+from protocol.deploy.runtime import RUN_ID_ENV as RUN_ENV
+from protocol.deploy.runtime import UserError, setup_logging, stop_on_signals
 from protocol.episodes import running_runs
-from protocol.runtime import RUN_ID_ENV as RUN_ENV
-from protocol.runtime import UserError, setup_logging, stop_on_signals
 from services.viz.service import DEFAULT_PORT, VizConfig, VizService, viewer_url
 
 ROUTER_PROBE_S = 3.0

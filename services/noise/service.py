@@ -17,10 +17,10 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Received, Traffic
+from protocol.deploy.runtime import stop_requested
 from protocol.episodes import EpisodeStarts
 from protocol.images import FrameReader, image_frame
 from protocol.messages import CameraFrame
-from protocol.runtime import stop_requested
 from services.noise.models import NoisePipeline
 
 log = logging.getLogger("drivebench.noise")
@@ -114,7 +114,7 @@ class NoiseService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import service_main
+    from protocol.deploy.runtime import service_main
 
     return service_main(
         "noise",

@@ -18,7 +18,7 @@ import time
 import msgspec
 
 from protocol.bus import Bus, BusConfig, resolve_bus
-from protocol.security import Identity, router_settings
+from protocol.deploy.security import Identity, router_settings
 
 log = logging.getLogger("drivebench.router")
 
@@ -35,7 +35,7 @@ class RouterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         identity for ``roles``.
     users_file: ``user:password`` lines; every client must then authenticate with one (``bus.user``,
         ``DRIVEBENCH_USER`` / ``DRIVEBENCH_PASSWORD``); the user name is an identity for ``roles``.
-    roles: access control from drivebench's roles (``protocol.security.ROLES``: brain, orchestrator, service,
+    roles: access control from drivebench's roles (``protocol.deploy.security.ROLES``: brain, orchestrator, service,
         simulator, noise, scorer, recorder, viz, replay, observer), each a list of identities: a name (certificate
         common name or user name) or ``{cert_common_name: ..., username: ...}``. Default deny: an identity in no
         role gets nothing.
@@ -51,7 +51,7 @@ class RouterConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import load_config, log_config, run_service, service_parser, stop_requested
+    from protocol.deploy.runtime import load_config, log_config, run_service, service_parser, stop_requested
 
     parser = service_parser("drivebench router: a Zenoh router for one stack")
     parser.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")

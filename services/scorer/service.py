@@ -21,6 +21,7 @@ import msgspec
 from circuits import CircuitError, load_circuit
 from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Traffic
+from protocol.deploy.runtime import stop_requested
 from protocol.episodes import running_spec
 from protocol.messages import (
     BrainSwitch,
@@ -34,7 +35,6 @@ from protocol.messages import (
     LiveMetrics,
     Pose,
 )
-from protocol.runtime import stop_requested
 from services.scorer.metrics import EpisodeScorer
 from services.scorer.shadows import CommandMatcher
 
@@ -279,7 +279,7 @@ def _driver_feed(scorer: EpisodeScorer):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import service_main
+    from protocol.deploy.runtime import service_main
 
     return service_main(
         "scorer", "drivebench scorer: live metrics and one final score per episode", ScorerConfig, ScorerService, argv

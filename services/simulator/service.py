@@ -25,6 +25,7 @@ import msgspec
 from circuits import Circuit, CircuitError, load_circuit
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
+from protocol.deploy.runtime import stop_requested
 from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame,
@@ -38,7 +39,6 @@ from protocol.messages import (
     Header,
     Pose,
 )
-from protocol.runtime import stop_requested
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 from services.simulator.gl_scene import egl_unavailable_reason
 from services.simulator.renderers import resolve_spec
@@ -476,7 +476,7 @@ class SimulatorService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import service_main
+    from protocol.deploy.runtime import service_main
 
     return service_main(
         "simulator",

@@ -1,8 +1,9 @@
 """The core of the live view: bus messages in, Foxglove WebSocket channels out. Knows nothing of Zenoh.
 
 It serves a Foxglove WebSocket server (foxglove-sdk, subprotocol ``foxglove.sdk.v1``) and maps each bus message to
-the channel a recording would hold for it (``protocol.recording``, ``protocol.views``), under the same stable topics
-(``protocol.topics``: ``/camera/truth``, ``/car/pose``, ``/tf``, ...), so one layout
+the channel a recording would hold for it (``protocol.mapping.recording``, ``protocol.mapping.views``), under the same
+stable topics
+(``protocol.mapping.topics``: ``/camera/truth``, ``/car/pose``, ``/tf``, ...), so one layout
 (``docs/foxglove/drivebench-layout.json``) shows any recording and any live run:
 
 * camera frames -> ``foxglove.CompressedImage`` (protobuf, JPEG; the recording's image schema with the run id,
@@ -14,7 +15,8 @@ the channel a recording would hold for it (``protocol.recording``, ``protocol.vi
   Schema.
 
 Log times are simulated time: the first episode seen starts at 0 and each later one one second after the previous
-one's last message (``protocol.recording.EpisodeClock``, as in recordings), so a viewer's clock never runs back. The
+one's last message (``protocol.mapping.recording.EpisodeClock``, as in recordings), so a viewer's clock never runs
+back. The
 geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
 
 A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
@@ -37,10 +39,10 @@ import msgspec
 from foxglove.websocket import ServerListener
 
 from protocol import keys
+from protocol.mapping.recording import EpisodeClock, Schema, channel_layout, to_record
+from protocol.mapping.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS
+from protocol.mapping.views import ViewMaker, ViewMessage, protobuf_schema
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
-from protocol.recording import EpisodeClock, Schema, channel_layout, to_record
-from protocol.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS
-from protocol.views import ViewMaker, ViewMessage, protobuf_schema
 from services.viz.gate import ViewerGate
 
 log = logging.getLogger("drivebench.viz")

@@ -1,6 +1,7 @@
 """The Foxglove layouts shipped in ``docs/foxglove/``, as code: ``python -m services.viz.layouts`` writes them.
 
-They use only stable topics (``protocol.topics``), so one layout shows any recording and any live run with no edit:
+They use only stable topics (``protocol.mapping.topics``), so one layout shows any recording and any live run with no
+edit:
 
 * ``drivebench-layout.json``: one run. The 3D panel (circuit and car, following the car), the ground-truth and
   perturbed cameras side by side, plots of speed, yaw rate, cross-track error and command latency, the episode log
@@ -20,8 +21,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from protocol import topics
-from protocol.views import CAR_FRAME, WORLD_FRAME
+from protocol.mapping import topics
+from protocol.mapping.views import CAR_FRAME, WORLD_FRAME
 
 LAYOUT_DIR = Path(__file__).resolve().parents[2] / "docs" / "foxglove"
 SINGLE = "drivebench-layout.json"

@@ -27,9 +27,9 @@ import msgspec
 
 from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
+from protocol.deploy.runtime import UserError, stop_requested
 from protocol.episodes import running_spec, start_event
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, EventKind, LiveMetrics, Pose
-from protocol.runtime import UserError, stop_requested
 from services.viz.bridge import BridgeError, LiveBridge
 
 log = logging.getLogger("drivebench.viz")
@@ -268,7 +268,7 @@ class VizService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.runtime import service_main
+    from protocol.deploy.runtime import service_main
 
     return service_main(
         "viz",

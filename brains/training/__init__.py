@@ -1,0 +1,1 @@
+"""Training the networks: datasets to tensors, labels, augmentation, the training loop and its curve."""

@@ -1,0 +1,2 @@
+"""Matrices: loading and checking matrix files, planning episodes, running them locally or on Ray, and storing
+results."""

@@ -1,0 +1,488 @@
+"""Test matrices: a YAML file of brains x circuits x variations x perturbations x repetitions, expanded into the
+planned episodes of a matrix run. Pure: no bus, no processes; every mistake is found here, before anything starts.
+
+A matrix file::
+
+    name: generalization                      # default: the file's stem
+    brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
+    circuits: [simple, montmelo, montreal]    # built-in, user, random:SEED or twisty:SEED circuits
+    variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
+    # or, instead of the product, the worlds one by one:
+    #   worlds: [{line: red}, {line: none, walls: off}, {line: red, direction: reverse}]
+    perturbations: [none, {salt_pepper: 0.2}, {camera: left}, "gaussian=10"]         # default: [none]
+    repetitions: 3                            # default 1; episode seed = seed + repetition
+    limits: {laps: 1, max_sim_seconds: 300, brain_timeout_s: 10}                      # also step_s
+    camera: 320x240                           # or {width_px: 320, height_px: 240, hfov_rad: ...}
+    seed: 7                                   # default 0
+    realtime: false                           # default false (lock-step)
+    renderer: pybullet                        # pybullet, gl or auto (default: auto; --renderer overrides)
+    shadows: [{name: constant, options: {speed_mps: 2}}]   # brains that see the same frames but never drive
+    exclude: [{brain: explicit, line: none}]  # drop every combination matching ALL the given keys
+    include: [{brain: explicit, circuit: monaco}]          # extra combinations, expanded over repetitions
+
+Parts: a matrix may be several experiments over the same brains (the paper's tables), each its own product::
+
+    parts:
+      montmelo: {circuits: [montmelo], repetitions: 3}
+      noise: {circuits: [montreal], perturbations: [{salt_pepper: 0.2}, {salt_pepper: 0.4}]}
+
+A part sets any of circuits, variations or worlds, perturbations, repetitions, limits, exclude and include; what it
+does not set comes from the top level. Its episodes' keys start with ``<part>:``, and parts expand in written order.
+
+Expansion order: brains, then circuits, then the variation values (product, keys in written order), then
+perturbations, then repetitions (innermost). ``exclude`` applies to that product only; ``include`` entries come
+after it, in written order, each over every repetition, and are never excluded (as in GitHub Actions matrices).
+Wherever a list is expected, a single item stands for a one-item list.
+
+Labels (as stored in results and used in episode keys):
+    variation    ``"line=white,road=grey,walls=off"`` (keys in written order, booleans as on/off; ``"default"``
+                 when no variation applies)
+    perturbation ``"none"``, or its items joined by ``+``: ``"salt_pepper=0.2+camera=left"``,
+                 ``"occlusion:patches=2,size_fraction=0.3"`` for a model given a mapping of parameters
+    episode key  ``"<brain label>/<circuit>/<variation label>/<perturbation label>/r<repetition>"``, in a part
+                 ``"<part>:<brain label>/..."`` (stable across re-parses of the same text: what ``--resume`` compares)
+
+Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong (what is allowed)``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from circuits import circuit_names
+from circuits.library import GENERATED_NAMES, is_circuit_name
+from orchestrator.matrix.brains import check_unique_labels, read_brain_entries
+from orchestrator.matrix.conditions import (
+    VARIATION_KEYS,
+    Axis,
+    Perturbation,
+    World,
+    label_text,
+    read_axes,
+    read_listed_worlds,
+    read_perturbation,
+    read_perturbations,
+    read_variation_value,
+    read_world,
+    read_worlds,
+)
+from orchestrator.matrix.plan import (
+    DEFAULT_VARIATION,
+    NO_PERTURBATION,
+    BrainEntry,
+    Matrix,
+    MatrixError,
+    PlannedEpisode,
+    part_of,
+    smoke_form,
+    with_renderer,
+)
+from orchestrator.matrix.schema import MatrixFile, items, read_matrix_file, text_at, written
+from protocol.deploy.typed_yaml import Document, compose, convert
+from protocol.deploy.typed_yaml import Path as At
+from protocol.keys import check_name
+from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.variations import VariationError, apply_variation
+from services.simulator.renderers import default_renderer
+
+MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
+MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
+
+_CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
+
+# A key of the file (or of one part) -> (its typed value, where it was written).
+Entries = dict[str, tuple[Any, At]]
+
+
+def load_matrix(path: Path) -> Matrix:
+    """Read and expand the matrix file ``path``; weights are resolved from its folder.
+
+    Raises :class:`MatrixError` for a missing or unreadable file and for every mistake in it."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise MatrixError("the matrix file is not UTF-8 text", source=str(path), line=None) from None
+    except OSError as error:
+        reason = error.strerror or str(error)
+        raise MatrixError(f"cannot read the matrix file ({reason})", source=str(path), line=None) from None
+    return parse_matrix(text, source=str(path), base_dir=path.parent)
+
+
+def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path(".")) -> Matrix:
+    """Expand the matrix in ``text``. ``source`` names it in errors (and gives the default name: its stem);
+    relative weights paths are resolved from ``base_dir``. Raises :class:`MatrixError` for every mistake."""
+    document = compose(text, source=source, error_type=MatrixError)
+    matrix = read_matrix_file(document)
+    parts = _parts(document, matrix)
+    episodes: list[PlannedEpisode] = []
+    variation_keys: dict[str, None] = {}
+    for part, entries in parts:
+        plan = _Plan.read(document, entries, base_dir=Path(base_dir), part=part)
+        episodes += plan.expand(document, entries, first_index=len(episodes))
+        variation_keys.update(dict.fromkeys(axis.key for axis in plan.axes))
+    if len(episodes) > MAX_EPISODES:
+        raise document.error(
+            ("parts",), f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})", at_key=True
+        )
+    name = text_at(document, matrix.name, ("name",)) if isinstance(matrix.name, str) else None
+    return Matrix(
+        name=name or ("matrix" if source.startswith("<") else Path(source).stem),
+        source=source,
+        text=text,
+        brains=plan.brains,
+        shadows=plan.shadows,
+        episodes=tuple(episodes),
+        variation_keys=tuple(variation_keys),
+        parts=tuple(part for part, _ in parts if part),
+    )
+
+
+def _check_one_world_form(document: Document, entries: Entries) -> None:
+    if "variations" in entries and "worlds" in entries:
+        raise document.error(
+            entries["worlds"][1], "give variations (a product) or worlds (a list), not both", at_key=True
+        )
+
+
+def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
+    """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
+    top = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
+    _check_one_world_form(document, top)
+    if not isinstance(matrix.parts, dict):
+        if "circuits" not in top:
+            raise document.error((), "missing 'circuits' (a matrix needs brains and circuits)")
+        return [("", top)]
+    parts = []
+    for name, part in matrix.parts.items():
+        where = ("parts", name)
+        try:
+            check_name(name, what="part name")
+        except ValueError as error:
+            raise document.error(where, str(error), at_key=True) from None
+        entries = {key: (value, (*where, key)) for key, value in written(part).items()}
+        _check_one_world_form(document, entries)
+        merged = dict(top)
+        if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
+            merged.pop("variations", None)
+            merged.pop("worlds", None)
+        merged.update(entries)
+        if "circuits" not in merged:
+            raise document.error(
+                where, f"part {name!r} has no circuits (give them in the part or at the top level)", at_key=True
+            )
+        parts.append((name, merged))
+    return parts
+
+
+# -- circuits, settings ------------------------------------------------------------------------------------------
+
+
+def _circuit(document: Document, value: Any, path: At) -> str:
+    name = text_at(document, value, path)
+    if not is_circuit_name(name):
+        raise document.error(
+            path,
+            f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
+            f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
+        )
+    return name
+
+
+def _circuits(document: Document, value: Any, path: At) -> list[str]:
+    circuits: dict[str, int] = {}
+    for item, item_path in items(value, path):
+        name = _circuit(document, item, item_path)
+        if name in circuits:
+            raise document.error(item_path, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
+        circuits[name] = document.line(item_path)
+    return list(circuits)
+
+
+def _base_spec(document: Document, entries: Entries) -> EpisodeSpec:
+    """The spec every episode starts from: limits, camera and realtime (circuit, seed, brain set per episode). The
+    schema has checked each value; what is left are the bounds that tie values together."""
+    fields: dict[str, Any] = {}
+    if "limits" in entries:
+        fields.update(written(entries["limits"][0]))
+    if "realtime" in entries:
+        fields["realtime"] = entries["realtime"][0]
+    if "renderer" in entries:
+        fields["renderer"] = entries["renderer"][0]
+    else:
+        try:
+            fields["renderer"] = default_renderer(MATRIX_RENDERER)
+        except ValueError as error:
+            raise MatrixError(str(error), source=document.source, line=None) from None
+    if "camera" in entries:
+        fields["camera"] = _camera(document, *entries["camera"])
+    return convert(fields, EpisodeSpec, document=document, path=entries.get("limits", (None, ()))[1])
+
+
+def _camera(document: Document, value: Any, path: At) -> CameraSpec:
+    if isinstance(value, str):
+        match = _CAMERA_SIZE.fullmatch(value)
+        if not match:
+            raise document.error(
+                path, f"camera must look like 320x240 or {{width_px: 320, height_px: 240}}, got {value!r}"
+            )
+        fields: dict[str, Any] = {"width_px": int(match[1]), "height_px": int(match[2])}
+    else:
+        fields = written(value)
+    return convert(fields, CameraSpec, document=document, path=path)
+
+
+# -- combinations, exclude, include --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Combination:
+    """A brain on a circuit, in one world, under one perturbation (repetitions expand it)."""
+
+    brain: BrainEntry
+    circuit: str
+    world: World
+    perturbation: Perturbation
+
+    def coordinates(self, repetition: int) -> dict[str, str]:
+        """Axis -> label text, what exclude entries match against."""
+        return {
+            "brain": self.brain.label,
+            "circuit": self.circuit,
+            "perturbation": self.perturbation.label,
+            "repetition": str(repetition),
+            **self.world.texts,
+        }
+
+    def key(self, repetition: int, *, part: str = "") -> str:
+        prefix = f"{part}:" if part else ""
+        return f"{prefix}{self.brain.label}/{self.circuit}/{self.world.label}/{self.perturbation.label}/r{repetition}"
+
+
+@dataclass
+class _Plan:
+    """Everything read from the file (or one part of it), before expansion."""
+
+    brains: tuple[BrainEntry, ...]
+    shadows: tuple[BrainEntry, ...]
+    circuits: list[str]
+    axes: list[Axis]
+    worlds: list[World]
+    perturbations: list[Perturbation]
+    repetitions: int
+    seed: int
+    base: EpisodeSpec
+    part: str = ""
+
+    @classmethod
+    def read(cls, document: Document, entries: Entries, *, base_dir: Path, part: str = "") -> _Plan:
+        brains = read_brain_entries(document, *entries["brains"], base_dir=base_dir)
+        shadows = read_brain_entries(document, *entries["shadows"], base_dir=base_dir) if "shadows" in entries else []
+        check_unique_labels(document, brains + shadows)
+        if "worlds" in entries:
+            worlds, axes = read_listed_worlds(document, *entries["worlds"])
+        else:
+            axes = read_axes(document, *entries.get("variations", (None, ())))
+            worlds = read_worlds(axes)
+        return cls(
+            brains=tuple(entry for entry, _ in brains),
+            shadows=tuple(entry for entry, _ in shadows),
+            circuits=_circuits(document, *entries["circuits"]),
+            axes=axes,
+            worlds=worlds,
+            perturbations=read_perturbations(document, *entries.get("perturbations", (None, ()))),
+            repetitions=entries.get("repetitions", (1, ()))[0],
+            seed=entries.get("seed", (0, ()))[0],
+            base=_base_spec(document, entries),
+            part=part,
+        )
+
+    def expand(self, document: Document, entries: Entries, *, first_index: int = 0) -> list[PlannedEpisode]:
+        self._check_size(document, entries)
+        excludes = [self._exclude(document, *item) for item in _list_of(entries, "exclude")]
+        planned: dict[str, tuple[_Combination, int]] = {}
+        for combination in self._product():
+            for repetition in range(self.repetitions):
+                coordinates = combination.coordinates(repetition)
+                if not any(_matches(exclude, coordinates) for exclude in excludes):
+                    planned[combination.key(repetition, part=self.part)] = (combination, repetition)
+        for item in _list_of(entries, "include"):
+            combination = self._include(document, *item)
+            for repetition in range(self.repetitions):
+                planned.setdefault(combination.key(repetition, part=self.part), (combination, repetition))
+        if not planned:
+            what = f"part {self.part!r}" if self.part else "the matrix"
+            raise document.error(
+                entries.get("exclude", (None, ()))[1],
+                f"{what} expands to no episodes (every combination is excluded)",
+                at_key=True,
+            )
+        return [
+            self._episode(document, key, first_index + index, combination, repetition)
+            for index, (key, (combination, repetition)) in enumerate(planned.items())
+        ]
+
+    def _check_size(self, document: Document, entries: Entries) -> None:
+        count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
+        count *= len(self.worlds)
+        if count > MAX_EPISODES:
+            raise document.error(
+                entries.get("repetitions", (None, ()))[1],
+                f"the matrix expands to {count} episodes (at most {MAX_EPISODES})",
+            )
+
+    def _product(self) -> Iterator[_Combination]:
+        for brain, circuit, world, perturbation in itertools.product(
+            self.brains, self.circuits, self.worlds, self.perturbations
+        ):
+            yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
+
+    def _exclude(self, document: Document, entry: dict[str, Any], path: At) -> dict[str, str]:
+        """An exclude entry as axis -> label text; every value must be one the matrix has (typos fail here)."""
+        allowed = ("brain", "circuit", "repetition", "perturbation", *(axis.key for axis in self.axes))
+        for key in entry:
+            if key in VARIATION_KEYS and key not in allowed:
+                raise document.error(
+                    (*path, key),
+                    f"exclude key {key!r} is not a variation axis of this matrix (allowed: {', '.join(allowed)})",
+                    at_key=True,
+                )
+            if key not in allowed:
+                raise document.error(
+                    (*path, key),
+                    f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})",
+                    at_key=True,
+                )
+        if not entry:
+            raise document.error(path, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
+        return {key: self._exclude_value(document, key, value, (*path, key)) for key, value in entry.items()}
+
+    def _exclude_value(self, document: Document, key: str, value: Any, path: At) -> str:
+        if key == "perturbation":
+            text = read_perturbation(document, value, path).label
+            known = [perturbation.label for perturbation in self.perturbations]
+        elif key == "repetition":
+            text = str(_repetition(document, value, path))
+            known = [str(repetition) for repetition in range(self.repetitions)]
+        else:
+            if isinstance(value, (dict, list)):
+                raise document.error(path, f"exclude {key} must be a single value, got {value!r}")
+            text = label_text(value)
+            known = self._known(key)
+        if text not in known:
+            raise document.error(path, f"exclude {key} {text!r} is not in this matrix (known: {', '.join(known)})")
+        return text
+
+    def _known(self, key: str) -> list[str]:
+        if key == "brain":
+            return [brain.label for brain in self.brains]
+        if key == "circuit":
+            return list(self.circuits)
+        return [text for axis in self.axes if axis.key == key for text, _, _ in axis.values]
+
+    def _include(self, document: Document, entry: dict[str, Any], path: At) -> _Combination:
+        allowed = ("brain", "circuit", "perturbation", *VARIATION_KEYS)
+        for key in entry:
+            if key not in allowed:
+                raise document.error(
+                    (*path, key),
+                    f"unknown key {key!r} in an include entry (allowed: {', '.join(allowed)})",
+                    at_key=True,
+                )
+        if "brain" not in entry or "circuit" not in entry:
+            raise document.error(
+                path, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
+            )
+        label = text_at(document, entry["brain"], (*path, "brain"))
+        brains = {brain.label: brain for brain in self.brains}
+        if label not in brains:
+            raise document.error(
+                (*path, "brain"),
+                f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})",
+            )
+        perturbation = (
+            read_perturbation(document, entry["perturbation"], (*path, "perturbation"))
+            if "perturbation" in entry
+            else Perturbation(label=NO_PERTURBATION, line=document.line(path))
+        )
+        return _Combination(
+            brain=brains[label],
+            circuit=_circuit(document, entry["circuit"], (*path, "circuit")),
+            world=self._include_world(document, entry, path),
+            perturbation=perturbation,
+        )
+
+    def _include_world(self, document: Document, entry: dict[str, Any], path: At) -> World:
+        # Matrix axes first, in their order, so an include of an existing combination has the same label.
+        axis_keys = [axis.key for axis in self.axes]
+        keys = [key for key in axis_keys if key in entry]
+        keys += [key for key in entry if key in VARIATION_KEYS and key not in axis_keys]
+        return read_world([(key, read_variation_value(document, entry[key], (*path, key), key=key)) for key in keys])
+
+    def _episode(
+        self, document: Document, key: str, index: int, combination: _Combination, repetition: int
+    ) -> PlannedEpisode:
+        spec = msgspec.structs.replace(
+            self.base,
+            circuit=combination.circuit,
+            seed=self.seed + repetition,
+            active_brain=combination.brain.label,
+            noise=list(combination.perturbation.noise),
+        )
+        try:
+            if combination.world.items:
+                spec = apply_variation(spec, dict(combination.world.items))
+            for item_key, value in combination.perturbation.camera:  # one by one: presets add up
+                spec = apply_variation(spec, {item_key: value})
+        except VariationError as error:
+            raise MatrixError(
+                f"episode {key}: {error}", source=document.source, line=combination.perturbation.line
+            ) from None
+        return PlannedEpisode(
+            key=key,
+            index=index,
+            brain=combination.brain,
+            circuit=combination.circuit,
+            variation=combination.world.label,
+            perturbation=combination.perturbation.label,
+            repetition=repetition,
+            spec=spec,
+            part=self.part,
+        )
+
+
+def _list_of(entries: Entries, key: str) -> list[tuple[Any, At]]:
+    return items(*entries[key]) if key in entries else []
+
+
+def _repetition(document: Document, value: Any, path: At) -> int:
+    """An exclude entry's repetition: an integer from 0."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise document.error(path, f"exclude repetition must be an integer >= 0, got {value!r}")
+    return value
+
+
+def _matches(exclude: dict[str, str], coordinates: dict[str, str]) -> bool:
+    return all(coordinates.get(key) == text for key, text in exclude.items())
+
+
+__all__ = [
+    "DEFAULT_VARIATION",
+    "NO_PERTURBATION",
+    "BrainEntry",
+    "Matrix",
+    "MatrixError",
+    "PlannedEpisode",
+    "load_matrix",
+    "parse_matrix",
+    "part_of",
+    "smoke_form",
+    "with_renderer",
+]

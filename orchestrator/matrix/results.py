@@ -1,0 +1,278 @@
+"""A matrix's results: one SQLite database in the output folder, one row per finished episode.
+
+Each row is committed the moment its episode ends (SQLite in WAL mode, ``synchronous=FULL``), so an orchestrator
+killed with SIGKILL loses only the episodes that were still running; ``--resume`` runs exactly those again.
+
+Status of a row:
+    ``done``   the episode ran and was scored, whatever the brain did (a crash is a result, not a failure);
+    ``failed`` the stack failed the episode (a process died, no score in time, the simulator refused it):
+               ``failure`` says which, as ``<kind>: <detail>`` with kind one of :data:`FAILURE_KINDS`. A score is
+               kept when the scorer still produced one (a brain killed mid-episode ends it with ``brain_lost``).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from orchestrator.matrix.plan import PlannedEpisode
+from protocol import codec
+from protocol.messages import EpisodeScore, EpisodeSpec
+
+DATABASE_NAME = "results.sqlite"
+# A fact the runner stores for the report: the variation label of the matrix's first episode (the baseline column).
+BASELINE_FACT = "baseline_variation"
+
+# Typed failures: what went wrong with the stack (never what the brain did on the road).
+FAILURE_KINDS = (
+    "brain_died",  # a brain process exited or lost its liveliness token during the episode
+    "simulator_died",  # the simulator process exited or lost its token
+    "scorer_died",  # the scorer exited or lost its token
+    "noise_died",  # the noise injector exited or lost its token
+    "recorder_died",  # the recorder exited (the episode goes on and is scored; only its recording is incomplete)
+    "router_died",  # the router went away: every process lost its link at once
+    "start_failed",  # the stack did not come up, or the simulator refused the episode
+    "wall_timeout",  # no score within the wall-clock guard (a hung episode)
+    "node_died",  # (--ray) the cluster node running it died, more often than the retries allow
+    "error",  # anything else, with its message
+)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS matrix (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS episodes (
+    key          TEXT PRIMARY KEY,   -- stable id of the planned episode (what --resume compares)
+    idx          INTEGER NOT NULL,   -- position in the matrix's expansion
+    brain        TEXT NOT NULL,      -- the brain's label in the matrix (unique per brain entry)
+    circuit      TEXT NOT NULL,
+    variation    TEXT NOT NULL,      -- label, e.g. "line=white,walls=off" ("default" when none)
+    perturbation TEXT NOT NULL,      -- label, e.g. "salt_pepper=0.2" ("none" when none)
+    repetition   INTEGER NOT NULL,
+    spec_json    TEXT NOT NULL,      -- the EpisodeSpec as JSON
+    brain_json   TEXT NOT NULL,      -- the brain entry: name, weights, options
+    status       TEXT NOT NULL CHECK (status IN ('done', 'failed')),
+    reason       TEXT,               -- EndReason of the score, when scored
+    failure      TEXT,               -- "<kind>: <detail>" when failed
+    score_json   TEXT,               -- the EpisodeScore as JSON, when scored
+    run_id       TEXT NOT NULL,
+    started_at   REAL NOT NULL,      -- wall clock, seconds since the epoch
+    ended_at     REAL NOT NULL,
+    recording    TEXT,               -- MCAP file, relative to the output folder, when recorded
+    trajectory   TEXT,               -- .npz file of poses and live progress, relative to the output folder
+    logs         TEXT,               -- folder of the episode's process logs, relative to the output folder
+    node         TEXT,               -- where it ran: the host name, or "<ip>/<ray node id>" on a Ray cluster
+    lost_attempts TEXT               -- JSON list of earlier attempts lost with their node ({"node", "error"})
+);
+"""
+# Columns added after the first release: a results file written before them gets them (NULL) when opened.
+_ADDED_COLUMNS = {"node": "TEXT", "lost_attempts": "TEXT"}
+_COLUMNS = (
+    "key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
+    "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts"
+)
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One finished episode as stored. Paths are relative to the output folder."""
+
+    key: str
+    index: int
+    brain: str
+    circuit: str
+    variation: str
+    perturbation: str
+    repetition: int
+    spec: EpisodeSpec
+    brain_entry: dict[str, Any]
+    status: str
+    run_id: str
+    started_at: float
+    ended_at: float
+    reason: str | None = None
+    failure: str | None = None
+    score: EpisodeScore | None = None
+    recording: str | None = None
+    trajectory: str | None = None
+    logs: str | None = None
+    node: str | None = None  # where it ran (None in results written before this was recorded)
+    lost_attempts: tuple[dict, ...] = ()  # earlier attempts whose node died ({"node", "error"}), never results
+
+    @classmethod
+    def of(cls, episode: PlannedEpisode, **outcome: Any) -> EpisodeResult:
+        """The result of a planned episode: what the plan says of it (key, index, brain, circuit, variation,
+        perturbation, repetition, spec) is taken from ``episode`` here, in one place; ``outcome`` is the rest."""
+        return cls(
+            key=episode.key,
+            index=episode.index,
+            brain=episode.brain.label,
+            circuit=episode.circuit,
+            variation=episode.variation,
+            perturbation=episode.perturbation,
+            repetition=episode.repetition,
+            spec=episode.spec,
+            brain_entry=episode.brain.to_dict(),
+            **outcome,
+        )
+
+    @property
+    def wall_s(self) -> float:
+        return self.ended_at - self.started_at
+
+    @property
+    def failure_kind(self) -> str | None:
+        return self.failure.split(":", 1)[0] if self.failure else None
+
+
+class ResultsError(RuntimeError):
+    """The results database cannot be used (not a drivebench database, or damaged); one line, names the file."""
+
+
+class ResultStore:
+    """Results of one output folder. Safe to open from one writer and any number of readers."""
+
+    def __init__(self, folder: Path, *, create: bool = True):
+        self.path = Path(folder) / DATABASE_NAME
+        if not create and not self.path.is_file():
+            raise ResultsError(f"{self.path}: no results database (run `drivebench matrix FILE -o {folder}` first)")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            # Workers record from their own threads; the runner serialises the writes with a lock.
+            self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")  # a row committed is a row on disk, SIGKILL or not
+            self._db.executescript(_SCHEMA)
+            self._add_new_columns()
+        except sqlite3.DatabaseError as error:
+            raise ResultsError(f"{self.path}: not a usable results database ({error})") from None
+
+    def _add_new_columns(self) -> None:
+        have = {row[1] for row in self._db.execute("PRAGMA table_info(episodes)")}
+        for name, kind in _ADDED_COLUMNS.items():
+            if name not in have:
+                self._db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {kind}")
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> ResultStore:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    # -- matrix facts (name, source text, ...) --
+
+    def set_fact(self, key: str, value: Any) -> None:
+        self._db.execute("INSERT OR REPLACE INTO matrix (key, value) VALUES (?, ?)", (key, json.dumps(value)))
+
+    def fact(self, key: str, default: Any = None) -> Any:
+        row = self._db.execute("SELECT value FROM matrix WHERE key = ?", (key,)).fetchone()
+        return json.loads(row[0]) if row else default
+
+    # -- episodes --
+
+    def record(self, result: EpisodeResult) -> None:
+        """Store (or replace) one finished episode; committed before this returns."""
+        self._db.execute(
+            f"INSERT OR REPLACE INTO episodes ({_COLUMNS}) VALUES ({', '.join('?' * 21)})",
+            (
+                result.key,
+                result.index,
+                result.brain,
+                result.circuit,
+                result.variation,
+                result.perturbation,
+                result.repetition,
+                codec.to_json(result.spec),
+                json.dumps(result.brain_entry),
+                result.status,
+                result.reason,
+                result.failure,
+                codec.to_json(result.score) if result.score is not None else None,
+                result.run_id,
+                result.started_at,
+                result.ended_at,
+                result.recording,
+                result.trajectory,
+                result.logs,
+                result.node,
+                json.dumps(list(result.lost_attempts)) if result.lost_attempts else None,
+            ),
+        )
+
+    def finished_keys(self, *, include_failed: bool = True) -> set[str]:
+        query = "SELECT key FROM episodes" + ("" if include_failed else " WHERE status = 'done'")
+        return {row[0] for row in self._db.execute(query)}
+
+    def results(self) -> list[EpisodeResult]:
+        """Every stored episode, in matrix order."""
+        rows = self._db.execute(f"SELECT {_COLUMNS} FROM episodes ORDER BY idx").fetchall()
+        return [self._result(row) for row in rows]
+
+    def _result(self, row: tuple) -> EpisodeResult:
+        (
+            key,
+            index,
+            brain,
+            circuit,
+            variation,
+            perturbation,
+            repetition,
+            spec_json,
+            brain_json,
+            status,
+            reason,
+            failure,
+            score_json,
+            run_id,
+            started_at,
+            ended_at,
+            recording,
+            trajectory,
+            logs,
+            node,
+            lost_attempts,
+        ) = row
+        try:
+            spec = _from_json(spec_json, EpisodeSpec)
+            score = _from_json(score_json, EpisodeScore) if score_json else None
+        except ValueError as error:
+            raise ResultsError(f"{self.path}: episode {key!r} is damaged ({error})") from None
+        return EpisodeResult(
+            key=key,
+            index=index,
+            brain=brain,
+            circuit=circuit,
+            variation=variation,
+            perturbation=perturbation,
+            repetition=repetition,
+            spec=spec,
+            brain_entry=json.loads(brain_json),
+            status=status,
+            run_id=run_id,
+            started_at=started_at,
+            ended_at=ended_at,
+            reason=reason,
+            failure=failure,
+            score=score,
+            recording=recording,
+            trajectory=trajectory,
+            logs=logs,
+            node=node,
+            lost_attempts=tuple(json.loads(lost_attempts)) if lost_attempts else (),
+        )
+
+
+def _from_json(text: str, message_type: type):
+    import msgspec
+
+    try:
+        return msgspec.json.decode(text, type=message_type)
+    except (msgspec.DecodeError, msgspec.ValidationError) as error:
+        raise ValueError(str(error)) from None

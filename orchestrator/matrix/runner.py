@@ -1,0 +1,491 @@
+"""Runs a test matrix: every planned episode on its own stack, N at a time on one router, results into SQLite.
+
+Each episode gets a fresh stack (simulator, noise injector, scorer, its brain and any shadow brains, optionally a
+recorder) under its own run id, so episodes of different brains run side by side on one router without
+cross-talk, and a process that dies takes down only its own episode: the next episode starts on fresh processes.
+Each finished episode is committed to ``results.sqlite`` at once (see :mod:`orchestrator.matrix.results`); ``resume``
+runs only the episodes the database does not hold.
+
+Folder layout of a matrix run::
+
+    DIR/results.sqlite                   one row per finished episode
+    DIR/matrix.yaml                      the matrix file as run
+    DIR/episodes/<index>/                one folder per episode: config.yaml, score.json, logs/, trajectory.npz,
+                                         recording.mcap (with --record)
+    DIR/report.html, report.md, ...      written at the end (``drivebench report DIR`` writes them again)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import shutil
+import socket
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import yaml
+
+from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
+from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
+from orchestrator.stack.launcher import (
+    BrainLaunch,
+    EpisodeAborted,
+    LocalStack,
+    StackError,
+    StackFailure,
+    free_loopback_port,
+)
+from protocol import codec, keys
+from protocol.bus import Bus, BusConfig, Inbox
+from protocol.messages import EndReason, EpisodeScore, LiveMetrics, Pose
+
+log = logging.getLogger("drivebench.matrix")
+
+# An episode's wall-clock guard: this many wall seconds per simulated second, plus start-up slack. Lock-step runs
+# far faster than real time here (RTF 2-5x); 10x slower than real time means the stack is stuck, not slow.
+WALL_SECONDS_PER_SIM_SECOND = 10.0
+WALL_SLACK_S = 120.0
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run a matrix.
+
+    workers: episodes run at the same time (each on its own stack; about one core each).
+    record: record every episode to ``episodes/<index>/recording.mcap``.
+    record_images: "raw" (lossless) or "jpeg" camera images in recordings.
+    resume: skip episodes the results database already holds (``retry_failed``: except failed ones).
+    startup_timeout_s: per stack, how long its processes may take to come up.
+    facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
+    """
+
+    workers: int = 1
+    record: bool = False
+    record_images: str = "jpeg"
+    resume: bool = False
+    retry_failed: bool = False
+    startup_timeout_s: float = 90.0
+    facts: dict = field(default_factory=dict)
+
+
+@dataclass
+class WorkerState:
+    """What one worker is doing now, for the progress display."""
+
+    episode: PlannedEpisode | None = None
+    live: LiveMetrics | None = None
+
+
+@dataclass
+class MatrixProgress:
+    """Counts shared between the workers and the display."""
+
+    total: int
+    skipped: int = 0
+    done: int = 0
+    failed: int = 0
+    workers: list[WorkerState] = field(default_factory=list)
+    finished: list[EpisodeResult] = field(default_factory=list)  # in the order they ended, this session
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def running(self) -> int:
+        return sum(1 for worker in self.workers if worker.episode is not None)
+
+
+class MatrixRunner:
+    """Runs the planned episodes of one matrix into one output folder. ``run()`` returns the finished count."""
+
+    def __init__(
+        self,
+        matrix: Matrix,
+        out_dir: Path,
+        options: RunOptions,
+        *,
+        on_change: Callable[[MatrixProgress], None] | None = None,
+    ):
+        self.matrix = matrix
+        self.out_dir = Path(out_dir)
+        self.options = options
+        self._on_change = on_change or (lambda progress: None)
+        self._stopping = threading.Event()
+        self._store_lock = threading.Lock()
+
+    def pending(self, store: ResultStore) -> list[PlannedEpisode]:
+        if not self.options.resume:
+            return list(self.matrix.episodes)
+        finished = store.finished_keys(include_failed=not self.options.retry_failed)
+        return [episode for episode in self.matrix.episodes if episode.key not in finished]
+
+    def stop(self) -> None:
+        """Abandon running episodes (they stay missing, so ``--resume`` runs them) and start no more."""
+        self._stopping.set()
+
+    def run(self) -> MatrixProgress:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        store = ResultStore(self.out_dir)
+        self._check_same_matrix(store)
+        todo = self.pending(store)
+        progress = MatrixProgress(
+            total=len(self.matrix.episodes),
+            skipped=len(self.matrix.episodes) - len(todo),
+            workers=[WorkerState() for _ in range(self._lanes())],
+        )
+        try:
+            self._dispatch(todo, store, progress)
+        finally:
+            store.close()
+        self._on_change(progress)
+        return progress
+
+    def _lanes(self) -> int:
+        """How many episodes run at once (one progress lane each)."""
+        return max(1, self.options.workers)
+
+    def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
+        """Run ``todo``, each result through :meth:`_finish`, calling ``on_change`` as it goes. Here: worker threads
+        on this machine; :mod:`orchestrator.matrix.ray_runner` runs them as tasks on a Ray cluster instead."""
+        jobs: queue.Queue[PlannedEpisode] = queue.Queue()
+        for episode in todo:
+            jobs.put(episode)
+        # One router for the whole matrix, embedded here; every episode's processes connect to it.
+        router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
+        endpoint = router.config.listen[0]
+        threads = [
+            threading.Thread(
+                target=self._work, args=(jobs, store, progress, state, endpoint), name=f"matrix-worker-{i}", daemon=True
+            )
+            for i, state in enumerate(progress.workers)
+        ]
+        try:
+            for thread in threads:
+                thread.start()
+            while any(thread.is_alive() for thread in threads):
+                self._on_change(progress)
+                for thread in threads:
+                    thread.join(timeout=0.25)
+        except BaseException:
+            self.stop()  # Ctrl-C, SIGTERM: every worker abandons its episode and closes its stack
+            for thread in threads:
+                thread.join()
+            raise
+        finally:
+            router.close()
+
+    def _check_same_matrix(self, store: ResultStore) -> None:
+        previous = store.fact("source_text")
+        if previous is not None and previous != self.matrix.text:
+            log.warning(
+                "%s holds results of a different version of the matrix file; episodes are matched by key", store.path
+            )
+        store.set_fact("name", self.matrix.name)
+        store.set_fact("source_text", self.matrix.text)
+        store.set_fact("variation_keys", list(self.matrix.variation_keys))
+        # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
+        store.set_fact(BASELINE_FACT, self.matrix.episodes[0].variation if self.matrix.episodes else None)
+        store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
+        for key, value in self.options.facts.items():
+            store.set_fact(key, value)
+        if store.fact("created_at") is None:
+            store.set_fact("created_at", time.time())
+        (self.out_dir / "matrix.yaml").write_text(self.matrix.text)
+
+    # -- one worker: episodes one after another --
+
+    def _work(
+        self, jobs: queue.Queue, store: ResultStore, progress: MatrixProgress, state: WorkerState, endpoint: str
+    ) -> None:
+        while not self._stopping.is_set():
+            try:
+                episode = jobs.get_nowait()
+            except queue.Empty:
+                return
+            with progress.lock:
+                state.episode, state.live = episode, None
+            result = self._run_one(episode, endpoint, state)
+            with progress.lock:
+                state.episode, state.live = None, None
+            if result is None:  # abandoned: not a result
+                return
+            self._finish(result, store, progress)
+
+    def _finish(self, result: EpisodeResult, store: ResultStore, progress: MatrixProgress) -> None:
+        """One finished episode: committed to the results, then counted."""
+        with self._store_lock:
+            store.record(result)
+        with progress.lock:
+            progress.finished.append(result)
+            if result.status == "done":
+                progress.done += 1
+            else:
+                progress.failed += 1
+
+    def _run_one(self, episode: PlannedEpisode, endpoint: str, state: WorkerState) -> EpisodeResult | None:
+        folder = self._episode_folder(episode)
+        run_id = f"m{episode.index:04d}-{uuid.uuid4().hex[:6]}"
+        started_at = time.time()
+        trace = Trace()
+        outcome: dict = {"status": "done", "score": None, "failure": None}
+        stack = self._make_stack(
+            run_id=run_id,
+            run_dir=folder,
+            brains=self._launches(episode),
+            router_endpoint=endpoint,
+            startup_timeout_s=self.options.startup_timeout_s,
+            record=folder / "recording.mcap" if self.options.record else None,
+            record_options=(f"image_format={self.options.record_images}",),
+        )
+        self._write_config(folder, episode, run_id)
+        try:
+            stack.start()
+            trace.attach(stack)
+            outcome["score"] = stack.run_episode(
+                episode.spec,
+                on_live=lambda live: self._on_live(state, trace, live),
+                abort=self._stopping.is_set,
+                wall_timeout_s=episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S,
+            )
+            if outcome["score"].reason == EndReason.BRAIN_LOST:  # scored, but the stack failed it
+                detail = stack.dead_child_reason() or "the active brain lost its liveliness token"
+                outcome.update(status="failed", failure=f"brain_died: {detail}")
+        except EpisodeAborted:
+            return None
+        except StackFailure as failure:
+            outcome.update(status="failed", failure=f"{failure.kind}: {failure}", score=failure.score)
+        except StackError as error:
+            outcome.update(status="failed", failure=f"start_failed: {error}")
+        except Exception as error:  # noqa: BLE001 - one broken episode must not end the matrix
+            log.exception("episode %s", episode.key)
+            outcome.update(status="failed", failure=f"error: {type(error).__name__}: {error}")
+        finally:
+            stack.close()
+        if stack.recording_failure is not None:  # scored all the same; the recording beside it is incomplete
+            (folder / "recording_failure.json").write_text(
+                json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n"
+            )
+        if self._stopping.is_set() and outcome["status"] == "failed":
+            return None  # its processes were stopped under it: run it again on resume
+        score: EpisodeScore | None = outcome["score"]
+        if score is not None:
+            (folder / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
+        trajectory = trace.save(folder / "trajectory.npz")
+        recording = folder / "recording.mcap"
+        return EpisodeResult.of(
+            episode,
+            status=outcome["status"],
+            run_id=run_id,
+            started_at=started_at,
+            ended_at=time.time(),
+            reason=str(score.reason) if score is not None else None,
+            failure=outcome["failure"],
+            score=score,
+            recording=self._relative(recording) if recording.is_file() else None,
+            trajectory=self._relative(trajectory),
+            logs=self._relative(folder / "logs"),
+            node=self._node_name(),
+        )
+
+    def _make_stack(self, **settings) -> LocalStack:
+        """The stack of one episode (a hook: a Ray task puts its processes in one process group)."""
+        return LocalStack(**settings)
+
+    def _node_name(self) -> str:
+        """Where episodes run, for the results (a hook: Ray tasks name their cluster node)."""
+        return socket.gethostname()
+
+    def _episode_folder(self, episode: PlannedEpisode) -> Path:
+        folder = self.out_dir / "episodes" / f"{episode.index:04d}"
+        if folder.exists():  # an attempt that never finished (killed or abandoned): not a result, start over
+            shutil.rmtree(folder)
+        (folder / "logs").mkdir(parents=True)
+        return folder
+
+    def _launches(self, episode: PlannedEpisode) -> list[BrainLaunch]:
+        return [brain_launch(episode.brain), *(brain_launch(shadow) for shadow in self.matrix.shadows)]
+
+    def _write_config(self, folder: Path, episode: PlannedEpisode, run_id: str) -> None:
+        (folder / "config.yaml").write_text(
+            yaml.safe_dump(
+                {
+                    "run_id": run_id,
+                    "matrix": self.matrix.name,
+                    "key": episode.key,
+                    "episode": msgspec.to_builtins(episode.spec),
+                    "brains": [entry.to_dict() for entry in (episode.brain, *self.matrix.shadows)],
+                },
+                sort_keys=False,
+                default_flow_style=None,
+            )
+        )
+
+    @staticmethod
+    def _on_live(state: WorkerState, trace: Trace, live: LiveMetrics) -> None:
+        state.live = live
+        trace.add_live(live)
+
+    def _relative(self, path: Path) -> str:
+        return str(path.relative_to(self.out_dir))
+
+
+def brain_launch(entry: BrainEntry) -> BrainLaunch:
+    """The brain host launch of one matrix brain entry (its label is its bus name)."""
+    return BrainLaunch(entry.brain, name=entry.label, options=entry.launch_options())
+
+
+class Trace:
+    """An episode's ground-truth poses and live metrics, as received, for trajectory plots and progress curves."""
+
+    def __init__(self) -> None:
+        self._poses = Inbox()
+        self._live: list[tuple[float, float, float]] = []
+        self._subscription = None
+
+    def attach(self, stack: LocalStack) -> None:
+        assert stack.bus is not None
+        self._subscription = stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=self._poses)
+
+    def add_live(self, live: LiveMetrics) -> None:
+        self._live.append((live.sim_time_s, live.progress_laps, live.cross_track_m))
+
+    def save(self, path: Path) -> Path:
+        poses = sorted({p.message.header.seq: p.message for p in self._poses.drain()}.items())
+        rows = np.array(
+            [(pose.header.stamp_ns / 1e9, pose.x_m, pose.y_m, pose.yaw_rad, pose.speed_mps) for _, pose in poses],
+            dtype=np.float64,
+        ).reshape(-1, 5)
+        live = np.array(self._live, dtype=np.float64).reshape(-1, 3)
+        np.savez_compressed(
+            path,
+            stamp_s=rows[:, 0],
+            x_m=rows[:, 1],
+            y_m=rows[:, 2],
+            yaw_rad=rows[:, 3],
+            speed_mps=rows[:, 4],
+            live_sim_time_s=live[:, 0],
+            live_progress_laps=live[:, 1],
+            live_cross_track_m=live[:, 2],
+        )
+        return path
+
+
+class ProgressDisplay:
+    """Progress on stderr: one line per finished episode, and on a terminal live bars: episodes done / running /
+    failed with an ETA, and each worker's lap progress.
+
+    The bars are made on the first update, when the number of episodes a resume skips is known (the ETA counts
+    only the episodes run in this session).
+    """
+
+    def __init__(self, *, enabled: bool = True):
+        self._enabled = enabled
+        self._tty = sys.stderr.isatty()
+        self._main = None
+        self._lanes: list = []
+        self._reported = 0
+
+    def _make(self, progress: MatrixProgress) -> None:
+        from tqdm import tqdm
+
+        bars = self._enabled and self._tty
+        self._main = tqdm(
+            total=progress.total,
+            initial=progress.skipped,
+            unit="episode",
+            file=sys.stderr,
+            disable=not bars,
+            dynamic_ncols=True,
+            smoothing=0.0,
+            desc="matrix",
+        )
+        self._lanes = [
+            tqdm(
+                total=100,
+                file=sys.stderr,
+                position=i + 1,
+                leave=False,
+                dynamic_ncols=True,
+                disable=not bars,
+                bar_format="  {desc} {percentage:3.0f}%|{bar}|",
+            )
+            for i in range(len(progress.workers))
+        ]
+
+    def update(self, progress: MatrixProgress) -> None:
+        if self._main is None:
+            self._make(progress)
+        with progress.lock:
+            finished = progress.skipped + progress.done + progress.failed
+            new_results = progress.finished[self._reported :]
+            self._reported = len(progress.finished)
+            lanes = [(worker.episode, worker.live) for worker in progress.workers]
+            counts = f"done {progress.done}, running {progress.running}, failed {progress.failed}" + (
+                f", resumed past {progress.skipped}" if progress.skipped else ""
+            )
+        for number, result in enumerate(new_results, start=finished - len(new_results) + 1):
+            if self._enabled:
+                self._main.write(f"[{number}/{progress.total}] {_result_line(result)}", file=sys.stderr)
+        self._main.update(finished - self._main.n)
+        self._main.set_postfix_str(counts, refresh=False)
+        self._main.refresh()
+        for lane, (episode, live) in zip(self._lanes, lanes):
+            lane.n = 0 if episode is None else self._lap_percent(live)
+            lane.set_description_str("idle" if episode is None else self._lane_text(episode, live), refresh=False)
+            lane.refresh()
+
+    @staticmethod
+    def _lap_percent(live: LiveMetrics | None) -> int:
+        if live is None:
+            return 0
+        return min(100, round(100 * live.progress_laps / max(1, live.laps_target)))
+
+    @staticmethod
+    def _lane_text(episode: PlannedEpisode, live: LiveMetrics | None) -> str:
+        status = f"sim {live.sim_time_s:5.1f} s" if live is not None else "starting"
+        return f"{episode.key[:60]:<60} {status}"
+
+    def close(self) -> None:
+        for lane in self._lanes:
+            lane.close()
+        if self._main is not None:
+            self._main.close()
+
+
+def _result_line(result: EpisodeResult) -> str:
+    """``explicit/simple/default/none/r0: laps_completed, lap 57.9 s (21.3 s wall)`` or the failure."""
+    wall = f"({result.wall_s:.1f} s wall)"
+    if result.status == "failed":
+        return f"{result.key}: FAILED {result.failure} {wall}"
+    metrics = result.score.metrics
+    lap = f", lap {metrics.lap_times_s[0]:.2f} s" if metrics.lap_times_s else ""
+    return (
+        f"{result.key}: {result.reason}{lap}, {metrics.percentage_completed:.0f} % of a lap in "
+        f"{metrics.sim_time_s:.1f} s sim {wall}"
+    )
+
+
+def summary_line(progress: MatrixProgress, out_dir: Path) -> str:
+    ran = progress.done + progress.failed
+    return (
+        f"{ran} episode(s) run ({progress.done} done, {progress.failed} failed)"
+        + (f", {progress.skipped} already in the results" if progress.skipped else "")
+        + f"; results in {out_dir / 'results.sqlite'}"
+    )
+
+
+def plan_table(matrix: Matrix) -> str:
+    """The planned episodes, one per line (``drivebench matrix FILE --plan``)."""
+    lines = [f"{matrix.name}: {len(matrix.episodes)} episode(s)"]
+    lines += [f"{episode.index:4d}  {episode.key}  seed {episode.spec.seed}" for episode in matrix.episodes]
+    return "\n".join(lines)
+
+
+__all__ = ["MatrixRunner", "RunOptions", "MatrixProgress", "ProgressDisplay", "summary_line", "plan_table"]

@@ -1,0 +1,1 @@
+"""Reports: matrix reports (tables, cells, plots, trajectories), the paper's tables, one episode's report."""

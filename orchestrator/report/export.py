@@ -1,0 +1,71 @@
+"""A matrix's episodes as a flat table (one row per episode: its coordinates, outcome and metrics) for CSV and, where
+pyarrow is installed, Parquet: what people load into pandas or a spreadsheet."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from orchestrator.matrix.results import EpisodeResult
+from protocol.messages import EpisodeMetrics
+
+METRIC_FIELDS: tuple[str, ...] = EpisodeMetrics.__struct_fields__
+
+
+def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
+    """One flat dict per episode: conditions, status, timings, every scalar of EpisodeMetrics, files."""
+    rows = []
+    for r in results:
+        row: dict[str, Any] = {
+            "key": r.key,
+            "brain": r.brain,
+            "circuit": r.circuit,
+            "variation": r.variation,
+            "perturbation": r.perturbation,
+            "repetition": r.repetition,
+            "seed": r.spec.seed,
+            "laps_target": r.spec.laps,
+            "status": r.status,
+            "reason": r.reason or "",
+            "failure": r.failure or "",
+            "wall_s": round(r.wall_s, 3),
+        }
+        metrics = r.score.metrics if r.score is not None else None
+        for name in METRIC_FIELDS:
+            value = getattr(metrics, name) if metrics is not None else None
+            if name == "lap_times_s":
+                value = ";".join(repr(float(v)) for v in value) if value else ""
+            row[name] = "" if value is None else value
+        row.update(
+            {
+                "recording": r.recording or "",
+                "trajectory": r.trajectory or "",
+                "logs": r.logs or "",
+                "node": r.node or "",
+                "lost_attempts": len(r.lost_attempts),
+            }
+        )
+        rows.append(row)
+    return rows
+
+
+def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_parquet(rows: list[dict[str, Any]], path: Path) -> Path | None:
+    if importlib.util.find_spec("pyarrow") is None:
+        return None
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    # Empty strings of unscored episodes become nulls, so numeric columns keep a numeric type.
+    columns = {name: [None if row[name] == "" else row[name] for row in rows] for name in rows[0]}
+    pq.write_table(pa.table(columns), path)
+    return path

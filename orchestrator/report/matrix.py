@@ -1,0 +1,559 @@
+"""The report of a whole matrix: the paper's tables, plots and a per-episode CSV, from an output folder's results.
+
+    drivebench report OUT [-o OTHER_FOLDER]
+
+reads ``OUT/results.sqlite`` (:mod:`orchestrator.matrix.results`) and writes, into ``OUT`` (or ``-o``):
+
+    report.html      one self-contained file: inline CSS, plots embedded as base64 PNG, no external reference
+    report.md        the same tables; the plots as relative links into plots/
+    episodes.csv     one row per episode: its conditions, status, and every scalar of EpisodeMetrics
+    episodes.parquet the same, only when pyarrow is installed
+    plots/*.png      trajectories on the circuit (coloured by speed, and by cross-track error), lap-time and
+                     position-deviation box plots per brain, lap progress over simulated time
+
+Tables (Markdown and HTML carry the same ones):
+
+1. the matrix: name, episodes done / failed / total, wall time, date;
+2. the paper's main table for the *baseline* condition (no perturbation, the first value of every variation
+   axis): per brain and circuit, mean ± sample std over repetitions of the BM lap seconds (episodes that completed
+   the lap only), BM position deviation (mean of 1000^d, not metres), cross-track error mean and max (m), average
+   speed, BM percentage completed, laps completed, and what ended the others;
+3. generalisation: brain x world variation (no perturbation): the mean lap time when every repetition reached its
+   lap target, else ``✗ <most common reason> k/n``;
+4. robustness: brain x camera perturbation (baseline variation), the same cell plus the mean BM percentage;
+5. internal metrics of trained brains, from their checkpoints (validation MAE / MSE), when torch is installed;
+6. brain switches and shadow brains, when scores carry them;
+7. stack failures (with their log folders) and episodes that ended before their lap target.
+
+Everything is pure (no bus): it can run on a copy of an output folder on any machine.
+
+The report's parts have modules of their own: the document model and its Markdown / HTML rendering
+(:mod:`orchestrator.report.document`), the cells' statistics and formatting (:mod:`orchestrator.report.cells`),
+trajectory files and circuit drawings (:mod:`orchestrator.report.trajectories`) and the plots
+(:mod:`orchestrator.report.plots`). This module keeps the report itself: its data, tables, episode rows and command.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchestrator.matrix.results import BASELINE_FACT, DATABASE_NAME, EpisodeResult, ResultStore
+from orchestrator.report.cells import (
+    _brief,
+    _date,
+    _duration,
+    _failure_summary,
+    _opt,
+    _ordered,
+    _scored,
+    baseline_variation,
+    grid_cell,
+    lap_seconds,
+    mean_std,
+    outcome,
+    reached_target,
+)
+from orchestrator.report.document import FAIL_MARK, Section, Table, render_html, render_markdown
+from orchestrator.report.export import episode_rows, write_csv, write_parquet
+from orchestrator.report.plots import ReportPlots
+from orchestrator.report.trajectories import _Track, load_trajectory
+
+__all__ = [
+    # this module's own
+    "BASELINE_FACT",
+    "CSV_FILE",
+    "HTML_FILE",
+    "MARKDOWN_FILE",
+    "NO_PERTURBATION",
+    "PAPER_FACT",
+    "PAPER_MARKDOWN",
+    "PARQUET_FILE",
+    "PLOTS_DIR",
+    "ReportError",
+    "ReportFiles",
+    "episode_rows",
+    "write_report",
+    # re-exported from the modules they moved to, for code that imported them from here
+    "FAIL_MARK",
+    "Section",
+    "Table",
+    "baseline_variation",
+    "grid_cell",
+    "lap_seconds",
+    "mean_std",
+    "outcome",
+    "reached_target",
+]
+
+HTML_FILE, MARKDOWN_FILE, CSV_FILE, PARQUET_FILE, PLOTS_DIR = (
+    "report.html",
+    "report.md",
+    "episodes.csv",
+    "episodes.parquet",
+    "plots",
+)
+
+NO_PERTURBATION = "none"
+COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns become one table
+MAX_EARLY_ROWS = 200  # rows of the "ended early" list
+PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
+PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
+
+# Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').
+
+
+class ReportError(RuntimeError):
+    """The report cannot be made (no results database, an empty one, ...); one line that names the path."""
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    """What :func:`write_report` wrote."""
+
+    html: Path
+    markdown: Path
+    csv: Path
+    plots: tuple[Path, ...]
+    parquet: Path | None = None
+    paper: Path | None = None  # paper.md, for a drivebench paper run
+
+
+# -- the report -----------------------------------------------------------------------------------------------------
+
+
+class _Report(ReportPlots):
+    def __init__(self, folder: Path, output: Path):
+        self.folder = folder
+        self.output = output
+        self.plots_dir = output / PLOTS_DIR
+        database = folder / DATABASE_NAME
+        if not folder.is_dir():
+            raise ReportError(f"{folder}: no such folder")
+        if not database.is_file():
+            raise ReportError(f"{database}: no results database (run `drivebench matrix FILE -o {folder}` first)")
+        store = ResultStore(folder, create=False)
+        try:
+            self.results = store.results()
+            self.name = store.fact("name") or folder.resolve().name
+            self.source_text = store.fact("source_text")
+            self.planned_baseline = store.fact(BASELINE_FACT)
+            self.variation_keys = store.fact("variation_keys") or []
+            self.created_at = store.fact("created_at")
+            self.is_paper = bool(store.fact(PAPER_FACT))
+        finally:
+            store.close()
+        if not self.results:
+            raise ReportError(f"{database}: no episodes recorded yet (an empty matrix, or one that has not run)")
+        self.brains = _ordered(r.brain for r in self.results)
+        self.circuits = _ordered(r.circuit for r in self.results)
+        self.variations = _ordered(r.variation for r in self.results)
+        perturbations = _ordered(r.perturbation for r in self.results)
+        self.perturbations = ([NO_PERTURBATION] if NO_PERTURBATION in perturbations else []) + [
+            p for p in perturbations if p != NO_PERTURBATION
+        ]
+        self.baseline_variation = baseline_variation(self.results, self.planned_baseline)
+        self.notes: list[str] = []  # problems met while drawing (missing trajectories, unknown circuits)
+        self._tracks: dict[str, _Track | None] = {}
+        self._trajectories: dict[str, dict[str, np.ndarray] | None] = {}
+        self.plots: list[Path] = []
+
+    # -- data access --
+
+    def track(self, circuit: str) -> _Track | None:
+        if circuit not in self._tracks:
+            from circuits import CircuitError, load_circuit
+
+            try:
+                self._tracks[circuit] = _Track(load_circuit(circuit))
+            except (CircuitError, ValueError, OSError) as error:
+                self.notes.append(f"circuit {circuit!r} not drawn: {error}")
+                self._tracks[circuit] = None
+        return self._tracks[circuit]
+
+    def trajectory(self, result: EpisodeResult) -> dict[str, np.ndarray] | None:
+        if result.key not in self._trajectories:
+            self._trajectories[result.key] = load_trajectory(self.folder, result.trajectory)
+        return self._trajectories[result.key]
+
+    def baseline(self) -> tuple[list[EpisodeResult], str]:
+        """Episodes of the baseline condition and a sentence saying what it is."""
+        chosen = [
+            r for r in self.results if r.perturbation == NO_PERTURBATION and r.variation == self.baseline_variation
+        ]
+        if chosen:
+            return chosen, (
+                f"Baseline condition: variation `{self.baseline_variation}`, perturbation `{NO_PERTURBATION}`."
+            )
+        return list(self.results), (
+            "The matrix has no episode in the baseline condition (first variation, no "
+            "perturbation): every episode is pooled."
+        )
+
+    # -- sections --
+
+    @functools.cached_property
+    def paper_sections(self) -> list[Section]:
+        """The paper's six tables, ours beside its figures, when ``drivebench paper`` ran this folder (built once:
+        they read every checkpoint)."""
+        if not self.is_paper:
+            return []
+        from orchestrator.report.paper import paper_sections
+
+        return paper_sections(self.results, self.folder)
+
+    def header(self) -> Section:
+        done = sum(r.status == "done" for r in self.results)
+        failed = sum(r.status == "failed" for r in self.results)
+        reached = sum(reached_target(r) for r in self.results)
+        start = min(r.started_at for r in self.results)
+        end = max(r.ended_at for r in self.results)
+        episode_wall = sum(max(0.0, r.wall_s) for r in self.results)
+        rows = [
+            ["matrix", self.name],
+            [
+                "episodes",
+                f"{len(self.results)} recorded: {done} done, {failed} failed (stack); "
+                f"{reached} reached their lap target",
+            ],
+            ["brains", ", ".join(self.brains)],
+            ["circuits", ", ".join(self.circuits)],
+            [
+                "variations",
+                ", ".join(self.variations)
+                + (
+                    f" (axes: {', '.join(map(str, self.variation_keys))}; baseline `{self.baseline_variation}`)"
+                    if self.variation_keys
+                    else f" (baseline `{self.baseline_variation}`)"
+                ),
+            ],
+            ["perturbations", ", ".join(self.perturbations)],
+            [
+                "wall time",
+                f"{_duration(end - start)} from first start to last end ({_duration(episode_wall)} of episodes)",
+            ],
+            ["date", f"{_date(self.created_at) or _date(start)} (matrix created); ran {_date(start)} – {_date(end)}"],
+            ["report", f"{time.strftime('%Y-%m-%d %H:%M:%S')} from `{self.folder / DATABASE_NAME}`"],
+        ]
+        return Section(f"Matrix {self.name}", [Table(["", ""], rows)])
+
+    def main_table(self) -> Section:
+        episodes, sentence = self.baseline()
+        columns = [
+            "Brain",
+            "Circuit",
+            "Episodes",
+            "Lap (s)",
+            "Position deviation (BM)",
+            "Cross-track mean (m)",
+            "Cross-track max (m)",
+            "Avg speed (m/s)",
+            "Completed (%)",
+            "Laps",
+            "Did not finish",
+        ]
+        rows = []
+        for brain in self.brains:
+            for circuit in self.circuits:
+                group = [r for r in episodes if r.brain == brain and r.circuit == circuit]
+                if not group:
+                    continue
+                scored = _scored(group)
+                metrics = [r.score.metrics for r in scored]
+                laps_done = sum(min(m.completed_laps, r.spec.laps) for r, m in zip(scored, metrics))
+                rows.append(
+                    [
+                        brain,
+                        circuit,
+                        str(len(group)),
+                        mean_std([t for t in (lap_seconds(r) for r in scored) if t is not None], 2),
+                        mean_std([m.position_deviation_mae for m in metrics], 2),
+                        mean_std([m.cross_track_mean_m for m in metrics], 3),
+                        mean_std([m.cross_track_max_m for m in metrics], 3),
+                        mean_std([m.average_speed_mps for m in metrics], 2),
+                        mean_std([m.percentage_completed for m in metrics], 1),
+                        f"{laps_done}/{sum(r.spec.laps for r in group)}",
+                        _failure_summary(group),
+                    ]
+                )
+        legend = (
+            "Each figure is mean ± sample standard deviation over the repetitions (the mean alone for one). "
+            "Lap (s): BM lap seconds (first lap), over the episodes that completed it only. Position deviation: "
+            "Behavior Metrics' `position_deviation_mae`, the mean of 1000^d over the circuit's checkpoints, d being "
+            "a checkpoint's distance in metres to the car's path (1: on it, 2: 0.1 m off, 31.6: 0.5 m off, 1000: "
+            "1 m off); not metres. Cross-track: |distance| of the car to the centre line, in metres. Completed: BM "
+            "percentage completed (above 100 = lap completed). Laps: laps completed / laps targeted, summed over "
+            "the episodes. Did not finish: how the episodes that fell short of their lap target ended (end reason, "
+            "or the stack failure's kind); stack failures are "
+            "left out of every figure."
+        )
+        return Section(
+            "Main table (baseline condition)",
+            [sentence, Table(columns, rows, numeric=[False, False] + [True] * 8 + [False]), legend],
+        )
+
+    def _grid(
+        self, episodes: Sequence[EpisodeResult], conditions: Sequence[str], attribute: str, *, with_completion: bool
+    ) -> list[Table]:
+        circuits = [c for c in self.circuits if any(r.circuit == c for r in episodes)]
+        present = [v for v in conditions if any(getattr(r, attribute) == v for r in episodes)]
+
+        def cell(brain: str, circuit: str, condition: str) -> str:
+            return grid_cell(
+                [
+                    r
+                    for r in episodes
+                    if r.brain == brain and r.circuit == circuit and getattr(r, attribute) == condition
+                ],
+                with_completion=with_completion,
+            )
+
+        if len(circuits) * len(present) <= COMBINED_COLUMNS or len(circuits) == 1:
+            if len(circuits) == 1:
+                columns = ["Brain", *present]
+            else:
+                columns = ["Brain", *(f"{c} · {v}" for c in circuits for v in present)]
+            rows = [[brain, *(cell(brain, c, v) for c in circuits for v in present)] for brain in self.brains]
+            caption = f"circuit {circuits[0]}" if len(circuits) == 1 else ""
+            return [Table(columns, rows, numeric=[False] + [True] * (len(columns) - 1), caption=caption)]
+        return [
+            Table(
+                ["Brain", *present],
+                [[brain, *(cell(brain, c, v) for v in present)] for brain in self.brains],
+                numeric=[False] + [True] * len(present),
+                caption=f"circuit {c}",
+            )
+            for c in circuits
+        ]
+
+    def generalisation(self) -> Section:
+        section = Section("Generalisation (world variations)")
+        if len(self.variations) < 2:
+            section.blocks.append(f"One world variation only (`{self.variations[0]}`): see the main table.")
+            return section
+        episodes = [r for r in self.results if r.perturbation == NO_PERTURBATION]
+        if episodes:
+            section.blocks.append(f"Episodes without camera perturbation (`{NO_PERTURBATION}`), per world variation.")
+        else:
+            episodes = list(self.results)
+            section.blocks.append("The matrix has no unperturbed episode: every perturbation is pooled.")
+        section.blocks.extend(self._grid(episodes, self.variations, "variation", with_completion=False))
+        section.blocks.append(_CELL_LEGEND)
+        return section
+
+    def robustness(self) -> Section:
+        section = Section("Robustness (camera perturbations)")
+        if len(self.perturbations) < 2:
+            section.blocks.append(f"One perturbation only (`{self.perturbations[0]}`): see the main table.")
+            return section
+        episodes = [r for r in self.results if r.variation == self.baseline_variation]
+        section.blocks.append(f"Episodes in the baseline variation (`{self.baseline_variation}`), per perturbation.")
+        section.blocks.extend(self._grid(episodes, self.perturbations, "perturbation", with_completion=True))
+        section.blocks.append(_CELL_LEGEND + " After the dot: mean BM percentage completed of the scored episodes.")
+        return section
+
+    def internal_metrics(self) -> Section | None:
+        entries: dict[str, dict[str, Any]] = {}
+        for r in self.results:
+            if r.brain_entry.get("weights") and r.brain not in entries:
+                entries[r.brain] = r.brain_entry
+        if not entries:
+            return None
+        section = Section("Internal metrics (offline, from training)")
+        if importlib.util.find_spec("torch") is None:
+            section.blocks.append(
+                "torch is not installed: the checkpoints' training metrics are not read (`pip install drivebench[ml]`)."
+            )
+            return section
+        from brains.neural.checkpoint import CheckpointError, read_checkpoint
+
+        rows, notes = [], []
+        for brain, entry in entries.items():
+            path = self._weights_path(str(entry["weights"]))
+            try:
+                checkpoint = read_checkpoint(path)
+            except CheckpointError as error:
+                notes.append(f"{brain}: skipped: {error}")
+                continue
+            except Exception as error:  # never let one unreadable file stop the report
+                notes.append(f"{brain}: skipped: {path}: {type(error).__name__}: {error}")
+                continue
+            metrics = checkpoint.get("metrics") or {}
+            split = "val" if isinstance(metrics.get("val"), dict) else "train"
+            figures = metrics.get(split) if isinstance(metrics.get(split), dict) else {}
+            train = metrics.get("train") if isinstance(metrics.get("train"), dict) else {}
+            if not figures:
+                notes.append(f"{brain}: {path}: the checkpoint carries no MAE/MSE metrics")
+                continue
+            rows.append(
+                [
+                    brain,
+                    str(checkpoint.get("model", "?")),
+                    f"`{path.name}`",
+                    split,
+                    _opt(figures.get("mae_speed_mps"), 3),
+                    _opt(figures.get("mae_yaw_rate_radps"), 3),
+                    _opt(figures.get("mse_normalised"), 4),
+                    _opt(train.get("mse_normalised"), 4),
+                    str(metrics.get("best_epoch", "–")),
+                ]
+            )
+        if rows:
+            section.blocks.append(
+                Table(
+                    [
+                        "Brain",
+                        "Model",
+                        "Checkpoint",
+                        "Split",
+                        "MAE v (m/s)",
+                        "MAE w (rad/s)",
+                        "MSE (normalised)",
+                        "Train MSE (normalised)",
+                        "Best epoch",
+                    ],
+                    rows,
+                    numeric=[False, False, False, False, True, True, True, True, True],
+                )
+            )
+            section.blocks.append(
+                "The paper's internal metrics on the held-out split (the training subset when the "
+                "dataset had no validation split): mean absolute error of speed and yaw rate in "
+                "physical units, and mean squared error of the normalised outputs."
+            )
+        section.blocks.extend(notes)
+        return section
+
+    def _weights_path(self, weights: str) -> Path:
+        path = Path(weights).expanduser()
+        if not path.is_absolute() and not path.is_file() and (self.folder / path).is_file():
+            return self.folder / path
+        return path
+
+    def switches(self) -> Section | None:
+        rows = []
+        for r in self.results:
+            if r.score is None:
+                continue
+            switches = list(getattr(r.score, "switches", None) or [])
+            shadows = list(getattr(r.score, "shadows", None) or [])
+            if switches or shadows:
+                rows.append([r.key, r.brain, str(len(switches)), _brief(switches), str(len(shadows)), _brief(shadows)])
+        if not rows:
+            return None
+        return Section(
+            "Brain switches and shadow brains",
+            [
+                Table(
+                    ["Episode", "Brain", "Switches", "Switch details", "Shadows", "Shadow details"],
+                    rows,
+                    numeric=[False, False, True, False, True, False],
+                )
+            ],
+        )
+
+    def failures(self) -> Section:
+        section = Section("Failures")
+        failed = [r for r in self.results if r.status == "failed"]
+        if failed:
+            section.blocks.append(
+                f"{len(failed)} episode(s) failed because of the stack, not the brain (they are "
+                "run again by `--resume`)."
+            )
+            section.blocks.append(
+                Table(
+                    ["Episode", "Brain", "Circuit", "Condition", "Failure", "Logs"],
+                    [
+                        [
+                            r.key,
+                            r.brain,
+                            r.circuit,
+                            f"{r.variation} / {r.perturbation}",
+                            r.failure or "–",
+                            f"`{r.logs}`" if r.logs else "–",
+                        ]
+                        for r in failed
+                    ],
+                )
+            )
+        else:
+            section.blocks.append("No stack failure.")
+        early = [r for r in self.results if r.status == "done" and not reached_target(r)]
+        if early:
+            shown = early[:MAX_EARLY_ROWS]
+            section.blocks.append(
+                f"{len(early)} episode(s) ended before their lap target"
+                + (f" (the first {len(shown)} listed)" if len(shown) < len(early) else "")
+                + ":"
+            )
+            section.blocks.append(
+                Table(
+                    ["Episode", "Brain", "Circuit", "Condition", "Ended by", "Completed (%)", "Sim time (s)"],
+                    [
+                        [
+                            r.key,
+                            r.brain,
+                            r.circuit,
+                            f"{r.variation} / {r.perturbation}",
+                            outcome(r),
+                            _opt(r.score.metrics.percentage_completed if r.score else None, 1),
+                            _opt(r.score.metrics.sim_time_s if r.score else None, 1),
+                        ]
+                        for r in shown
+                    ],
+                    numeric=[False, False, False, False, False, True, True],
+                )
+            )
+        return section
+
+    # -- assembling --
+
+    def sections(self) -> list[Section]:
+        sections = [self.header(), *self.paper_sections, self.main_table(), self.generalisation(), self.robustness()]
+        for optional in (self.internal_metrics(), self.switches()):
+            if optional is not None:
+                sections.append(optional)
+        sections.append(self.failures())
+        sections.extend(self.plot_sections())
+        if self.notes:
+            sections.append(Section("Notes", list(self.notes)))
+        return sections
+
+
+_CELL_LEGEND = (
+    f"A cell: the mean first-lap time (s) when every repetition reached its lap target; otherwise "
+    f"{FAIL_MARK} with the most common way the others ended (end reason, or the stack failure's kind) and "
+    "how many of the cell's episodes ended that way."
+)
+
+
+def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
+    """Read ``folder/results.sqlite`` and write the report into ``output`` (default: ``folder``).
+
+    Raises :class:`ReportError` (no folder, no database, no episode) or :class:`ResultsError` (a damaged
+    database), one line each naming the path.
+    """
+    folder = Path(folder)
+    output = Path(output) if output is not None else folder
+    report = _Report(folder, output)
+    output.mkdir(parents=True, exist_ok=True)
+    sections = report.sections()
+    markdown_path, html_path, csv_path = output / MARKDOWN_FILE, output / HTML_FILE, output / CSV_FILE
+    markdown_path.write_text(render_markdown(sections, output), encoding="utf-8")
+    html_path.write_text(render_html(sections, f"drivebench report: {report.name}"), encoding="utf-8")
+    rows = episode_rows(report.results)
+    write_csv(rows, csv_path)
+    parquet = write_parquet(rows, output / PARQUET_FILE)
+    paper = output / PAPER_MARKDOWN if report.is_paper else None
+    if paper is not None:
+        paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
+    return ReportFiles(
+        html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots), parquet=parquet, paper=paper
+    )

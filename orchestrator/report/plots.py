@@ -1,0 +1,420 @@
+"""The report's plots (matplotlib, drawn into ``plots/*.png``): trajectories on the circuit coloured by speed and by
+cross-track error, lap-time and position-deviation box plots per brain, lap progress over simulated time.
+
+Separate from the report's tables (:mod:`orchestrator.report.matrix`) because drawing is most of the code and the only
+part that needs matplotlib (imported inside the methods, so that reading this module costs nothing). The plots are a
+mixin, :class:`ReportPlots`, that the report class inherits: they read the report's results and cached trajectories.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchestrator.matrix.results import EpisodeResult
+from orchestrator.report.cells import _scored, _slug, lap_seconds, reached_target
+from orchestrator.report.document import Plot, Section
+from orchestrator.report.trajectories import _speeds
+
+MAX_SUBPLOTS = 24  # trajectory subplots per figure (one figure per circuit and colouring)
+MAX_PLOT_POINTS = 1200  # poses drawn per episode (decimated beyond: ~0.4 m apart on a 450 m lap)
+MAX_BOX_CIRCUITS = 8  # circuits (columns) in the box-plot figure
+MAX_PROGRESS_CIRCUITS = 12  # circuits (subplots) in the progress figure
+STALE_PLOTS = ("trajectories_*.png", "boxplots.png", "progress.png")  # what the report writes into plots/
+
+
+class ReportPlots:
+    """The plots of :class:`orchestrator.report.matrix._Report`, as a mixin: the methods use what the report's
+    ``__init__`` sets and its data access provides.
+
+    Attributes: ``results`` (the episodes, list of :class:`~orchestrator.matrix.results.EpisodeResult`), ``brains`` and
+    ``circuits`` (their labels in matrix order), ``plots_dir`` (the folder the PNG files go into), ``plots`` (list of
+    :class:`~pathlib.Path`, every file written is appended) and ``notes`` (list of str, problems met while drawing are
+    appended). Methods: ``track(circuit)`` (a :class:`~orchestrator.report.trajectories._Track` or None),
+    ``trajectory(result)`` (the episode's arrays or None) and ``baseline()`` (the baseline episodes and a sentence).
+    """
+
+    # -- plots --
+
+    def plot_sections(self) -> list[Section]:
+        import matplotlib
+
+        matplotlib.use("Agg", force=True)
+        self.plots_dir.mkdir(parents=True, exist_ok=True)
+        for pattern in STALE_PLOTS:  # a previous report's plots (a circuit since dropped) would mislead
+            for stale in self.plots_dir.glob(pattern):
+                stale.unlink(missing_ok=True)
+        sections = []
+        trajectories = Section(
+            "Trajectories",
+            [
+                "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start and "
+                "driving direction), one panel per brain and condition with the repetitions overlaid; ✕ where an "
+                "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
+                "target. Colours: "
+                "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."
+            ],
+        )
+        for circuit in self.circuits:
+            for plot in self._trajectory_figures(circuit):
+                trajectories.blocks.append(plot)
+        if not any(isinstance(b, Plot) for b in trajectories.blocks):
+            trajectories.blocks.append("No trajectory file could be read.")
+        sections.append(trajectories)
+        distributions = Section("Distributions")
+        for plot in (self._box_plots(), self._progress_plot()):
+            if plot is not None:
+                distributions.blocks.append(plot)
+        if distributions.blocks:
+            sections.append(distributions)
+        return sections
+
+    def _save(self, fig, name: str) -> Path:
+        import matplotlib.pyplot as plt
+
+        path = self.plots_dir / name
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        self.plots.append(path)
+        return path
+
+    def _trajectory_figures(self, circuit: str) -> list[Plot]:
+        import matplotlib.pyplot as plt
+        from matplotlib.collections import LineCollection
+        from matplotlib.colors import Normalize
+        from matplotlib.ticker import MaxNLocator
+
+        episodes = [r for r in self.results if r.circuit == circuit]
+        loaded = [(r, self.trajectory(r)) for r in episodes]
+        unreadable = [r for r, t in loaded if r.trajectory and (t is None or len(t["x_m"]) < 2)]
+        unrecorded = [r for r in episodes if r.status == "done" and not r.trajectory]
+        if unreadable:
+            self.notes.append(
+                f"{circuit}: {len(unreadable)} episode(s) have no readable trajectory file (missing, "
+                f"damaged or empty), e.g. `{unreadable[0].trajectory}`"
+            )
+        if unrecorded:
+            self.notes.append(f"{circuit}: {len(unrecorded)} episode(s) ran without a trajectory file")
+        loaded = [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
+        if not loaded:
+            return []
+        track = self.track(circuit)
+        # One panel per brain and condition; when that makes too many panels, coarser groups (conditions overlaid).
+        for fields in (("brain", "variation", "perturbation"), ("brain", "variation"), ("brain",)):
+
+            def group_of(r: EpisodeResult, fields=fields) -> tuple[str, ...]:
+                return tuple(getattr(r, name) for name in fields)
+
+            if len({group_of(r) for r, _ in loaded}) <= MAX_SUBPLOTS:
+                break
+        totals = Counter(group_of(r) for r in episodes)
+        finished = Counter(group_of(r) for r in episodes if reached_target(r))
+        groups: dict[tuple[str, ...], list[tuple[EpisodeResult, dict]]] = {}
+        for r, t in loaded:
+            groups.setdefault(group_of(r), []).append((r, t))
+        keys = list(groups)
+        if len(fields) < 3:
+            self.notes.append(
+                f"{circuit}: trajectories drawn per {', '.join(fields)} (every other condition "
+                f"overlaid), to keep to {MAX_SUBPLOTS} panels"
+            )
+        if len(keys) > MAX_SUBPLOTS:
+            self.notes.append(
+                f"{circuit}: trajectories of {len(keys) - MAX_SUBPLOTS} of {len(keys)} brains not "
+                f"drawn (at most {MAX_SUBPLOTS} panels per figure)"
+            )
+            keys = keys[:MAX_SUBPLOTS]
+
+        # Colour data per episode (decimated): speed, and |cross-track error| from the circuit's centreline.
+        data = {}
+        for key in keys:
+            for r, t in groups[key]:
+                step = max(1, math.ceil(len(t["x_m"]) / MAX_PLOT_POINTS))
+                x, y = t["x_m"][::step], t["y_m"][::step]
+                speed = _speeds(t)[::step]
+                xte = np.abs(track.lateral_m(x, y)) if track is not None else None
+                data[r.key] = (x, y, speed, xte)
+        all_xy = np.concatenate([np.column_stack(d[:2]) for d in data.values()])
+        if track is not None:
+            x0, x1, y0, y1 = track.extent
+            x0, x1 = min(x0, all_xy[:, 0].min()), max(x1, all_xy[:, 0].max())
+            y0, y1 = min(y0, all_xy[:, 1].min()), max(y1, all_xy[:, 1].max())
+        else:
+            pad = 5.0
+            x0, x1 = all_xy[:, 0].min() - pad, all_xy[:, 0].max() + pad
+            y0, y1 = all_xy[:, 1].min() - pad, all_xy[:, 1].max() + pad
+        ratio = (y1 - y0) / max(x1 - x0, 1e-9)
+        n = len(keys)
+        ncols = min(n, 3 if n <= 9 else 4 if n <= 16 else 6)
+        nrows = math.ceil(n / ncols)
+        panel_w = 4.2 if ncols <= 3 else 3.4  # inches of one map
+        map_h = min(max(panel_w * ratio, 1.2), 1.6 * panel_w)
+        # A manual grid (shared axes, colour bar in its own column): constrained layout costs seconds per figure.
+        left, right, top, bottom, wgap, hgap, bar_gap, bar_w = 0.65, 0.9, 0.85, 0.5, 0.25, 0.65, 0.3, 0.18
+        fig_w = left + ncols * panel_w + (ncols - 1) * wgap + bar_gap + bar_w + right
+        fig_h = top + nrows * map_h + (nrows - 1) * hgap + bottom
+
+        plots = []
+        for colour_by in ("speed", "xte"):
+            if colour_by == "xte" and track is None:
+                continue
+            values = np.concatenate([d[2] if colour_by == "speed" else d[3] for d in data.values()])
+            values = values[np.isfinite(values)]
+            top_value = float(np.percentile(values, 99)) if len(values) else 1.0
+            if colour_by == "xte":
+                norm = Normalize(0.0, max(top_value, track.half_width_m))
+                cmap, label = "magma_r", "|cross-track error| (m)"
+            else:
+                norm, cmap, label = Normalize(0.0, max(top_value, 1e-3)), "viridis", "speed (m/s)"
+            fig = plt.figure(figsize=(fig_w, fig_h))
+            grid = fig.add_gridspec(
+                nrows,
+                ncols,
+                left=left / fig_w,
+                right=(left + ncols * panel_w + (ncols - 1) * wgap) / fig_w,
+                bottom=bottom / fig_h,
+                top=1 - top / fig_h,
+                wspace=wgap / panel_w,
+                hspace=hgap / map_h,
+            )
+            axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
+            for ax, key in zip(axes.flat, keys):
+                if track is not None:
+                    for edge in (track.left_edge, track.right_edge):
+                        closed = np.vstack([edge, edge[:1]])
+                        ax.plot(closed[:, 0], closed[:, 1], color="0.55", lw=0.8, zorder=1)
+                    centre = np.vstack([track.points, track.points[:1]])
+                    ax.plot(centre[:, 0], centre[:, 1], color="0.75", lw=0.6, ls=(0, (4, 3)), zorder=1)
+                    sx, sy, heading = track.circuit.centreline.pose_at(0.0)
+                    arrow = 0.06 * max(x1 - x0, y1 - y0)  # the driving direction at the start
+                    ax.annotate(
+                        "",
+                        xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
+                        xytext=(sx, sy),
+                        zorder=4,
+                        arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
+                    )
+                    ax.plot([sx], [sy], marker="o", ms=5, mfc="white", mec="0.3", zorder=4)
+                for r, _ in groups[key]:
+                    x, y, speed, xte = data[r.key]
+                    colours = speed if colour_by == "speed" else xte
+                    points = np.column_stack([x, y]).reshape(-1, 1, 2)
+                    segments = np.concatenate([points[:-1], points[1:]], axis=1)
+                    lines = LineCollection(segments, cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
+                    lines.set_array(colours[1:])
+                    ax.add_collection(lines)
+                    if not reached_target(r):
+                        ax.plot([x[-1]], [y[-1]], marker="X", ms=8, color="crimson", mec="white", mew=0.8, zorder=5)
+                condition = " · ".join(key[1:]) or "all conditions"
+                ax.set_title(f"{key[0]}\n{condition} ({finished[key]}/{totals[key]} finished)", fontsize=8.5)
+                ax.set_xlim(x0, x1)
+                ax.set_ylim(y0, y1)
+                ax.set_aspect("equal", adjustable="box")
+                ax.tick_params(labelsize=7)
+                ax.xaxis.set_major_locator(MaxNLocator(5))
+                ax.yaxis.set_major_locator(MaxNLocator(5))
+                ax.grid(True, color="0.93", lw=0.5)
+            for index, ax in enumerate(axes.flat):
+                if index >= n:
+                    ax.set_visible(False)
+                    continue
+                ax.tick_params(labelleft=index % ncols == 0, labelbottom=index + ncols >= n)
+                if index % ncols == 0:
+                    ax.set_ylabel("y (m)", fontsize=8)
+                if index + ncols >= n:
+                    ax.set_xlabel("x (m)", fontsize=8)
+            bar_left = (fig_w - right - bar_w) / fig_w
+            bar_height = min(0.8, 4.0 / fig_h)
+            colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, bar_w / fig_w, bar_height))
+            fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
+            title = "speed" if colour_by == "speed" else "cross-track error"
+            fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / fig_h, va="top")
+            path = self._save(fig, f"trajectories_{colour_by}_{_slug(circuit)}.png")
+            plots.append(Plot(path, f"{circuit}, coloured by {title}."))
+        return plots
+
+    def _box_plots(self) -> Plot | None:
+        import matplotlib.pyplot as plt
+
+        episodes, _ = self.baseline()
+        scored = _scored(episodes)
+        circuits = [c for c in self.circuits if any(r.circuit == c for r in scored)]
+        if not circuits:
+            return None
+        circuits = self._at_most(circuits, MAX_BOX_CIRCUITS, what="box plots")
+        colours = _brain_colours(self.brains)
+        fig, axes = plt.subplots(
+            2,
+            len(circuits),
+            figsize=(max(3.8, 0.75 * len(self.brains) + 1.8) * len(circuits), 7.0),
+            squeeze=False,
+            layout="constrained",
+        )
+        rng = np.random.default_rng(0)
+        for column, circuit in enumerate(circuits):
+            for row, (metric, label) in enumerate(
+                (
+                    (lap_seconds, "lap time (s)"),
+                    (lambda r: r.score.metrics.position_deviation_mae, "position deviation (BM, mean 1000^d)"),
+                )
+            ):
+                ax = axes[row][column]
+                series = [
+                    [v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit) if v is not None]
+                    for b in self.brains
+                ]
+                positions = [i + 1 for i, s in enumerate(series) if s]
+                if positions:
+                    box = ax.boxplot(
+                        [s for s in series if s],
+                        positions=positions,
+                        widths=0.55,
+                        patch_artist=True,
+                        showfliers=False,
+                        medianprops={"color": "black"},
+                    )
+                    for patch, position in zip(box["boxes"], positions):
+                        patch.set_facecolor(colours[self.brains[position - 1]])
+                        patch.set_alpha(0.35)
+                    for position in positions:
+                        values = series[position - 1]
+                        jitter = rng.uniform(-0.12, 0.12, len(values))
+                        ax.scatter(
+                            np.full(len(values), position) + jitter,
+                            values,
+                            s=16,
+                            zorder=3,
+                            color=colours[self.brains[position - 1]],
+                            edgecolor="white",
+                            linewidth=0.5,
+                        )
+                    flat = [v for s in series for v in s]
+                    if row == 1 and min(flat) > 0 and max(flat) / min(flat) > 100:
+                        ax.set_yscale("log")
+                for i, s in enumerate(series):
+                    if not s:
+                        ax.text(
+                            i + 1,
+                            0.5,
+                            "no lap" if row == 0 else "–",
+                            transform=ax.get_xaxis_transform(),
+                            ha="center",
+                            va="center",
+                            color="0.5",
+                            fontsize=8,
+                        )
+                ax.set_xticks(
+                    range(1, len(self.brains) + 1),
+                    self.brains,
+                    rotation=20 if len(self.brains) > 3 else 0,
+                    ha="right" if len(self.brains) > 3 else "center",
+                    fontsize=8,
+                )
+                ax.set_xlim(0.4, len(self.brains) + 0.6)
+                ax.set_ylabel(label, fontsize=8.5)
+                ax.tick_params(axis="y", labelsize=8)
+                ax.grid(True, axis="y", color="0.92")
+                if row == 0:
+                    ax.set_title(circuit, fontsize=10)
+        fig.suptitle(
+            "Baseline condition, per brain: lap time (episodes that completed the lap) and BM position deviation",
+            fontsize=10.5,
+        )
+        path = self._save(fig, "boxplots.png")
+        return Plot(
+            path,
+            "Box plots over the repetitions of the baseline condition (dots: single episodes). "
+            "Position deviation is BM's mean of 1000^d, not metres (1 = on the reference path).",
+        )
+
+    def _progress_plot(self) -> Plot | None:
+        import matplotlib.pyplot as plt
+        from matplotlib.lines import Line2D
+
+        curves: dict[str, list[tuple[EpisodeResult, np.ndarray, np.ndarray]]] = {}
+        for r in self.results:
+            t = self.trajectory(r)
+            if t is None:
+                continue
+            time_s, progress = t["live_sim_time_s"], t["live_progress_laps"]
+            if len(time_s) != len(progress) or len(time_s) < 2:
+                time_s, progress = self._progress_from_poses(r, t)
+            if len(time_s) >= 2:
+                curves.setdefault(r.circuit, []).append((r, time_s, progress))
+        circuits = [c for c in self.circuits if c in curves]
+        if not circuits:
+            return None
+        circuits = self._at_most(circuits, MAX_PROGRESS_CIRCUITS, what="progress plot")
+        colours = _brain_colours(self.brains)
+        ncols = min(len(circuits), 3)
+        nrows = math.ceil(len(circuits) / ncols)
+        fig, axes = plt.subplots(
+            nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows + 0.6), squeeze=False, layout="constrained"
+        )
+        alpha = 0.85 if max(len(v) for v in curves.values()) <= 20 else 0.45
+        for ax, circuit in zip(axes.flat, circuits):
+            targets = set()
+            for r, time_s, progress in curves[circuit]:
+                ax.plot(time_s, progress, color=colours[r.brain], lw=1.2, alpha=alpha)
+                targets.add(r.spec.laps)
+                if not reached_target(r):
+                    ax.plot(
+                        [time_s[-1]],
+                        [progress[-1]],
+                        marker="X",
+                        ms=7,
+                        color=colours[r.brain],
+                        mec="black",
+                        mew=0.6,
+                        zorder=4,
+                    )
+            for target in targets:
+                ax.axhline(target, color="0.6", lw=0.8, ls="--")
+            ax.set_title(circuit, fontsize=10)
+            ax.set_xlabel("simulated time (s)", fontsize=8.5)
+            ax.set_ylabel("progress (laps)", fontsize=8.5)
+            ax.set_xlim(left=0)
+            ax.grid(True, color="0.92")
+            ax.tick_params(labelsize=8)
+        for ax in list(axes.flat)[len(circuits) :]:
+            ax.set_visible(False)
+        handles = [Line2D([], [], color=colours[b], lw=2, label=b) for b in self.brains]
+        handles.append(Line2D([], [], color="0.4", marker="X", ls="", label="ended short of its target"))
+        fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6), fontsize=8.5, frameon=False)
+        fig.suptitle("Lap progress over simulated time, one line per episode", fontsize=10.5)
+        path = self._save(fig, "progress.png")
+        return Plot(
+            path,
+            "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
+            "target; ✕: an episode that ended before it.",
+        )
+
+    def _at_most(self, circuits: list[str], limit: int, *, what: str) -> list[str]:
+        """The first ``limit`` circuits; a note in the report says how many a figure left out."""
+        if len(circuits) > limit:
+            self.notes.append(f"{what}: {len(circuits) - limit} circuit(s) left out")
+        return circuits[:limit]
+
+    def _progress_from_poses(self, r: EpisodeResult, t: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Progress from the poses when the live samples are missing: unwrapped centreline arc length."""
+        track = self.track(r.circuit)
+        stamps = t["stamp_s"]
+        if track is None or len(stamps) != len(t["x_m"]) or len(stamps) < 2:
+            return np.zeros(0), np.zeros(0)
+        centreline = track.circuit.centreline
+        s, _ = centreline.project_many(t["x_m"], t["y_m"])
+        ds = centreline.wrap_ds(np.diff(s))
+        progress = np.concatenate([[0.0], np.cumsum(ds)]) / centreline.length_m
+        return stamps - stamps[0], progress
+
+
+def _brain_colours(brains: Sequence[str]) -> dict[str, Any]:
+    import matplotlib
+
+    palette = matplotlib.colormaps["tab10" if len(brains) <= 10 else "tab20"]
+    return {brain: palette(i % palette.N) for i, brain in enumerate(brains)}

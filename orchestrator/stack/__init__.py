@@ -1,0 +1,1 @@
+"""Running one stack: the launcher, the process supervisor, health, progress and live swap."""

@@ -1,0 +1,550 @@
+"""The local launcher: a whole stack on this machine, each service its own process, one run folder.
+
+``LocalStack`` embeds the Zenoh router in the calling process (on a free loopback port), starts the simulator,
+the noise injector, the brain host(s) and the scorer as child processes with a log file each, waits for their
+liveliness tokens, runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM,
+then SIGKILL).
+Children also stop by themselves when this process dies (they watch their parent), so nothing is orphaned.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import subprocess
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+
+from brains.registry import bus_name
+from orchestrator.stack import processes
+from protocol import codec, keys
+from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
+from protocol.deploy import graph
+from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
+
+log = logging.getLogger("drivebench.launcher")
+
+STOP_GRACE_S = 5.0
+STACK_FILE = "stack.json"  # in the run folder while ``drivebench run`` runs: how ``drivebench swap`` finds the stack
+FOREIGN_BRAIN_STOP_S = 3.0
+RECORDER_STOP_GRACE_S = 30.0  # finishing a recording (drain, summary, fsync) must not be cut short
+
+
+class StackError(RuntimeError):
+    """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
+
+
+class StackFailure(StackError):
+    """An episode the stack failed, typed for results: ``kind`` is one of ``orchestrator.matrix.results.FAILURE_KINDS``.
+
+    ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
+    ``brain_lost`` and is scored), else None.
+    """
+
+    def __init__(self, kind: str, detail: str, *, score: EpisodeScore | None = None):
+        super().__init__(detail)
+        self.kind = kind
+        self.score = score
+        self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
+
+    def record(self, *, run_id: str, episode: int | None = None) -> dict:
+        """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
+        return {
+            "run_id": run_id,
+            "episode": episode,
+            "failure": self.kind,
+            "detail": str(self),
+            "detected_at_s": round(self.detected_at_s, 3),
+            "score": None if self.score is None else msgspec.to_builtins(self.score),
+        }
+
+
+class EpisodeAborted(StackError):
+    """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
+
+
+LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions read their bus settings from: none
+
+# Which failure a dead or vanished process of each role means for its episode.
+FAILURE_OF_ROLE = {
+    "brain": "brain_died",
+    "simulator": "simulator_died",
+    "scorer": "scorer_died",
+    "noise": "noise_died",
+    "recorder": "recorder_died",
+    "router": "router_died",
+}
+# How long a start refused because the simulator has not yet seen the brain's token is retried.
+START_RETRY_S = 5.0
+# After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
+SCORE_AFTER_DEATH_S = 1.5
+
+
+def free_loopback_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@dataclass(frozen=True)
+class BrainLaunch:
+    """A brain host to start: registered brain, its bus name, constructor options as ``key=value`` YAML overrides,
+    and overrides of the host's own config (``brains.host.BrainHostConfig``, e.g. ``("camera=perturbed",)``)."""
+
+    brain: str
+    name: str = ""
+    options: tuple[str, ...] = ()
+    host: tuple[str, ...] = ()
+
+    @property
+    def bus_name(self) -> str:
+        return self.name or bus_name(self.brain)
+
+
+def preflight_launches(launches: list[BrainLaunch]) -> None:
+    """Check every brain launch before anything starts (``brains.registry.preflight``): UnknownBrainError or
+    BrainOptionsError, one line, naming the brain and what is wrong."""
+    from brains.registry import preflight
+    from protocol.deploy.config import ConfigError, apply_overrides
+
+    for launch in launches:
+        try:
+            options = apply_overrides({}, launch.options)
+        except ConfigError as error:
+            raise ConfigError(f"brain {launch.brain!r}: {error}") from None
+        preflight(launch.brain, options)
+
+
+@dataclass
+class Child:
+    role: str
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+
+    def last_log_line(self) -> str:
+        return processes.last_log_line(self.log_path)
+
+
+@dataclass
+class LocalStack:
+    """A stack on this machine. Use as a context manager; ``run_episode`` as often as needed inside."""
+
+    run_id: str
+    run_dir: Path
+    brains: list[BrainLaunch] = field(default_factory=lambda: [BrainLaunch("explicit")])
+    startup_timeout_s: float = 60.0
+    embed_router: bool = True  # False: the router is a child process too (``python -m services.router``)
+    router_endpoint: str | None = None  # join this running router instead (a matrix's workers share one)
+    record: Path | None = None  # an MCAP file: a recorder process records the whole run to it
+    record_options: tuple[str, ...] = ()  # recorder config overrides, e.g. ("image_format=jpeg",)
+    # True: every child joins one new process group (``process_group``, the first child's pid) instead of a session
+    # each, so that its owner can kill the whole stack, grandchildren included, with one killpg (a Ray task does).
+    one_group: bool = False
+    children: list[Child] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.run_id, what="run id")
+        self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.process_group: int | None = None  # with one_group, once the first child is started
+        self._init_state(busy_wait_s=0.0)
+
+    def _init_state(self, *, busy_wait_s: float) -> None:
+        """What a stack knows about itself before it starts (shared with :class:`AttachedStack`)."""
+        self.bus: Bus | None = None
+        self._watch = None
+        self._driver_name = ""  # our driver liveliness token (declared at the first start)
+        self.busy_wait_s = busy_wait_s  # how long a start waits for a simulator busy with another episode
+        self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
+        self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
+        self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
+        # the simulator itself ends the episode with brain_lost when the active brain's token goes)
+
+    def __enter__(self) -> LocalStack:
+        try:
+            self.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    # -- start / stop --
+
+    def start(self) -> None:
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        # A local stack is configured by its own arguments alone (LOCAL_ENV): bus variables meant for a stack spread
+        # over machines (router, mode, TLS, credentials) must not leak into it.
+        if self.router_endpoint is not None:
+            self.bus = Bus(
+                BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}", env=LOCAL_ENV
+            )
+        elif self.embed_router:
+            self.bus = Bus(BusConfig(mode="router", listen=[self.endpoint]), name="launcher", env=LOCAL_ENV)
+        else:
+            self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
+            self._wait_for_router()
+            self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher", env=LOCAL_ENV)
+        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        wanted: set[str] = set()
+        if self.record is not None:
+            # First, so that its subscription is in place before anything is published.
+            wanted.add(self._spawn_role(graph.role("recorder"), self._recorder_argv()))
+        for row in graph.local_stack_roles():
+            wanted.add(self._spawn_role(row, []))
+        for launch in self.brains:
+            argv = ["--brain", launch.brain, "--name", launch.bus_name]
+            for option in launch.options:
+                argv += ["--set", f"options.{option}"]
+            for setting in launch.host:
+                argv += ["--set", setting]
+            wanted.add(self._spawn_role(graph.role("brain"), argv, name=launch.bus_name))
+        missing = watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
+        if (dead := self._dead_child_reason()) is not None:
+            raise StackError(dead)
+        if missing:
+            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
+            raise StackError(
+                f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})"
+            )
+        self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
+        log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
+
+    def _recorder_argv(self) -> list[str]:
+        argv = ["--set", f"output={json.dumps(str(Path(self.record).resolve()))}"]
+        config = self.run_dir / "config.yaml"
+        if config.is_file():
+            argv += ["--set", f"attach=[{json.dumps(str(config.resolve()))}]"]
+        for option in self.record_options:
+            argv += ["--set", option]
+        return argv
+
+    def _wait_for_router(self) -> None:
+        """Until the router child accepts TCP connections (a peer would otherwise wait for it forever)."""
+        host, port = self.endpoint.removeprefix("tcp/").rsplit(":", 1)
+        deadline = time.monotonic() + self.startup_timeout_s
+        while time.monotonic() < deadline:
+            if (dead := self._dead_child_reason()) is not None:
+                raise StackError(dead)
+            try:
+                socket.create_connection((host, int(port)), timeout=0.5).close()
+                return
+            except OSError:
+                time.sleep(0.1)
+        raise StackError(f"the router did not listen on {self.endpoint} within {self.startup_timeout_s:.0f} s")
+
+    def _spawn_role(self, row: graph.Role, argv: list[str], *, name: str = "") -> str:
+        """Start one process of a graph role; the liveliness key it declares once ready."""
+        self._spawn(row.token_role, row.token or name, row.module, argv)
+        return row.token_key(self.run_id, name)
+
+    def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
+        log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
+        env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
+        env["DRIVEBENCH_PARENT_PID"] = str(os.getpid())  # children stop by themselves when this process dies
+        joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
+        # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
+        group = (self.process_group or 0) if self.one_group else None
+        process = processes.spawn(
+            [*processes.python_module(module), *joins, *argv], log_path=log_path, env=env, process_group=group
+        )
+        if self.one_group and self.process_group is None:
+            self.process_group = process.pid
+        child = Child(role=role, name=name, process=process, log_path=log_path)
+        self.children.append(child)
+        return child
+
+    def _dead_child_reason(self) -> str | None:
+        for child in self.children:
+            code = child.process.poll()
+            if code == 0 and child.role == "brain":
+                continue  # stopped on request (a live swap retired it): not a failure
+            if code is not None and (child.role, child.name) not in self._tolerated:
+                return processes.exit_reason(
+                    child.process, what=f"{child.role} {child.name!r}", log_path=child.log_path
+                )
+        return None
+
+    def dead_child_reason(self) -> str | None:
+        """Which process of this stack has exited, with its exit code and last log line (None: all running)."""
+        return self._dead_child_reason()
+
+    def _failure(self) -> StackFailure | None:
+        """A process of this stack that died, or a required liveliness token that vanished, as a typed failure."""
+        if (dead := self._dead_child_reason()) is not None:
+            role = dead.split(" ", 1)[0]
+            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), dead)
+        if self._watch is not None and (gone := self._required - self._watch.alive()):
+            if self._router_gone():
+                return StackFailure(
+                    "router_died",
+                    f"the router at {self.endpoint} stopped answering (every "
+                    f"process lost its link: {len(gone)} liveliness token(s) gone)",
+                )
+            if len(gone) > 1 and gone == self._required:
+                # A router killed and started again at once answers the probe, but every link through it broke.
+                return StackFailure(
+                    "router_died",
+                    f"every process lost its liveliness token at once ({len(gone)} "
+                    f"tokens): the link through the router at {self.endpoint} broke "
+                    f"(the router restarted?)",
+                )
+            _, role, name = keys.parse_alive(sorted(gone)[0])
+            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
+        return None
+
+    def _router_gone(self) -> bool:
+        """Whether the router no longer takes connections (a vanished token then means the router, not its
+        process)."""
+        try:
+            probe_router(self.endpoint.split(",")[0], timeout_s=0.5)
+            return False
+        except (BusError, ValueError):
+            return True
+
+    def child(self, role: str, name: str) -> Child:
+        for child in self.children:
+            if (child.role, child.name) == (role, name):
+                return child
+        raise KeyError(f"{role}/{name}")
+
+    def close(self) -> None:
+        self._stop_foreign_brains()
+        # The recorder stops last, so it still records whatever the others publish while stopping.
+        self._stop([c for c in self.children if c.role != "recorder"], grace_s=STOP_GRACE_S)
+        self._stop([c for c in self.children if c.role == "recorder"], grace_s=RECORDER_STOP_GRACE_S)
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+        self._remove_stack_file()
+
+    def write_stack_file(self) -> Path:
+        """Write ``<run_dir>/stack.json`` ({"router", "run_id", "pid"}) so that ``drivebench swap`` finds this running
+        stack; :meth:`close` removes it."""
+        path = self.run_dir / STACK_FILE
+        path.write_text(json.dumps({"router": self.endpoint, "run_id": self.run_id, "pid": os.getpid()}) + "\n")
+        return path
+
+    def _remove_stack_file(self) -> None:
+        path = self.run_dir / STACK_FILE
+        try:
+            if json.loads(path.read_text()).get("pid") == os.getpid():
+                path.unlink()
+        except (OSError, ValueError, AttributeError):
+            pass  # none, or not ours
+
+    def _stop_foreign_brains(self, *, timeout_s: float = FOREIGN_BRAIN_STOP_S) -> None:
+        """Ask every brain alive on this run that is not our child (swapped in by ``drivebench swap``) to stop, and
+        wait until its token is gone: a swapped-in brain must not outlive the stack."""
+        if self.bus is None:
+            return
+        ours = {child.name for child in self.children if child.role == "brain"}
+        try:
+            foreign = {
+                name
+                for _, role, name in map(keys.parse_alive, self.bus.alive_now(keys.alive_all(self.run_id)))
+                if role == "brain" and name not in ours
+            }
+            for name in sorted(foreign):
+                log.info("stopping brain %s (not started by this stack)", name)
+                self.bus.request(
+                    keys.brain_control(self.run_id, name), codec.encode(ControlRequest(action="stop")), timeout_s=2.0
+                )
+        except (BusError, ValueError) as error:
+            log.warning("could not stop the brains this stack did not start: %s", error)
+            return
+        deadline = time.monotonic() + timeout_s
+        gone = {keys.alive(self.run_id, "brain", name) for name in foreign}
+        while gone and gone & self.bus.alive_now(keys.alive_all(self.run_id)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+
+    @staticmethod
+    def _stop(children: list[Child], *, grace_s: float) -> None:
+        processes.stop([c.process for c in children], grace_s=grace_s, names=[f"{c.role} {c.name}" for c in children])
+
+    # -- episodes --
+
+    def run_episode(
+        self,
+        spec: EpisodeSpec,
+        *,
+        on_live: Callable[[LiveMetrics], None] | None = None,
+        wall_timeout_s: float | None = None,
+        abort: Callable[[], bool] | None = None,
+    ) -> EpisodeScore:
+        """Start one episode and wait for its score.
+
+        ``wall_timeout_s`` guards against a stack that stops moving. ``abort`` is polled a few times a second: when
+        it returns True the episode is stopped and :class:`EpisodeAborted` raised. A process that dies, or a
+        required liveliness token that vanishes, raises :class:`StackFailure` within a second. A dead brain is
+        different: the simulator ends its episode with ``brain_lost`` and the scorer scores it, so the score is
+        returned; only when no score comes within ``SCORE_AFTER_DEATH_S`` does it raise (kind ``brain_died``).
+        """
+        assert self.bus is not None, "start the stack first"
+        inbox = Inbox()
+        subscriptions = [
+            self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
+            self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox),
+        ]
+        try:
+            return self._await_score(spec, inbox, on_live=on_live, wall_timeout_s=wall_timeout_s, abort=abort)
+        finally:
+            for subscription in subscriptions:
+                subscription.close()
+
+    def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s, abort) -> EpisodeScore:
+        reply = self._start(spec)
+        if not reply.ok:
+            raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
+        episode = reply.episode
+        guard = wall_timeout_s or (spec.max_sim_seconds * 20 + 60)
+        deadline = time.monotonic() + guard
+        failure: StackFailure | None = None
+        failure_deadline = 0.0
+        while True:
+            if failure is None and (failure := self._failure()) is not None:
+                if failure.kind == "recorder_died":  # the driving is fine: score the episode, flag the recording
+                    self._tolerate_recorder(failure)
+                    failure = None
+                    continue
+                if failure.kind != "brain_died":
+                    raise failure
+                failure_deadline = time.monotonic() + SCORE_AFTER_DEATH_S
+            if failure is not None and time.monotonic() > failure_deadline:
+                raise failure
+            if abort is not None and abort():
+                self._control(ControlRequest(action="stop"), attempts=1)
+                raise EpisodeAborted(f"episode {episode} abandoned")
+            if time.monotonic() > deadline:
+                self._control(ControlRequest(action="stop"), attempts=1)
+                raise StackFailure("wall_timeout", f"episode {episode} not scored after {guard:.0f} s of wall time")
+            received = inbox.recv(timeout_s=0.2)
+            if received is None:
+                continue
+            message = received.message
+            if message.header.episode != episode:
+                continue
+            if isinstance(message, EpisodeScore):
+                return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
+            if on_live is not None:
+                on_live(message)
+
+    def _tolerate_recorder(self, failure: StackFailure) -> None:
+        log.warning("the recorder died; the episode goes on: %s", failure)
+        self.recording_failure = failure
+        self._tolerated |= {(c.role, c.name) for c in self.children if c.role == "recorder"}
+        self._required = {key for key in self._required if keys.parse_alive(key)[1] != "recorder"}
+
+    def _start(self, spec: EpisodeSpec) -> ControlReply:
+        """Ask the simulator to start ``spec``, as this stack's driver (the simulator ends the episode when our
+        driver token goes: nobody would collect its score). A refusal because the brain is not alive is retried
+        for a moment: the brain's liveliness token reaches the simulator on its own route, which may be slower than
+        ours (a brain on another machine, seen here through the router). A busy simulator (someone else's
+        episode) is waited for up to ``busy_wait_s``."""
+        started = time.monotonic()
+        request = ControlRequest(action="start", spec=spec, driver=self._driver_token())
+        while True:
+            reply = self._control(request)
+            waited = time.monotonic() - started
+            retry = ("is not alive" in reply.detail and waited < START_RETRY_S) or (
+                reply.detail.startswith("busy") and waited < self.busy_wait_s
+            )
+            if reply.ok or not retry:
+                return reply
+            time.sleep(0.2)
+
+    def _driver_token(self) -> str:
+        """The name of this stack's driver liveliness token, declared on first use."""
+        if not self._driver_name:
+            self._driver_name = f"driver-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+            self.bus.declare_alive(keys.alive(self.run_id, "driver", self._driver_name))
+        return self._driver_name
+
+    def _control(self, request: ControlRequest, *, attempts: int = 10) -> ControlReply:
+        """A control query to the simulator; retried while its queryable is not yet reachable."""
+        assert self.bus is not None
+        for _ in range(attempts):
+            payload = self.bus.request(keys.sim_control(self.run_id), codec.encode(request), timeout_s=2.0)
+            if payload is not None:
+                return codec.decode(payload, ControlReply)
+            time.sleep(0.2)
+        hint = (
+            " (under the router's access control, only an orchestrator identity may start, stop or switch runs)"
+            if self.bus.resolved.secure
+            else ""
+        )
+        raise StackFailure(
+            "simulator_died",
+            f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}",
+        )
+
+
+@dataclass
+class AttachedStack(LocalStack):
+    """A stack that someone else started (``docker compose``, other machines): nothing is spawned or stopped here.
+
+    It joins the router at ``router_endpoint`` (None: the ``DRIVEBENCH_ROUTER`` environment variable) as a client,
+    waits until the simulator, the noise injector, the scorer and the brain are alive, and runs episodes through the
+    simulator's control queryable like :class:`LocalStack`. ``brain_name`` is the bus name of the brain to drive;
+    None takes the only brain alive on the run (an error when there are several).
+    """
+
+    brain_name: str | None = None
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.run_id, what="run id")
+        self.endpoint = self.router_endpoint or os.environ.get("DRIVEBENCH_ROUTER", "")
+        self._init_state(busy_wait_s=self.startup_timeout_s)  # --attach waits for a running episode up to --wait
+
+    def start(self) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if not self.endpoint:
+            raise StackError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+        self.bus = Bus(
+            BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
+            name=f"driver-{self.run_id}",
+        )
+        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
+        missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
+        if missing:
+            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
+            raise StackError(
+                f"run {self.run_id!r} on {self.endpoint}: not alive after {self.startup_timeout_s:.0f} s: {names}"
+            )
+        self.brain_name = self._wait_for_brain(watch)
+        log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
+
+    def _wait_for_brain(self, watch) -> str:
+        deadline = time.monotonic() + self.startup_timeout_s
+        while True:
+            brains = sorted(name for _, role, name in map(keys.parse_alive, watch.alive()) if role == "brain")
+            if self.brain_name is not None and self.brain_name in brains:
+                return self.brain_name
+            if self.brain_name is None and len(brains) == 1:
+                return brains[0]
+            if self.brain_name is None and len(brains) > 1:
+                raise StackError(
+                    f"run {self.run_id!r} has several brains alive ({', '.join(brains)}): choose one with --brain"
+                )
+            if time.monotonic() > deadline:
+                wanted = f"brain {self.brain_name!r}" if self.brain_name else "a brain"
+                raise StackError(
+                    f"run {self.run_id!r}: {wanted} not alive after {self.startup_timeout_s:.0f} s"
+                    + (f" (alive: {', '.join(brains)})" if brains else "")
+                )
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None

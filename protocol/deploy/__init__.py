@@ -1,0 +1,1 @@
+"""Deployment: the process graph, security, configs and typed YAML, process runtime."""

@@ -1,0 +1,1 @@
+"""The mapping of bus messages to recordings and viewers: MCAP encodings, topics, views."""
