@@ -1,0 +1,137 @@
+"""The folders' rules (ARCHITECTURE.md), held by reading every import of every module (lazy ones included).
+
+* Which top-level package may import which: nothing imports upward (protocol/ is the floor every process stands on,
+  orchestrator/ the roof).
+* No cycle between packages: the subpackages (orchestrator/stack, matrix, report; protocol/deploy, mapping; ...) form
+  a graph without loops, so each can be read knowing only what it imports.
+* Only protocol/ imports zenoh; no package folder holds more than 15 modules.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TOP_LEVEL = ("circuits", "protocol", "services", "brains", "recorder", "orchestrator")
+# What each top-level package may import besides itself. brains/ renders the checker's frames with the simulator's
+# scene (services/simulator) and trains from recordings (recorder/, from brains/training only).
+MAY_IMPORT = {
+    "circuits": set(),
+    "protocol": {"circuits"},
+    "services": {"protocol", "circuits"},
+    "recorder": {"protocol", "circuits"},
+    "brains": {"protocol", "circuits", "services", "recorder"},
+    "orchestrator": {"protocol", "circuits", "services", "brains", "recorder"},
+}
+ONLY_FROM = {("brains", "recorder"): "brains.training", ("brains", "services"): "brains.checker"}
+MAX_MODULES_PER_FOLDER = 15
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def package_of(module: str) -> str:
+    """The package a module belongs to: its folder (``orchestrator.matrix.runner`` -> ``orchestrator.matrix``)."""
+    parts = module.split(".")
+    for length in range(len(parts), 0, -1):
+        if (ROOT.joinpath(*parts[:length]) / "__init__.py").is_file():
+            return ".".join(parts[:length])
+    return parts[0]
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every absolute import of ``path``, at any depth (a ``from a import b`` names ``a.b`` when b is a module)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            folder = ROOT.joinpath(*node.module.split("."))
+            found.update(
+                f"{node.module}.{alias.name}"
+                for alias in node.names
+                if (folder / alias.name).is_dir() or (folder / f"{alias.name}.py").is_file()
+            )
+    return found
+
+
+def project_modules() -> dict[str, set[str]]:
+    return {
+        module_name(path): imported_modules(path)
+        for top in TOP_LEVEL
+        for path in sorted((ROOT / top).rglob("*.py"))
+        if "__pycache__" not in path.parts
+    }
+
+
+def test_no_package_imports_upward():
+    wrong = []
+    for module, imports in project_modules().items():
+        top = module.split(".")[0]
+        for imported in imports:
+            target = imported.split(".")[0]
+            if target not in TOP_LEVEL or target == top:
+                continue
+            only = ONLY_FROM.get((top, target))
+            if target not in MAY_IMPORT[top] or (only and not (module == only or module.startswith(only + "."))):
+                wrong.append(f"{module} imports {imported}")
+    assert not wrong, "\n".join(sorted(wrong))
+
+
+def test_packages_form_no_cycle():
+    edges: dict[str, set[str]] = defaultdict(set)
+    for module, imports in project_modules().items():
+        source = package_of(module)
+        for imported in imports:
+            if imported.split(".")[0] in TOP_LEVEL and (target := package_of(imported)) != source:
+                # A package reaching into its own subpackages is downward (a registry naming its brains' folders).
+                if not target.startswith(source + "."):
+                    edges[source].add(target)
+    cycle = find_cycle(edges)
+    assert cycle is None, " -> ".join(cycle or [])
+
+
+def find_cycle(edges: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, str] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = "open"
+        stack.append(node)
+        for target in sorted(edges.get(node, ())):
+            if state.get(target) == "open":
+                return stack[stack.index(target) :] + [target]
+            if target not in state and (found := visit(target)):
+                return found
+        state[node] = "done"
+        stack.pop()
+        return None
+
+    for node in sorted(edges):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_only_protocol_imports_zenoh():
+    users = [
+        module
+        for module, imports in project_modules().items()
+        if any(name.split(".")[0] == "zenoh" for name in imports) and not module.startswith("protocol")
+    ]
+    assert not users, users
+
+
+def test_no_folder_holds_more_than_fifteen_modules():
+    crowded = {}
+    for top in TOP_LEVEL:
+        for folder in [ROOT / top, *(p for p in (ROOT / top).rglob("*") if p.is_dir())]:
+            modules = [p for p in folder.glob("*.py") if p.name not in ("__init__.py", "__main__.py")]
+            if len(modules) > MAX_MODULES_PER_FOLDER:
+                crowded[str(folder.relative_to(ROOT))] = len(modules)
+    assert not crowded, crowded
