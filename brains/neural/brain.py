@@ -221,10 +221,13 @@ def _factory(brain: str, model: str | None):
 
     def preflight(*, weights: str | None = None, **options: Any) -> None:
         """Check the weights before any process starts: loadable, the right network (CheckpointError, one line)."""
-        if weights:
-            path = Path(weights)
-            ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
-            _check_model(ckpt, model)
+        if not weights:
+            return
+        path = Path(weights)
+        if path.suffix.lower() == ".onnx":  # the same rule and checks as NeuralBrain's; one thread is enough here
+            _serve_onnx_file(path, backend=options.get("backend", "onnx"), threads=1, model=model)
+        else:
+            _check_model(load_checkpoint(path), model)
 
     make.preflight = preflight
     make.__name__ = make.__qualname__ = brain
