@@ -359,6 +359,7 @@ ERRORS = [
     (MINIMAL + "repetitions: 1000000\n", 3, ["1000000", "at most"]),
     (MINIMAL + "realtime: maybe\n", 3, ["realtime must be true or false, got 'maybe'"]),
     (MINIMAL + "name: [a]\n", 3, ["name must be text, got a list"]),
+    (MINIMAL + 'name: "x/../../../escaped"\n', 3, ["matrix name 'x/../../../escaped'", "letters, digits"]),
     ("brains:\n  - {name: memdccp, weights: missing.ckpt}\ncircuits: [simple]\n", 2, ["'missing.ckpt'", "not found"]),
     ("brains:\n  - explicit\n  - explicit\ncircuits: [simple]\n", 3, ["duplicate brain label 'explicit'", "line 2"]),
     (MINIMAL + "shadows:\n  - explicit\n", 4, ["duplicate brain label 'explicit'", "line 1"]),

@@ -225,3 +225,14 @@ def test_a_bad_matrix_file_is_one_line_naming_the_line_and_nothing_starts(tmp_pa
     assert run.returncode == 2
     assert len(stderr.strip().splitlines()) == 1 and ":3:" in stderr and "nowhere" in stderr, stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_matrix_name_that_leaves_runs_is_refused_at_its_line_and_nothing_is_written(tmp_path):
+    work = tmp_path / "a" / "b" / "work"
+    work.mkdir(parents=True)
+    path = write_matrix(work, 'name: "x/../../../escaped"\nbrains: [explicit]\ncircuits: [simple]\n' + SHORT)
+    run = drivebench("matrix", str(path), "--no-report", cwd=work)
+    _, stderr = run.communicate(timeout=120)
+    assert run.returncode == 2, stderr
+    assert len(stderr.strip().splitlines()) == 1 and f"{path}:1:" in stderr and "matrix name" in stderr, stderr
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "b", "m.yaml", "work"]  # no runs/, no escaped*
