@@ -44,6 +44,7 @@ from orchestrator.launcher import (
 )
 from orchestrator.matrix import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix_report import BASELINE_FACT
+from orchestrator.matrix_resume import PLANNED_KEYS_FACT, resume_matrix
 from orchestrator.results import EpisodeResult, ResultStore
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
@@ -134,14 +135,14 @@ class MatrixRunner:
     def run(self) -> MatrixProgress:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         store = ResultStore(self.out_dir)
-        self._check_same_matrix(store)
-        todo = self.pending(store)
-        progress = MatrixProgress(
-            total=len(self.matrix.episodes),
-            skipped=len(self.matrix.episodes) - len(todo),
-            workers=[WorkerState() for _ in range(self._lanes())],
-        )
         try:
+            self._check_same_matrix(store)
+            todo = self.pending(store)
+            progress = MatrixProgress(
+                total=len(self.matrix.episodes),
+                skipped=len(self.matrix.episodes) - len(todo),
+                workers=[WorkerState() for _ in range(self._lanes())],
+            )
             self._dispatch(todo, store, progress)
         finally:
             store.close()
@@ -183,6 +184,9 @@ class MatrixRunner:
             router.close()
 
     def _check_same_matrix(self, store: ResultStore) -> None:
+        """Refuse to resume results of another matrix (MatrixChangedError); then record this one's facts."""
+        if self.options.resume:
+            self.matrix = resume_matrix(self.matrix, store).matrix
         previous = store.fact("source_text")
         if previous is not None and previous != self.matrix.text:
             log.warning(
@@ -194,6 +198,7 @@ class MatrixRunner:
         # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
         store.set_fact(BASELINE_FACT, self.matrix.episodes[0].variation if self.matrix.episodes else None)
         store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
+        store.set_fact(PLANNED_KEYS_FACT, [episode.key for episode in self.matrix.episodes])
         for key, value in self.options.facts.items():
             store.set_fact(key, value)
         if store.fact("created_at") is None:
