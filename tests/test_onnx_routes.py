@@ -107,6 +107,24 @@ def test_brains_check_takes_an_exported_onnx_file(onnx_file):
     assert "meets the brain contract" in result.stderr and "FAIL" not in result.stdout
 
 
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--brain", "pilotnet"], f"holds a {BRAIN} network, not pilotnet"),
+        (["--brain", BRAIN, "--brain-option", "backend=torch"], "serves with backend 'onnx' only"),
+        (["--brain", "explicit", "--shadow", "pilotnet={onnx}"], f"holds a {BRAIN} network, not pilotnet"),
+    ],
+    ids=["wrong-network", "torch-backend", "wrong-network-shadow"],
+)
+def test_a_mistaken_onnx_file_is_refused_in_one_line_before_anything_starts(onnx_file, tmp_path, args, expected):
+    weights = [] if "--shadow" in args else ["--weights", str(onnx_file)]
+    command = [arg.format(onnx=onnx_file) for arg in args]
+    result = drivebench("run", *command, *weights, "--out", str(tmp_path / "r"), timeout=60)
+    assert result.returncode == 2 and expected in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+    assert not (tmp_path / "r").exists()
+
+
 def _read(path: Path) -> str:
     try:
         return path.read_text()
