@@ -80,8 +80,10 @@ def fit_to_results(
             "or run it into another -o folder"
         )
     stored = {result.key: result.index for result in results}
-    before = set(stored) if planned_before is None else set(planned_before) | set(stored)
-    added = sum(1 for episode in matrix.episodes if episode.key not in before)
+    # Without the earlier plan (results written before it was kept) an unfinished episode and a new one look
+    # alike: nothing is called new then.
+    before = set(planned_before or ()) | set(stored)
+    added = 0 if planned_before is None else sum(1 for episode in matrix.episodes if episode.key not in before)
     return Resumed(matrix=_keep_indices(matrix, stored), kept=len(stored), added=added)
 
 
