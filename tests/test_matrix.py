@@ -359,6 +359,7 @@ ERRORS = [
     (MINIMAL + "repetitions: 1000000\n", 3, ["1000000", "at most"]),
     (MINIMAL + "realtime: maybe\n", 3, ["realtime must be true or false, got 'maybe'"]),
     (MINIMAL + "name: [a]\n", 3, ["name must be text, got a list"]),
+    (MINIMAL + 'name: "x/../../../escaped"\n', 3, ["matrix name 'x/../../../escaped'", "letters, digits"]),
     ("brains:\n  - {name: memdccp, weights: missing.ckpt}\ncircuits: [simple]\n", 2, ["'missing.ckpt'", "not found"]),
     ("brains:\n  - explicit\n  - explicit\ncircuits: [simple]\n", 3, ["duplicate brain label 'explicit'", "line 2"]),
     (MINIMAL + "shadows:\n  - explicit\n", 4, ["duplicate brain label 'explicit'", "line 1"]),
@@ -411,3 +412,57 @@ def test_missing_file_is_named(tmp_path):
 
 def test_matrix_error_is_a_value_error():
     assert issubclass(MatrixError, ValueError)
+
+
+# -- resume against stored results -----------------------------------------------------------------------------------
+
+
+def _stored(matrix: Matrix, *, keys: set[str] | None = None) -> list:
+    from orchestrator.matrix.results import EpisodeResult
+
+    return [
+        EpisodeResult.of(episode, status="done", run_id=f"r{episode.index}", started_at=0.0, ended_at=1.0)
+        for episode in matrix.episodes
+        if keys is None or episode.key in keys
+    ]
+
+
+def test_resume_keeps_finished_episodes_at_their_index_and_new_ones_take_the_free_ones():
+    from orchestrator.matrix.resume import fit_to_results
+
+    before = parse_matrix(EXAMPLE)
+    grown = parse_matrix(EXAMPLE.replace("repetitions: 3", "repetitions: 4"))
+    done = _stored(before, keys={episode.key for episode in before.episodes[:50]})
+    resumed = fit_to_results(grown, done, shadows=None, planned_before=[e.key for e in before.episodes], where="out")
+    indices = {episode.key: episode.index for episode in resumed.matrix.episodes}
+    assert all(indices[result.key] == result.index for result in done)  # their folders stay theirs
+    assert sorted(indices.values()) == list(range(len(grown.episodes)))  # every index once
+    assert [e.key for e in resumed.matrix.episodes] == [e.key for e in grown.episodes]  # expansion order kept
+    assert (resumed.kept, resumed.added) == (50, len(grown.episodes) - len(before.episodes))
+    assert resumed.note() == f"the matrix file adds episodes: 50 finished episode(s) kept, {resumed.added} new"
+    same = fit_to_results(before, done, shadows=None, planned_before=[e.key for e in before.episodes], where="out")
+    assert same.matrix == before and same.note() is None
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (("max_sim_seconds: 120", "max_sim_seconds: 60"), "max_sim_seconds 120.0 -> 60.0"),
+        (("seed: 7", "seed: 8"), "seed 7 -> 8"),
+        (("camera: 160x120", "camera: 320x240"), "camera.width_px 160 -> 320"),
+        (("circuits: [simple, montmelo, montreal]", "circuits: [simple, montmelo]"), "circuits removed: montreal"),
+        (("label: slow, options: {speed_mps: 1.5}", "label: slow, options: {speed_mps: 2}"), "brain 'slow' options"),
+        (("shadows: [{name: constant, options: {speed_mps: 2}}]", "shadows: []\n"), "shadows [constant] -> []"),
+    ],
+)
+def test_resume_refuses_a_matrix_that_changed_what_the_results_ran_naming_the_change(change, words):
+    from orchestrator.matrix.resume import MatrixChangedError, fit_to_results
+
+    before = parse_matrix(EXAMPLE)
+    shadows = [shadow.to_dict() for shadow in before.shadows]
+    changed = parse_matrix(EXAMPLE.replace(*change).replace("shadows: []\n", ""))
+    with pytest.raises(MatrixChangedError) as caught:
+        fit_to_results(changed, _stored(before), shadows=shadows, planned_before=None, where="runs/x")
+    message = str(caught.value)
+    assert message.startswith("runs/x: the matrix file changed since these results (") and words in message, message
+    assert "\n" not in message

@@ -225,8 +225,10 @@ def _factory(brain: str, model: str | None):
         """Check the weights before any process starts, the shipped ones too (their shards are read and verified):
         loadable, the right network (CheckpointError or BrainOptionsError, one line)."""
         path = Path(default_weights(weights))
-        ckpt = from_metadata(OrtRunner(path).metadata(), path) if path.suffix == ".onnx" else load_checkpoint(path)
-        _check_model(ckpt, model)
+        if path.suffix.lower() == ".onnx":  # the same rule and checks as NeuralBrain's; one thread is enough here
+            _serve_onnx_file(path, backend=options.get("backend", "onnx"), threads=1, model=model)
+        else:
+            _check_model(load_checkpoint(path), model)
 
     make.preflight = preflight
     make.__name__ = make.__qualname__ = brain

@@ -172,6 +172,8 @@ def run_matrix_args(
         raise UsageError(
             f"{out_dir} already holds matrix results: add --resume to finish that run, or choose another -o folder"
         )
+    if args.resume:
+        matrix = _fit_to_results(matrix, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(
         filename=out_dir / "matrix.log",
@@ -216,6 +218,24 @@ def run_matrix_args(
     if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else EXIT_OK
+
+
+def _fit_to_results(matrix, out_dir: Path):
+    """``--resume``: ``matrix`` fitted to the folder's results; refused in one line when it changed what they ran,
+    said on stderr when it adds episodes to them."""
+    from orchestrator.matrix.results import DATABASE_NAME, ResultsError, ResultStore
+    from orchestrator.matrix.resume import resume_matrix
+
+    if not (out_dir / DATABASE_NAME).is_file():
+        return matrix
+    try:
+        with ResultStore(out_dir, create=False) as store:
+            resumed = resume_matrix(matrix, store)
+    except ResultsError as error:
+        raise UsageError(str(error)) from None
+    if (note := resumed.note()) is not None:
+        print(f"drivebench: resume: {note}", file=sys.stderr)
+    return resumed.matrix
 
 
 def _ray_options(args: argparse.Namespace):

@@ -3,7 +3,7 @@ planned episodes of a matrix run. Pure: no bus, no processes; every mistake is f
 
 A matrix file::
 
-    name: generalization                      # default: the file's stem
+    name: generalization                      # default: the file's stem; letters, digits, _ . - (a folder name)
     brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
     circuits: [simple, montmelo, montreal]    # built-in, user, random:SEED or twisty:SEED circuits
     variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
@@ -55,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+from msgspec import UnsetType
 
 from circuits import circuit_names
 from circuits.library import GENERATED_NAMES, is_circuit_name
@@ -132,9 +133,8 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
         raise document.error(
             ("parts",), f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})", at_key=True
         )
-    name = text_at(document, matrix.name, ("name",)) if isinstance(matrix.name, str) else None
     return Matrix(
-        name=name or ("matrix" if source.startswith("<") else Path(source).stem),
+        name=_name(document, matrix.name) or ("matrix" if source.startswith("<") else Path(source).stem),
         source=source,
         text=text,
         brains=plan.brains,
@@ -143,6 +143,18 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
         variation_keys=tuple(variation_keys),
         parts=tuple(part for part, _ in parts if part),
     )
+
+
+def _name(document: Document, value: str | UnsetType) -> str | None:
+    """The written ``name``, or None. It names the output folder (``runs/matrix-<name>-<time>``): a ``/`` or ``..``
+    in it would put the results elsewhere, so it is held to the rule of labels."""
+    if not isinstance(value, str):
+        return None
+    name = text_at(document, value, ("name",))
+    try:
+        return check_name(name, what="matrix name")
+    except ValueError as error:
+        raise document.error(("name",), str(error)) from None
 
 
 def _check_one_world_form(document: Document, entries: Entries) -> None:

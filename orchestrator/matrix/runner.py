@@ -36,6 +36,7 @@ import yaml
 
 from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
+from orchestrator.matrix.resume import PLANNED_KEYS_FACT, resume_matrix
 from orchestrator.stack.launcher import (
     BrainLaunch,
     EpisodeAborted,
@@ -133,14 +134,14 @@ class MatrixRunner:
     def run(self) -> MatrixProgress:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         store = ResultStore(self.out_dir)
-        self._check_same_matrix(store)
-        todo = self.pending(store)
-        progress = MatrixProgress(
-            total=len(self.matrix.episodes),
-            skipped=len(self.matrix.episodes) - len(todo),
-            workers=[WorkerState() for _ in range(self._lanes())],
-        )
         try:
+            self._check_same_matrix(store)
+            todo = self.pending(store)
+            progress = MatrixProgress(
+                total=len(self.matrix.episodes),
+                skipped=len(self.matrix.episodes) - len(todo),
+                workers=[WorkerState() for _ in range(self._lanes())],
+            )
             self._dispatch(todo, store, progress)
         finally:
             store.close()
@@ -160,28 +161,43 @@ class MatrixRunner:
         # One router for the whole matrix, embedded here; every episode's processes connect to it.
         router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
         endpoint = router.config.listen[0]
+        # Each worker sets its event when it ends: the main thread waits on those, never in Thread.join(), because
+        # Ctrl-C inside a join makes Python 3.11 take a running thread for stopped (Thread._wait_for_tstate_lock's
+        # bpo-45274 handler releases the lock the running thread holds): it was neither joined nor waited for at
+        # exit, and the interpreter shut down under it while it was still closing its Zenoh session, which aborted
+        # the process ("FATAL: exception not rethrown"; its core dump shows the worker in Session.close()).
+        # Never daemon threads either: the thread Zenoh starts for each callback subscription inherits the flag,
+        # and a daemon one still in Zenoh's code at exit aborts the process the same way.
+        ended = [threading.Event() for _ in progress.workers]
         threads = [
             threading.Thread(
-                target=self._work, args=(jobs, store, progress, state, endpoint), name=f"matrix-worker-{i}", daemon=True
+                target=self._lane,
+                args=(done, jobs, store, progress, state, endpoint),
+                name=f"matrix-worker-{i}",
+                daemon=False,
             )
-            for i, state in enumerate(progress.workers)
+            for i, (done, state) in enumerate(zip(ended, progress.workers))
         ]
         try:
             for thread in threads:
                 thread.start()
-            while any(thread.is_alive() for thread in threads):
-                self._on_change(progress)
-                for thread in threads:
-                    thread.join(timeout=0.25)
+            for done in ended:
+                while not done.wait(timeout=0.25):
+                    self._on_change(progress)
         except BaseException:
             self.stop()  # Ctrl-C, SIGTERM: every worker abandons its episode and closes its stack
-            for thread in threads:
-                thread.join()
+            for thread, done in zip(threads, ended):
+                # One that Ctrl-C kept from starting runs nothing: it sees the stop before its first episode.
+                if thread.ident is not None:
+                    done.wait()
             raise
         finally:
             router.close()
 
     def _check_same_matrix(self, store: ResultStore) -> None:
+        """Refuse to resume results of another matrix (MatrixChangedError); then record this one's facts."""
+        if self.options.resume:
+            self.matrix = resume_matrix(self.matrix, store).matrix
         previous = store.fact("source_text")
         if previous is not None and previous != self.matrix.text:
             log.warning(
@@ -193,6 +209,7 @@ class MatrixRunner:
         # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
         store.set_fact(BASELINE_FACT, self.matrix.episodes[0].variation if self.matrix.episodes else None)
         store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
+        store.set_fact(PLANNED_KEYS_FACT, [episode.key for episode in self.matrix.episodes])
         for key, value in self.options.facts.items():
             store.set_fact(key, value)
         if store.fact("created_at") is None:
@@ -200,6 +217,13 @@ class MatrixRunner:
         (self.out_dir / "matrix.yaml").write_text(self.matrix.text)
 
     # -- one worker: episodes one after another --
+
+    def _lane(self, done: threading.Event, *work_args) -> None:
+        """A worker thread: :meth:`_work`, then ``done`` set however it ended."""
+        try:
+            self._work(*work_args)
+        finally:
+            done.set()
 
     def _work(
         self, jobs: queue.Queue, store: ResultStore, progress: MatrixProgress, state: WorkerState, endpoint: str
