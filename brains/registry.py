@@ -106,6 +106,11 @@ def shipped_weights(name: str) -> Path | None:
     return path if name in MODELS and path.is_file() else None
 
 
+def shipped_network(name: str) -> str | None:
+    """The network a named network brain serves (``pilotnet`` -> ``pilotnet``), or None for other brains."""
+    return name if name in MODELS else None
+
+
 def is_brain_file(name: str) -> bool:
     return name.endswith(".py")
 

@@ -1,14 +1,19 @@
 """The brains of a matrix file (``brains:`` and ``shadows:``): names, weights resolved from the file's folder,
-constructor options and unique labels, each mistake at its line."""
+constructor options and unique labels, each mistake at its line.
+
+``weights`` may be a glob (``runs/train/tiny-s*/model.ckpt``): one entry per checkpoint, each a training run of
+the same brain. The entries share the written label as their ``group`` (what reports compare) and are labelled
+``<group>-s<training seed>``, the seed read from the checkpoint itself."""
 
 from __future__ import annotations
 
+import glob
 import json
 import re
 from pathlib import Path
 from typing import Any
 
-from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain, shipped_weights
+from brains.registry import UnknownBrainError, bus_name, is_brain_file, require_brain, shipped_network, shipped_weights
 from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.schema import BrainFields, items, text_at
 from protocol.deploy.typed_yaml import Document
@@ -18,24 +23,90 @@ from protocol.keys import check_name
 _OPTION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
+GLOB_CHARACTERS = frozenset("*?[")
+
+
 def read_brain_entries(document: Document, value: Any, path: At, *, base_dir: Path) -> list[tuple[BrainEntry, At]]:
-    """(entry, where it was written) of each item of a ``brains`` or ``shadows`` value (typed by the schema)."""
-    return [
-        (_brain_entry(document, item, item_path, base_dir=base_dir), item_path)
-        for item, item_path in items(value, path)
-    ]
+    """(entry, where it was written) of each item of a ``brains`` or ``shadows`` value (typed by the schema); an
+    item whose weights are a glob gives one entry per matching checkpoint."""
+    entries = []
+    for item, item_path in items(value, path):
+        if isinstance(item, BrainFields) and isinstance(item.weights, str) and GLOB_CHARACTERS & set(item.weights):
+            entries += [(entry, item_path) for entry in _training_runs(document, item, item_path, base_dir=base_dir)]
+        else:
+            entries.append((_brain_entry(document, item, item_path, base_dir=base_dir), item_path))
+    return entries
 
 
-def _brain_entry(document: Document, item: str | BrainFields, path: At, *, base_dir: Path) -> BrainEntry:
-    fields = BrainFields(name=item) if isinstance(item, str) else item
-    name_path = path if isinstance(item, str) else (*path, "name")
-    name = text_at(document, fields.name, name_path)
+def _training_runs(document: Document, fields: BrainFields, path: At, *, base_dir: Path) -> list[BrainEntry]:
+    """One entry per checkpoint the weights glob matches, labelled by its training seed."""
+    name = _brain_name(document, fields.name, (*path, "name"), base_dir=base_dir)
+    where = (*path, "weights")
+    pattern = text_at(document, str(fields.weights), where)
+    full = str(Path(pattern).expanduser() if Path(pattern).expanduser().is_absolute() else base_dir / pattern)
+    paths = sorted(Path(found).resolve() for found in glob.glob(full, recursive=True))
+    if not paths:
+        raise document.error(where, f"weights pattern {pattern!r} matches no file (looked for {full})")
+    options = _options(document, fields.options, (*path, "options"))
+    group = _label(document, fields.label if isinstance(fields.label, str) else None, path, name=name, weights=None)
+    seeds: dict[int, Path] = {}
+    network = ""
+    entries = []
+    for weights in paths:
+        model, seed = _network_and_seed(document, where, weights)
+        if network and model != network:
+            raise document.error(
+                where,
+                f"weights pattern {pattern!r} mixes networks: {paths[0]} holds {network}, {weights} holds {model}",
+            )
+        if seed in seeds:
+            raise document.error(
+                where,
+                f"weights pattern {pattern!r}: {seeds[seed]} and {weights} are both training "
+                f"seed {seed} (one checkpoint per training run)",
+            )
+        network, seeds[seed] = model, weights
+        label = _label(document, f"{group}-s{seed}", path, name=name, weights=None)
+        entries.append(
+            BrainEntry(label=label, brain=name, weights=weights, options=options, group=group, training_seed=seed)
+        )
+    if (expected := shipped_network(name)) is not None and network != expected:
+        raise document.error(where, f"brain {name!r} serves {expected} checkpoints; {pattern!r} matches {network}")
+    return entries
+
+
+def _network_and_seed(document: Document, where: At, weights: Path) -> tuple[str, int]:
+    """The network a checkpoint holds and the training seed it records (torch loads here, as it would to serve)."""
+    from brains.neural.checkpoint import CheckpointError, load_checkpoint
+
+    if weights.suffix.lower() != ".ckpt":
+        raise document.error(
+            where, f"{weights}: a weights pattern takes checkpoints (.ckpt), which record their training seed"
+        )
+    try:
+        checkpoint = load_checkpoint(weights)
+    except CheckpointError as error:
+        raise document.error(where, str(error)) from None
+    seed = checkpoint.training.get("seed")
+    if not isinstance(seed, int):
+        raise document.error(where, f"{weights} records no training seed (not written by drivebench train?)")
+    return checkpoint.model, seed
+
+
+def _brain_name(document: Document, written: str, where: At, *, base_dir: Path) -> str:
+    name = text_at(document, written, where)
     if is_brain_file(name):  # a Behavior Metrics brain file, next to the matrix file unless absolute
         name = str((base_dir / Path(name).expanduser()).resolve())
     try:
         require_brain(name)
     except UnknownBrainError as error:
-        raise document.error(name_path, str(error)) from None
+        raise document.error(where, str(error)) from None
+    return name
+
+
+def _brain_entry(document: Document, item: str | BrainFields, path: At, *, base_dir: Path) -> BrainEntry:
+    fields = BrainFields(name=item) if isinstance(item, str) else item
+    name = _brain_name(document, fields.name, path if isinstance(item, str) else (*path, "name"), base_dir=base_dir)
     weights = None
     if isinstance(fields.weights, str):
         weights = _weights(document, fields.weights, (*path, "weights"), base_dir=base_dir)

@@ -36,12 +36,22 @@ class BrainEntry:
         ``package.module:Class``, or a Behavior Metrics brain file (absolute once read).
     weights: absolute path of the checkpoint (resolved from the matrix file's folder), or None.
     options: the brain's constructor options, in written order, as (key, JSON-able value) pairs.
+    group: the brain as compared, when this entry is one training run of it (the label written in the matrix
+        file; the entry's own label is ``<group>-s<seed>``); "" otherwise.
+    training_seed: the seed of that training run, read from its checkpoint; None otherwise.
     """
 
     label: str
     brain: str
     weights: Path | None = None
     options: tuple[tuple[str, Any], ...] = ()
+    group: str = ""
+    training_seed: int | None = None
+
+    @property
+    def compared_as(self) -> str:
+        """The name reports compare this brain under: its group for a training run, else its label."""
+        return self.group or self.label
 
     def launch_options(self) -> tuple[str, ...]:
         """Constructor options as ``key=<JSON value>`` overrides for the brain host (``--set options.KEY=VALUE``),
@@ -52,13 +62,17 @@ class BrainEntry:
         return texts
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able form: ``{"label", "brain", "weights" (absolute path or None), "options" (mapping)}``."""
-        return {
+        """JSON-able form: ``{"label", "brain", "weights" (absolute path or None), "options" (mapping)}``, plus
+        ``"group"`` and ``"training_seed"`` for a training run (absent otherwise, so earlier results read alike)."""
+        entry: dict[str, Any] = {
             "label": self.label,
             "brain": self.brain,
             "weights": None if self.weights is None else str(self.weights),
             "options": dict(self.options),
         }
+        if self.training_seed is not None:
+            entry.update(group=self.group, training_seed=self.training_seed)
+        return entry
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,9 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
         row: dict[str, Any] = {
             "key": r.key,
             "brain": r.brain,
+            # A training run of a brain compared over seeds: the brain it is a run of, and its training seed.
+            "brain_group": r.brain_entry.get("group", r.brain),
+            "training_seed": r.brain_entry.get("training_seed", ""),
             "circuit": r.circuit,
             "variation": r.variation,
             "perturbation": r.perturbation,
