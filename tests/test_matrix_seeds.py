@@ -103,7 +103,7 @@ def test_results_keep_the_training_seed_as_a_column(tmp_path):
         training_run(tmp_path / "runs", seed=seed)
     path = write_matrix(
         tmp_path,
-        "  - {name: deepest_lstm_tiny_pilotnet, label: tiny, weights: runs/seed-*/model.ckpt}\n",
+        "  - explicit\n  - {name: deepest_lstm_tiny_pilotnet, label: tiny, weights: runs/seed-*/model.ckpt}\n",
         circuits="[simple]",
     )
     result = subprocess.run(
@@ -116,6 +116,13 @@ def test_results_keep_the_training_seed_as_a_column(tmp_path):
     with open(tmp_path / "out" / "episodes.csv", newline="") as file:
         rows = list(csv.DictReader(file))
     assert [(r["brain"], r["brain_group"], r["training_seed"], r["status"]) for r in rows] == [
+        ("explicit", "explicit", "", "done"),
         ("tiny-s0", "tiny", "0", "done"),
         ("tiny-s1", "tiny", "1", "done"),
     ]
+    # The report compares brains with intervals over training runs, and says where there is one run only.
+    report = (tmp_path / "out" / "report.md").read_text()
+    comparison = report.split("## Comparison with intervals", 1)[1].split("\n## ", 1)[0]
+    assert "| tiny | 2 (seeds 0, 1) | 1 |" in comparison, comparison
+    assert "| explicit | 1 (one training run) | 1 |" in comparison and "one training run: no interval" in comparison
+    assert "P(X > Y)" in comparison and (tmp_path / "out" / "plots" / "performance_profile.png").is_file()

@@ -61,6 +61,7 @@ from orchestrator.report.cells import (
     outcome,
     reached_target,
 )
+from orchestrator.report.comparison import comparison_section
 from orchestrator.report.document import FAIL_MARK, Section, Table, render_html, render_markdown
 from orchestrator.report.export import episode_rows, write_csv, write_parquet
 from orchestrator.report.plots import ReportPlots
@@ -513,10 +514,17 @@ class _Report(ReportPlots):
             )
         return section
 
+    def comparison(self) -> Section:
+        section, plot = comparison_section(self.results, plots_dir=self.plots_dir)
+        if plot is not None:
+            self.plots.append(plot)
+        return section
+
     # -- assembling --
 
     def sections(self) -> list[Section]:
-        sections = [self.header(), *self.paper_sections, self.main_table(), self.generalisation(), self.robustness()]
+        sections = [self.header(), *self.paper_sections, self.main_table(), self.comparison()]
+        sections += [self.generalisation(), self.robustness()]
         for optional in (self.internal_metrics(), self.switches()):
             if optional is not None:
                 sections.append(optional)
