@@ -42,6 +42,8 @@ from protocol.messages import (
     EventKind,
     Header,
     Pose,
+    ReplyCode,
+    ServerState,
     command_problem,
 )
 
@@ -168,13 +170,21 @@ class BrainHost:
         """The control queryable (Zenoh's callback thread: never block)."""
         request = codec.decode(payload, ControlRequest)
         if request.action == "status":
-            return codec.encode(ControlReply(ok=True, state="serving", episode=self._episode, active_brain=self.name))
+            return codec.encode(
+                ControlReply(ok=True, state=ServerState.SERVING, episode=self._episode, active_brain=self.name)
+            )
         if request.action == "stop":
             log.info("stop requested over the bus")
             self._stop.set()
-            return codec.encode(ControlReply(ok=True, state="stopping", episode=self._episode))
+            return codec.encode(ControlReply(ok=True, state=ServerState.STOPPING, episode=self._episode))
         return codec.encode(
-            ControlReply(ok=False, detail=f"unknown action {request.action!r} (brain hosts know status and stop)")
+            ControlReply(
+                ok=False,
+                code=ReplyCode.UNKNOWN_ACTION,
+                detail=f"unknown action {request.action!r} (brain hosts know status and stop)",
+                state=ServerState.SERVING,
+                episode=self._episode,
+            )
         )
 
     def _from_source(self, key: str) -> bool:

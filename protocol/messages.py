@@ -528,19 +528,48 @@ class ControlRequest(
     driver: str = ""
 
 
+class ServerState(enum.StrEnum):
+    """The state of the process that answers run control, as a :class:`ControlReply` reports it."""
+
+    IDLE = "idle"  # simulator: no episode, ready to start one
+    STARTING = "starting"  # simulator: a start was accepted, the episode's START is not out yet
+    RUNNING = "running"  # simulator: an episode runs
+    SERVING = "serving"  # brain host: answering frames
+    STOPPING = "stopping"  # brain host: asked to stop, exiting cleanly
+
+
+class ReplyCode(enum.StrEnum):
+    """Why a :class:`ControlReply` is what it is: ``ok``, or the reason a request was refused. Processes decide on
+    this code, never on ``detail`` (human text that may be reworded)."""
+
+    OK = "ok"  # accepted
+    BUSY = "busy"  # start: the simulator is starting or running another episode (retry later)
+    NOT_ALIVE = "not_alive"  # start, switch: the named brain has no liveliness token (yet: it may be on its way)
+    NOT_RUNNING = "not_running"  # switch: no episode is running
+    ALREADY_ACTIVE = "already_active"  # switch: the named brain already drives
+    BAD_CIRCUIT = "bad_circuit"  # start: the spec's circuit is unknown or cannot be loaded
+    RENDERER_UNAVAILABLE = "renderer_unavailable"  # start: the spec's renderer cannot run on this simulator
+    BAD_REQUEST = "bad_request"  # the request lacks what its action needs (start without spec, switch without brain)
+    UNKNOWN_ACTION = "unknown_action"  # the server does not know the action
+
+
 class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.ControlReply.v1", tag_field=TAG_FIELD):
     """Answer to a :class:`ControlRequest`.
 
-    ok: the request was accepted; otherwise ``detail`` says why not. episode: the current (or next) episode number,
-    -1 before the first. state: the server's state ("idle", "starting", "running"; a brain host: "serving").
+    ok: the request was accepted. code: ``ok``, or why it was refused (:class:`ReplyCode`: decide on this, never on
+    ``detail``). detail: human text only (what the code alone does not say: which brain, which circuit). state: the
+    server's state (:class:`ServerState`). episode: the current (or next) episode number, -1 before the first.
     active_brain: the brain driving now (simulator). spec: the running episode's spec (simulator "status" while an
     episode runs), so a process that joined mid-episode can set up as the episode's START told the others.
     """
 
     ok: bool
+    state: ServerState
+    # Defaults to ok so that a brain host written before codes existed still decodes (it only ever refuses
+    # unknown actions, and nothing decides on a brain host's refusal beyond ``ok``).
+    code: ReplyCode = ReplyCode.OK
     detail: str = ""
     episode: int = -1
-    state: str = ""
     active_brain: str = ""
     spec: EpisodeSpec | None = None
 

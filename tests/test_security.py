@@ -38,6 +38,7 @@ from protocol.messages import (
     EpisodeSpec,
     Header,
     Pose,
+    ReplyCode,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -376,7 +377,7 @@ def test_an_intruder_without_the_brain_role_changes_nothing_and_the_same_one_wit
             stack.orchestrator,
             ControlRequest(action="start", spec=EpisodeSpec(active_brain="intruder", camera=SPEC.camera)),
         )
-        assert refused is not None and not refused.ok and "'intruder' is not alive" in refused.detail
+        assert refused is not None and (refused.ok, refused.code) == (False, ReplyCode.NOT_ALIVE)
         score, poses = stack.run_episode()
         assert intruder.sent >= 60  # it saw every frame (an observer may subscribe) and answered each
         assert viewer_poses.inbox.received >= 61

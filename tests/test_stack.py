@@ -26,6 +26,7 @@ from protocol.messages import (
     EventKind,
     Header,
     Pose,
+    ReplyCode,
 )
 
 pytestmark = pytest.mark.integration
@@ -238,11 +239,13 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
 def test_the_simulator_refuses_bad_run_control(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     reply = stack._control(ControlRequest(action="start", spec=EpisodeSpec(circuit="nowhere")))
-    assert not reply.ok and "unknown circuit 'nowhere'" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.BAD_CIRCUIT) and "unknown circuit 'nowhere'" in reply.detail
     reply = stack._control(ControlRequest(action="start", spec=EpisodeSpec(active_brain="ghost")))
-    assert not reply.ok and "'ghost' is not alive" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.NOT_ALIVE) and "'ghost' is not alive" in reply.detail
     reply = stack._control(ControlRequest(action="dance"))
-    assert not reply.ok and "unknown action" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.UNKNOWN_ACTION) and "unknown action" in reply.detail
+    reply = stack._control(ControlRequest(action="start"))
+    assert (reply.ok, reply.code, reply.detail) == (False, ReplyCode.BAD_REQUEST, "start needs a spec")
 
 
 def test_stack_with_the_router_as_its_own_process(tmp_path):

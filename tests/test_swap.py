@@ -24,6 +24,8 @@ from protocol.messages import (
     EpisodeSpec,
     EventKind,
     Pose,
+    ReplyCode,
+    ServerState,
 )
 from recorder.reading import read_messages
 
@@ -123,7 +125,7 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
 def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
-    assert not reply.ok and "no episode is running" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.NOT_RUNNING) and "no episode is running" in reply.detail
     died = "brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"
     with pytest.raises(SwapError, match=died):
         swap_brain(
@@ -139,16 +141,16 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
         stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64, height_px=48))
     )
     wait_for(
-        lambda: control(stack, ControlRequest(action="status")).state == "running",
+        lambda: control(stack, ControlRequest(action="status")).state == ServerState.RUNNING,
         timeout_s=30,
         what="the episode to run",
     )
     status = control(stack, ControlRequest(action="status"))
     assert status.active_brain == "explicit" and status.spec is not None and status.spec.max_sim_seconds == 4.0
     reply = control(stack, ControlRequest(action="switch", brain="ghost"))
-    assert not reply.ok and "'ghost' is not alive" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.NOT_ALIVE) and "'ghost' is not alive" in reply.detail
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
-    assert not reply.ok and "already the active brain" in reply.detail
+    assert (reply.ok, reply.code) == (False, ReplyCode.ALREADY_ACTIVE)
     thread.join(timeout=60)
     assert outcome["score"].reason == EndReason.TIME_LIMIT and outcome["score"].switches == []
 

@@ -78,6 +78,7 @@ class BrainProcess:
             "active_brain": self.name,
         }
         if action not in ("status", "stop"):
+            reply["code"] = "unknown_action"  # what a process decides on; detail is for people
             reply["detail"] = f"unknown action {action!r}"
         query.reply(query.key_expr, msgpack.packb(reply))
         if action == "stop":

@@ -27,7 +27,7 @@ from orchestrator.stack import processes
 from protocol import codec, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.deploy import graph
-from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics
+from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics, ReplyCode
 
 log = logging.getLogger("drivebench.launcher")
 
@@ -455,8 +455,8 @@ class LocalStack:
         while True:
             reply = self._control(request)
             waited = time.monotonic() - started
-            retry = ("is not alive" in reply.detail and waited < START_RETRY_S) or (
-                reply.detail.startswith("busy") and waited < self.busy_wait_s
+            retry = (reply.code == ReplyCode.NOT_ALIVE and waited < START_RETRY_S) or (
+                reply.code == ReplyCode.BUSY and waited < self.busy_wait_s
             )
             if reply.ok or not retry:
                 return reply

@@ -51,7 +51,7 @@ from protocol.bus import (
     resolve_bus,
 )
 from protocol.deploy.runtime import UsageError
-from protocol.messages import Command, ControlReply, ControlRequest
+from protocol.messages import Command, ControlReply, ControlRequest, ServerState
 
 DEFAULT_TIMEOUT_S = 60.0
 STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
@@ -232,7 +232,7 @@ def _take_over(
     """Wait until the new brain is up and answering, switch to it, stop the old one."""
     deadline = time.monotonic() + timeout_s
     _wait_alive(bus, run_id, name, process=process, log_path=log_path, deadline=deadline)
-    episode = status.episode if status.state == "running" else -1
+    episode = status.episode if status.state == ServerState.RUNNING else -1
     if episode >= 0 and not _wait_first_answer(
         bus, run_id, name, episode, process=process, log_path=log_path, deadline=deadline
     ):
@@ -259,7 +259,7 @@ def _take_over(
             f"orchestrator's identity: {TLS_CERT_ENV}/{TLS_KEY_ENV} or {USER_ENV})"
         )
     if not reply.ok:
-        raise SwapError(f"the simulator refused the switch to {name}: {reply.detail}")
+        raise SwapError(f"the simulator refused the switch to {name} ({reply.code}): {reply.detail}")
     stopped = not keep_old and bool(old) and _stop_brain(bus, run_id, old)
     return SwapResult(
         run_id=run_id,
@@ -465,7 +465,7 @@ def _wait_first_answer(
                 raise SwapError(f"brain {name!r} answered no frame of episode {episode} in time (log {log_path})")
             if time.monotonic() > next_status:
                 status = _sim_status(bus, run_id)
-                if status.state != "running" or status.episode != episode:
+                if status.state != ServerState.RUNNING or status.episode != episode:
                     return False
                 next_status = time.monotonic() + 1.0
     finally:

@@ -38,6 +38,8 @@ from protocol.messages import (
     EventKind,
     Header,
     Pose,
+    ReplyCode,
+    ServerState,
 )
 from services.simulator.episode import EpisodeSim, SceneCache, StepResult
 from services.simulator.gl_scene import egl_unavailable_reason
@@ -91,7 +93,7 @@ class SimulatorService:
         self._end_detail = ""  # the END event's detail of the running episode (brain_invalid: the refused answer)
         bus.watch_alive(keys.alive_all(run), self._on_liveliness)
         self._requests: queue.Queue[tuple[EpisodeSpec, Circuit, str]] = queue.Queue()
-        self._state = "idle"
+        self._state = ServerState.IDLE
         self._episode = -1
         self._stop_requested = threading.Event()
         self._scenes = SceneCache()
@@ -156,7 +158,7 @@ class SimulatorService:
             return self._active_brain in self._alive_brains
 
     def _status(self) -> ControlReply:
-        running = self._state == "running"
+        running = self._state == ServerState.RUNNING
         return ControlReply(
             ok=True,
             state=self._state,
@@ -165,32 +167,31 @@ class SimulatorService:
             spec=self._spec if running else None,
         )
 
+    def _refuse(self, code: ReplyCode, detail: str, *, active_brain: str = "") -> ControlReply:
+        """A refusal: its code for processes to decide on, its detail for people."""
+        return ControlReply(
+            ok=False, code=code, detail=detail, state=self._state, episode=self._episode, active_brain=active_brain
+        )
+
     def _switch(self, brain: str) -> ControlReply:
         """Make ``brain`` the active brain from the frame whose command is awaited next (callback thread)."""
-        if self._state != "running":
-            return ControlReply(
-                ok=False,
-                detail=f"no episode is running (simulator {self._state})",
-                state=self._state,
-                episode=self._episode,
-                active_brain=self._active(),
-            )
+        if self._state != ServerState.RUNNING:
+            detail = f"no episode is running (simulator {self._state})"
+            return self._refuse(ReplyCode.NOT_RUNNING, detail, active_brain=self._active())
         if not brain:
-            return ControlReply(ok=False, detail="switch needs a brain name", state=self._state)
+            return self._refuse(ReplyCode.BAD_REQUEST, "switch needs a brain name")
         with self._alive_lock:
             previous = self._active_brain
+            refusal: tuple[ReplyCode, str] | None = None
             if brain not in self._alive_brains:
-                detail = f"brain {brain!r} is not alive"
+                refusal = ReplyCode.NOT_ALIVE, f"brain {brain!r} is not alive"
             elif brain == previous:
-                detail = f"brain {brain!r} is already the active brain"
+                refusal = ReplyCode.ALREADY_ACTIVE, f"brain {brain!r} is already the active brain"
             else:
-                detail = ""
                 self._active_brain = brain
                 self._switches.append((previous, brain))
-        if detail:
-            return ControlReply(
-                ok=False, detail=detail, state=self._state, episode=self._episode, active_brain=previous
-            )
+        if refusal is not None:
+            return self._refuse(*refusal, active_brain=previous)
         log.info("switch requested: %s -> %s", previous, brain)
         return ControlReply(
             ok=True,
@@ -215,23 +216,28 @@ class SimulatorService:
             self._stop_requested.set()
             return codec.encode(ControlReply(ok=True, state=self._state, episode=self._episode))
         if request.action != "start":
-            return codec.encode(ControlReply(ok=False, detail=f"unknown action {request.action!r}"))
-        if request.spec is None:
-            return codec.encode(ControlReply(ok=False, detail="start needs a spec"))
-        if self._state != "idle" or not self._requests.empty():
-            return codec.encode(ControlReply(ok=False, detail=f"busy ({self._state})", state=self._state))
-        if request.spec.renderer == "gl" and self._gl_unavailable:
-            return codec.encode(ControlReply(ok=False, detail=f"renderer gl: {self._gl_unavailable}"))
+            return codec.encode(self._refuse(ReplyCode.UNKNOWN_ACTION, f"unknown action {request.action!r}"))
+        return codec.encode(self._start(request))
+
+    def _start(self, request: ControlRequest) -> ControlReply:
+        """Accept a start (the main loop runs it) or refuse it with its code (callback thread: never block)."""
+        spec = request.spec
+        if spec is None:
+            return self._refuse(ReplyCode.BAD_REQUEST, "start needs a spec")
+        if self._state != ServerState.IDLE or not self._requests.empty():
+            return self._refuse(ReplyCode.BUSY, f"busy ({self._state})")
+        if spec.renderer == "gl" and self._gl_unavailable:
+            return self._refuse(ReplyCode.RENDERER_UNAVAILABLE, f"renderer gl: {self._gl_unavailable}")
         try:
             # Loaded here, so that a bad name is refused rather than run.
-            circuit = load_circuit(request.spec.circuit, direction=request.spec.direction)
+            circuit = load_circuit(spec.circuit, direction=spec.direction)
         except CircuitError as error:
-            return codec.encode(ControlReply(ok=False, detail=str(error)))
-        if not self._brain_alive(request.spec.active_brain):
-            return codec.encode(ControlReply(ok=False, detail=f"brain {request.spec.active_brain!r} is not alive"))
-        self._state = "starting"
-        self._requests.put((request.spec, circuit, request.driver))
-        return codec.encode(ControlReply(ok=True, state="starting", episode=self._episode + 1))
+            return self._refuse(ReplyCode.BAD_CIRCUIT, str(error))
+        if not self._brain_alive(spec.active_brain):
+            return self._refuse(ReplyCode.NOT_ALIVE, f"brain {spec.active_brain!r} is not alive")
+        self._state = ServerState.STARTING
+        self._requests.put((spec, circuit, request.driver))
+        return ControlReply(ok=True, state=ServerState.STARTING, episode=self._episode + 1)
 
     # -- main loop --
 
@@ -253,11 +259,11 @@ class SimulatorService:
                 self._active_brain = spec.active_brain
                 self._switches.clear()
             self._spec = spec = resolve_spec(spec)  # "auto" resolved before anyone can read the running spec
-            self._state = "running"
+            self._state = ServerState.RUNNING
             try:
                 self.run_episode(spec, circuit)
             finally:
-                self._state = "idle"
+                self._state = ServerState.IDLE
 
     def run_episode(self, spec: EpisodeSpec, circuit: Circuit | None = None) -> EndReason:
         episode = self._episode
@@ -266,7 +272,7 @@ class SimulatorService:
         self._spec = spec = resolve_spec(spec)
         sim = EpisodeSim(spec, scenes=self._scenes, circuit=circuit)
         self._frames = self._frames_latest if spec.realtime else self._frames_lossless
-        if self._state != "running":  # called directly (tests, benchmarks), not through serve_forever
+        if self._state != ServerState.RUNNING:  # called directly (tests, benchmarks), not through serve_forever
             with self._alive_lock:
                 self._active_brain = spec.active_brain
                 self._switches.clear()
