@@ -4,6 +4,7 @@ determinism, class balance, augmentation, and one-line errors."""
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -417,3 +418,49 @@ def test_salt_and_pepper_augmentation_looks_like_the_injectors_noise_after_the_r
     assert torch.equal(plain[0], zero[0])  # off: the same batch, the same random sequence as before
     with_noise = augment_batch(frames, labels, torch.Generator().manual_seed(1), noise_max=0.7)
     assert not torch.equal(plain[0], with_noise[0])
+
+
+# -- training seeds as an axis (drivebench train --seeds) ----------------------------------------------------------
+
+
+def train_seeds(data: Path, output: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "train", "--model", TINY, "--data", str(data), "-o", str(output),
+         "--epochs", "1", "--max-samples-per-epoch", "16", "--batch-size", "8", "--threads", "1", *extra],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+
+
+def test_seeds_train_one_run_each_with_a_manifest_and_a_rerun_keeps_them(datasets, tmp_path):
+    out = tmp_path / "tiny"
+    first = train_seeds(datasets["crop"], out, "--seeds", "0-2", "--workers", "2")
+    assert first.returncode == 0, first.stderr[-2000:]
+    manifest = json.loads((out / "training.json").read_text())
+    assert [(r["seed"], r["status"], r["best_epoch"]) for r in manifest["runs"]] == [(s, "done", 1) for s in range(3)]
+    assert manifest["data_manifest_sha256"] and "--seed" not in manifest["recipe"]
+    weights = [state_dict(out / f"seed-{seed}" / "model.ckpt") for seed in range(3)]
+    assert [read_checkpoint(out / f"seed-{s}" / "model.ckpt")["training"]["seed"] for s in range(3)] == [0, 1, 2]
+    assert any(not torch.equal(weights[0][name], weights[1][name]) for name in weights[0])  # other seed, other run
+    kept = (out / "seed-0" / "model.ckpt").stat().st_mtime_ns
+    shutil.rmtree(out / "seed-1")
+    again = train_seeds(datasets["crop"], out, "--seeds", "0-2")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "seed 0: already trained" in again.stderr and "seed 1: training" in again.stderr
+    assert (out / "seed-0" / "model.ckpt").stat().st_mtime_ns == kept
+    assert_same_tensors(state_dict(out / "seed-1" / "model.ckpt"), weights[1])  # the same seed trains the same
+
+
+@pytest.mark.parametrize(
+    ("seeds", "message"),
+    [
+        (["--seeds", "4-0"], "is empty"),
+        (["--seeds", "a"], "not a seed"),
+        (["--seeds", "1,1"], "named twice"),
+        (["--seeds", "0-2", "--seed", "3"], "drop --seed"),
+        (["--seeds", "0-2", "--workers", "0"], "--workers must be >= 1"),
+    ],
+)
+def test_bad_seed_lists_are_one_line_before_anything_starts(datasets, tmp_path, seeds, message):
+    result = train_seeds(datasets["crop"], tmp_path / "out", *seeds)
+    assert result.returncode == 2 and message in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()

@@ -4,7 +4,7 @@
     drivebench train --model deepest_lstm_tiny_pilotnet --data DATASET -o RUN_DIR [--epochs 50] [--batch-size 64]
         [--lr 1e-3] [--device auto|cpu|cuda] [--seed 0] [--patience 10] [--labels zscore|paper]
         [--hyper KEY=VALUE ...] [--threads N] [--max-samples-per-epoch N] [--limit-train-samples N]
-        [--no-augment] [--no-balance] [--any-crop] [--resume | --overwrite]
+        [--no-augment] [--no-balance] [--any-crop] [--resume | --overwrite] [--seeds 0-4 [--workers N]]
 
 Exit codes: 0 trained; 2 a request that cannot run (one line on stderr, ``drivebench: error: ...``); 130 after
 Ctrl-C, with last.ckpt saved and a line saying how to resume.
@@ -111,7 +111,62 @@ def add(subparsers: argparse._SubParsersAction) -> None:
     restart = parser.add_mutually_exclusive_group()
     restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
     restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
+    add_seed_options(parser)
     parser.set_defaults(func=run_train)
+
+
+def add_seed_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--seeds",
+        metavar="LIST",
+        help="train once per seed (0-4, or 0,2,7) into RUN_DIR/seed-N with RUN_DIR/training.json; run again to "
+        "keep finished seeds and resume interrupted ones (a matrix names them all: weights: RUN_DIR/seed-*/model.ckpt)",
+    )
+    parser.add_argument(
+        "--workers", type=int, default=1, metavar="N", help="with --seeds: train N seeds at once (default 1)"
+    )
+
+
+def recipe_options(args: argparse.Namespace) -> list[str]:
+    """The command's options that make the recipe: every option but the seed, the output and restarts."""
+    recipe = ["--model", args.model, "--data", str(args.data), "--epochs", str(args.epochs)]
+    recipe += ["--batch-size", str(args.batch_size), "--lr", repr(args.lr), "--device", args.device]
+    recipe += ["--patience", str(args.patience), "--labels", args.labels]
+    recipe += [f"--hyper={item}" for item in args.hyper]
+    for flag, value in (
+        ("--threads", args.threads),
+        ("--max-samples-per-epoch", args.max_samples_per_epoch),
+        ("--limit-train-samples", args.limit_train_samples),
+    ):
+        if value is not None:
+            recipe += [flag, str(value)]
+    recipe += ["--augment-noise", repr(args.augment_noise)]
+    recipe += [flag for flag, on in (("--no-augment", not args.augment), ("--no-balance", not args.balance)) if on]
+    return recipe + (["--any-crop"] if args.any_crop else [])
+
+
+def run_seeds(args: argparse.Namespace) -> int:
+    """``train --seeds``: one run per seed (orchestrator.seeds), each its own ``drivebench train`` process."""
+    from orchestrator.seeds import SeedsError, parse_seeds, train_seeds
+
+    try:
+        seeds = parse_seeds(args.seeds)
+    except SeedsError as error:
+        raise UsageError(str(error)) from None
+    if args.seed != 0 or args.resume or args.overwrite:
+        raise UsageError("--seeds trains every seed it names and resumes by itself: drop --seed, --resume, --overwrite")
+    if args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if not args.data.is_dir():
+        raise UsageError(f"--data {args.data}: no such dataset folder")
+    runs = train_seeds(
+        seeds=seeds, output=args.output, recipe=recipe_options(args), data=args.data, workers=args.workers, log=_log
+    )
+    failed = [run for run in runs if run.status != "done"]
+    print(f"{args.output / 'training.json'}: {len(runs) - len(failed)} of {len(runs)} seeds trained")
+    for run in failed:
+        print(f"seed {run.seed}: {run.status}; see {run.log}", file=sys.stderr)
+    return EXIT_INTERRUPTED if any(run.status == "interrupted" for run in failed) else (1 if failed else EXIT_OK)
 
 
 def parse_hyper(items: list[str]) -> dict[str, Any]:
@@ -138,6 +193,10 @@ def _value(text: str) -> bool | int | float | str:
 
 def run_train(args: argparse.Namespace) -> int:
     """Run ``drivebench train``; errors are one line on stderr, never a traceback."""
+    if args.seeds is not None:
+        return run_seeds(args)
+    if args.workers != 1:
+        raise UsageError("--workers goes with --seeds (one training run uses --threads)")
     try:
         from brains.training import trainer as training
     except ImportError as error:

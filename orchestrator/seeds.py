@@ -1,0 +1,148 @@
+"""Training seeds as an axis: one recipe trained once per seed, each run in its own folder, with a manifest.
+
+``drivebench train --model M --data D -o OUT --seeds 0-4 [--workers 2]`` runs ``drivebench train ... --seed S -o
+OUT/seed-S`` for every seed, side by side on ``--workers`` processes, and keeps ``OUT/training.json``: the recipe (the
+command's options), the dataset's manifest hash, and per seed its folder, checkpoint, best epoch and wall time. Run
+it again and finished seeds are kept, interrupted ones resume from their ``last.ckpt``, and the rest start. A matrix
+then names every run with one glob: ``weights: OUT/seed-*/model.ckpt``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+MANIFEST_FILE = "training.json"
+CHECKPOINT_FILE = "model.ckpt"
+LAST_CHECKPOINT_FILE = "last.ckpt"
+MAX_SEEDS = 1000
+
+
+class SeedsError(ValueError):
+    """A seed list that cannot be trained (``--seeds 4-0``): one line."""
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``"0-4"`` -> (0, 1, 2, 3, 4); ``"0,2,7"``; ``"1-3,8"``. Seeds are integers >= 0, each once."""
+    seeds: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        first, dash, last = part.partition("-")
+        try:
+            low, high = int(first), int(last) if dash else int(first)
+        except ValueError:
+            raise SeedsError(f"--seeds {text}: {part!r} is not a seed or a range like 0-4") from None
+        if low < 0 or high < 0:
+            raise SeedsError(f"--seeds {text}: seeds are >= 0")
+        if high < low:
+            raise SeedsError(f"--seeds {text}: the range {part} is empty (write it low-high, e.g. {high}-{low})")
+        seeds += range(low, high + 1)
+        if len(seeds) > MAX_SEEDS:
+            raise SeedsError(f"--seeds {text}: more than {MAX_SEEDS} seeds")
+    if len(set(seeds)) != len(seeds):
+        raise SeedsError(f"--seeds {text}: a seed is named twice")
+    return tuple(seeds)
+
+
+@dataclass(frozen=True)
+class SeedRun:
+    """One seed's training: where it lives and how it ended."""
+
+    seed: int
+    folder: Path
+    status: str  # "done", "failed" (see log), "interrupted"
+    best_epoch: int | None = None
+    wall_s: float | None = None
+    log: Path | None = None
+
+    def to_dict(self, root: Path) -> dict[str, Any]:
+        return {
+            "seed": self.seed,
+            "folder": str(self.folder.relative_to(root)),
+            "checkpoint": str((self.folder / CHECKPOINT_FILE).relative_to(root)),
+            "status": self.status,
+            "best_epoch": self.best_epoch,
+            "wall_s": self.wall_s,
+        }
+
+
+def train_seeds(
+    *, seeds: tuple[int, ...], output: Path, recipe: list[str], data: Path, workers: int, log=print
+) -> list[SeedRun]:
+    """Train ``recipe`` (the train command's own options, without seed or output) once per seed into
+    ``output/seed-N``; returns every seed's run and writes ``output/training.json`` after each one ends."""
+    output.mkdir(parents=True, exist_ok=True)
+    runs: dict[int, SeedRun] = {}
+    base = {"recipe": recipe, "data": str(data), "data_manifest_sha256": _manifest_hash(data), "seeds": list(seeds)}
+
+    def one(seed: int) -> SeedRun:
+        run = _train_one(seed=seed, folder=output / f"seed-{seed}", recipe=recipe, log=log)
+        runs[seed] = run
+        _write_manifest(output, base, [runs[s] for s in seeds if s in runs])
+        return run
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        finished = list(pool.map(one, seeds))
+    return finished
+
+
+def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
+    if _finished(folder):
+        log(f"seed {seed}: already trained ({folder / CHECKPOINT_FILE}), kept")
+        return _done(seed, folder)
+    resume = ["--resume"] if (folder / LAST_CHECKPOINT_FILE).is_file() else []
+    folder.mkdir(parents=True, exist_ok=True)
+    log_path = folder / "train.log"
+    log(f"seed {seed}: {'resuming' if resume else 'training'} -> {folder} (log: {log_path})")
+    command = [sys.executable, "-P", "-m", "orchestrator.cli", "train", *recipe, "--seed", str(seed)]
+    command += ["-o", str(folder), *resume]
+    started = time.monotonic()
+    with open(log_path, "ab") as out:
+        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=os.environ)
+    if code.returncode == 0 and _finished(folder):
+        run = _done(seed, folder)
+        log(f"seed {seed}: done in {time.monotonic() - started:.0f} s, best epoch {run.best_epoch}")
+        return run
+    status = "interrupted" if code.returncode in (130, -2) else "failed"
+    log(f"seed {seed}: {status} (exit {code.returncode}); see {log_path}")
+    return SeedRun(seed=seed, folder=folder, status=status, log=log_path)
+
+
+def _finished(folder: Path) -> bool:
+    """A run is finished once its checkpoint is written and no partial training state is newer."""
+    checkpoint = folder / CHECKPOINT_FILE
+    last = folder / LAST_CHECKPOINT_FILE
+    return checkpoint.is_file() and (not last.is_file() or checkpoint.stat().st_mtime >= last.stat().st_mtime)
+
+
+def _done(seed: int, folder: Path) -> SeedRun:
+    from brains.neural.checkpoint import load_checkpoint
+
+    checkpoint = load_checkpoint(folder / CHECKPOINT_FILE)
+    wall = checkpoint.training.get("wall_s")
+    return SeedRun(
+        seed=seed,
+        folder=folder,
+        status="done",
+        best_epoch=checkpoint.metrics.get("best_epoch"),
+        wall_s=float(wall) if isinstance(wall, (int, float)) else None,
+    )
+
+
+def _manifest_hash(data: Path) -> str | None:
+    manifest = data / "manifest.json"
+    return hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None
+
+
+def _write_manifest(output: Path, base: dict[str, Any], runs: list[SeedRun]) -> None:
+    document = {**base, "runs": [run.to_dict(output) for run in sorted(runs, key=lambda r: r.seed)]}
+    temporary = output / f".{MANIFEST_FILE}.partial"
+    temporary.write_text(json.dumps(document, indent=2) + "\n")
+    temporary.replace(output / MANIFEST_FILE)
