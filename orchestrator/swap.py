@@ -111,7 +111,7 @@ def swap_brain(
     name: its bus name; None = the brain's name, or ``<brain>-2``, ``-3``... when taken.
     log_path: the new brain host's log file, or a folder to write ``brain-<name>.log`` in (a run folder's ``logs``;
     None: the temporary folder). timeout_s: for it to come up and to answer its first frame. keep_old: leave the
-    old brain running (it goes on as a shadow).
+    old brain running (it answers frames, driving nothing; not a shadow, so the score does not list it).
     Raises :class:`UsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
     """
     _check_brain(brain)

@@ -341,6 +341,8 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     frame_seq: ``header.seq`` of the camera frame this command answers.
     speed_mps: forward speed along the car's x axis; yaw_rate_radps: anticlockwise yaw rate.
     inference_ns: wall time the brain spent computing this command.
+    shadow: whether its brain host was started as a shadow (to be compared with the driver, never to drive).
+    host: the identity of the brain host process that sent it (two processes of one name are two hosts).
     """
 
     header: Header
@@ -349,6 +351,8 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     speed_mps: float
     yaw_rate_radps: float
     inference_ns: int = 0
+    shadow: bool = False
+    host: str = ""
 
 
 class EpisodeEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeEvent.v1", tag_field=TAG_FIELD):
@@ -441,10 +445,11 @@ class BrainSwitch(msgspec.Struct, frozen=True, kw_only=True):
 class ShadowDistance(msgspec.Struct, frozen=True, kw_only=True):
     """How far a shadow brain's commands were from the driving brain's, over the frames both answered.
 
-    A shadow receives the same frames as the driver and publishes commands that drive nothing. A brain that drove
-    part of the episode is a shadow for the frames it did not drive.
+    A shadow is a brain host started as one (``--shadow``, a matrix's ``shadows:``): it receives the same frames as
+    the driver and publishes commands that drive nothing. Brains swapped in or out are not shadows.
 
-    brain: the shadow's bus name. frames: frames both the shadow and the driver answered.
+    brain: the shadow's bus name. host: its process (``Command.host``): two shadows of one name are two entries.
+    frames: frames both the shadow and the driver answered.
     speed_mae_mps: mean |v_shadow - v_driver|. yaw_rate_mae_radps / yaw_rate_rmse_radps / yaw_rate_max_abs_radps:
         mean, root-mean-square and largest |w_shadow - w_driver|. All 0.0 when ``frames`` is 0.
     """
@@ -455,13 +460,14 @@ class ShadowDistance(msgspec.Struct, frozen=True, kw_only=True):
     yaw_rate_mae_radps: float
     yaw_rate_rmse_radps: float
     yaw_rate_max_abs_radps: float
+    host: str = ""
 
 
 class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeScore.v1", tag_field=TAG_FIELD):
     """The one final score of an episode, published by the scorer.
 
     brain: the brain driving at the end of the episode. switches: live brain switches, in order. shadows: one
-    entry per brain that answered frames it did not drive, by name.
+    entry per shadow brain host (see :class:`ShadowDistance`).
     """
 
     header: Header
