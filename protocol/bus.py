@@ -5,8 +5,9 @@ What it adds to Zenoh, and why:
     links, short lease so a hung process is noticed in ~2-3 s), see ``reference/transport.md`` §10;
   * typed publishers per traffic class (frames drop, commands and events never drop);
   * subscribers that decode into the expected type and hand messages to the caller's loop through a queue with a
-    timeout (Zenoh's own channels have no ``recv(timeout)``); bad input is counted, logged once per key with the
-    field path, and dropped, so a malformed message can never crash a process;
+    timeout (Zenoh's own channels have no ``recv(timeout)``); bad input is counted, logged with the field path
+    (rate-limited per subscription and queryable: :class:`RejectCounter`), and dropped, so a malformed message can
+    never crash a process;
   * liveliness tokens and watchers;
   * endpoints, mode, TLS and credentials from the config or the environment (``DRIVEBENCH_*``, see
     :class:`BusConfig` and ``docs/security.md``), checked before Zenoh sees them, with one-line errors
