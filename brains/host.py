@@ -19,8 +19,11 @@ access control) for the running episode's spec, so it is seeded as the others we
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import threading
 import time
+import uuid
 from typing import Any
 
 import msgspec
@@ -69,6 +72,8 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
         simulator's, for a stack without a noise injector).
     orphan_timeout_s: exit (code 0) when the run has had no simulator for this long: nothing a stack or a swap
         starts outlives its stack. 0 (default): wait for a simulator forever (services started by hand, compose).
+    shadow: started as a shadow (``drivebench run --shadow``, a matrix's ``shadows:``): its commands say so, and the
+        score reports how far they were from the driver's. A brain that drives, or waits to be swapped in, is not.
     """
 
     bus: BusConfig = BusConfig()
@@ -78,6 +83,7 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     options: dict[str, Any] = {}
     camera: str = "auto"
     orphan_timeout_s: float = 0.0
+    shadow: bool = False
 
     def __post_init__(self) -> None:
         if self.orphan_timeout_s < 0:
@@ -110,6 +116,8 @@ class BrainHost:
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
         self._last: Command | None = None
+        # This process, in every command: the scorer keeps two shadows of one name apart by it.
+        self._host_id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self._seq = 0
         self._reader = FrameReader(log)
         self._stop = threading.Event()
@@ -244,6 +252,8 @@ class BrainHost:
             yaw_rate_radps=yaw_rate_radps,
             inference_ns=inference_ns,
             invalid=invalid,
+            shadow=self.config.shadow,
+            host=self._host_id,
         )
         self._seq += 1
         self._commands.publish(command)

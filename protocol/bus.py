@@ -5,8 +5,9 @@ What it adds to Zenoh, and why:
     links, short lease so a hung process is noticed in ~2-3 s), see ``reference/transport.md`` §10;
   * typed publishers per traffic class (frames drop, commands and events never drop);
   * subscribers that decode into the expected type and hand messages to the caller's loop through a queue with a
-    timeout (Zenoh's own channels have no ``recv(timeout)``); bad input is counted, logged once per key with the
-    field path, and dropped, so a malformed message can never crash a process;
+    timeout (Zenoh's own channels have no ``recv(timeout)``); bad input is counted, logged with the field path
+    (rate-limited per subscription and queryable: :class:`RejectCounter`), and dropped, so a malformed message can
+    never crash a process;
   * liveliness tokens and watchers;
   * endpoints, mode, TLS and credentials from the config or the environment (``DRIVEBENCH_*``, see
     :class:`BusConfig` and ``docs/security.md``), checked before Zenoh sees them, with one-line errors
@@ -156,19 +157,70 @@ class Received(Generic[T]):
     payload: bytes = b""
 
 
+REJECT_LOG_INTERVAL_S = 10.0  # bad input: at most one log line per subscription (or queryable) this often
+
+
+@dataclass
+class _RejectLog:
+    """What one subscription's (or queryable's) bad input has logged so far."""
+
+    what: str  # "message" or "request"
+    logged_at: float  # time.monotonic() of its last line
+    since: str  # wall-clock time of that line, for the next one ("... since 16:04:05")
+    unlogged: int = 0  # dropped since that line
+    last: str = ""  # the last of those: its key and error
+
+
 @dataclass
 class RejectCounter:
-    """Bad input per key: counted always, logged once per key (with the field path)."""
+    """Bad input (messages that do not decode, requests a handler refuses), counted per subscription or queryable.
 
-    counts: dict[str, int] = field(default_factory=lambda: collections.defaultdict(int))
+    Logged per subscription's key expression, never per concrete key: the first in full (the key and the field path),
+    then at most one line every ``interval_s`` with how many more were dropped since, and at :meth:`flush` (the bus's
+    close) the ones not logged yet. A client sending 1,000 bad requests, or 2,000 junk keys under a wildcard, makes a
+    few lines, not thousands, and the lines count every drop.
+    """
+
+    interval_s: float = REJECT_LOG_INTERVAL_S
+    counts: dict[str, int] = field(default_factory=lambda: collections.defaultdict(int))  # by key expression
+    _logs: dict[str, _RejectLog] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def reject(self, key: str, error: Exception) -> None:
+    def reject(self, key: str, error: Exception, *, source: str = "", what: str = "message") -> None:
+        """One bad ``what`` on ``key``, received by the subscription or queryable declared on ``source`` (default:
+        ``key``)."""
+        source = source or key
+        now = time.monotonic()
         with self._lock:
-            self.counts[key] += 1
-            first = self.counts[key] == 1
-        if first:
-            log.warning("dropped bad message on %s: %s (further ones on this key are only counted)", key, error)
+            self.counts[source] += 1
+            entry = self._logs.get(source)
+            if entry is None:
+                self._logs[source] = _RejectLog(what=what, logged_at=now, since=time.strftime("%H:%M:%S"))
+            else:
+                entry.unlogged += 1
+                entry.last = f"{key}: {error}"
+        if entry is None:
+            log.warning(
+                "dropped bad %s on %s: %s (more on %s are counted, and logged at most every %g s)",
+                what, key, error, source, self.interval_s,
+            )  # fmt: skip
+        elif now - entry.logged_at >= self.interval_s:
+            self._log_unlogged(source)
+
+    def flush(self) -> None:
+        """Log what was dropped since the last line, for every subscription and queryable."""
+        for source in list(self._logs):
+            self._log_unlogged(source)
+
+    def _log_unlogged(self, source: str) -> None:
+        with self._lock:
+            entry = self._logs[source]
+            count, since, last = entry.unlogged, entry.since, entry.last
+            entry.unlogged, entry.logged_at, entry.since = 0, time.monotonic(), time.strftime("%H:%M:%S")
+        if count:
+            log.warning(
+                "dropped %d more bad %s(s) on %s since %s (the last on %s)", count, entry.what, source, since, last
+            )
 
     @property
     def total(self) -> int:
@@ -267,7 +319,7 @@ class Subscription(Generic[T]):
         try:
             message = codec.decode(payload, self._type)
         except codec.DecodeError as error:
-            self._rejects.reject(key, error)
+            self._rejects.reject(key, error, source=self.key)
             return
         received = Received(key=key, message=message, arrival_ns=time.monotonic_ns(), payload=payload)
         if self._tracer is not None:
@@ -419,7 +471,7 @@ class Bus:
             try:
                 reply = handler(payload)
             except Exception as error:  # noqa: BLE001 - a bad request must not kill the server
-                log.warning("control request on %s failed: %s", key, error)
+                self.rejects.reject(key, error, what="request")  # logged as bad input is: rate-limited, counted
                 query.reply_err(str(error).encode())
                 return
             query.reply(key, reply)
@@ -441,4 +493,5 @@ class Bus:
     def close(self) -> None:
         if not self.session.is_closed():
             self.session.close()
+        self.rejects.flush()  # bad input dropped since its last log line
         self.tracer.write()

@@ -134,6 +134,11 @@ class ResolvedBus:
         """TLS or credentials are set: the process must then go through the router (see :class:`BusConfig`)."""
         return _is_secure(self.connect, self.tls_root_ca, self.tls_cert, self.user)
 
+    def settings(self) -> dict[str, Any]:
+        """Every setting, for the logged config: the password only as whether one is set."""
+        fields = {name: getattr(self, name) for name in self.__dataclass_fields__ if name != "password"}
+        return {**fields, "connect": list(self.connect), "listen": list(self.listen), "password": bool(self.password)}
+
     def describe(self) -> str:
         """One line for logs and errors (no secrets)."""
         parts = [self.mode, f"connect={list(self.connect)}", f"listen={list(self.listen)}"]

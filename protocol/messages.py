@@ -368,6 +368,8 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
         was, e.g. ``"speed_mps=nan (not a finite number)"``. Its speed and yaw rate are then 0 and mean nothing;
         the brain host sends it so that the simulator ends the episode ``brain_invalid`` at once, with the value,
         instead of waiting for an answer that never comes (a NaN cannot cross the bus).
+    shadow: whether its brain host was started as a shadow (to be compared with the driver, never to drive).
+    host: the identity of the brain host process that sent it (two processes of one name are two hosts).
     """
 
     header: Header
@@ -376,6 +378,8 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     speed_mps: float
     yaw_rate_radps: float
     inference_ns: int = 0
+    shadow: bool = False
+    host: str = ""
     invalid: str = ""
 
     def problem(self) -> str:
@@ -474,10 +478,11 @@ class BrainSwitch(msgspec.Struct, frozen=True, kw_only=True):
 class ShadowDistance(msgspec.Struct, frozen=True, kw_only=True):
     """How far a shadow brain's commands were from the driving brain's, over the frames both answered.
 
-    A shadow receives the same frames as the driver and publishes commands that drive nothing. A brain that drove
-    part of the episode is a shadow for the frames it did not drive.
+    A shadow is a brain host started as one (``--shadow``, a matrix's ``shadows:``): it receives the same frames as
+    the driver and publishes commands that drive nothing. Brains swapped in or out are not shadows.
 
-    brain: the shadow's bus name. frames: frames both the shadow and the driver answered.
+    brain: the shadow's bus name. host: its process (``Command.host``): two shadows of one name are two entries.
+    frames: frames both the shadow and the driver answered.
     speed_mae_mps: mean |v_shadow - v_driver|. yaw_rate_mae_radps / yaw_rate_rmse_radps / yaw_rate_max_abs_radps:
         mean, root-mean-square and largest |w_shadow - w_driver|. All 0.0 when ``frames`` is 0.
     """
@@ -488,13 +493,14 @@ class ShadowDistance(msgspec.Struct, frozen=True, kw_only=True):
     yaw_rate_mae_radps: float
     yaw_rate_rmse_radps: float
     yaw_rate_max_abs_radps: float
+    host: str = ""
 
 
 class EpisodeScore(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.EpisodeScore.v1", tag_field=TAG_FIELD):
     """The one final score of an episode, published by the scorer.
 
     brain: the brain driving at the end of the episode. switches: live brain switches, in order. shadows: one
-    entry per brain that answered frames it did not drive, by name. detail: what the reason alone does not say (the
+    entry per shadow brain host (see :class:`ShadowDistance`). detail: what the reason alone does not say (the
     END event's: for ``brain_invalid``, the brain and its refused answer), else "".
     """
 

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -17,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -398,6 +401,35 @@ def test_an_intruder_without_the_brain_role_changes_nothing_and_the_same_one_wit
     applied = int(np.count_nonzero(poses[:, 4] == INTRUDER_YAW_RATE))
     assert applied > 0, "the positive control failed: a brain identity's commands were not applied"
     assert not np.array_equal(poses[:, 1:4], baseline[: len(poses), 1:4])
+
+
+def logged_bus(log_text: str) -> dict:
+    """The ``bus`` section of the "resolved config" a service logged at start."""
+    block = log_text.split("resolved config:\n", 1)[1]
+    lines = itertools.takewhile(lambda line: not re.match(r"\d\d:\d\d:\d\d ", line), block.splitlines())
+    return yaml.safe_load("\n".join(lines))["bus"]
+
+
+@pytest.mark.integration
+def test_a_tls_client_logs_the_bus_it_joins_from_its_options_or_its_environment(secure_stack, tmp_path):
+    """Issue 34: a TLS client logged ``mode: ''``, ``connect: []``, ``tls_cert: ''`` (its config before the
+    environment and the defaults), not how it joined the bus."""
+    pki, endpoint = secure_stack.pki, secure_stack.endpoint
+    simulator = logged_bus(secure_stack.processes.log("simulator"))  # --router, TLS from the environment
+    assert simulator["mode"] == "client" and simulator["connect"] == [endpoint] and simulator["listen"] == []
+    assert (simulator["tls_cert"], simulator["tls_key"]) == (str(pki / "sim.pem"), str(pki / "sim.key"))
+    assert simulator["tls_root_ca"] == str(pki / "ca.pem") and simulator["connect_timeout_ms"] == 10_000
+
+    # everything from the environment: the router too
+    processes = Processes(tmp_path)
+    env = clean_env(**tls_env(pki, "scorer"), DRIVEBENCH_ROUTER=endpoint)
+    processes.start("scorer", ["services.scorer", "--run-id", "logged"], env)
+    try:
+        processes.wait_for_log("scorer", "scorer ready")
+    finally:
+        processes.stop()
+    scorer = logged_bus(processes.log("scorer"))
+    assert (scorer["mode"], scorer["connect"], scorer["tls_cert"]) == ("client", [endpoint], str(pki / "scorer.pem"))
 
 
 @pytest.mark.integration

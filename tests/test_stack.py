@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import signal
 import threading
 import time
@@ -11,6 +13,7 @@ import msgpack
 import msgspec
 import numpy as np
 import pytest
+import zenoh
 
 from orchestrator.stack.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
@@ -234,6 +237,49 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
     assert "dropped bad camera frame" in logs["brain"] or "dropped bad message" in logs["brain"]
     # and the stack still works afterwards
     assert stack.run_episode(spec).metrics.steps == 120
+
+
+def bad_input_lines(log_text: str) -> tuple[int, int]:
+    """(warning lines, bad messages and requests those lines count) of a service's log."""
+    warnings = [line for line in log_text.splitlines() if " WARNING " in line]
+    counted = 0
+    for line in warnings:
+        if "dropped bad " in line:
+            counted += 1
+        elif match := re.search(r"dropped (\d+) more bad ", line):
+            counted += int(match[1])
+    return len(warnings), counted
+
+
+def test_junk_from_a_plain_zenoh_client_makes_a_few_log_lines_that_count_all_of_it(make_stack, tmp_path):
+    """Issue 34: 1,000 garbage queries on sim/control made 1,000 warnings, 2,000 junk keys under the wildcard
+    subscriptions 2,000 in each of the simulator, scorer and recorder logs. Now each subscription or queryable logs its
+    first in full and then counts (a line at most every 10 s, and one at close), and the counts add up."""
+    stack = make_stack(record=tmp_path / "junk.mcap")
+    run = stack.run_id
+    # A client that is not drivebench: zenoh itself, as anyone on the network could use it.
+    config = {
+        "mode": "client",
+        "connect": {"endpoints": [stack.endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
+        for batch in range(10):
+            replies = [session.get(keys.sim_control(run), payload=b"garbage", timeout=30) for _ in range(100)]
+            errors = [reply.err for handler in replies for reply in handler]
+            assert len(errors) == 100 and all(error is not None for error in errors), f"batch {batch}"
+        for n in range(2000):
+            session.put(keys.command(run, f"junk{n}"), b"junk", congestion_control=zenoh.CongestionControl.BLOCK)
+    time.sleep(3.0)  # the puts are on their way to three processes
+    stack.close()
+    logs = {child.role: child.log_path.read_text() for child in stack.children}
+    lines = {role: bad_input_lines(logs[role]) for role in ("simulator", "scorer", "recorder")}
+    # simulator: the queryable and the command subscription, scorer and recorder: one subscription each; a first
+    # line, maybe one after 10 s, and one at close per source (the recorder adds its total at close)
+    assert lines["simulator"][0] <= 6 and lines["scorer"][0] <= 3 and lines["recorder"][0] <= 4, lines
+    assert {role: counted for role, (_, counted) in lines.items()} == {
+        "simulator": 3000, "scorer": 2000, "recorder": 2000
+    }, lines  # fmt: skip
 
 
 def test_the_simulator_refuses_bad_run_control(make_stack):

@@ -155,17 +155,37 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     assert outcome["score"].reason == EndReason.TIME_LIMIT and outcome["score"].switches == []
 
 
-def test_shadow_brains_are_scored_against_the_driver(make_stack):
-    stack = make_stack(BrainLaunch("explicit"), BrainLaunch("explicit", name="shadow"), BrainLaunch("constant"))
-    score = stack.run_episode(EpisodeSpec(max_sim_seconds=10.0, camera=SMALL), wall_timeout_s=120)
+def test_shadow_brains_are_scored_against_the_driver(make_stack, tmp_path):
+    """Only hosts started as shadows are listed, one entry per process: issue 34 found a brain waiting to be swapped
+    in (or swapped out) listed, and two shadow processes of one name merged into one entry."""
+    shadow = ("shadow=true",)
+    stack = make_stack(
+        BrainLaunch("explicit"),
+        BrainLaunch("explicit", name="twin", host=shadow),
+        BrainLaunch("constant", host=shadow),
+        BrainLaunch("constant", name="idle"),  # running, answering every frame, but no shadow: a swap's candidate
+    )
+    with open(tmp_path / "twin-2.log", "w") as log:  # a second shadow process of the same name
+        second = subprocess.Popen(
+            [sys.executable, "-m", "brains", "--brain", "explicit", "--name", "twin", "--set", "shadow=true"]
+            + ["--router", stack.endpoint, "--run-id", stack.run_id],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        wait_for(lambda: "ready on run" in (tmp_path / "twin-2.log").read_text(), timeout_s=60, what="twin 2")
+        score = stack.run_episode(EpisodeSpec(max_sim_seconds=10.0, camera=SMALL), wall_timeout_s=120)
+    finally:
+        second.terminate()
+        second.wait(timeout=30)
     assert score.reason == EndReason.TIME_LIMIT and score.brain == "explicit"
     assert score.metrics.command_rate_hz == pytest.approx(20.0, rel=0.02)  # shadows' commands drive nothing
-    shadows = {shadow.brain: shadow for shadow in score.shadows}
-    assert set(shadows) == {"shadow", "constant"}
-    twin = shadows["shadow"]
-    assert twin.frames >= 180  # of 200: a shadow may skip a frame, never drives one
-    assert twin.speed_mae_mps < 1e-6 and twin.yaw_rate_max_abs_radps < 1e-6  # the same brain on the same frames
-    constant = shadows["constant"]
+    assert sorted(shadow.brain for shadow in score.shadows) == ["constant", "twin", "twin"]
+    assert len({shadow.host for shadow in score.shadows}) == 3  # one per process
+    for twin in (shadow for shadow in score.shadows if shadow.brain == "twin"):
+        assert twin.frames >= 160  # of 200: a shadow may skip frames (five brains share the CPU), never drives one
+        assert twin.speed_mae_mps < 1e-6 and twin.yaw_rate_max_abs_radps < 1e-6  # the same brain on the same frames
+    (constant,) = (shadow for shadow in score.shadows if shadow.brain == "constant")
     assert constant.frames >= 180
     assert constant.yaw_rate_mae_radps > 0.05  # it never steers; the explicit brain does on simple's curves
     assert constant.speed_mae_mps > 0.5
@@ -307,3 +327,15 @@ def test_two_swaps_at_once_start_two_differently_named_brains(tmp_path):
     score = json.loads(stdout)
     assert score["reason"] == "stopped" and score["brain"] in names
     assert {s["to_brain"] for s in score["switches"]} == names and len(score["switches"]) == 2
+
+
+def test_drivebench_run_starts_its_shadows_as_shadows(tmp_path):
+    """The --shadow route marks its hosts (the score lists only hosts started as shadows), one entry each."""
+    result = drivebench(
+        "run", "--shadow", "constant", "--shadow", "constant", "--max-sim-seconds", "2", "--camera", "64x48",
+        "--json", "--out", str(tmp_path / "run"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    shadows = json.loads(result.stdout)["shadows"]
+    assert sorted(shadow["brain"] for shadow in shadows) == ["constant", "constant-shadow1"]
+    assert all(shadow["frames"] > 0 for shadow in shadows) and len({shadow["host"] for shadow in shadows}) == 2

@@ -93,13 +93,18 @@ def test_a_score_with_switches_and_shadows_is_recorded_and_read_back():
 # -- matching commands by frame ---------------------------------------------------------------------------------------
 
 
-def command(brain: str, frame_seq: int, speed_mps: float = 1.0, yaw_rate_radps: float = 0.0) -> Command:
+def command(
+    brain: str, frame_seq: int, speed_mps: float = 1.0, yaw_rate_radps: float = 0.0, *, host: str = ""
+) -> Command:
+    """A command of ``brain``; ``host`` given: from a brain host started as a shadow, that process."""
     return Command(
         header=Header(run_id="r", episode=0, seq=frame_seq, stamp_ns=frame_seq * 50_000_000),
         brain=brain,
         frame_seq=frame_seq,
         speed_mps=speed_mps,
         yaw_rate_radps=yaw_rate_radps,
+        shadow=bool(host),
+        host=host or f"{brain}-host",
     )
 
 
@@ -111,20 +116,35 @@ def test_the_driver_of_each_frame_follows_the_switches_whatever_arrives_first():
         matcher.add_command(command("b", frame, speed_mps=2.0))
     # The switch event arrives after the commands around it: nothing is settled yet, so nothing is misattributed.
     matcher.add_switch(BrainSwitch(stamp_ns=150_000_000, seq=3, from_brain="a", to_brain="b"))
-    shadows = {s.brain: s for s in matcher.finish()}
+    shadows = matcher.finish()
     assert driven == [("a", 0), ("a", 1), ("a", 2), ("b", 3), ("b", 4), ("b", 5)]
-    assert shadows["a"].frames == 3 and shadows["b"].frames == 3  # each a shadow where it did not drive
-    assert shadows["a"].speed_mae_mps == pytest.approx(1.0)
+    assert shadows == []  # brains swapped in or out are not shadows (issue 34: they were listed as such)
     assert [s.to_brain for s in matcher.switches] == ["b"]
+
+
+def test_each_shadow_process_is_its_own_entry_even_under_one_name():
+    """Issue 34: two shadow processes of one name were merged into one entry (keyed by name)."""
+    matcher = CommandMatcher(first_driver="d", on_driver=lambda c: None)
+    for frame in range(4):
+        matcher.add_command(command("d", frame, yaw_rate_radps=0.0))
+        matcher.add_command(command("twin", frame, yaw_rate_radps=0.1, host="host-1"))
+        matcher.add_command(command("twin", frame, yaw_rate_radps=-0.3, host="host-2"))
+        matcher.add_command(command("d", frame, yaw_rate_radps=2.0, host="host-3"))  # a shadow under the driver's name
+        matcher.add_command(command("idle", frame, yaw_rate_radps=1.0))  # running, not a shadow: waits for a swap
+    shadows = {(s.brain, s.host): s for s in matcher.finish()}
+    assert set(shadows) == {("twin", "host-1"), ("twin", "host-2"), ("d", "host-3")}
+    assert shadows["twin", "host-1"].yaw_rate_mae_radps == pytest.approx(0.1)
+    assert shadows["twin", "host-2"].yaw_rate_mae_radps == pytest.approx(0.3)
+    assert shadows["d", "host-3"].yaw_rate_mae_radps == pytest.approx(2.0)  # compared with the driver, never it
 
 
 def test_shadow_distances_count_only_frames_both_answered():
     matcher = CommandMatcher(first_driver="d", on_driver=lambda c: None)
     for frame, (w_driver, w_shadow) in enumerate([(0.0, 0.3), (0.1, -0.3), (0.2, 0.2)]):
         matcher.add_command(command("d", frame, yaw_rate_radps=w_driver))
-        matcher.add_command(command("s", frame, yaw_rate_radps=w_shadow))
-        matcher.add_command(command("s", frame, yaw_rate_radps=99.0))  # a repeated answer: the first one counts
-    matcher.add_command(command("s", 3, yaw_rate_radps=5.0))  # the driver never answered frame 3
+        matcher.add_command(command("s", frame, yaw_rate_radps=w_shadow, host="s1"))
+        matcher.add_command(command("s", frame, yaw_rate_radps=99.0, host="s1"))  # a repeated answer: the first counts
+    matcher.add_command(command("s", 3, yaw_rate_radps=5.0, host="s1"))  # the driver never answered frame 3
     [shadow] = matcher.finish()
     assert shadow.brain == "s" and shadow.frames == 3
     assert shadow.yaw_rate_mae_radps == pytest.approx((0.3 + 0.4 + 0.0) / 3)
@@ -139,7 +159,7 @@ def test_pending_frames_are_bounded():
     for frame in range(100):
         matcher.add_command(command("d", frame))
     assert len(driven) == 90  # the oldest settled as new ones came
-    matcher.add_command(command("s", 5))  # too late: its frame is settled
+    matcher.add_command(command("s", 5, host="s1"))  # too late: its frame is settled
     assert matcher.late_commands == 1
     assert matcher.finish() == [] and len(driven) == 100
 
@@ -218,7 +238,7 @@ def test_name_claims_round_trip_names_with_dots():
 def test_shadow_names_never_clash():
     launches = shadow_launches(["explicit", "constant", "explicit"], taken={"explicit"})
     assert [launch.bus_name for launch in launches] == ["explicit-shadow1", "constant", "explicit-shadow2"]
-    assert launches[0] == BrainLaunch("explicit", name="explicit-shadow1")
+    assert launches[0] == BrainLaunch("explicit", name="explicit-shadow1", host=("shadow=true",))  # started as one
     with pytest.raises(UsageError, match="unknown brain 'hal'"):
         shadow_launches(["hal"], taken=set())
 

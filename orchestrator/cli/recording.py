@@ -300,7 +300,10 @@ def _replay(args: argparse.Namespace) -> int:
     if not args.max_speed and not args.rate > 0:
         raise UsageError(f"--rate must be > 0, got {args.rate}")
     _check_one_run(args)  # a bad file fails here, before a bus session is opened
-    with Bus(BusConfig(connect=[router]), name="replay") as bus:
+    # No shared memory: a large put through it lives in a buffer of this process, which a subscriber still behind
+    # (a recorder on a loaded machine) could no longer map once the replay exited: its last camera frames were lost.
+    # Without it the bytes travel in the transport, which the session's close flushes onto the wire.
+    with Bus(BusConfig(connect=[router], shared_memory=False), name="replay") as bus:
         report = replay(
             args.file,
             bus,

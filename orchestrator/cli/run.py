@@ -383,7 +383,7 @@ def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]
             else next(f"{base}-shadow{n}" for n in range(1, len(taken) + 2) if f"{base}-shadow{n}" not in taken)
         )
         taken.add(name)
-        launches.append(BrainLaunch(brain, name=name, options=options))
+        launches.append(BrainLaunch(brain, name=name, options=options, host=("shadow=true",)))
     return launches
 
 

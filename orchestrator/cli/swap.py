@@ -42,7 +42,7 @@ def add(commands: argparse._SubParsersAction) -> None:
     swap.add_argument(
         "--runs-dir", type=Path, default=Path("runs"), help="where drivebench run keeps its run folders (default: runs)"
     )
-    swap.add_argument("--keep-old", action="store_true", help="leave the old brain running (as a shadow)")
+    swap.add_argument("--keep-old", action="store_true", help="leave the old brain running (not a shadow)")
     swap.add_argument(
         "--timeout",
         type=float,

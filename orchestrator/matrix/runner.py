@@ -334,7 +334,7 @@ class MatrixRunner:
         return folder
 
     def _launches(self, episode: PlannedEpisode) -> list[BrainLaunch]:
-        return [brain_launch(episode.brain), *(brain_launch(shadow) for shadow in self.matrix.shadows)]
+        return [brain_launch(episode.brain), *(brain_launch(shadow, shadow=True) for shadow in self.matrix.shadows)]
 
     def _write_config(self, folder: Path, episode: PlannedEpisode, run_id: str) -> None:
         (folder / "config.yaml").write_text(
@@ -360,9 +360,10 @@ class MatrixRunner:
         return str(path.relative_to(self.out_dir))
 
 
-def brain_launch(entry: BrainEntry) -> BrainLaunch:
-    """The brain host launch of one matrix brain entry (its label is its bus name)."""
-    return BrainLaunch(entry.brain, name=entry.label, options=entry.launch_options())
+def brain_launch(entry: BrainEntry, *, shadow: bool = False) -> BrainLaunch:
+    """The brain host launch of one matrix brain entry (its label is its bus name); ``shadow``: one of ``shadows:``."""
+    host = ("shadow=true",) if shadow else ()
+    return BrainLaunch(entry.brain, name=entry.label, options=entry.launch_options(), host=host)
 
 
 class Trace:

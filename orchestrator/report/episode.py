@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+
 from protocol.messages import EpisodeScore
 
 
@@ -66,10 +68,12 @@ def switch_rows(score: EpisodeScore) -> list[tuple[str, str]]:
 
 
 def shadow_rows(score: EpisodeScore) -> list[tuple[str, str]]:
-    """One row per shadow brain: its distance to the driving brain's commands over the frames both answered."""
+    """One row per shadow brain host: its distance to the driving brain's commands over the frames both answered
+    (two hosts of one name are told apart by their process)."""
+    names = collections.Counter(shadow.brain for shadow in score.shadows)
     return [
         (
-            f"shadow {shadow.brain} vs driver",
+            f"shadow {shadow.brain}{f' ({shadow.host})' if names[shadow.brain] > 1 else ''} vs driver",
             f"|dv| mean {shadow.speed_mae_mps:.3f} m/s, |dw| mean / rms / max {shadow.yaw_rate_mae_radps:.3f} / "
             f"{shadow.yaw_rate_rmse_radps:.3f} / {shadow.yaw_rate_max_abs_radps:.3f} rad/s over {shadow.frames} "
             f"frames",

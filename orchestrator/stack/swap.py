@@ -171,8 +171,9 @@ def swap_brain(
     name: its bus name; None = the brain's name, or ``<brain>-2``, ``-3``... when taken.
     log_path: the new brain host's log file, or a folder to write ``brain-<name>.log`` in (a run folder's ``logs``;
     None: the temporary folder). timeout_s: for it to come up and to answer its first frame. keep_old: leave the
-    old brain running (it goes on as a shadow). identity: the new brain host's on a secure stack (required when
-    this process has an identity of its own there, i.e. the orchestrator's).
+    old brain running (it answers frames, driving nothing; not a shadow, so the score does not list it). identity:
+    the new brain host's on a secure stack (required when this process has an identity of its own there, i.e. the
+    orchestrator's).
     Raises :class:`UsageError` or :class:`SwapError` with a one-line reason; on failure the new brain is stopped.
     """
     _check_brain(brain)

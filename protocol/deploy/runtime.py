@@ -18,7 +18,9 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
-from protocol.bus import Bus, BusConfig, BusError
+import msgspec
+
+from protocol.bus import Bus, BusConfig, BusError, resolve_bus
 from protocol.deploy.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
 
 T = TypeVar("T")
@@ -164,7 +166,12 @@ def run_service(name: str, main: Callable[[], int | None]) -> int:
 
 
 def log_config(config: Any) -> None:
-    log.info("resolved config:\n%s", dump_config(config).rstrip())
+    """Log the config as the process runs with it: a ``bus`` section as the process joins the bus (the environment
+    and the defaults applied: mode, endpoints, certificates), not the empty fields that stand for them."""
+    settings = msgspec.to_builtins(config)
+    if isinstance(bus := getattr(config, "bus", None), BusConfig):
+        settings["bus"] = resolve_bus(bus).settings()  # a bad value fails here, as one line, as it would on opening
+    log.info("resolved config:\n%s", dump_config(settings).rstrip())
 
 
 class Service(Protocol):

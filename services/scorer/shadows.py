@@ -2,10 +2,11 @@
 
 Every brain of a run answers the same frames; the simulator applies only the active brain's answer. The driver of
 frame n is the episode's first active brain, or the ``to_brain`` of the last switch at or before frame n. Commands
-are kept per frame until the frame is settled: its driver's command goes on to the episode's metrics and every other
-brain's command to that brain's :class:`ShadowDistance`. Settling waits (up to ``max_pending_frames`` frames, or the
-end of the episode), because a switch event and the commands around it travel on different keys and may arrive in
-any order.
+are kept per frame until the frame is settled: its driver's command goes on to the episode's metrics and each
+shadow's (a command marked ``shadow``: its host was started as one) to that host's :class:`ShadowDistance`, one per
+process (``Command.host``), so two shadows of one name never merge. Brains that are neither (swapped out, or waiting
+to be swapped in) are in no list. Settling waits (up to ``max_pending_frames`` frames, or the end of the episode),
+because a switch event and the commands around it travel on different keys and may arrive in any order.
 """
 
 from __future__ import annotations
@@ -38,10 +39,11 @@ class _Distance:
         self.yaw_rate_sq_sum += yaw_rate_diff_radps**2
         self.yaw_rate_max_abs = max(self.yaw_rate_max_abs, abs(yaw_rate_diff_radps))
 
-    def result(self, brain: str) -> ShadowDistance:
+    def result(self, brain: str, host: str) -> ShadowDistance:
         n = self.frames
         return ShadowDistance(
             brain=brain,
+            host=host,
             frames=n,
             speed_mae_mps=self.speed_abs_sum / n if n else 0.0,
             yaw_rate_mae_radps=self.yaw_rate_abs_sum / n if n else 0.0,
@@ -63,11 +65,11 @@ class CommandMatcher:
         self._first_driver = first_driver
         self._on_driver = on_driver
         self._max_pending = max_pending_frames
-        self._pending: dict[int, dict[str, Command]] = {}
+        self._pending: dict[int, dict[tuple[str, str], Command]] = {}  # frame -> (brain, host) -> its first answer
         self._settled_below = 0  # every frame below this is settled; later answers to them are dropped
         self._switch_seqs: list[int] = []
         self.switches: list[BrainSwitch] = []
-        self._distances: dict[str, _Distance] = {}
+        self._distances: dict[tuple[str, str], _Distance] = {}  # by shadow (brain, host)
         self._last_answered: dict[str, int] = {}  # brain -> the latest frame it answered
         self.late_commands = 0
 
@@ -78,12 +80,13 @@ class CommandMatcher:
         self.switches.insert(index, switch)
 
     def add_command(self, command: Command) -> None:
-        """One brain's answer to frame ``command.frame_seq`` (the first answer per brain and frame counts)."""
-        self._last_answered[command.brain] = max(command.frame_seq, self._last_answered.get(command.brain, -1))
+        """One brain's answer to frame ``command.frame_seq`` (the first answer per brain host and frame counts)."""
+        if not command.shadow:  # a shadow never drives, even under a driver's name
+            self._last_answered[command.brain] = max(command.frame_seq, self._last_answered.get(command.brain, -1))
         if command.frame_seq < self._settled_below:
             self.late_commands += 1
             return
-        self._pending.setdefault(command.frame_seq, {}).setdefault(command.brain, command)
+        self._pending.setdefault(command.frame_seq, {}).setdefault((command.brain, command.host), command)
         while len(self._pending) > self._max_pending:
             self._settle(min(self._pending))
 
@@ -97,20 +100,22 @@ class CommandMatcher:
         return self.switches[index - 1].to_brain if index else self._first_driver
 
     def finish(self) -> list[ShadowDistance]:
-        """Settle every pending frame; the distance of every shadow, by brain name."""
+        """Settle every pending frame; the distance of every shadow host, by brain name and host."""
         for frame_seq in sorted(self._pending):
             self._settle(frame_seq)
-        return [self._distances[brain].result(brain) for brain in sorted(self._distances)]
+        return [self._distances[shadow].result(*shadow) for shadow in sorted(self._distances)]
 
     def _settle(self, frame_seq: int) -> None:
         answers = self._pending.pop(frame_seq)
         self._settled_below = max(self._settled_below, frame_seq + 1)
-        driving = answers.get(self.driver(frame_seq))
+        driver = self.driver(frame_seq)
+        # The first answer under the driver's name that is not a shadow's (in arrival order, as the simulator took it)
+        driving = next((c for (brain, _), c in answers.items() if brain == driver and not c.shadow), None)
         if driving is None:
             return  # the driver's answer never came (real-time mode, or lost): nothing to compare with
         self._on_driver(driving)
-        for brain, command in answers.items():
-            if command is not driving:
-                self._distances.setdefault(brain, _Distance()).add(
+        for shadow, command in answers.items():
+            if command.shadow:
+                self._distances.setdefault(shadow, _Distance()).add(
                     command.speed_mps - driving.speed_mps, command.yaw_rate_radps - driving.yaw_rate_radps
                 )

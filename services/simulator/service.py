@@ -140,7 +140,9 @@ class SimulatorService:
         if keys.brain_of_command_key(received.key) == received.message.brain:
             return True
         self.bus.rejects.reject(
-            received.key, ValueError(f"command names brain {received.message.brain!r}, not the brain of its key")
+            received.key,
+            ValueError(f"command names brain {received.message.brain!r}, not the brain of its key"),
+            source=keys.commands_all(self.config.run_id),  # logged per subscription, as undecodable ones are
         )
         return False
 
