@@ -40,6 +40,17 @@ def test_the_whole_frame_for_a_network_of_the_lower_half_is_an_error_unless_aske
     assert "differ from the reference" in result.stderr  # still said
 
 
+def test_the_lower_half_for_a_whole_frame_network_trains_with_a_note(recordings, tmp_path):
+    """The paper's recipe trains memDCCP on the lower half (brains/weights/README.md): a narrower crop than the
+    network's is a choice, not an error."""
+    data = tmp_path / "lower"
+    built = build(*recordings, "-o", data, "--split", "none", "--offsets=-9,-5,0", "--crop", "0.5:1", size="100x50")
+    assert built.returncode == 0, built.stderr
+    result = train(data, tmp_path / "run", model="memdccp")
+    assert result.returncode == 0, result.stderr
+    assert "differ from the reference" in result.stderr and (tmp_path / "run" / "model.ckpt").is_file()
+
+
 def test_the_offsets_a_message_suggests_are_accepted_as_written(recordings, tmp_path):
     data = tmp_path / "single"
     assert build(*recordings, "-o", data, "--split", "none", size="100x50").returncode == 0
