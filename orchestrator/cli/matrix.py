@@ -17,7 +17,7 @@ from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
 from orchestrator.cli.ray import add_ray_options, ray_options_from
-from protocol.messages import RENDERERS
+from orchestrator.cli.run import add_scene_options
 
 
 def add(commands: argparse._SubParsersAction) -> None:
@@ -66,11 +66,12 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
         "--retry-failed", action="store_true", help="with --resume: also run again the episodes the stack failed"
     )
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
-    parser.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
-        "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)",
+    # camera and variations come from the matrix file; the renderer may be overridden for every episode
+    add_scene_options(
+        parser,
+        renderer_default="the file's `renderer:`, else $DRIVEBENCH_RENDERER, else auto",
+        camera=False,
+        variation=False,
     )
 
 

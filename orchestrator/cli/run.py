@@ -44,6 +44,38 @@ def parse_camera(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
+def add_scene_options(
+    parser: argparse.ArgumentParser, *, renderer_default: str, camera: bool = True, variation: bool = True
+) -> None:
+    """``--camera``, ``--renderer`` and ``--variation`` with one help text for every command that takes them (run,
+    dataset collect, matrix), so they cannot drift apart; only the default, which differs by command, is stated per
+    command (``renderer_default``). ``camera``/``variation``: False where the command takes them from a file."""
+    if camera:
+        parser.add_argument(
+            "--camera",
+            type=parse_camera,
+            default=(320, 240),
+            metavar="WxH",
+            help="simulator camera resolution in pixels (default: 320x240; Behavior Metrics uses 640x480)",
+        )
+    parser.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same scene, "
+        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default}",
+    )
+    if variation:
+        parser.add_argument(
+            "--variation",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE,...",
+            help="world and camera variation, applied in order (repeatable), e.g. line=white,road=white,walls=off,"
+            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
+            "direction=reverse",
+        )
+
+
 def add(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
@@ -82,29 +114,7 @@ def add(commands: argparse._SubParsersAction) -> None:
     )
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
-    run.add_argument(
-        "--camera",
-        type=parse_camera,
-        default=(320, 240),
-        metavar="WxH",
-        help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)",
-    )
-    run.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same "
-        "scene, ~10x faster) or auto (gl where EGL works, else pybullet); default: "
-        "$DRIVEBENCH_RENDERER, else pybullet",
-    )
-    run.add_argument(
-        "--variation",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE,...",
-        help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
-        "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
-        "direction=reverse",
-    )
+    add_scene_options(run, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
     run.add_argument(
         "--noise",
         action="append",
