@@ -180,71 +180,12 @@ def resolve_bus(config: BusConfig, env: Mapping[str, str] | None = None) -> Reso
         env_listen = _endpoints_from_env(env, LISTEN_ENV)
     except ValueError as error:
         raise BusError(str(error)) from None
-
-    def setting(value: str, name: str, variable: str) -> tuple[str, str]:
-        return (value, f"bus.{name}") if value else (env.get(variable, "").strip(), variable)
-
-    root_ca, root_ca_from = setting(config.tls_root_ca, "tls_root_ca", TLS_ROOT_CA_ENV)
-    cert, cert_from = setting(config.tls_cert, "tls_cert", TLS_CERT_ENV)
-    key, key_from = setting(config.tls_key, "tls_key", TLS_KEY_ENV)
-    user, user_from = setting(config.user, "user", USER_ENV)
-    for path, where in ((root_ca, root_ca_from), (cert, cert_from), (key, key_from)):
-        if path:
-            _readable_file(path, where=where)
-    if bool(cert) != bool(key):
-        raise BusError(
-            f"{cert_from if cert else key_from} is set but not its pair: a certificate needs its private "
-            f"key (bus.tls_cert and bus.tls_key, or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
-        )
-    if config.password_file:
-        _readable_file(config.password_file, where="bus.password_file")
-        with open(config.password_file, encoding="utf-8", errors="replace") as file:
-            password, password_from = file.readline().rstrip("\r\n"), "bus.password_file"
-        if not password:
-            raise BusError(f"bus.password_file: {config.password_file} has no password on its first line")
-    else:
-        password, password_from = env.get(PASSWORD_ENV, ""), PASSWORD_ENV
-    if user and not password:
-        raise BusError(f"{user_from} is set but no password: set {PASSWORD_ENV} or bus.password_file")
-    if password and not user:
-        raise BusError(f"{password_from} is set but no user: set {USER_ENV} or bus.user")
-
+    root_ca, cert, key = _tls_files(config, env)
+    user, password = _credentials(config, env)
     secure = _is_secure(connect, root_ca, cert, user)
-    mode, mode_from = config.mode, "bus.mode"
-    if not mode:
-        mode, mode_from = env.get(MODE_ENV, "").strip(), MODE_ENV
-        if mode and mode not in ("peer", "client"):
-            raise BusError(f"{MODE_ENV} must be peer or client, got {mode!r}")
-        mode = mode or ("client" if secure else "peer")
-
-    if config.listen:
-        listen = list(config.listen)
-    elif mode == "client":
-        listen = []  # a client never listens, whatever DRIVEBENCH_LISTEN says (it may be meant for the peers)
-    elif env_listen:
-        listen = env_listen
-    elif mode == "router":
-        listen = list(DEFAULT_ROUTER_LISTEN)
-    else:
-        local = all("127.0.0.1" in e or "localhost" in e for e in connect)
-        listen = ["tcp/127.0.0.1:0"] if local else ["tcp/0.0.0.0:0"]
-
-    if secure and mode == "peer":
-        raise BusError(
-            f"{mode_from} is peer, but TLS or credentials are set: a secure process must be a client of "
-            f"the router, which enforces access control; a peer's direct links to other peers would bypass "
-            f"it (leave the mode empty: it is then client)"
-        )
-    if secure and mode == "client" and listen:
-        raise BusError(
-            f"bus.listen is {listen}, but TLS or credentials are set: a secure client must not listen "
-            f"(everything goes through the router, which enforces access control)"
-        )
-    if mode == "router" and any(e.split("/", 1)[0] in _SECURE_PROTOCOLS for e in listen) and not cert:
-        raise BusError(
-            f"listening on {[e for e in listen if e.split('/', 1)[0] in _SECURE_PROTOCOLS]} needs the "
-            f"router's certificate: bus.tls_cert and bus.tls_key (or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
-        )
+    mode, mode_from = _mode(config, env, secure=secure)
+    listen = _listen(config, mode=mode, env_listen=env_listen, connect=connect)
+    _check_secure_roles(mode=mode, mode_from=mode_from, listen=listen, secure=secure, cert=cert)
     if config.connect_timeout_ms is not None:
         timeout_ms = config.connect_timeout_ms
     else:
@@ -262,6 +203,91 @@ def resolve_bus(config: BusConfig, env: Mapping[str, str] | None = None) -> Reso
         user=user,
         password=password,
     )
+
+
+def _setting(env: Mapping[str, str], value: str, *, name: str, variable: str) -> tuple[str, str]:
+    """A bus field's value and where it came from (``bus.NAME`` or the variable): the config wins when set."""
+    return (value, f"bus.{name}") if value else (env.get(variable, "").strip(), variable)
+
+
+def _tls_files(config: BusConfig, env: Mapping[str, str]) -> tuple[str, str, str]:
+    """The root CA, certificate and key paths (each readable, the last two set together); empty when unset."""
+    root_ca, root_ca_from = _setting(env, config.tls_root_ca, name="tls_root_ca", variable=TLS_ROOT_CA_ENV)
+    cert, cert_from = _setting(env, config.tls_cert, name="tls_cert", variable=TLS_CERT_ENV)
+    key, key_from = _setting(env, config.tls_key, name="tls_key", variable=TLS_KEY_ENV)
+    for path, where in ((root_ca, root_ca_from), (cert, cert_from), (key, key_from)):
+        if path:
+            _readable_file(path, where=where)
+    if bool(cert) != bool(key):
+        raise BusError(
+            f"{cert_from if cert else key_from} is set but not its pair: a certificate needs its private "
+            f"key (bus.tls_cert and bus.tls_key, or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
+        )
+    return root_ca, cert, key
+
+
+def _credentials(config: BusConfig, env: Mapping[str, str]) -> tuple[str, str]:
+    """The user and password (both or neither); the password from bus.password_file's first line or the
+    environment, never from the config itself (configs are logged and recorded)."""
+    user, user_from = _setting(env, config.user, name="user", variable=USER_ENV)
+    if config.password_file:
+        _readable_file(config.password_file, where="bus.password_file")
+        with open(config.password_file, encoding="utf-8", errors="replace") as file:
+            password, password_from = file.readline().rstrip("\r\n"), "bus.password_file"
+        if not password:
+            raise BusError(f"bus.password_file: {config.password_file} has no password on its first line")
+    else:
+        password, password_from = env.get(PASSWORD_ENV, ""), PASSWORD_ENV
+    if user and not password:
+        raise BusError(f"{user_from} is set but no password: set {PASSWORD_ENV} or bus.password_file")
+    if password and not user:
+        raise BusError(f"{password_from} is set but no user: set {USER_ENV} or bus.user")
+    return user, password
+
+
+def _mode(config: BusConfig, env: Mapping[str, str], *, secure: bool) -> tuple[str, str]:
+    """The session mode and where it came from; unset, a secure process is a client and any other a peer."""
+    if config.mode:
+        return config.mode, "bus.mode"
+    mode = env.get(MODE_ENV, "").strip()
+    if mode and mode not in ("peer", "client"):
+        raise BusError(f"{MODE_ENV} must be peer or client, got {mode!r}")
+    return mode or ("client" if secure else "peer"), MODE_ENV
+
+
+def _listen(config: BusConfig, *, mode: str, env_listen: list[str], connect: list[str]) -> list[str]:
+    """The listen endpoints: the config's, none for a client, the environment's, else a default by mode (a peer
+    whose routers are all on this machine listens on loopback only)."""
+    if config.listen:
+        return list(config.listen)
+    if mode == "client":
+        return []  # a client never listens, whatever DRIVEBENCH_LISTEN says (it may be meant for the peers)
+    if env_listen:
+        return env_listen
+    if mode == "router":
+        return list(DEFAULT_ROUTER_LISTEN)
+    local = all("127.0.0.1" in e or "localhost" in e for e in connect)
+    return ["tcp/127.0.0.1:0"] if local else ["tcp/0.0.0.0:0"]
+
+
+def _check_secure_roles(*, mode: str, mode_from: str, listen: list[str], secure: bool, cert: str) -> None:
+    """A secure process is a client that does not listen; a router listening on TLS needs its certificate."""
+    if secure and mode == "peer":
+        raise BusError(
+            f"{mode_from} is peer, but TLS or credentials are set: a secure process must be a client of "
+            f"the router, which enforces access control; a peer's direct links to other peers would bypass "
+            f"it (leave the mode empty: it is then client)"
+        )
+    if secure and mode == "client" and listen:
+        raise BusError(
+            f"bus.listen is {listen}, but TLS or credentials are set: a secure client must not listen "
+            f"(everything goes through the router, which enforces access control)"
+        )
+    if mode == "router" and any(e.split("/", 1)[0] in _SECURE_PROTOCOLS for e in listen) and not cert:
+        raise BusError(
+            f"listening on {[e for e in listen if e.split('/', 1)[0] in _SECURE_PROTOCOLS]} needs the "
+            f"router's certificate: bus.tls_cert and bus.tls_key (or {TLS_CERT_ENV} and {TLS_KEY_ENV})"
+        )
 
 
 def zenoh_settings(bus: ResolvedBus, *, name: str) -> dict[str, Any]:

@@ -5,6 +5,7 @@
 * No cycle between packages: the subpackages (orchestrator/stack, matrix, report; protocol/deploy, mapping; ...) form
   a graph without loops, so each can be read knowing only what it imports.
 * Only protocol/ imports zenoh; no package folder holds more than 15 modules.
+* No function outside tests/ is over 80 lines (CODE_STYLE.md: a longer one splits by what it does).
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ MAY_IMPORT = {
 }
 ONLY_FROM = {("brains", "recorder"): "brains.training", ("brains", "services"): "brains.checker"}
 MAX_MODULES_PER_FOLDER = 15
+MAX_FUNCTION_LINES = 80
+# Every folder of Python code but tests/ (test functions may read as one long scenario).
+CODE_FOLDERS = (*TOP_LEVEL, "benchmarks", "examples", "scripts")
 
 
 def module_name(path: Path) -> str:
@@ -135,3 +139,17 @@ def test_no_folder_holds_more_than_fifteen_modules():
             if len(modules) > MAX_MODULES_PER_FOLDER:
                 crowded[str(folder.relative_to(ROOT))] = len(modules)
     assert not crowded, crowded
+
+
+def test_no_function_outside_tests_is_over_eighty_lines():
+    long = []
+    for folder in CODE_FOLDERS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            if "__pycache__" in path.parts:
+                continue
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                    lines = node.end_lineno - node.lineno + 1 if node.end_lineno else 0
+                    if lines > MAX_FUNCTION_LINES:
+                        long.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} is {lines} lines")
+    assert not long, "\n".join(long)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
 from orchestrator.cli.ray import add_ray_options, ray_options_from
-from protocol.messages import RENDERERS
+from orchestrator.cli.run import add_scene_options
 
 
 def add(commands: argparse._SubParsersAction) -> None:
@@ -66,11 +66,12 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
         "--retry-failed", action="store_true", help="with --resume: also run again the episodes the stack failed"
     )
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
-    parser.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        help="camera renderer of every episode, over the file's `renderer:` (default: the file's, "
-        "else $DRIVEBENCH_RENDERER, else auto: gl where EGL works)",
+    # camera and variations come from the matrix file; the renderer may be overridden for every episode
+    add_scene_options(
+        parser,
+        renderer_default="the file's `renderer:`, else $DRIVEBENCH_RENDERER, else auto",
+        camera=False,
+        variation=False,
     )
 
 
@@ -151,35 +152,17 @@ def run_matrix_args(
     ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
     facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix.results import ResultsError
     from orchestrator.matrix.runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
 
     if args.plan:
         print(plan_table(matrix))
         return EXIT_OK
-    if args.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {args.workers}")
-    if args.resume and args.out is None:
-        raise UsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
-    if args.retry_failed and not args.resume:
-        raise UsageError("--retry-failed goes with --resume")
+    _check_run_options(args, what=what)
     ray_options = _ray_options(args)
     # On a cluster, "auto" is resolved by each node's simulator: this machine's EGL says nothing about theirs.
     matrix = _resolve_renderers(matrix, getattr(args, "renderer", None), here=ray_options is None)
     _preflight(matrix)
-    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if not args.resume and (out_dir / "results.sqlite").exists():
-        raise UsageError(
-            f"{out_dir} already holds matrix results: add --resume to finish that run, or choose another -o folder"
-        )
-    if args.resume:
-        matrix = _fit_to_results(matrix, out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(
-        filename=out_dir / "matrix.log",
-        level=logging.INFO,
-        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s",
-    )
+    matrix, out_dir = _prepare_out_dir(matrix, args, default_folder=default_folder)
     options = RunOptions(
         workers=args.workers,
         record=args.record,
@@ -200,8 +183,51 @@ def run_matrix_args(
         from orchestrator.matrix.ray_runner import RayMatrixRunner
 
         runner = RayMatrixRunner(matrix, out_dir, options, ray_options=ray_options, on_change=display.update)
+    progress = _run_to_the_end(runner, display, out_dir=out_dir, command=command)
+    if progress is None:
+        return EXIT_INTERRUPTED
+    print(summary_line(progress, out_dir), file=sys.stderr)
+    if report:
+        _write_report(out_dir)
+    return EXIT_SOME_FAILED if progress.failed else EXIT_OK
+
+
+def _check_run_options(args: argparse.Namespace, *, what: str) -> None:
+    """The options of :func:`add_run_options` that only make sense together, checked before anything runs."""
+    if args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.resume and args.out is None:
+        raise UsageError(f"--resume needs -o DIR, the folder of the {what} run to resume")
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed goes with --resume")
+
+
+def _prepare_out_dir(matrix, args: argparse.Namespace, *, default_folder: str):
+    """The output folder, made, with the log going there; ``matrix`` fitted to its results with ``--resume``, and a
+    folder that already holds results refused without it (never mix two runs' results)."""
+    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if not args.resume and (out_dir / "results.sqlite").exists():
+        raise UsageError(
+            f"{out_dir} already holds matrix results: add --resume to finish that run, or choose another -o folder"
+        )
+    if args.resume:
+        matrix = _fit_to_results(matrix, out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(
+        filename=out_dir / "matrix.log",
+        level=logging.INFO,
+        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s",
+    )
+    return matrix, out_dir
+
+
+def _run_to_the_end(runner, display, *, out_dir: Path, command: str):
+    """``runner.run()``'s progress, or None after Ctrl-C (with the command that resumes it on stderr); a results
+    database that does not fit is a usage error."""
+    from orchestrator.matrix.results import ResultsError
+
     try:
-        progress = runner.run()
+        return runner.run()
     except ResultsError as error:
         raise UsageError(str(error)) from None
     except KeyboardInterrupt:
@@ -211,13 +237,9 @@ def run_matrix_args(
             f"`{command} -o {out_dir} --resume` runs the rest",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return None
     finally:
         display.close()
-    print(summary_line(progress, out_dir), file=sys.stderr)
-    if report:
-        _write_report(out_dir)
-    return EXIT_SOME_FAILED if progress.failed else EXIT_OK
 
 
 def _fit_to_results(matrix, out_dir: Path):

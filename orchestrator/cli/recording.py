@@ -20,9 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_OK, UsageError
-from orchestrator.cli.run import parse_camera
+from orchestrator.cli.run import add_scene_options
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
-from protocol.messages import RENDERERS
 from recorder.dataset.build import DatasetError
 from recorder.reading import RecordingError, recording_info
 
@@ -99,33 +98,14 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     )
     collect.add_argument("--laps", type=int, default=1, help="laps per circuit (default 1)")
     collect.add_argument("--brain", default="explicit", help="the brain whose driving is recorded (default explicit)")
-    collect.add_argument(
-        "--camera",
-        type=parse_camera,
-        default=(320, 240),
-        metavar="WxH",
-        help="simulator camera (default 320x240); --size sets the dataset's image size",
-    )
-    collect.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        help="camera renderer (see drivebench run --renderer); default: $DRIVEBENCH_RENDERER, "
-        "else auto (gl where EGL works, else pybullet)",
-    )
-    collect.add_argument(
-        "--variation",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE,...",
-        help="world variation for every circuit, as in drivebench run (with --randomise: pins "
-        "what it names, e.g. line=none,walls=off, and the rest is still drawn)",
-    )
+    add_scene_options(collect, renderer_default="$DRIVEBENCH_RENDERER, else auto")
     collect.add_argument(
         "--randomise",
         action="store_true",
         help="domain randomisation: each episode draws its own line, road, walls, lighting, camera "
         "mount and camera noise from its seed (use with a brain that does not look, e.g. "
-        "--brain expert, which drives on ground truth)",
+        "--brain expert, which drives on ground truth); --variation pins what it names, e.g. "
+        "line=none,walls=off, and the rest is still drawn",
     )
     collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
     collect.add_argument(

@@ -44,6 +44,38 @@ def parse_camera(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
+def add_scene_options(
+    parser: argparse.ArgumentParser, *, renderer_default: str, camera: bool = True, variation: bool = True
+) -> None:
+    """``--camera``, ``--renderer`` and ``--variation`` with one help text for every command that takes them (run,
+    dataset collect, matrix), so they cannot drift apart; only the default, which differs by command, is stated per
+    command (``renderer_default``). ``camera``/``variation``: False where the command takes them from a file."""
+    if camera:
+        parser.add_argument(
+            "--camera",
+            type=parse_camera,
+            default=(320, 240),
+            metavar="WxH",
+            help="simulator camera resolution in pixels (default: 320x240; Behavior Metrics uses 640x480)",
+        )
+    parser.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same scene, "
+        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default}",
+    )
+    if variation:
+        parser.add_argument(
+            "--variation",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE,...",
+            help="world and camera variation, applied in order (repeatable), e.g. line=white,road=white,walls=off,"
+            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
+            "direction=reverse",
+        )
+
+
 def add(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
     run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
@@ -54,6 +86,16 @@ def add(commands: argparse._SubParsersAction) -> None:
         help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
         "way round (default: forward; also --variation direction=reverse)",
     )
+    _add_brain_options(run)
+    _add_episode_options(run)
+    _add_run_folder_options(run)
+    _add_attach_options(run)
+    _add_output_options(run)
+    run.set_defaults(func=command_run)
+
+
+def _add_brain_options(run: argparse.ArgumentParser) -> None:
+    """The driving brain, its weights and options, and shadow brains."""
     run.add_argument(
         "--brain",
         help="brain to drive (default: explicit; with --attach: the bus name of a running "
@@ -80,31 +122,13 @@ def add(commands: argparse._SubParsersAction) -> None:
         help="a shadow brain: sees the same frames, drives nothing; the score says how far its commands "
         "were from the driver's (repeatable; bus name BRAIN, or BRAIN-shadowN when taken)",
     )
+
+
+def _add_episode_options(run: argparse.ArgumentParser) -> None:
+    """What the episode is: limits, scene, perturbations, seed, pacing."""
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
-    run.add_argument(
-        "--camera",
-        type=parse_camera,
-        default=(320, 240),
-        metavar="WxH",
-        help="camera resolution (default: 320x240; Behavior Metrics uses 640x480)",
-    )
-    run.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same "
-        "scene, ~10x faster) or auto (gl where EGL works, else pybullet); default: "
-        "$DRIVEBENCH_RENDERER, else pybullet",
-    )
-    run.add_argument(
-        "--variation",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE,...",
-        help="world and camera variation, e.g. line=white,road=white,walls=off,lighting=no_sun,"
-        "camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
-        "direction=reverse",
-    )
+    add_scene_options(run, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
     run.add_argument(
         "--noise",
         action="append",
@@ -127,6 +151,10 @@ def add(commands: argparse._SubParsersAction) -> None:
         metavar="SECONDS",
         help="lock-step: wall seconds to wait for the brain's answer to a frame (default: 10)",
     )
+
+
+def _add_run_folder_options(run: argparse.ArgumentParser) -> None:
+    """The run id and where the run folder goes."""
     run.add_argument(
         "--run-id",
         help="run id used in every key (default: random; with --attach: "
@@ -134,6 +162,10 @@ def add(commands: argparse._SubParsersAction) -> None:
     )
     run.add_argument("--out", type=Path, help="run folder (default: RUNS_DIR/<time>-<run id>)")
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run folders go (default: runs)")
+
+
+def _add_attach_options(run: argparse.ArgumentParser) -> None:
+    """Driving on a stack that is already running instead of starting one."""
     run.add_argument(
         "--attach",
         action="store_true",
@@ -152,6 +184,10 @@ def add(commands: argparse._SubParsersAction) -> None:
         metavar="SECONDS",
         help="with --attach: how long to wait for the stack's processes to be alive (default: 120)",
     )
+
+
+def _add_output_options(run: argparse.ArgumentParser) -> None:
+    """What the run prints and records."""
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
     run.add_argument(
@@ -160,7 +196,6 @@ def add(commands: argparse._SubParsersAction) -> None:
         default="raw",
         help="camera images in the recording: raw (lossless, default) or jpeg (~10x smaller)",
     )
-    run.set_defaults(func=command_run)
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:

@@ -42,6 +42,17 @@ def add(subparsers: argparse._SubParsersAction) -> None:
         metavar="RUN_DIR",
         help="run folder: model.ckpt (best), last.ckpt, metrics.json, curve.png",
     )
+    _add_optimiser_options(parser)
+    _add_sampling_options(parser)
+    restart = parser.add_mutually_exclusive_group()
+    restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
+    restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
+    add_seed_options(parser)
+    parser.set_defaults(func=run_train)
+
+
+def _add_optimiser_options(parser: argparse.ArgumentParser) -> None:
+    """How the network is optimised: epochs, batches, learning rate, device, seed, early stop, labels, hyper."""
     parser.add_argument("--epochs", type=int, default=50, help="maximum epochs (default 50)")
     parser.add_argument("--batch-size", type=int, default=64, help="samples per batch (default 64)")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
@@ -71,6 +82,10 @@ def add(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="model constructor option, e.g. --hyper clean=true, --hyper lstm_units=16 (repeatable)",
     )
+
+
+def _add_sampling_options(parser: argparse.ArgumentParser) -> None:
+    """What each epoch sees: threads, epoch length, subset, augmentation, balance, crop check."""
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument(
         "--max-samples-per-epoch",
@@ -108,11 +123,6 @@ def add(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="train on a dataset whose crop is not the network's (the checkpoint records it; serving applies it)",
     )
-    restart = parser.add_mutually_exclusive_group()
-    restart.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last.ckpt")
-    restart.add_argument("--overwrite", action="store_true", help="replace a run already in RUN_DIR")
-    add_seed_options(parser)
-    parser.set_defaults(func=run_train)
 
 
 def add_seed_options(parser: argparse.ArgumentParser) -> None:

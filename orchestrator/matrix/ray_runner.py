@@ -45,8 +45,6 @@ from orchestrator.matrix.load import Matrix, PlannedEpisode
 from orchestrator.matrix.ray_options import EPISODE_SLOT, ClusterError, RayOptions, import_ray
 from orchestrator.matrix.results import EpisodeResult, ResultStore
 from orchestrator.matrix.runner import (
-    WALL_SECONDS_PER_SIM_SECOND,
-    WALL_SLACK_S,
     MatrixProgress,
     MatrixRunner,
     RunOptions,
@@ -382,17 +380,12 @@ def run_episode_task(
 def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path) -> Iterator[dict]:
     """:func:`run_episode_task` in the folder ``work``: the stack in one process group, under a watchdog."""
     from orchestrator.matrix.runner import WorkerState
-    from orchestrator.stack.launcher import free_loopback_port
+    from orchestrator.stack.launcher import free_loopback_port, wall_guard_s
     from protocol import codec
     from protocol.bus import Bus, BusConfig
 
     runner = _NodeRunner(matrix, work, options, node=node)
-    guard_s = (
-        options.startup_timeout_s
-        + episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND
-        + WALL_SLACK_S
-        + WATCHDOG_SLACK_S
-    )
+    guard_s = options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds) + WATCHDOG_SLACK_S
     fired = threading.Event()
 
     def watchdog() -> None:  # the stack's own guards failed to end it: abandon it and kill its processes

@@ -51,11 +51,6 @@ from protocol.messages import EndReason, EpisodeScore, LiveMetrics, Pose
 
 log = logging.getLogger("drivebench.matrix")
 
-# An episode's wall-clock guard: this many wall seconds per simulated second, plus start-up slack. Lock-step runs
-# far faster than real time here (RTF 2-5x); 10x slower than real time means the stack is stuck, not slow.
-WALL_SECONDS_PER_SIM_SECOND = 10.0
-WALL_SLACK_S = 120.0
-
 
 @dataclass(frozen=True)
 class RunOptions:
@@ -275,8 +270,7 @@ class MatrixRunner:
             outcome["score"] = stack.run_episode(
                 episode.spec,
                 on_live=lambda live: self._on_live(state, trace, live),
-                abort=self._stopping.is_set,
-                wall_timeout_s=episode.spec.max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S,
+                abort=self._stopping.is_set,  # the wall-clock guard is the launcher's one rule (wall_guard_s)
             )
             if outcome["score"].reason == EndReason.BRAIN_LOST:  # scored, but the stack failed it
                 detail = stack.dead_child_reason() or "the active brain lost its liveliness token"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,12 +85,27 @@ class ReportPlots:
         return path
 
     def _trajectory_figures(self, circuit: str) -> list[Plot]:
-        import matplotlib.pyplot as plt
-        from matplotlib.collections import LineCollection
-        from matplotlib.colors import Normalize
-        from matplotlib.ticker import MaxNLocator
-
         episodes = [r for r in self.results if r.circuit == circuit]
+        loaded = self._readable_trajectories(circuit, episodes)
+        if not loaded:
+            return []
+        track = self.track(circuit)
+        panels = self._trajectory_panels(circuit, episodes, loaded)
+        data = _colour_data(panels, track)
+        layout = _map_layout(data, track, panels=len(panels.keys))
+        plots = []
+        for colour_by in ("speed", "xte"):
+            if colour_by == "xte" and track is None:
+                continue
+            plots.append(
+                self._trajectory_figure(circuit, colour_by, panels=panels, data=data, track=track, layout=layout)
+            )
+        return plots
+
+    def _readable_trajectories(
+        self, circuit: str, episodes: list[EpisodeResult]
+    ) -> list[tuple[EpisodeResult, dict[str, np.ndarray]]]:
+        """The episodes of ``circuit`` whose trajectory file reads with two poses or more; the others in the notes."""
         loaded = [(r, self.trajectory(r)) for r in episodes]
         unreadable = [r for r, t in loaded if r.trajectory and (t is None or len(t["x_m"]) < 2)]
         unrecorded = [r for r in episodes if r.status == "done" and not r.trajectory]
@@ -100,10 +116,12 @@ class ReportPlots:
             )
         if unrecorded:
             self.notes.append(f"{circuit}: {len(unrecorded)} episode(s) ran without a trajectory file")
-        loaded = [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
-        if not loaded:
-            return []
-        track = self.track(circuit)
+        return [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
+
+    def _trajectory_panels(
+        self, circuit: str, episodes: list[EpisodeResult], loaded: list[tuple[EpisodeResult, dict]]
+    ) -> _Panels:
+        """The episodes grouped into panels, at most ``MAX_SUBPLOTS`` (what had to be merged or left out: notes)."""
         # One panel per brain and condition; when that makes too many panels, coarser groups (conditions overlaid).
         for fields in (("brain", "variation", "perturbation"), ("brain", "variation"), ("brain",)):
 
@@ -129,114 +147,44 @@ class ReportPlots:
                 f"drawn (at most {MAX_SUBPLOTS} panels per figure)"
             )
             keys = keys[:MAX_SUBPLOTS]
+        return _Panels(keys=keys, groups=groups, totals=totals, finished=finished)
 
-        # Colour data per episode (decimated): speed, and |cross-track error| from the circuit's centreline.
-        data = {}
-        for key in keys:
-            for r, t in groups[key]:
-                step = max(1, math.ceil(len(t["x_m"]) / MAX_PLOT_POINTS))
-                x, y = t["x_m"][::step], t["y_m"][::step]
-                speed = _speeds(t)[::step]
-                xte = np.abs(track.lateral_m(x, y)) if track is not None else None
-                data[r.key] = (x, y, speed, xte)
-        all_xy = np.concatenate([np.column_stack(d[:2]) for d in data.values()])
-        if track is not None:
-            x0, x1, y0, y1 = track.extent
-            x0, x1 = min(x0, all_xy[:, 0].min()), max(x1, all_xy[:, 0].max())
-            y0, y1 = min(y0, all_xy[:, 1].min()), max(y1, all_xy[:, 1].max())
-        else:
-            pad = 5.0
-            x0, x1 = all_xy[:, 0].min() - pad, all_xy[:, 0].max() + pad
-            y0, y1 = all_xy[:, 1].min() - pad, all_xy[:, 1].max() + pad
-        ratio = (y1 - y0) / max(x1 - x0, 1e-9)
-        n = len(keys)
-        ncols = min(n, 3 if n <= 9 else 4 if n <= 16 else 6)
-        nrows = math.ceil(n / ncols)
-        panel_w = 4.2 if ncols <= 3 else 3.4  # inches of one map
-        map_h = min(max(panel_w * ratio, 1.2), 1.6 * panel_w)
-        # A manual grid (shared axes, colour bar in its own column): constrained layout costs seconds per figure.
-        left, right, top, bottom, wgap, hgap, bar_gap, bar_w = 0.65, 0.9, 0.85, 0.5, 0.25, 0.65, 0.3, 0.18
-        fig_w = left + ncols * panel_w + (ncols - 1) * wgap + bar_gap + bar_w + right
-        fig_h = top + nrows * map_h + (nrows - 1) * hgap + bottom
+    def _trajectory_figure(
+        self, circuit: str, colour_by: str, *, panels: _Panels, data: dict, track, layout: _MapLayout
+    ) -> Plot:
+        """One figure of ``circuit``'s panels, coloured by speed or by |cross-track error| ("xte")."""
+        import matplotlib.pyplot as plt
 
-        plots = []
-        for colour_by in ("speed", "xte"):
-            if colour_by == "xte" and track is None:
-                continue
-            values = np.concatenate([d[2] if colour_by == "speed" else d[3] for d in data.values()])
-            values = values[np.isfinite(values)]
-            top_value = float(np.percentile(values, 99)) if len(values) else 1.0
-            if colour_by == "xte":
-                norm = Normalize(0.0, max(top_value, track.half_width_m))
-                cmap, label = "magma_r", "|cross-track error| (m)"
-            else:
-                norm, cmap, label = Normalize(0.0, max(top_value, 1e-3)), "viridis", "speed (m/s)"
-            fig = plt.figure(figsize=(fig_w, fig_h))
-            grid = fig.add_gridspec(
-                nrows,
-                ncols,
-                left=left / fig_w,
-                right=(left + ncols * panel_w + (ncols - 1) * wgap) / fig_w,
-                bottom=bottom / fig_h,
-                top=1 - top / fig_h,
-                wspace=wgap / panel_w,
-                hspace=hgap / map_h,
-            )
-            axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
-            for ax, key in zip(axes.flat, keys):
-                if track is not None:
-                    for edge in (track.left_edge, track.right_edge):
-                        closed = np.vstack([edge, edge[:1]])
-                        ax.plot(closed[:, 0], closed[:, 1], color="0.55", lw=0.8, zorder=1)
-                    centre = np.vstack([track.points, track.points[:1]])
-                    ax.plot(centre[:, 0], centre[:, 1], color="0.75", lw=0.6, ls=(0, (4, 3)), zorder=1)
-                    sx, sy, heading = track.circuit.centreline.pose_at(0.0)
-                    arrow = 0.06 * max(x1 - x0, y1 - y0)  # the driving direction at the start
-                    ax.annotate(
-                        "",
-                        xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
-                        xytext=(sx, sy),
-                        zorder=4,
-                        arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
-                    )
-                    ax.plot([sx], [sy], marker="o", ms=5, mfc="white", mec="0.3", zorder=4)
-                for r, _ in groups[key]:
-                    x, y, speed, xte = data[r.key]
-                    colours = speed if colour_by == "speed" else xte
-                    points = np.column_stack([x, y]).reshape(-1, 1, 2)
-                    segments = np.concatenate([points[:-1], points[1:]], axis=1)
-                    lines = LineCollection(segments, cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
-                    lines.set_array(colours[1:])
-                    ax.add_collection(lines)
-                    if not reached_target(r):
-                        ax.plot([x[-1]], [y[-1]], marker="X", ms=8, color="crimson", mec="white", mew=0.8, zorder=5)
-                condition = " · ".join(key[1:]) or "all conditions"
-                ax.set_title(f"{key[0]}\n{condition} ({finished[key]}/{totals[key]} finished)", fontsize=8.5)
-                ax.set_xlim(x0, x1)
-                ax.set_ylim(y0, y1)
-                ax.set_aspect("equal", adjustable="box")
-                ax.tick_params(labelsize=7)
-                ax.xaxis.set_major_locator(MaxNLocator(5))
-                ax.yaxis.set_major_locator(MaxNLocator(5))
-                ax.grid(True, color="0.93", lw=0.5)
-            for index, ax in enumerate(axes.flat):
-                if index >= n:
-                    ax.set_visible(False)
-                    continue
-                ax.tick_params(labelleft=index % ncols == 0, labelbottom=index + ncols >= n)
-                if index % ncols == 0:
-                    ax.set_ylabel("y (m)", fontsize=8)
-                if index + ncols >= n:
-                    ax.set_xlabel("x (m)", fontsize=8)
-            bar_left = (fig_w - right - bar_w) / fig_w
-            bar_height = min(0.8, 4.0 / fig_h)
-            colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, bar_w / fig_w, bar_height))
-            fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
-            title = "speed" if colour_by == "speed" else "cross-track error"
-            fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / fig_h, va="top")
-            path = self._save(fig, f"trajectories_{colour_by}_{_slug(circuit)}.png")
-            plots.append(Plot(path, f"{circuit}, coloured by {title}."))
-        return plots
+        norm, cmap, label = _colour_scale(colour_by, data=data, track=track)
+        fig = plt.figure(figsize=(layout.fig_w, layout.fig_h))
+        grid = fig.add_gridspec(
+            layout.nrows,
+            layout.ncols,
+            left=layout.left / layout.fig_w,
+            right=(layout.left + layout.ncols * layout.panel_w + (layout.ncols - 1) * layout.wgap) / layout.fig_w,
+            bottom=layout.bottom / layout.fig_h,
+            top=1 - layout.top / layout.fig_h,
+            wspace=layout.wgap / layout.panel_w,
+            hspace=layout.hgap / layout.map_h,
+        )
+        axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
+        for ax, key in zip(axes.flat, panels.keys):
+            if track is not None:
+                _draw_track(ax, track, layout=layout)
+            for r, _ in panels.groups[key]:
+                _draw_episode(ax, r, data[r.key], colour_by=colour_by, cmap=cmap, norm=norm)
+            condition = " · ".join(key[1:]) or "all conditions"
+            ax.set_title(f"{key[0]}\n{condition} ({panels.finished[key]}/{panels.totals[key]} finished)", fontsize=8.5)
+            _frame_map(ax, layout)
+        _label_axes(axes, panels=len(panels.keys), ncols=layout.ncols)
+        bar_left = (layout.fig_w - layout.right - layout.bar_w) / layout.fig_w
+        bar_height = min(0.8, 4.0 / layout.fig_h)
+        colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, layout.bar_w / layout.fig_w, bar_height))
+        fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
+        title = "speed" if colour_by == "speed" else "cross-track error"
+        fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / layout.fig_h, va="top")
+        path = self._save(fig, f"trajectories_{colour_by}_{_slug(circuit)}.png")
+        return Plot(path, f"{circuit}, coloured by {title}.")
 
     def _box_plots(self) -> Plot | None:
         import matplotlib.pyplot as plt
@@ -268,57 +216,9 @@ class ReportPlots:
                     [v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit) if v is not None]
                     for b in self.brains
                 ]
-                positions = [i + 1 for i, s in enumerate(series) if s]
-                if positions:
-                    box = ax.boxplot(
-                        [s for s in series if s],
-                        positions=positions,
-                        widths=0.55,
-                        patch_artist=True,
-                        showfliers=False,
-                        medianprops={"color": "black"},
-                    )
-                    for patch, position in zip(box["boxes"], positions):
-                        patch.set_facecolor(colours[self.brains[position - 1]])
-                        patch.set_alpha(0.35)
-                    for position in positions:
-                        values = series[position - 1]
-                        jitter = rng.uniform(-0.12, 0.12, len(values))
-                        ax.scatter(
-                            np.full(len(values), position) + jitter,
-                            values,
-                            s=16,
-                            zorder=3,
-                            color=colours[self.brains[position - 1]],
-                            edgecolor="white",
-                            linewidth=0.5,
-                        )
-                    flat = [v for s in series for v in s]
-                    if row == 1 and min(flat) > 0 and max(flat) / min(flat) > 100:
-                        ax.set_yscale("log")
-                for i, s in enumerate(series):
-                    if not s:
-                        ax.text(
-                            i + 1,
-                            0.5,
-                            "no lap" if row == 0 else "–",
-                            transform=ax.get_xaxis_transform(),
-                            ha="center",
-                            va="center",
-                            color="0.5",
-                            fontsize=8,
-                        )
-                ax.set_xticks(
-                    range(1, len(self.brains) + 1),
-                    self.brains,
-                    rotation=20 if len(self.brains) > 3 else 0,
-                    ha="right" if len(self.brains) > 3 else "center",
-                    fontsize=8,
-                )
-                ax.set_xlim(0.4, len(self.brains) + 0.6)
+                _draw_boxes(ax, series, brains=self.brains, colours=colours, rng=rng, log_scale=row == 1)
+                _label_boxes(ax, series, brains=self.brains, empty="no lap" if row == 0 else "–")
                 ax.set_ylabel(label, fontsize=8.5)
-                ax.tick_params(axis="y", labelsize=8)
-                ax.grid(True, axis="y", color="0.92")
                 if row == 0:
                     ax.set_title(circuit, fontsize=10)
         fig.suptitle(
@@ -418,3 +318,225 @@ def _brain_colours(brains: Sequence[str]) -> dict[str, Any]:
 
     palette = matplotlib.colormaps["tab10" if len(brains) <= 10 else "tab20"]
     return {brain: palette(i % palette.N) for i, brain in enumerate(brains)}
+
+
+@dataclass(frozen=True)
+class _Panels:
+    """A circuit's trajectory panels: their keys (brain, then the condition fields grouped on), the episodes of
+    each with their trajectories, and per key how many episodes there were and how many reached their target."""
+
+    keys: list[tuple[str, ...]]
+    groups: dict[tuple[str, ...], list[tuple[EpisodeResult, dict]]]
+    totals: Counter
+    finished: Counter
+
+
+@dataclass(frozen=True)
+class _MapLayout:
+    """A trajectory figure's geometry: the map's extent (m) and the grid of panels (inches)."""
+
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+    ncols: int
+    nrows: int
+    panel_w: float
+    map_h: float
+    left: float
+    right: float
+    top: float
+    bottom: float
+    wgap: float
+    hgap: float
+    bar_gap: float
+    bar_w: float
+    fig_w: float
+    fig_h: float
+
+
+def _colour_data(panels: _Panels, track) -> dict:
+    """Colour data per episode (decimated): x, y, speed, and |cross-track error| from the circuit's centreline."""
+    data = {}
+    for key in panels.keys:
+        for r, t in panels.groups[key]:
+            step = max(1, math.ceil(len(t["x_m"]) / MAX_PLOT_POINTS))
+            x, y = t["x_m"][::step], t["y_m"][::step]
+            speed = _speeds(t)[::step]
+            xte = np.abs(track.lateral_m(x, y)) if track is not None else None
+            data[r.key] = (x, y, speed, xte)
+    return data
+
+
+def _map_layout(data: dict, track, *, panels: int) -> _MapLayout:
+    """The extent (the road and every path) and a grid of ``panels`` maps with a colour bar column."""
+    all_xy = np.concatenate([np.column_stack(d[:2]) for d in data.values()])
+    if track is not None:
+        x0, x1, y0, y1 = track.extent
+        x0, x1 = min(x0, all_xy[:, 0].min()), max(x1, all_xy[:, 0].max())
+        y0, y1 = min(y0, all_xy[:, 1].min()), max(y1, all_xy[:, 1].max())
+    else:
+        pad = 5.0
+        x0, x1 = all_xy[:, 0].min() - pad, all_xy[:, 0].max() + pad
+        y0, y1 = all_xy[:, 1].min() - pad, all_xy[:, 1].max() + pad
+    ratio = (y1 - y0) / max(x1 - x0, 1e-9)
+    n = panels
+    ncols = min(n, 3 if n <= 9 else 4 if n <= 16 else 6)
+    nrows = math.ceil(n / ncols)
+    panel_w = 4.2 if ncols <= 3 else 3.4  # inches of one map
+    map_h = min(max(panel_w * ratio, 1.2), 1.6 * panel_w)
+    # A manual grid (shared axes, colour bar in its own column): constrained layout costs seconds per figure.
+    left, right, top, bottom, wgap, hgap, bar_gap, bar_w = 0.65, 0.9, 0.85, 0.5, 0.25, 0.65, 0.3, 0.18
+    return _MapLayout(
+        x0=x0,
+        x1=x1,
+        y0=y0,
+        y1=y1,
+        ncols=ncols,
+        nrows=nrows,
+        panel_w=panel_w,
+        map_h=map_h,
+        left=left,
+        right=right,
+        top=top,
+        bottom=bottom,
+        wgap=wgap,
+        hgap=hgap,
+        bar_gap=bar_gap,
+        bar_w=bar_w,
+        fig_w=left + ncols * panel_w + (ncols - 1) * wgap + bar_gap + bar_w + right,
+        fig_h=top + nrows * map_h + (nrows - 1) * hgap + bottom,
+    )
+
+
+def _colour_scale(colour_by: str, *, data: dict, track):
+    """Norm, colour map and label of one colouring, up to the 99th percentile (one outlier does not wash it out)."""
+    from matplotlib.colors import Normalize
+
+    values = np.concatenate([d[2] if colour_by == "speed" else d[3] for d in data.values()])
+    values = values[np.isfinite(values)]
+    top_value = float(np.percentile(values, 99)) if len(values) else 1.0
+    if colour_by == "xte":
+        return Normalize(0.0, max(top_value, track.half_width_m)), "magma_r", "|cross-track error| (m)"
+    return Normalize(0.0, max(top_value, 1e-3)), "viridis", "speed (m/s)"
+
+
+def _draw_track(ax, track, *, layout: _MapLayout) -> None:
+    """Road edges, the dashed centre line, and the start with an arrow in the driving direction."""
+    for edge in (track.left_edge, track.right_edge):
+        closed = np.vstack([edge, edge[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], color="0.55", lw=0.8, zorder=1)
+    centre = np.vstack([track.points, track.points[:1]])
+    ax.plot(centre[:, 0], centre[:, 1], color="0.75", lw=0.6, ls=(0, (4, 3)), zorder=1)
+    sx, sy, heading = track.circuit.centreline.pose_at(0.0)
+    arrow = 0.06 * max(layout.x1 - layout.x0, layout.y1 - layout.y0)  # the driving direction at the start
+    ax.annotate(
+        "",
+        xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
+        xytext=(sx, sy),
+        zorder=4,
+        arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
+    )
+    ax.plot([sx], [sy], marker="o", ms=5, mfc="white", mec="0.3", zorder=4)
+
+
+def _draw_episode(ax, r: EpisodeResult, episode_data: tuple, *, colour_by: str, cmap: str, norm) -> None:
+    """One episode's path coloured segment by segment, with ✕ where it ended short of its lap target."""
+    from matplotlib.collections import LineCollection
+
+    x, y, speed, xte = episode_data
+    colours = speed if colour_by == "speed" else xte
+    points = np.column_stack([x, y]).reshape(-1, 1, 2)
+    segments = np.concatenate([points[:-1], points[1:]], axis=1)
+    lines = LineCollection(segments, cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
+    lines.set_array(colours[1:])
+    ax.add_collection(lines)
+    if not reached_target(r):
+        ax.plot([x[-1]], [y[-1]], marker="X", ms=8, color="crimson", mec="white", mew=0.8, zorder=5)
+
+
+def _frame_map(ax, layout: _MapLayout) -> None:
+    """A map panel's extent, equal aspect, ticks and grid."""
+    from matplotlib.ticker import MaxNLocator
+
+    ax.set_xlim(layout.x0, layout.x1)
+    ax.set_ylim(layout.y0, layout.y1)
+    ax.set_aspect("equal", adjustable="box")
+    ax.tick_params(labelsize=7)
+    ax.xaxis.set_major_locator(MaxNLocator(5))
+    ax.yaxis.set_major_locator(MaxNLocator(5))
+    ax.grid(True, color="0.93", lw=0.5)
+
+
+def _label_axes(axes, *, panels: int, ncols: int) -> None:
+    """Tick labels and axis titles on the outer panels only; the grid's unused panels hidden."""
+    n = panels
+    for index, ax in enumerate(axes.flat):
+        if index >= n:
+            ax.set_visible(False)
+            continue
+        ax.tick_params(labelleft=index % ncols == 0, labelbottom=index + ncols >= n)
+        if index % ncols == 0:
+            ax.set_ylabel("y (m)", fontsize=8)
+        if index + ncols >= n:
+            ax.set_xlabel("x (m)", fontsize=8)
+
+
+def _draw_boxes(ax, series: list[list[float]], *, brains: Sequence[str], colours, rng, log_scale: bool) -> None:
+    """A box per brain with values, its episodes as jittered dots over it; a log scale when ``log_scale`` allows
+    and the values span more than 100x (position deviation is exponential in the distance)."""
+    positions = [i + 1 for i, s in enumerate(series) if s]
+    if not positions:
+        return
+    box = ax.boxplot(
+        [s for s in series if s],
+        positions=positions,
+        widths=0.55,
+        patch_artist=True,
+        showfliers=False,
+        medianprops={"color": "black"},
+    )
+    for patch, position in zip(box["boxes"], positions):
+        patch.set_facecolor(colours[brains[position - 1]])
+        patch.set_alpha(0.35)
+    for position in positions:
+        values = series[position - 1]
+        jitter = rng.uniform(-0.12, 0.12, len(values))
+        ax.scatter(
+            np.full(len(values), position) + jitter,
+            values,
+            s=16,
+            zorder=3,
+            color=colours[brains[position - 1]],
+            edgecolor="white",
+            linewidth=0.5,
+        )
+    flat = [v for s in series for v in s]
+    if log_scale and min(flat) > 0 and max(flat) / min(flat) > 100:
+        ax.set_yscale("log")
+
+
+def _label_boxes(ax, series: list[list[float]], *, brains: Sequence[str], empty: str) -> None:
+    """``empty`` where a brain has no value, the brains as ticks (slanted when more than 3), the y grid."""
+    for i, s in enumerate(series):
+        if not s:
+            ax.text(
+                i + 1,
+                0.5,
+                empty,
+                transform=ax.get_xaxis_transform(),
+                ha="center",
+                va="center",
+                color="0.5",
+                fontsize=8,
+            )
+    ax.set_xticks(
+        range(1, len(brains) + 1),
+        brains,
+        rotation=20 if len(brains) > 3 else 0,
+        ha="right" if len(brains) > 3 else "center",
+        fontsize=8,
+    )
+    ax.set_xlim(0.4, len(brains) + 0.6)
+    ax.tick_params(axis="y", labelsize=8)
+    ax.grid(True, axis="y", color="0.92")

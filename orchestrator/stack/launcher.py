@@ -85,6 +85,19 @@ FAILURE_OF_ROLE = {
 START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
 SCORE_AFTER_DEATH_S = 1.5
+# An episode's wall-clock guard, the one rule for ``drivebench run``, a matrix and a Ray task (which adds its own
+# watchdog slack on top): wall seconds per simulated second plus a fixed slack for the first frame (renderer and
+# brain warm-up, a checkpoint's first forward pass). Lock-step runs 2-5x faster than real time here, so 20x slower
+# than real time means a stuck stack, not a slow one. It is the looser of the two rules it replaces (run: 20x + 60 s,
+# matrix: 10x + 120 s) because a guard that fires on a slow but moving stack loses a real result, while one that
+# fires late only costs time on a stack already stuck, and exits and liveliness catch most failures long before.
+WALL_SECONDS_PER_SIM_SECOND = 20.0
+WALL_SLACK_S = 120.0
+
+
+def wall_guard_s(*, max_sim_seconds: float) -> float:
+    """Wall seconds an episode of ``max_sim_seconds`` may take before its stack counts as stuck (the rule above)."""
+    return max_sim_seconds * WALL_SECONDS_PER_SIM_SECOND + WALL_SLACK_S
 
 
 def free_loopback_port() -> int:
@@ -406,7 +419,7 @@ class LocalStack:
         if not reply.ok:
             raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
         episode = reply.episode
-        guard = wall_timeout_s or (spec.max_sim_seconds * 20 + 60)
+        guard = wall_timeout_s or wall_guard_s(max_sim_seconds=spec.max_sim_seconds)
         deadline = time.monotonic() + guard
         failure: StackFailure | None = None
         failure_deadline = 0.0

@@ -147,22 +147,35 @@ class LiveBridge:
         self._viewers: set[int] = set()
         self._ids: dict[int, str] = {}  # channel id -> topic
         self._lost = _LostSubscriptions()
+        self._advertise_known_channels(brains=brains, perturbed=perturbed)
+        self._advertise_views()
+        self.gate: ViewerGate | None = None
+        self._serve(
+            name=name, host=host, port=port, backlog=backlog, max_viewers=max_viewers, backlog_bytes=backlog_bytes
+        )
+
+    def _advertise_known_channels(self, *, brains: Iterable[str], perturbed: bool) -> None:
+        """The bus channels known before the server starts: camera, pose, events, metrics, score, each brain's
+        commands and the perturbed camera when asked for."""
         # Every channel known now is created before the server starts, so a viewer meets them all in its first
         # advertisement. One created later races its viewers' subscriptions (see _LostSubscriptions): the perturbed
         # camera and each brain's commands when their process comes up later (``advertise_*``) or at their first
         # message.
         for key, message_type in (
-            (keys.camera_raw(run_id), CameraFrame),
-            (keys.pose(run_id), Pose),
-            (keys.events(run_id), EpisodeEvent),
-            (keys.live_metrics(run_id), LiveMetrics),
-            (keys.score(run_id), EpisodeScore),
+            (keys.camera_raw(self.run_id), CameraFrame),
+            (keys.pose(self.run_id), Pose),
+            (keys.events(self.run_id), EpisodeEvent),
+            (keys.live_metrics(self.run_id), LiveMetrics),
+            (keys.score(self.run_id), EpisodeScore),
         ):
             self._bus_channel(key, message_type)
         for brain in brains:
             self.advertise_command(brain)
         if perturbed:
             self.advertise_perturbed_camera()
+
+    def _advertise_views(self) -> None:
+        """The derived views' channels (car pose, world -> car transform, track, episode log)."""
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.Log_pb2 import Log
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -178,10 +191,22 @@ class LiveBridge:
                 self._view_topics[name_],
                 "protobuf",
                 protobuf_schema(message_class),
-                {VIEW_METADATA: "1", RUN_ID_METADATA: run_id},
+                {VIEW_METADATA: "1", RUN_ID_METADATA: self.run_id},
             )
+
+    def _serve(
+        self,
+        *,
+        name: str,
+        host: str,
+        port: int,
+        backlog: int,
+        max_viewers: int | None,
+        backlog_bytes: int | None,
+    ) -> None:
+        """Start the SDK's WebSocket server, behind a :class:`ViewerGate` when viewers or their backlog are limited;
+        :class:`BridgeError` (one line) when the address cannot be served."""
         _SDK_LOG.addHandler(self._lost)
-        self.gate: ViewerGate | None = None
         # With limits, viewers reach the SDK's server only through the gate (services.viz.gate), which listens on
         # the address asked for; the server itself then listens on a loopback port of its own.
         gated = max_viewers is not None or backlog_bytes is not None
