@@ -38,6 +38,9 @@ def rebased(message: msgspec.Struct, run_id: str) -> msgspec.Struct:
     return msgspec.structs.replace(message, header=msgspec.structs.replace(message.header, run_id=run_id))
 
 
+SUBSCRIBER_WAIT_S = 2.0  # a replay with nobody listening starts this much later; one with listeners at once
+
+
 def replay(
     path: Path,
     bus: Bus,
@@ -59,6 +62,7 @@ def replay(
         keys.check_name(run_id, what="run id")
     info = recording_info(path)
     publishers = _publishers(bus, [c.key for c in info.channels if c.bus_key], run_id)
+    _wait_for_subscribers(publishers, timeout_s=SUBSCRIBER_WAIT_S)
     counts: Counter[str] = Counter()
     bar = _progress_bar(sum(c.messages for c in info.channels if c.bus_key), enabled=progress)
     started = time.monotonic()
@@ -80,6 +84,17 @@ def replay(
         publisher.close()
     span = (last_ns - first_ns) / 1e9 if first_ns is not None else 0.0
     return ReplayReport(counts=dict(counts), wall_s=time.monotonic() - started, span_s=span)
+
+
+def _wait_for_subscribers(publishers: dict[str, Publisher], *, timeout_s: float) -> bool:
+    """Until some subscriber (a recorder, a viewer) matches a publisher, at most ``timeout_s``: a session that has
+    just opened learns the subscriptions from its router a moment later, and a put before that reaches nobody."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if any(publisher.has_subscribers() for publisher in publishers.values()):
+            return True
+        time.sleep(0.01)
+    return False
 
 
 def _publishers(bus: Bus, recorded_keys: list[str], run_id: str | None) -> dict[str, Publisher]:
