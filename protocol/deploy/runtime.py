@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
+from protocol import environment
 from protocol.bus import Bus, BusConfig, BusError
 from protocol.deploy.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
 
@@ -38,7 +39,7 @@ C = TypeVar("C", bound=ServiceConfig)
 
 log = logging.getLogger("drivebench")
 
-RUN_ID_ENV = "DRIVEBENCH_RUN_ID"  # the run id of a service started without --run-id (compose sets it for all)
+RUN_ID_ENV = environment.RUN_ID.name  # the run id of a service started without --run-id (compose sets it for all)
 
 
 class UserError(Exception):
@@ -51,7 +52,7 @@ class UsageError(UserError):
 
 
 def setup_logging(name: str, *, level: str | None = None) -> None:
-    level = level or os.environ.get("DRIVEBENCH_LOG", "INFO")
+    level = level or environment.LOG.value() or "INFO"
     logging.basicConfig(
         level=level.upper(),
         stream=sys.stderr,
@@ -122,7 +123,7 @@ def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra
     overrides = list(args.set)
     if getattr(args, "router", None):
         overrides.append(f"bus.connect=[{json.dumps(args.router)}]")
-    run_id = getattr(args, "run_id", None) or os.environ.get(RUN_ID_ENV)
+    run_id = getattr(args, "run_id", None) or environment.RUN_ID.value()
     if run_id:
         overrides.append(f"run_id={json.dumps(run_id)}")
     for key, value in (extra or {}).items():
@@ -137,7 +138,7 @@ def exit_with_parent() -> None:
 
     The launcher passes its pid in ``DRIVEBENCH_PARENT_PID``; a re-parented process sees another ``getppid()``.
     """
-    parent = os.environ.get("DRIVEBENCH_PARENT_PID")
+    parent = environment.PARENT_PID.value()
     if not parent or not parent.isdigit():
         return
 
