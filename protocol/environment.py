@@ -113,7 +113,7 @@ RUN_ID = Variable(
 )
 LOG = Variable(
     name="DRIVEBENCH_LOG",
-    kind="DEBUG, INFO, WARNING or ERROR",
+    kind="DEBUG, INFO, WARNING, ERROR or CRITICAL (any case)",
     default="INFO",
     meaning="the log level of every service (on stderr)",
     read_by="every service",

@@ -5,6 +5,7 @@ renderer default the table gives it."""
 from __future__ import annotations
 
 import ast
+import os
 import re
 import subprocess
 import sys
@@ -20,6 +21,7 @@ ROOT = Path(__file__).resolve().parent.parent
 HOME = ROOT / "protocol" / "environment.py"
 SOURCE_FOLDERS = ("circuits", "protocol", "services", "brains", "recorder", "orchestrator", "benchmarks", "tests")
 DRIVEBENCH = "DRIVEBENCH_"
+CLI_PATH = Path(sys.executable).parent / "drivebench"
 
 
 def python_files() -> list[Path]:
@@ -110,9 +112,24 @@ def test_the_renderer_defaults_by_command_are_the_commands_own():
 
 @pytest.mark.parametrize("command", sorted(environment.RENDERER_BY_COMMAND))
 def test_each_commands_help_states_its_renderer_default(command):
-    drivebench = Path(sys.executable).parent / "drivebench"
     shown = subprocess.run(
-        [str(drivebench), *command.split(), "--help"], capture_output=True, text=True, timeout=120, check=True
+        [str(CLI_PATH), *command.split(), "--help"], capture_output=True, text=True, timeout=120, check=True
     ).stdout
     option = " ".join(shown.split("\n  --renderer", 1)[1].split("\n  -", 1)[0].split())  # its help, unwrapped
     assert environment.RENDERER.name in option and f"else {environment.RENDERER_BY_COMMAND[command]}" in option, option
+
+
+@pytest.mark.parametrize(
+    ("argv", "who"),
+    [
+        ([sys.executable, "-P", "-m", "services.scorer", "--run-id", "loud"], "scorer"),  # every service
+        ([str(CLI_PATH), "view", "--router", "tcp/127.0.0.1:9"], "drivebench"),  # the command that logs
+    ],
+)
+def test_a_bad_log_level_is_one_line_naming_the_variable(argv, who):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(DRIVEBENCH)} | {environment.LOG.name: "loud"}
+    done = subprocess.run(argv, env=env, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        f"{who}: error: DRIVEBENCH_LOG must be one of DEBUG, INFO, WARNING, ERROR, CRITICAL, got 'LOUD'"
+    ]

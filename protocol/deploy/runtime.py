@@ -39,6 +39,7 @@ C = TypeVar("C", bound=ServiceConfig)
 
 log = logging.getLogger("drivebench")
 
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 RUN_ID_ENV = environment.RUN_ID.name  # the run id of a service started without --run-id (compose sets it for all)
 
 
@@ -52,9 +53,14 @@ class UsageError(UserError):
 
 
 def setup_logging(name: str, *, level: str | None = None) -> None:
-    level = level or environment.LOG.value() or "INFO"
+    """Log to stderr at ``level``, else $DRIVEBENCH_LOG, else INFO; UsageError names a level logging does not know
+    (logging's own error is a traceback from deep inside basicConfig)."""
+    source = "level" if level else environment.LOG.name
+    level = (level or environment.LOG.value() or "INFO").strip().upper()
+    if level not in LOG_LEVELS:
+        raise UsageError(f"{source} must be one of {', '.join(LOG_LEVELS)}, got {level!r}")
     logging.basicConfig(
-        level=level.upper(),
+        level=level,
         stream=sys.stderr,
         format=f"%(asctime)s {name} %(levelname)s %(message)s",
         datefmt="%H:%M:%S",
@@ -152,10 +158,10 @@ def exit_with_parent() -> None:
 
 def run_service(name: str, main: Callable[[], int | None]) -> int:
     """Run ``main`` with the process conventions; return the exit code."""
-    setup_logging(name)
-    stop_on_signals()
-    exit_with_parent()
     try:
+        setup_logging(name)  # in the try: a bad $DRIVEBENCH_LOG is the user's one-line mistake
+        stop_on_signals()
+        exit_with_parent()
         return int(main() or 0) or stop_exit_code()
     except (UserError, ConfigError, BusError) as error:
         print(f"{name}: error: {error}", file=sys.stderr)
