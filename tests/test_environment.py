@@ -48,12 +48,32 @@ def _may_name_ours(key: ast.expr) -> bool:
     return True
 
 
+def _is_environ_as_mapping(node: ast.AST, parent: ast.AST | None) -> bool:
+    """``os.environ`` itself kept or handed on for lookups (``env = os.environ``, ``os.environ if env is None else
+    env``, ``resolve(env=os.environ)``), where the lookups elsewhere read variables by name. A copy for a child
+    (``dict(os.environ)``, ``{**os.environ}``, ``os.environ | {...}``, ``.items()``) is none."""
+    if not (isinstance(node, ast.expr) and _is_environ(node)):
+        return False
+    if isinstance(parent, (ast.Assign, ast.AnnAssign, ast.IfExp, ast.Return, ast.keyword)):
+        return True
+    return isinstance(parent, ast.Call) and node in parent.args and not _names(parent.func, "dict")
+
+
+def _names(func: ast.expr, name: str) -> bool:
+    return isinstance(func, ast.Name) and func.id == name
+
+
 def environment_reads(path: Path, *, root: Path = ROOT) -> list[str]:
     """``file:line`` of every read of one variable whose name may be DRIVEBENCH_*: os.environ.get(K),
-    os.environ[K], os.getenv(K). Writes (os.environ[K] = v, del) and copies of the whole environment are not reads of
-    a variable."""
+    os.environ[K], os.getenv(K), and os.environ handed on as a mapping to read from. Writes (os.environ[K] = v,
+    del) and copies of the whole environment for a child are not reads of a variable."""
     found = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    tree = ast.parse(path.read_text(), str(path))
+    parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
+    for node in ast.walk(tree):
+        if _is_environ_as_mapping(node, parents.get(node)):
+            found.append(f"{path.relative_to(root)}:{node.lineno}")  # type: ignore[attr-defined]
+            continue
         key = None
         if isinstance(node, ast.Call) and node.args and isinstance(node.func, ast.Attribute):
             if (node.func.attr == "get" and _is_environ(node.func.value)) or node.func.attr == "getenv":
@@ -77,9 +97,11 @@ def test_the_reader_sees_reads_written_every_way(tmp_path):
         "import os\nfrom os import environ\nROUTER_ENV = 'DRIVEBENCH_ROUTER'\n"
         "a = os.environ.get('DRIVEBENCH_LOG', 'INFO')\nb = os.environ[ROUTER_ENV]\nc = os.getenv('DRIVEBENCH_MODE')\n"
         "d = environ.get(ROUTER_ENV)\nos.environ['DRIVEBENCH_TRACE_DIR'] = 'x'\ne = os.environ.get('CI')\n"
+        "f = os.environ if e is None else {}\ng = dict(os.environ)\nh = {**os.environ}\n"
+        "i = [k for k, v in os.environ.items()]\nresolve(env=os.environ)\nresolve(os.environ)\n"
     )
-    reads = [where.split(":")[1] for where in environment_reads(sample, root=tmp_path)]
-    assert reads == ["4", "5", "6", "7"]
+    reads = sorted(int(where.split(":")[1]) for where in environment_reads(sample, root=tmp_path))
+    assert reads == [4, 5, 6, 7, 10, 14, 15]
 
 
 def test_every_variable_the_project_names_is_in_the_table():
