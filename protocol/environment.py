@@ -172,7 +172,7 @@ TORCH_VERSION = Variable(
 REQUIRE_MCAP_VALIDATOR = Variable(
     name="DRIVEBENCH_REQUIRE_MCAP_VALIDATOR",
     kind="1 or empty",
-    default="empty: the tests skip the Foxglove schema check where node is missing",
+    default="empty: the tests skip the MCAP validator's checks where it is not installed",
     meaning="a missing MCAP validator fails the tests instead of skipping (scripts/test.sh sets it where node is)",
     read_by="the tests",
 )
