@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
 from circuits.centreline import Centreline
+from protocol.environment import CIRCUITS_DIR  # stdlib only: the one table of environment variables
 
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
@@ -37,7 +37,7 @@ GENERATED_NAMES = "random:SEED or twisty:SEED"
 # The generated families by name prefix, filled in by circuits.generator when the package is imported: the generator
 # builds on this module's geometry, so this module must not import it (no import cycle).
 GENERATORS: dict[str, Callable[[int], Circuit]] = {}
-USER_CIRCUITS_ENV = "DRIVEBENCH_CIRCUITS_DIR"
+USER_CIRCUITS_ENV = CIRCUITS_DIR.name
 # A circuit name a user may give: letters, digits, '_', '-' and '.', starting with a letter or digit (so no path,
 # no hidden file, no "random:" prefix).
 PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
@@ -109,7 +109,7 @@ def _data_dir() -> Path:
 
 def user_circuits_dir() -> Path:
     """Where user circuits live: ``$DRIVEBENCH_CIRCUITS_DIR`` if set, else ``~/.local/share/drivebench/circuits``."""
-    configured = os.environ.get(USER_CIRCUITS_ENV)
+    configured = CIRCUITS_DIR.value()
     if configured:
         return Path(configured).expanduser()
     return Path.home() / ".local" / "share" / "drivebench" / "circuits"

@@ -21,12 +21,14 @@ import numpy as np
 from circuits import CircuitError, load_circuit
 from orchestrator.stack.launcher import BrainLaunch, LocalStack
 from orchestrator.stack.progress import EpisodeProgress
+from protocol import environment
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
-COLLECT_RENDERER = "auto"  # without --renderer or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
+# Without --renderer or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+COLLECT_RENDERER = environment.RENDERER_BY_COMMAND["dataset collect"]
 
 
 def collection_brains(args: argparse.Namespace) -> list[BrainLaunch]:

@@ -28,9 +28,8 @@ README_END = "<!-- end of process graph -->"
 
 COMPOSE_HEADER = """\
 # drivebench as a compose project: one image, one process per service, every service a Zenoh node of one router.
-# Generated from the process graph (protocol/deploy/graph.py) by `python -m orchestrator.compose_files --write`: edit
-# the
-# graph, not this file (a test fails when they differ).
+# Generated from the process graph (protocol/deploy/graph.py) by `python -m orchestrator.compose_files --write`:
+# edit the graph, not this file (a test fails when they differ).
 #
 #   mkdir -p results                                   # first: the services run as your uid, not root (see `user`)
 #   docker compose up --build --exit-code-from run      # explicit brain laps `simple` once; results in ./results

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import subprocess
 import sys
 import time
@@ -105,7 +104,7 @@ def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
     command += ["-o", str(folder), *resume]
     started = time.monotonic()
     with open(log_path, "ab") as out:
-        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=os.environ)
+        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     if code.returncode == 0 and _finished(folder):
         run = _done(seed, folder)
         log(f"seed {seed}: done in {time.monotonic() - started:.0f} s, best epoch {run.best_epoch}")

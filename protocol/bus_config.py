@@ -16,16 +16,19 @@ from typing import Any
 import msgspec
 import zenoh
 
+from protocol import environment
+
 # Environment: how a process joins the bus when its config leaves a field empty (config > environment > default).
-ROUTER_ENV = "DRIVEBENCH_ROUTER"  # connect endpoints, comma separated
-MODE_ENV = "DRIVEBENCH_MODE"  # peer | client
-LISTEN_ENV = "DRIVEBENCH_LISTEN"  # listen endpoints, comma separated (peers and routers; clients never listen)
-TLS_ROOT_CA_ENV = "DRIVEBENCH_TLS_ROOT_CA"  # CA that signed the router's (and, mTLS, the clients') certificates
-TLS_CERT_ENV = "DRIVEBENCH_TLS_CERT"  # this process's own certificate (PEM)
-TLS_KEY_ENV = "DRIVEBENCH_TLS_KEY"  # its private key (PEM)
-USER_ENV = "DRIVEBENCH_USER"  # user name for the router's user/password authentication
-PASSWORD_ENV = "DRIVEBENCH_PASSWORD"  # its password (only ever from here or a file: configs are logged and recorded)
-BUS_ENV = (ROUTER_ENV, MODE_ENV, LISTEN_ENV, TLS_ROOT_CA_ENV, TLS_CERT_ENV, TLS_KEY_ENV, USER_ENV, PASSWORD_ENV)
+# Names, kinds, defaults and meanings: protocol.environment.
+ROUTER_ENV = environment.ROUTER.name
+MODE_ENV = environment.MODE.name
+LISTEN_ENV = environment.LISTEN.name
+TLS_ROOT_CA_ENV = environment.TLS_ROOT_CA.name
+TLS_CERT_ENV = environment.TLS_CERT.name
+TLS_KEY_ENV = environment.TLS_KEY.name
+USER_ENV = environment.USER.name
+PASSWORD_ENV = environment.PASSWORD.name
+BUS_ENV = tuple(variable.name for variable in environment.BUS)
 
 DEFAULT_ROUTER_LISTEN = ("tcp/[::]:7447",)
 SECURE_CONNECT_TIMEOUT_MS = 10_000  # see BusConfig.connect_timeout_ms
@@ -168,13 +171,13 @@ def _readable_file(path: str, *, where: str) -> str:
 
 
 def resolve_bus(config: BusConfig, env: Mapping[str, str] | None = None) -> ResolvedBus:
-    """Apply the environment (``os.environ`` by default) and the defaults to ``config``; check every file.
+    """Apply the environment (this process's bus variables by default) and the defaults to ``config``; check every file.
 
     Precedence, field by field: the config (file or ``--set``) > the environment variable > the default.
     Raises :class:`BusError` (one line naming the field or the variable) on a bad value, an unreadable file, or
     security settings on a process that is not a client.
     """
-    env = os.environ if env is None else env
+    env = environment.bus_settings() if env is None else env
     try:
         connect = list(config.connect) or ([] if config.mode == "router" else _endpoints_from_env(env, ROUTER_ENV))
         env_listen = _endpoints_from_env(env, LISTEN_ENV)

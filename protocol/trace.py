@@ -24,9 +24,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from protocol import environment
+
 log = logging.getLogger("drivebench.trace")
 
-TRACE_DIR_ENV = "DRIVEBENCH_TRACE_DIR"
+TRACE_DIR_ENV = environment.TRACE_DIR.name
 MAX_EVENTS = 1_000_000
 EVENTS = ("put", "sent", "arrived", "decoded", "taken")
 
@@ -56,7 +58,7 @@ class Tracer:
     """The trace of one process; every method is a no-op when tracing is off."""
 
     def __init__(self, name: str, *, folder: str | None = None) -> None:
-        folder = os.environ.get(TRACE_DIR_ENV) if folder is None else folder
+        folder = (environment.TRACE_DIR.value() or None) if folder is None else folder
         self.on = bool(folder)
         self._path = Path(folder) / f"{name}-{os.getpid()}.trace" if folder else None
         self._events: list[tuple[int, str, str, int, int]] = []

@@ -8,7 +8,6 @@ MCAP reader, the code Foxglove/Lichtblick open files with), so tests do not only
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 from dataclasses import dataclass, field
@@ -16,6 +15,8 @@ from pathlib import Path
 
 import pytest
 from needs import missing
+
+from protocol import environment
 
 VALIDATOR_DIR = Path(__file__).resolve().parent.parent / "tools" / "mcap-validate"
 _SCRIPT = VALIDATOR_DIR / "validate.mjs"
@@ -88,7 +89,7 @@ def assert_valid_mcap(*paths: str | Path, **kwargs: bool) -> ValidationResult:
     ``DRIVEBENCH_REQUIRE_MCAP_VALIDATOR=1``) a missing validator is a broken set-up and fails, never a silent skip.
     """
     if not validator_available():
-        if os.environ.get("DRIVEBENCH_REQUIRE_MCAP_VALIDATOR") == "1":
+        if environment.REQUIRE_MCAP_VALIDATOR.value() == "1":
             pytest.fail(f"the MCAP validator is not installed although Node is: {SKIP_REASON}")
         missing(SKIP_REASON)
     result = validate_mcap(*paths, **kwargs)

@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import ast
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -27,6 +28,9 @@ MAY_IMPORT = {
     "orchestrator": {"protocol", "circuits", "services", "brains", "recorder"},
 }
 ONLY_FROM = {("brains", "recorder"): "brains.training", ("brains", "services"): "brains.checker"}
+# Below the floor: the one table of environment variables imports nothing (standard library only), so every package
+# may read it, circuits/ included (DRIVEBENCH_CIRCUITS_DIR); imports of it are no arrow in the graph.
+FLOOR = "protocol.environment"
 MAX_MODULES_PER_FOLDER = 15
 MAX_FUNCTION_LINES = 80
 # Every folder of Python code but tests/ (test functions may read as one long scenario).
@@ -79,7 +83,7 @@ def test_no_package_imports_upward():
         top = module.split(".")[0]
         for imported in imports:
             target = imported.split(".")[0]
-            if target not in TOP_LEVEL or target == top:
+            if target not in TOP_LEVEL or target == top or imported == FLOOR:
                 continue
             only = ONLY_FROM.get((top, target))
             if target not in MAY_IMPORT[top] or (only and not (module == only or module.startswith(only + "."))):
@@ -92,6 +96,8 @@ def test_packages_form_no_cycle():
     for module, imports in project_modules().items():
         source = package_of(module)
         for imported in imports:
+            if imported == FLOOR:
+                continue
             if imported.split(".")[0] in TOP_LEVEL and (target := package_of(imported)) != source:
                 # A package reaching into its own subpackages is downward (a registry naming its brains' folders).
                 if not target.startswith(source + "."):
@@ -153,3 +159,10 @@ def test_no_function_outside_tests_is_over_eighty_lines():
                     if lines > MAX_FUNCTION_LINES:
                         long.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} is {lines} lines")
     assert not long, "\n".join(long)
+
+
+def test_the_floor_imports_nothing_of_ours():
+    imports = project_modules()[FLOOR]
+    ours = sorted(name for name in imports if name.split(".")[0] in TOP_LEVEL)
+    assert not ours, f"{FLOOR} must stay below every package: it imports {ours}"
+    assert imports <= set(sys.stdlib_module_names) | {"__future__", "collections.abc"}, imports

@@ -6,11 +6,11 @@ One line on stderr and exit 1 when it is not (``orchestrator.stack.health`` says
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 from orchestrator.cli.errors import EXIT_FAILED, EXIT_OK
 from orchestrator.stack.health import ROLES, check_health
+from protocol import environment
 from protocol.bus import ROUTER_ENV
 from protocol.deploy.runtime import RUN_ID_ENV
 
@@ -29,8 +29,8 @@ def add(commands: argparse._SubParsersAction) -> None:
 
 
 def run_health_command(args: argparse.Namespace) -> int:
-    endpoint = args.router or os.environ.get(ROUTER_ENV, "tcp/127.0.0.1:7447")
-    run_id = args.run or os.environ.get(RUN_ID_ENV, "default")
+    endpoint = args.router or environment.ROUTER.value() or "tcp/127.0.0.1:7447"
+    run_id = args.run or environment.RUN_ID.value() or "default"
     problem = check_health(args.role, endpoint=endpoint, run_id=run_id, name=args.name)
     if problem is not None:
         print(f"drivebench health: {problem}", file=sys.stderr)

@@ -14,13 +14,13 @@ import argparse
 import fnmatch
 import functools
 import json
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.cli.run import add_scene_options
+from protocol import environment
 from protocol.bus import ROUTER_ENV, Bus, BusConfig
 from recorder.dataset.build import DatasetError
 from recorder.reading import RecordingError, recording_info
@@ -274,7 +274,7 @@ def _repair(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from recorder.replay import replay
 
-    router = args.router or os.environ.get(ROUTER_ENV)
+    router = args.router or environment.ROUTER.value()
     if not router:
         raise UsageError(f"replay needs a router to publish to: --router tcp/HOST:7447 or ${ROUTER_ENV}")
     if not args.max_speed and not args.rate > 0:

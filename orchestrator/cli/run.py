@@ -15,7 +15,6 @@ import argparse
 import contextlib
 import json
 import logging
-import os
 import sys
 import time
 import uuid
@@ -30,7 +29,7 @@ from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.report.episode import metrics_table
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
 from orchestrator.stack.progress import EpisodeProgress
-from protocol import codec
+from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.messages import RENDERERS, CameraSpec, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
@@ -322,10 +321,11 @@ def command_run_attached(args: argparse.Namespace) -> int:
                 f"{flag} cannot be used with --attach: the running stack's processes are already "
                 f"configured (record with the compose profile 'record' or `python -m recorder`)"
             )
-    if not (args.router or os.environ.get("DRIVEBENCH_ROUTER")):
-        raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
-    wait_for_router(args.router or os.environ["DRIVEBENCH_ROUTER"], wait_s=args.wait)
-    run_id = args.run_id or os.environ.get("DRIVEBENCH_RUN_ID") or only_running_run(args.router, wait_s=args.wait)
+    router = args.router or environment.ROUTER.value()
+    if not router:
+        raise UsageError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
+    wait_for_router(router, wait_s=args.wait)
+    run_id = args.run_id or environment.RUN_ID.value() or only_running_run(args.router, wait_s=args.wait)
     run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(
@@ -383,16 +383,16 @@ def only_running_run(router: str | None, *, wait_s: float) -> str:
     from protocol.bus import Bus, BusConfig
     from protocol.episodes import running_runs
 
-    endpoint = router or os.environ.get("DRIVEBENCH_ROUTER", "")
+    endpoint = router or environment.ROUTER.value()
     if not endpoint:
-        raise UsageError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+        raise UsageError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
     with Bus(BusConfig(mode="client", connect=endpoint.split(",")), name="driver-discovery") as bus:
         deadline = time.monotonic() + wait_s
         while not (runs := running_runs(bus)) and time.monotonic() < deadline:
             time.sleep(0.5)
     if len(runs) != 1:
         found = f"runs {', '.join(sorted(runs))}" if runs else "no run"
-        raise UsageError(f"{found} alive on {endpoint}: choose one with --run-id or DRIVEBENCH_RUN_ID")
+        raise UsageError(f"{found} alive on {endpoint}: choose one with --run-id or {environment.RUN_ID.name}")
     return runs.pop()
 
 

@@ -16,7 +16,7 @@ import os
 import sys
 
 from orchestrator.cli.errors import EXIT_OK, CommandFailed, UsageError
-from protocol import keys
+from protocol import environment, keys
 from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.deploy.runtime import RUN_ID_ENV as RUN_ENV
 from protocol.deploy.runtime import UserError, setup_logging, stop_on_signals
@@ -88,13 +88,13 @@ def run_view_command(args: argparse.Namespace) -> int:
     """``drivebench view``: serves until Ctrl-C / SIGTERM (exit 0); one line on stderr when it cannot."""
     setup_logging("view")
     try:
-        router = args.view_router or os.environ.get(ROUTER_ENV, "").split(",")[0].strip()
+        router = args.view_router or environment.ROUTER.value().split(",")[0].strip()
         if not router:
             raise UsageError(
                 f"no router: give --router EP (e.g. tcp/127.0.0.1:7447) or set {ROUTER_ENV} (a "
                 f"running `drivebench run` writes its router to <run folder>/stack.json)"
             )
-        wanted = args.view_run or os.environ.get(RUN_ENV) or None
+        wanted = args.view_run or environment.RUN_ID.value() or None
         try:
             if wanted is not None:
                 keys.check_name(wanted, what="run id")

@@ -86,6 +86,7 @@ from orchestrator.matrix.plan import (
     with_renderer,
 )
 from orchestrator.matrix.schema import MatrixFile, items, read_matrix_file, text_at, written
+from protocol import environment
 from protocol.deploy.typed_yaml import Document, compose, convert
 from protocol.deploy.typed_yaml import Path as At
 from protocol.keys import check_name
@@ -94,7 +95,8 @@ from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer
 
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
-MATRIX_RENDERER = "auto"  # without `renderer:` or $DRIVEBENCH_RENDERER: gl where EGL works (parity: README)
+# Without `renderer:` or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+MATRIX_RENDERER = environment.RENDERER_BY_COMMAND["matrix"]
 
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
 

@@ -24,7 +24,7 @@ import msgspec
 
 from brains.registry import bus_name
 from orchestrator.stack import processes
-from protocol import codec, keys
+from protocol import codec, environment, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.deploy import graph
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics, ReplyCode
@@ -262,8 +262,8 @@ class LocalStack:
 
     def _spawn(self, role: str, name: str, module: str, argv: list[str], *, connect: bool = True) -> Child:
         log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
-        env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != "DRIVEBENCH_RUN_ID"}
-        env["DRIVEBENCH_PARENT_PID"] = str(os.getpid())  # children stop by themselves when this process dies
+        env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != environment.RUN_ID.name}
+        env[environment.PARENT_PID.name] = str(os.getpid())  # children stop by themselves when this process dies
         joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
         # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
         group = (self.process_group or 0) if self.one_group else None
@@ -515,13 +515,13 @@ class AttachedStack(LocalStack):
 
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
-        self.endpoint = self.router_endpoint or os.environ.get("DRIVEBENCH_ROUTER", "")
+        self.endpoint = self.router_endpoint or environment.ROUTER.value()
         self._init_state(busy_wait_s=self.startup_timeout_s)  # --attach waits for a running episode up to --wait
 
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if not self.endpoint:
-            raise StackError("no router to attach to: give --router ENDPOINT or set DRIVEBENCH_ROUTER")
+            raise StackError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
         self.bus = Bus(
             BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
             name=f"driver-{self.run_id}",

@@ -39,7 +39,7 @@ from pathlib import Path
 from brains.registry import UnknownBrainError, bus_name, require_brain
 from orchestrator.stack import processes
 from orchestrator.stack.launcher import STACK_FILE
-from protocol import codec, keys
+from protocol import codec, environment, keys
 from protocol.bus import (
     PASSWORD_ENV,
     TLS_CERT_ENV,
@@ -418,7 +418,7 @@ def _start_brain(
     ]  # it watches no parent: it ends when its stack does
     for option in options:
         argv += ["--set", f"options.{option}"]
-    dropped = {"DRIVEBENCH_PARENT_PID"}
+    dropped = {environment.PARENT_PID.name}
     if identity is not None:
         argv += identity.overrides()
         dropped |= {TLS_CERT_ENV, TLS_KEY_ENV, USER_ENV, PASSWORD_ENV}

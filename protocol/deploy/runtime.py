@@ -20,6 +20,7 @@ from typing import Any, Protocol, TypeVar
 
 import msgspec
 
+from protocol import environment
 from protocol.bus import Bus, BusConfig, BusError, resolve_bus
 from protocol.deploy.config import ConfigError, dump_config, load_config  # noqa: F401 (re-exported)
 
@@ -40,7 +41,8 @@ C = TypeVar("C", bound=ServiceConfig)
 
 log = logging.getLogger("drivebench")
 
-RUN_ID_ENV = "DRIVEBENCH_RUN_ID"  # the run id of a service started without --run-id (compose sets it for all)
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+RUN_ID_ENV = environment.RUN_ID.name  # the run id of a service started without --run-id (compose sets it for all)
 
 
 class UserError(Exception):
@@ -53,9 +55,14 @@ class UsageError(UserError):
 
 
 def setup_logging(name: str, *, level: str | None = None) -> None:
-    level = level or os.environ.get("DRIVEBENCH_LOG", "INFO")
+    """Log to stderr at ``level``, else $DRIVEBENCH_LOG, else INFO; UsageError names a level logging does not know
+    (logging's own error is a traceback from deep inside basicConfig)."""
+    source = "level" if level else environment.LOG.name
+    level = (level or environment.LOG.value() or "INFO").strip().upper()
+    if level not in LOG_LEVELS:
+        raise UsageError(f"{source} must be one of {', '.join(LOG_LEVELS)}, got {level!r}")
     logging.basicConfig(
-        level=level.upper(),
+        level=level,
         stream=sys.stderr,
         format=f"%(asctime)s {name} %(levelname)s %(message)s",
         datefmt="%H:%M:%S",
@@ -124,7 +131,7 @@ def load_service_config(config_type: type[T], args: argparse.Namespace, *, extra
     overrides = list(args.set)
     if getattr(args, "router", None):
         overrides.append(f"bus.connect=[{json.dumps(args.router)}]")
-    run_id = getattr(args, "run_id", None) or os.environ.get(RUN_ID_ENV)
+    run_id = getattr(args, "run_id", None) or environment.RUN_ID.value()
     if run_id:
         overrides.append(f"run_id={json.dumps(run_id)}")
     for key, value in (extra or {}).items():
@@ -139,7 +146,7 @@ def exit_with_parent() -> None:
 
     The launcher passes its pid in ``DRIVEBENCH_PARENT_PID``; a re-parented process sees another ``getppid()``.
     """
-    parent = os.environ.get("DRIVEBENCH_PARENT_PID")
+    parent = environment.PARENT_PID.value()
     if not parent or not parent.isdigit():
         return
 
@@ -153,10 +160,10 @@ def exit_with_parent() -> None:
 
 def run_service(name: str, main: Callable[[], int | None]) -> int:
     """Run ``main`` with the process conventions; return the exit code."""
-    setup_logging(name)
-    stop_on_signals()
-    exit_with_parent()
     try:
+        setup_logging(name)  # in the try: a bad $DRIVEBENCH_LOG is the user's one-line mistake
+        stop_on_signals()
+        exit_with_parent()
         return int(main() or 0) or stop_exit_code()
     except (UserError, ConfigError, BusError) as error:
         print(f"{name}: error: {error}", file=sys.stderr)

@@ -11,7 +11,6 @@ render in the same thread (the simulator's main loop does both).
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from dataclasses import dataclass
 from typing import Protocol
@@ -20,12 +19,13 @@ import msgspec
 import numpy as np
 
 from circuits import Circuit
+from protocol import environment
 from protocol.messages import RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 
 log = logging.getLogger("drivebench.simulator")
 
-RENDERER_ENV = "DRIVEBENCH_RENDERER"  # the default of --renderer where a camera is configured (compose sets it)
+RENDERER_ENV = environment.RENDERER.name  # the default of --renderer where a camera is configured (compose sets it)
 
 
 class Renderer(Protocol):
@@ -51,9 +51,9 @@ class RendererUnavailable(ValueError):
     it as the usage mistake it is, in one line."""
 
 
-def default_renderer(fallback: str = "pybullet") -> str:
+def default_renderer(fallback: str = environment.RENDERER_BY_COMMAND["run"]) -> str:
     """The ``--renderer`` default: $DRIVEBENCH_RENDERER when set, else ``fallback``; ValueError names a bad value."""
-    value = os.environ.get(RENDERER_ENV, "").strip() or fallback
+    value = environment.RENDERER.value().strip() or fallback
     if value not in RENDERERS:
         raise ValueError(f"{RENDERER_ENV} must be one of {', '.join(RENDERERS)}, got {value!r}")
     return value
@@ -78,7 +78,9 @@ def resolve_renderer(requested: str) -> Resolution:
     return Resolution("pybullet", notice=f"renderer auto: using pybullet ({reason})")
 
 
-def choose_renderer(requested: str | None, *, fallback: str = "pybullet", local: bool = True) -> str:
+def choose_renderer(
+    requested: str | None, *, fallback: str = environment.RENDERER_BY_COMMAND["run"], local: bool = True
+) -> str:
     """The renderer a command puts in its specs: ``requested`` (--renderer), else $DRIVEBENCH_RENDERER, else
     ``fallback``. For a stack started here (``local``) "auto" is resolved now, its notice printed on stderr in one
     line, and "gl" is checked; an attached stack's simulator resolves it there. ValueError says what is wrong."""
