@@ -247,12 +247,22 @@ class SecureStack:
                     continue
                 message = received.message
                 if isinstance(message, EpisodeScore):
+                    score = message
                     break
                 poses.append((message.header.seq, message.x_m, message.y_m, message.yaw_rad, message.yaw_rate_radps))
+            # Poses and the score arrive on two subscriptions, each called back on its own thread: the last pose may
+            # come in just after the score. Take every pose up to the last step the score counted.
+            late = time.monotonic() + 5
+            while poses[-1][0] < score.metrics.steps and time.monotonic() < late:
+                received = inbox.recv(timeout_s=0.2)
+                if received is not None and isinstance(received.message, Pose):
+                    pose = received.message
+                    if pose.header.episode == episode:
+                        poses.append((pose.header.seq, pose.x_m, pose.y_m, pose.yaw_rad, pose.yaw_rate_radps))
         finally:
             for subscription in subscriptions:
                 subscription.close()
-        return message, np.array(poses)
+        return score, np.array(sorted(poses))
 
 
 @pytest.fixture(scope="module")
