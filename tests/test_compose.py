@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 from needs import missing
+from support.env import clean_env
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol.messages import EventKind
@@ -63,7 +64,7 @@ def compose(
     profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
     profile_args += [arg for override in overrides for arg in ("-f", str(override))]
     # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
-    base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_") and k not in ("BRAIN", "TAG")}
+    base = clean_env(drop=("BRAIN", "TAG"))
     return subprocess.run(
         [str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent), *profile_args, *args],
         capture_output=True,
@@ -242,7 +243,7 @@ class ComposeEmulation:
         return words
 
     def env(self, name: str) -> dict[str, str]:
-        base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+        base = clean_env()
         service_env = {k: self._in_volumes(v) for k, v in self.services[name]["environment"].items()}
         return base | service_env | {"PYTHONUNBUFFERED": "1"}
 

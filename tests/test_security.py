@@ -7,12 +7,11 @@ from __future__ import annotations
 import datetime
 import ipaddress
 import json
-import os
 import subprocess
 import sys
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from support.env import child_env as clean_env
+from support.processes import Processes
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
@@ -126,65 +127,12 @@ def make_pki(folder: Path, names: list[str]) -> Path:
 # -- processes --
 
 
-def clean_env(**extra: str) -> dict[str, str]:
-    """The test's environment without the user's DRIVEBENCH_* settings; children die with us."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return env | {"PYTHONUNBUFFERED": "1", "DRIVEBENCH_PARENT_PID": str(os.getpid())} | extra
-
-
 def tls_env(pki: Path, identity: str) -> dict[str, str]:
     return {
         "DRIVEBENCH_TLS_ROOT_CA": str(pki / "ca.pem"),
         "DRIVEBENCH_TLS_CERT": str(pki / f"{identity}.pem"),
         "DRIVEBENCH_TLS_KEY": str(pki / f"{identity}.key"),
     }
-
-
-@dataclass
-class Processes:
-    logs: Path
-    children: dict[str, subprocess.Popen] = field(default_factory=dict)
-
-    def start(self, name: str, argv: list[str], env: dict[str, str]) -> subprocess.Popen:
-        with open(self.logs / f"{name}.log", "ab") as log:
-            process = subprocess.Popen(
-                [sys.executable, "-m", *argv],
-                cwd=ROOT,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
-        self.children[name] = process
-        return process
-
-    def log(self, name: str) -> str:
-        return (self.logs / f"{name}.log").read_text(errors="replace")
-
-    def dead(self) -> str | None:
-        for name, process in self.children.items():
-            if process.poll() is not None:
-                return f"{name} exited with {process.returncode}: {self.log(name)[-1500:]}"
-        return None
-
-    def wait_for_log(self, name: str, text: str, timeout_s: float = 30) -> None:
-        deadline = time.monotonic() + timeout_s
-        while text not in self.log(name):
-            assert (dead := self.dead()) is None, dead
-            assert time.monotonic() < deadline, f"{name} did not log {text!r}: {self.log(name)[-1500:]}"
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        for process in self.children.values():
-            if process.poll() is None:
-                process.terminate()
-        for process in self.children.values():
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
 
 
 def start_router(processes: Processes, folder: Path, name: str, config: dict) -> None:

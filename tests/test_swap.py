@@ -10,6 +10,7 @@ import time
 
 import pytest
 from mcap_validation import assert_valid_mcap
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.swap import SwapError, swap_brain
@@ -46,13 +47,6 @@ def run_in_thread(stack, spec: EpisodeSpec) -> tuple[threading.Thread, dict]:
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
     return thread, outcome
-
-
-def wait_for(predicate, *, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
 
 
 def control(stack, request: ControlRequest) -> ControlReply:

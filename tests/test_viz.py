@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from support.env import clean_env
 from test_topics import expected_schemas
 from websockets.client import ClientProtocol
 from websockets.frames import Opcode
@@ -520,7 +521,7 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
     episode.start()
     time.sleep(1.0)  # its START event is long gone when the view joins
     port = free_loopback_port()
-    env = {k: v for k, v in os.environ.items() if k not in ("DRIVEBENCH_RUN_ID", "DRIVEBENCH_ROUTER")}
+    env = clean_env()
     view = subprocess.Popen(
         [sys.executable, "-m", "orchestrator.cli", "view", "--router", stack.endpoint, "--port", str(port)],
         cwd=ROOT,
