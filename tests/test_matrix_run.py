@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from support.matrices import finished_rows, processes_with, write_matrix
 
 from orchestrator.matrix.load import load_matrix
 from orchestrator.matrix.results import ResultStore
@@ -21,12 +21,6 @@ pytestmark = pytest.mark.integration
 SHORT = "limits: {laps: 1, max_sim_seconds: 4}\ncamera: 96x72\n"
 
 
-def write_matrix(folder: Path, body: str) -> Path:
-    path = folder / "m.yaml"
-    path.write_text(body)
-    return path
-
-
 def drivebench(*args: str, **options) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "orchestrator.cli", *args],
@@ -35,22 +29,6 @@ def drivebench(*args: str, **options) -> subprocess.Popen:
         text=True,
         **options,
     )
-
-
-def processes_with(text: str) -> list[int]:
-    """Pids of live processes whose command line contains ``text`` (real /proc, no mocks)."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (entry / "stat").read_text().split(") ", 1)[1][0]
-        except OSError:
-            continue
-        if text in cmdline and state != "Z" and int(entry.name) != os.getpid():
-            pids.append(int(entry.name))
-    return pids
 
 
 def started_by(launcher_pid: int) -> list[int]:
@@ -65,16 +43,6 @@ def started_by(launcher_pid: int) -> list[int]:
         except OSError:
             continue
     return pids
-
-
-def finished_rows(database: Path) -> list[tuple]:
-    if not database.exists():
-        return []
-    try:
-        with sqlite3.connect(database, timeout=5) as db:
-            return db.execute("SELECT key, run_id, started_at, status FROM episodes ORDER BY idx").fetchall()
-    except sqlite3.OperationalError:  # created but no table yet
-        return []
 
 
 def test_two_episodes_of_different_brains_run_side_by_side_on_one_router(tmp_path):

@@ -9,7 +9,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from test_viz import MESSAGE_DATA, SUBPROTOCOL, StuckClient, foxglove_client
+from support.viewers import MESSAGE_DATA, SUBPROTOCOL, StuckClient, foxglove_client
 from websockets.exceptions import InvalidStatus
 from websockets.frames import Opcode
 from websockets.sync.client import connect
