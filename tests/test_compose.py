@@ -24,6 +24,7 @@ import pytest
 from needs import missing
 from support.compose import COMPOSE_FILE, PROFILES, compose
 from support.env import clean_env
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol.messages import EventKind
@@ -334,20 +335,23 @@ def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_n
         for name in ("router", "simulator", "noise", "scorer", "brain"):
             stack.up(name)
         driver = stack.start("run")
-        deadline = time.monotonic() + 60
-        while "episode 0 started" not in stack.log("simulator"):
-            assert time.monotonic() < deadline and driver.poll() is None, stack.log("run")
-            time.sleep(0.2)
+        wait_for(
+            lambda: "episode 0 started" in stack.log("simulator"),
+            timeout_s=60,
+            what="episode 0 to start",
+            alive=lambda: None if driver.poll() is None else stack.log("run"),
+        )
         time.sleep(2.0)
         router = stack.processes.pop("router")
         os.killpg(router.pid, signal.SIGKILL)
         router.wait()
         stack.start("router")
         assert driver.wait(timeout=30) == 1, stack.log("run")
-        deadline = time.monotonic() + 20
-        while "episode 0 ended: driver_lost" not in stack.log("simulator"):
-            assert time.monotonic() < deadline, stack.log("simulator")
-            time.sleep(0.2)
+        wait_for(
+            lambda: "episode 0 ended: driver_lost" in stack.log("simulator"),
+            timeout_s=20,
+            what=f"episode 0 to end with driver_lost: {stack.log('simulator')[-1500:]}",
+        )
         stack.processes.pop("run")
         assert all(stack.processes[name].poll() is None for name in ("simulator", "noise", "scorer", "brain"))
         short = ComposeEmulation(resolved(env=env | {"MAX_SIM_SECONDS": "3"}, profiles=()), results, logs)

@@ -15,6 +15,7 @@ import time
 
 import pytest
 from support.env import clean_env
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
@@ -131,9 +132,12 @@ def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_s
         )
     try:
         token = keys.alive(stack.run_id, "brain", "extra")
-        deadline = time.monotonic() + 30
-        while token not in stack.bus.alive_now(token):
-            assert time.monotonic() < deadline and extra.poll() is None, (tmp_path / "extra.log").read_text()
+        wait_for(
+            lambda: token in stack.bus.alive_now(token),
+            timeout_s=30,
+            what="the extra brain host's liveliness token",
+            alive=lambda: None if extra.poll() is None else (tmp_path / "extra.log").read_text(),
+        )
         time.sleep(3.0)
         assert extra.poll() is None  # a simulator is there: it stays
         stack.child("simulator", "sim").process.kill()

@@ -22,6 +22,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from support.env import child_env as clean_env
 from support.processes import Processes
+from support.waits import wait_for_subscribers
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
@@ -387,13 +388,14 @@ def test_a_brain_may_put_commands_only(secure_stack):
     with stack.bus("brain", name="spoofer") as brain:
         inbox = stack.orchestrator.subscribe(keys.pose(run), Pose).inbox
         commands = stack.orchestrator.subscribe(keys.command(run, "spoofer"), Command).inbox
-        time.sleep(0.5)
+        command = brain.publisher(keys.command(run, "spoofer"), Command, Traffic.COMMANDS)
+        # Both subscriptions were declared in this order on one session: once the second has reached the brain
+        # (through the router), the first has reached the router too.
+        wait_for_subscribers(command)
         pose = Pose(header=Header(run_id=run, episode=99, seq=0, stamp_ns=0), x_m=1.0, y_m=2.0, yaw_rad=0.0)
         for key in (keys.pose(run), keys.run_all(run), f"{keys.run_prefix(run)}/sim/*"):
             brain.publisher(key, Pose, Traffic.EVENTS).publish(pose)
-        brain.publisher(keys.command(run, "spoofer"), Command, Traffic.COMMANDS).publish(
-            Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0)
-        )
+        command.publish(Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0))
         assert commands.recv(timeout_s=3.0) is not None  # the allowed put arrives...
         assert inbox.recv(timeout_s=0.5) is None  # ... the forbidden ones never did
 
@@ -498,9 +500,13 @@ def test_tls_with_user_password_lets_known_users_in_and_refuses_a_wrong_password
         ):
             assert watcher.resolved.user == "watcher"
             inbox = sim.subscribe(keys.commands_all(run), Command).inbox
-            time.sleep(0.5)
-            for source, brain in ((watcher, "watcher"), (pilot, "pilot")):
-                source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS).publish(
+            publishers = {
+                brain: source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS)
+                for source, brain in ((watcher, "watcher"), (pilot, "pilot"))
+            }
+            wait_for_subscribers(publishers["pilot"])  # the simulator's subscription reached the brain user
+            for brain, publisher in publishers.items():
+                publisher.publish(
                     Command(
                         header=Header(run_id=run, episode=0, seq=0, stamp_ns=0),
                         brain=brain,

@@ -25,6 +25,7 @@ import pytest
 from support.env import clean_env
 from support.recordings import expected_schemas
 from support.viewers import StuckClient, foxglove_client
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
@@ -146,17 +147,26 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
             "protobuf",
         )
         assert client.channels[topics.METRICS_LIVE]["schemaEncoding"] == "jsonschema"
-        time.sleep(0.5)  # the subscriptions reach the server
+        wait_for_viewers(viz, 1)
 
         frames = Inbox()  # the camera on the bus, as the simulator publishes it
         stack.bus.subscribe(keys.camera_raw(run), CameraFrame, inbox=frames)
         started, cpu_before = time.monotonic(), viz.cpu_s()
         score = stack.run_episode(EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA))
         ended, cpu_used = time.monotonic(), viz.cpu_s() - cpu_before
-        time.sleep(1.0)  # the last messages in flight
+        on_bus: list = []
+
+        def last_image_arrived() -> bool:
+            """The viewer has the score and the image of the last camera frame on the bus (still in flight when
+            the episode ended)."""
+            on_bus.extend(r for r in frames.drain() if r.message.header.episode == score.header.episode)
+            images = client.messages[camera]
+            last_on_bus_ns = on_bus[-1].message.header.stamp_ns if on_bus else None
+            return bool(client.messages[topics.EPISODE_SCORE] and images and images[-1].log_time_ns == last_on_bus_ns)
+
+        wait_for(last_image_arrived, timeout_s=10.0, what="the score and the last camera image at the viewer")
 
     assert score.reason == EndReason.TIME_LIMIT
-    on_bus = [r for r in frames.drain() if r.message.header.episode == score.header.episode]
     last_stamp = on_bus[-1].message.header.stamp_ns
     assert [r.message.header.seq for r in on_bus] == list(range(len(on_bus))) and last_stamp >= 7_900_000_000
     images = [m for m in client.messages[camera] if started <= m.arrival <= ended + 1.0]
@@ -252,6 +262,22 @@ def test_channels_added_while_viewers_connect_reach_them():
         bridge.close()
 
 
+def wait_for_viewers(viz: Viz, count: int) -> None:
+    """Until ``count`` viewers have subscribed, as the viz logs it (a viewer's channels are subscribed in one
+    request, handled at once, so its first subscription stands for all of them)."""
+    wait_for(
+        lambda: viz.log().count(" subscribed (first to ") >= count,
+        timeout_s=10.0,
+        what=f"{count} viewer(s) subscribed at the viz",
+        alive=lambda: None if viz.process.poll() is None else f"the viz exited: {viz.log()[-1500:]}",
+    )
+
+
+def episodes_ended(viz: Viz) -> list[int]:
+    """Messages the viz had sent when each episode ended, from its log."""
+    return [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
+
+
 def sample_rss(viz: Viz, stop: threading.Event, samples: list[float]) -> None:
     while not stop.is_set():
         samples.append(viz.rss_mb())
@@ -276,13 +302,13 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
         alone = stack.run_episode(spec)  # the viz serves nobody
         with foxglove_client(viz.port) as reader:  # a viewer that keeps up, subscribed to every channel
             reader.wait_for_channels(everything)
-            time.sleep(0.5)
+            wait_for_viewers(viz, 1)
             reading = stack.run_episode(spec)
         rss_before = viz.rss_mb()
 
         # The same viewer, but it never reads: its messages pile up in the kernel, then in the server's backlog.
         stuck = StuckClient(viz.port, everything)
-        time.sleep(0.5)
+        wait_for_viewers(viz, 2)
         samples: list[float] = []
         stop = threading.Event()
         sampler = threading.Thread(target=sample_rss, args=(viz, stop, samples), daemon=True)
@@ -290,10 +316,10 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
         with_stuck = stack.run_episode(spec)
         stop.set()
         sampler.join()
-        time.sleep(0.5)
+        wait_for(lambda: len(episodes_ended(viz)) == 3, timeout_s=10.0, what="the viz's count of the third episode")
         read_late, closed = stuck.drain()  # what the socket buffers and the backlog still held
         stuck.close()
-    sent = [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
+    sent = episodes_ended(viz)
     sent_while_stuck = sent[2] - sent[1]
     rtf = {
         name: score.metrics.real_time_factor
@@ -398,11 +424,13 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
             lines.append(line)
         assert f"run {run} via {stack.endpoint}" in lines[-1] and f"ws://127.0.0.1:{port}" in lines[-1]
         with foxglove_client(port) as client:
-            deadline = time.monotonic() + 20
             wanted = (topics.CIRCUIT, topics.CAMERA_TRUTH, topics.command_topic("explicit"))
-            while not all(client.messages[topic] for topic in wanted):
-                assert time.monotonic() < deadline, f"missing: {[t for t in wanted if not client.messages[t]]}"
-                time.sleep(0.1)
+            # Generous: with the load at 12 on 2 cores, the first of them once took over 20 s to come.
+            wait_for(
+                lambda: all(client.messages[topic] for topic in wanted),
+                timeout_s=60,
+                what=f"messages on each of {wanted} at the viewer",
+            )
             track = SceneUpdate.FromString(client.messages[topics.CIRCUIT][0].payload)
             assert track.entities[0].id == "track"  # the circuit, from the spec the simulator gave for episode 0
             assert decode_jpeg_image(client.messages[topics.CAMERA_TRUTH][-1].payload).shape == (48, 64, 3)
