@@ -52,7 +52,7 @@ _VIEW_SCHEMAS = {
 
 def expected_schemas(published: set[str], *, image: str) -> dict[str, str]:
     """Schema name of every topic in ``published``, as recordings (image "raw" or "jpeg") and the live view ("jpeg")
-    write them; shared with tests/test_viz.py."""
+    write them; the recording and live-view tests share it."""
     image_schema = {"raw": "foxglove.RawImage", "jpeg": "foxglove.CompressedImage"}[image]
     schemas = {topics.CAMERA_TRUTH: image_schema, topics.CAMERA_BRAIN: image_schema, **_JSON_SCHEMAS, **_VIEW_SCHEMAS}
     return {t: schemas.get(t, "drivebench.Command.v1" if t.startswith("/brain/") else "?") for t in published}

@@ -1,4 +1,4 @@
-"""Shared by the test modules: moved from tests/test_viz.py."""
+"""A Foxglove WebSocket viewer for the live-view tests: one that reads every message, and one that never reads."""
 
 from __future__ import annotations
 
