@@ -248,7 +248,7 @@ def kill_driver(folder: Path) -> Row:
     with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()]) as stack:
         events = Inbox()
         stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=events)
-        env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+        env = clean_env()
         driver = subprocess.Popen(
             [
                 sys.executable,

@@ -6,18 +6,18 @@ tests/test_netns.py (the same stack split across network namespaces).
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import pytest
+from support.env import clean_env
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol.bus import router_address
 
 
 def drivebench(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
-    base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    base = clean_env()
     return subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", *args],
         capture_output=True,

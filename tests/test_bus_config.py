@@ -4,12 +4,12 @@ that only fail at start-up)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
 import msgspec
 import pytest
+from support.env import clean_env
 
 from protocol.bus import (
     OBSERVER_BUS,
@@ -244,11 +244,6 @@ def test_the_password_comes_from_a_file_or_the_environment_and_is_never_shown(tm
 
 
 # -- real processes: the error is one line on stderr and exit code 2 --
-
-
-def clean_env(**extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return env | extra
 
 
 def test_a_service_with_a_bad_variable_exits_2_with_one_line():

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from needs import require
+from support.waits import wait_for_file
 
 pytestmark = pytest.mark.integration
 
@@ -132,10 +133,12 @@ def test_interrupting_a_run_stops_every_process(tmp_path, signal_number):
         stderr=subprocess.PIPE,
         text=True,
     )
-    deadline = time.monotonic() + 60
-    while "episode 0 started" not in _read(out / "logs" / "simulator.log"):
-        assert time.monotonic() < deadline and run.poll() is None, "the episode never started"
-        time.sleep(0.2)
+    wait_for_file(
+        out / "logs" / "simulator.log",
+        containing="episode 0 started",
+        timeout_s=60,
+        alive=lambda: None if run.poll() is None else f"exited with {run.returncode}",
+    )
     children = _child_pids(run.pid)
     assert len(children) == 4  # simulator, noise injector, scorer, brain
     run.send_signal(signal_number)
@@ -144,13 +147,6 @@ def test_interrupting_a_run_stops_every_process(tmp_path, signal_number):
     assert "every process stopped" in stderr and "Traceback" not in stderr
     for pid in children:
         assert not _alive(pid), f"child {pid} outlived the launcher"
-
-
-def _read(path) -> str:
-    try:
-        return path.read_text()
-    except OSError:
-        return ""
 
 
 def _child_pids(parent: int) -> list[int]:
@@ -201,10 +197,12 @@ def test_a_failed_run_leaves_a_failure_record_and_prints_it_with_json(tmp_path):
         text=True,
     )
     try:
-        deadline = time.monotonic() + 60
-        while not (out / "logs" / "scorer.log").is_file() or "ready" not in (out / "logs" / "scorer.log").read_text():
-            assert time.monotonic() < deadline and run.poll() is None
-            time.sleep(0.2)
+        wait_for_file(
+            out / "logs" / "scorer.log",
+            containing="ready",
+            timeout_s=60,
+            alive=lambda: None if run.poll() is None else f"exited with {run.returncode}",
+        )
         time.sleep(1.0)
         scorer = subprocess.run(["pgrep", "-f", "services.scorer.*failjson"], capture_output=True, text=True)
         os.kill(int(scorer.stdout.split()[0]), signal.SIGKILL)

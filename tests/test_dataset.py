@@ -16,20 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.recordings import HEIGHT, STEP_NS, WIDTH, episode_stream, label
 
 from protocol import keys
-from protocol.images import image_frame
 from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
     Command,
-    EndReason,
     EpisodeEvent,
-    EpisodeSpec,
-    EventKind,
-    Gaussian,
-    Header,
-    Pose,
 )
 from recorder.dataset.build import (
     DatasetError,
@@ -40,112 +32,6 @@ from recorder.dataset.build import (
     valid_windows,
 )
 from recorder.reading import Recorded
-
-WIDTH, HEIGHT = 40, 20
-STEP_NS = 50_000_000
-
-
-def pixels(seq: int) -> np.ndarray:
-    rows = np.arange(HEIGHT, dtype=np.uint8)[:, None] * 10
-    cols = np.where(np.isin(np.arange(WIDTH) % 4, (0, 3)), 240, 0).astype(np.uint8)[None, :]
-    image = np.empty((HEIGHT, WIDTH, 3), dtype=np.uint8)
-    image[..., 0] = seq % 256
-    image[..., 1] = np.broadcast_to(rows, (HEIGHT, WIDTH))
-    image[..., 2] = np.broadcast_to(cols, (HEIGHT, WIDTH))
-    return image
-
-
-def label(brain: str, episode: int, seq: int) -> tuple[float, float]:
-    """Each brain answers differently; values depend on episode and seq so a wrong pairing shows."""
-    base = {"pilot": 1.0, "other": 50.0, "second": 20.0}[brain]
-    return base + episode + seq * 0.01, (-1) ** seq * (0.05 * (seq % 7)) + episode * 0.001
-
-
-def episode_stream(
-    run_id: str = "r1",
-    episode: int = 0,
-    frames: int = 30,
-    *,
-    circuit: str = "simple",
-    brains: tuple[str, ...] = ("pilot", "other"),
-    active: str = "pilot",
-    dropped: frozenset = frozenset(),
-    unanswered: frozenset = frozenset(),
-    resent: frozenset = frozenset(),
-    switch_at: int | None = None,
-    switch_to: str = "other",
-    speed: Callable | None = None,
-    lag: int = 1,
-    step_s: float = 0.05,
-) -> Iterator[Recorded]:
-    """One episode as the bus carries it: START, then per step truth frame, perturbed frame, pose, and commands
-    that answer a frame ``lag`` steps later (so frames wait for their command); END."""
-    spec = EpisodeSpec(
-        circuit=circuit,
-        active_brain=active,
-        seed=7,
-        noise=[Gaussian(sigma=3.0)],
-        step_s=step_s,
-        camera=CameraSpec(width_px=WIDTH, height_px=HEIGHT),
-    )
-    events = keys.events(run_id)
-    event_seq = 0
-
-    def header(seq: int, stamp_ns: int | None = None) -> Header:
-        return Header(run_id=run_id, episode=episode, seq=seq, stamp_ns=seq * STEP_NS if stamp_ns is None else stamp_ns)
-
-    yield Recorded(events, EpisodeEvent(header=header(event_seq, 0), kind=EventKind.START, spec=spec), 0)
-    event_seq += 1
-    waiting: list[int] = []
-    for seq in range(frames + lag):
-        if seq < frames:
-            if seq == switch_at:
-                yield Recorded(
-                    events,
-                    EpisodeEvent(header=header(event_seq), kind=EventKind.BRAIN_SWITCH, brain=switch_to),
-                    seq * STEP_NS,
-                )
-                event_seq += 1
-            yield from frame_records(run_id, header(seq), seq, dropped=seq in dropped)
-            if seq in resent:  # a lock-step resend: the same frame again
-                yield from frame_records(run_id, header(seq), seq, dropped=seq in dropped)
-            waiting.append(seq)
-        if len(waiting) > lag or seq >= frames:
-            answered = waiting.pop(0)
-            if answered not in unanswered:
-                yield from command_records(run_id, episode, answered, brains, speed)
-    yield Recorded(
-        events,
-        EpisodeEvent(header=header(event_seq), kind=EventKind.END, reason=EndReason.LAPS_COMPLETED),
-        frames * STEP_NS,
-    )
-
-
-def frame_records(run_id: str, header: Header, seq: int, *, dropped: bool) -> Iterator[Recorded]:
-    truth = image_frame(header, pixels(seq))
-    yield Recorded(keys.camera_raw(run_id), truth, header.stamp_ns)
-    perturbed = (
-        CameraFrame(header=header, width_px=WIDTH, height_px=HEIGHT, data=b"", dropped=True)
-        if dropped
-        else image_frame(header, pixels(seq))
-    )
-    yield Recorded(keys.camera_perturbed(run_id), perturbed, header.stamp_ns)
-    yield Recorded(keys.pose(run_id), Pose(header=header, x_m=0.1 * seq, y_m=0.0, yaw_rad=0.0), header.stamp_ns)
-
-
-def command_records(
-    run_id: str, episode: int, seq: int, brains: tuple[str, ...], speed: Callable | None
-) -> Iterator[Recorded]:
-    for count, brain in enumerate(brains):
-        v, w = label(brain, episode, seq)
-        if speed is not None:
-            v = speed(brain, episode, seq)
-        header = Header(run_id=run_id, episode=episode, seq=seq, stamp_ns=seq * STEP_NS)
-        yield Recorded(
-            keys.command(run_id, brain),
-            Command(header=header, brain=brain, frame_seq=seq, speed_mps=v, yaw_rate_radps=w),
-            seq * STEP_NS + count,
-        )
 
 
 def source(name: str, *streams: Callable[[], Iterator[Recorded]]) -> tuple[str, Callable[[], Iterator[Recorded]]]:

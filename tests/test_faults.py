@@ -14,6 +14,8 @@ import sys
 import time
 
 import pytest
+from support.env import clean_env
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
@@ -25,7 +27,7 @@ pytestmark = pytest.mark.integration
 
 
 def attach(stack, out, *args: str) -> subprocess.Popen:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    env = clean_env()
     return subprocess.Popen(
         [
             sys.executable,
@@ -105,7 +107,7 @@ def test_attach_waits_for_a_busy_simulator_instead_of_failing(make_stack, tmp_pa
 def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_stack, tmp_path):
     """What drivebench swap starts watches no parent (it must outlive the swap command); it ends with its stack."""
     stack = make_stack(BrainLaunch("explicit"))
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    env = clean_env()
     with open(tmp_path / "extra.log", "wb") as log:
         extra = subprocess.Popen(
             [
@@ -130,9 +132,12 @@ def test_a_brain_host_with_an_orphan_timeout_exits_when_its_stack_is_gone(make_s
         )
     try:
         token = keys.alive(stack.run_id, "brain", "extra")
-        deadline = time.monotonic() + 30
-        while token not in stack.bus.alive_now(token):
-            assert time.monotonic() < deadline and extra.poll() is None, (tmp_path / "extra.log").read_text()
+        wait_for(
+            lambda: token in stack.bus.alive_now(token),
+            timeout_s=30,
+            what="the extra brain host's liveliness token",
+            alive=lambda: None if extra.poll() is None else (tmp_path / "extra.log").read_text(),
+        )
         time.sleep(3.0)
         assert extra.poll() is None  # a simulator is there: it stays
         stack.child("simulator", "sim").process.kill()

@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -18,6 +17,7 @@ import sysconfig
 from pathlib import Path
 
 import pytest
+from support.env import clean_env
 
 pytestmark = pytest.mark.integration
 
@@ -54,7 +54,7 @@ def shadowing_folder(path: Path) -> Path:
 
 
 def run_cli(drivebench: Path, *args: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    env = clean_env()
     return subprocess.run([str(drivebench), *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=timeout)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_topics import one_run, write
+from support.recordings import one_run, write
 
 from protocol import keys
 from protocol.mapping import topics

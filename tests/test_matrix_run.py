@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from support.matrices import finished_rows, processes_with, write_matrix
+from support.waits import wait_for
 
 from orchestrator.matrix.load import load_matrix
 from orchestrator.matrix.results import ResultStore
@@ -21,12 +22,6 @@ pytestmark = pytest.mark.integration
 SHORT = "limits: {laps: 1, max_sim_seconds: 4}\ncamera: 96x72\n"
 
 
-def write_matrix(folder: Path, body: str) -> Path:
-    path = folder / "m.yaml"
-    path.write_text(body)
-    return path
-
-
 def drivebench(*args: str, **options) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "orchestrator.cli", *args],
@@ -35,22 +30,6 @@ def drivebench(*args: str, **options) -> subprocess.Popen:
         text=True,
         **options,
     )
-
-
-def processes_with(text: str) -> list[int]:
-    """Pids of live processes whose command line contains ``text`` (real /proc, no mocks)."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (entry / "stat").read_text().split(") ", 1)[1][0]
-        except OSError:
-            continue
-        if text in cmdline and state != "Z" and int(entry.name) != os.getpid():
-            pids.append(int(entry.name))
-    return pids
 
 
 def started_by(launcher_pid: int) -> list[int]:
@@ -65,16 +44,6 @@ def started_by(launcher_pid: int) -> list[int]:
         except OSError:
             continue
     return pids
-
-
-def finished_rows(database: Path) -> list[tuple]:
-    if not database.exists():
-        return []
-    try:
-        with sqlite3.connect(database, timeout=5) as db:
-            return db.execute("SELECT key, run_id, started_at, status FROM episodes ORDER BY idx").fetchall()
-    except sqlite3.OperationalError:  # created but no table yet
-        return []
 
 
 def test_two_episodes_of_different_brains_run_side_by_side_on_one_router(tmp_path):
@@ -155,20 +124,22 @@ repetitions: 4
     )
     out = tmp_path / "out"
     first = drivebench("matrix", str(path), "-o", str(out), "--no-report")
-    deadline = time.monotonic() + 120
-    while len(finished_rows(out / "results.sqlite")) < 2:
-        assert first.poll() is None, first.communicate()[1]
-        assert time.monotonic() < deadline, "no episode finished in 120 s"
-        time.sleep(0.1)
+    wait_for(
+        lambda: len(finished_rows(out / "results.sqlite")) >= 2,
+        timeout_s=120,
+        what="two finished episodes",
+        alive=lambda: None if first.poll() is None else first.communicate()[1],
+    )
     first.send_signal(signal.SIGKILL)
     first.wait()
     before = finished_rows(out / "results.sqlite")
     assert 2 <= len(before) < 4
     # Its stacks' processes notice that their launcher is gone and stop by themselves: nothing is orphaned.
-    deadline = time.monotonic() + 10
-    while started_by(first.pid):
-        assert time.monotonic() < deadline, f"orphaned stack processes {started_by(first.pid)}"
-        time.sleep(0.2)
+    wait_for(
+        lambda: not started_by(first.pid),
+        timeout_s=10,
+        what=f"the stack processes of {first.pid} to stop by themselves",
+    )
 
     resumed = drivebench("matrix", str(path), "-o", str(out), "--resume", "--no-report")
     _, stderr = resumed.communicate(timeout=200)
@@ -302,11 +273,12 @@ def test_ctrl_c_on_a_two_worker_matrix_exits_cleanly_every_time(tmp_path):
             # SIGINT as a terminal sends it, even where the test runner itself was started with SIGINT ignored.
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
-        deadline = time.monotonic() + 120
-        while len(started_by(run.pid)) < 4:  # both stacks are coming up
-            assert run.poll() is None, run.communicate()[1]
-            assert time.monotonic() < deadline, "the matrix started no stack in 120 s"
-            time.sleep(0.1)
+        wait_for(
+            lambda: len(started_by(run.pid)) >= 4,  # both stacks are coming up
+            timeout_s=120,
+            what="the matrix to start its stacks",
+            alive=lambda: None if run.poll() is None else run.communicate()[1],
+        )
         time.sleep(delay_s)
         run.send_signal(signal.SIGINT)
         _, stderr = run.communicate(timeout=120)

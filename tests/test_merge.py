@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 from mcap_validation import assert_valid_mcap
-from test_topics import LEGACY, expected_schemas, one_run, write
+from support.recordings import LEGACY, expected_schemas, one_run, write
 
 from protocol import codec
 from protocol.mapping import topics

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from mcap.writer import Writer
-from test_recorder import run_cli, start_recorder
+from support.recorder import run_cli, start_recorder
 
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
 from protocol import keys

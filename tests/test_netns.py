@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 from needs import missing
+from support.env import clean_env
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -82,7 +83,7 @@ class Namespaces:
             ip("netns", "del", name)  # removes its end of every veth pair, and with it the pair
 
     def popen(self, host: str, argv: list[str], *, env: dict[str, str], log: Path) -> subprocess.Popen:
-        base = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+        base = clean_env()
         with open(log, "wb") as out:
             return subprocess.Popen(
                 ["ip", "netns", "exec", self.names[host], *argv],

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from needs import require
-from test_swap import stop_episode
+from support.stacks import stop_episode
 
 require("torch")  # to export the shipped checkpoint
 require("onnxruntime")

@@ -10,13 +10,13 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from support.env import clean_env
 
 from orchestrator.stack.launcher import LocalStack
 from protocol import keys
@@ -32,7 +32,7 @@ LAP_LIMIT_S = "150"
 
 
 def drivebench(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
+    env = clean_env()
     return subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", *args],
         capture_output=True,

@@ -31,7 +31,7 @@ ray = needs.require("ray")
 
 from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
-from test_matrix_run import finished_rows, processes_with, write_matrix  # noqa: E402
+from support.matrices import finished_rows, processes_with, write_matrix  # noqa: E402
 
 from orchestrator.matrix.load import load_matrix  # noqa: E402
 from orchestrator.matrix.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402

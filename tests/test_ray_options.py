@@ -84,7 +84,8 @@ def test_a_results_file_from_before_the_node_column_reads_and_takes_new_rows(tmp
 
 
 def test_compose_ray_file_resolves_and_its_worker_declares_episode_slots(tmp_path):
-    from test_compose import ROOT, compose
+    from support.compose import compose
+    from support.processes import ROOT
 
     result = compose("config", "--format", "json", file=ROOT / "compose.ray.yaml", profiles=())
     assert result.returncode == 0, result.stderr

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -16,6 +13,7 @@ import msgspec
 import numpy as np
 import pytest
 from mcap_validation import assert_valid_mcap
+from support.recorder import run_cli, start_recorder
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
@@ -178,17 +176,6 @@ def test_repair_recovers_the_complete_chunks_of_a_truncated_file(tmp_path):
     assert_valid_mcap(report.output)
 
 
-def run_cli(*argv: str, env: dict | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", *argv],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=ROOT,
-        env=env,
-    )
-
-
 def test_cli_errors_are_one_line(tmp_path):
     truncated = cut(write_recording(tmp_path / "t.mcap", two_episodes()), 0.5)
     for argv in (
@@ -221,32 +208,6 @@ def router():
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     with Bus(BusConfig(mode="router", listen=[endpoint]), name="test-router") as bus:
         yield endpoint, bus
-
-
-def start_recorder(endpoint: str, bus: Bus, run_id: str, output: Path, *extra: str) -> subprocess.Popen:
-    watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "recorder",
-            "--router",
-            endpoint,
-            "--run-id",
-            run_id,
-            "--set",
-            f"output={json.dumps(str(output))}",
-            *extra,
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    missing = watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30)
-    watch.close()
-    assert not missing, f"recorder did not come up: {process.poll()}"
-    return process
 
 
 def publish_steps(bus: Bus, run_id: str, *, seconds: float, rate_hz: float = 50.0) -> list[tuple[int, float]]:

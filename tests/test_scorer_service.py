@@ -9,6 +9,7 @@ import sys
 import time
 
 import pytest
+from support.waits import wait_for, wait_for_subscribers
 
 from circuits import load_circuit
 from orchestrator.stack.launcher import free_loopback_port
@@ -22,6 +23,7 @@ from protocol.messages import (
     EpisodeSpec,
     EventKind,
     Header,
+    LiveMetrics,
     Pose,
 )
 
@@ -44,15 +46,51 @@ def scorer_bus(tmp_path):
         )
         try:
             alive = bus.watch_alive(keys.alive_all(run_id))
-            deadline = time.monotonic() + 30
-            while not any(keys.parse_alive(k)[1] == "scorer" for k in alive.alive()):
-                assert process.poll() is None and time.monotonic() < deadline, "the scorer did not start"
-                time.sleep(0.05)
+            wait_for(
+                lambda: any(keys.parse_alive(k)[1] == "scorer" for k in alive.alive()),
+                timeout_s=30,
+                what="the scorer's liveliness token",
+                alive=lambda: None if process.poll() is None else f"the scorer exited with {process.returncode}",
+            )
             yield bus, run_id
         finally:
             process.terminate()
             process.wait(timeout=10)
             log.close()
+
+
+class ScorerOutput:
+    """The scorer's scores, and its live metrics: it publishes those only once it has begun an episode."""
+
+    def __init__(self, bus: Bus, run_id: str):
+        self.scores: Inbox = Inbox()
+        self.live: Inbox = Inbox()
+        # Declared in this order on one session: once a live message arrives, the score subscription (declared
+        # first) has reached the scorer too.
+        bus.subscribe(keys.score(run_id), EpisodeScore, inbox=self.scores)
+        bus.subscribe(keys.live_metrics(run_id), LiveMetrics, inbox=self.live)
+
+    def try_recv(self):
+        return self.scores.try_recv()
+
+    def recv(self, *, timeout_s: float):
+        return self.scores.recv(timeout_s=timeout_s)
+
+
+def subscribe_scores_and_wait(bus: Bus, run_id: str, *publishers) -> ScorerOutput:
+    """Subscribes to the scorer's output, and waits until the scorer's subscriptions match ``publishers``."""
+    output = ScorerOutput(bus, run_id)
+    wait_for_subscribers(*publishers)
+    return output
+
+
+def wait_for_episode(output: ScorerOutput, *, timeout_s: float = 10.0) -> None:
+    """Until the scorer has begun episode 0 (its first live metrics for it)."""
+    wait_for(
+        lambda: (received := output.live.try_recv()) is not None and received.message.header.episode == 0,
+        timeout_s=timeout_s,
+        what="the scorer's live metrics of episode 0 (it begins an episode on its START event)",
+    )
 
 
 def test_a_late_last_command_still_counts(scorer_bus):
@@ -61,11 +99,7 @@ def test_a_late_last_command_still_counts(scorer_bus):
     events = bus.publisher(keys.events(run_id), EpisodeEvent, Traffic.EVENTS)
     poses = bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS)
     commands = bus.publisher(keys.command(run_id, spec.active_brain), Command, Traffic.COMMANDS)
-    scores = Inbox()
-    bus.subscribe(keys.score(run_id), EpisodeScore, inbox=scores)
-    while not (events.has_subscribers() and poses.has_subscribers() and commands.has_subscribers()):
-        time.sleep(0.05)
-    time.sleep(0.3)  # the scorer's subscriptions reach this session
+    scores = subscribe_scores_and_wait(bus, run_id, events, poses, commands)
 
     def header(seq: int) -> Header:
         return Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * spec.step_ns)
@@ -77,9 +111,9 @@ def test_a_late_last_command_still_counts(scorer_bus):
 
     points = load_circuit("simple").centreline.points_m
     events.publish(EpisodeEvent(header=header(0), kind=EventKind.START, spec=spec))
-    # As the simulator does (it renders first): the scorer's callbacks run on a thread per subscription, so a pose
-    # sent at once could be handled before START, and with no simulator to ask for the spec it would be dropped.
-    time.sleep(0.3)
+    # The scorer's callbacks run on a thread per subscription, so a pose sent at once could be handled before START,
+    # and with no simulator to ask for the spec it would be dropped: wait until the scorer has begun the episode.
+    wait_for_episode(scores)
     for seq in range(FRAMES + 1):
         x_m, y_m = points[seq % len(points)]
         poses.publish(Pose(header=header(seq), x_m=float(x_m), y_m=float(y_m), yaw_rad=0.0, speed_mps=1.0))
@@ -110,18 +144,14 @@ def test_a_pose_of_nan_from_any_client_is_dropped_and_the_episode_still_scored(s
     events = bus.publisher(keys.events(run_id), EpisodeEvent, Traffic.EVENTS)
     poses = bus.publisher(keys.pose(run_id), Pose, Traffic.EVENTS)
     commands = bus.publisher(keys.command(run_id, spec.active_brain), Command, Traffic.COMMANDS)
-    scores = Inbox()
-    bus.subscribe(keys.score(run_id), EpisodeScore, inbox=scores)
-    while not (events.has_subscribers() and poses.has_subscribers() and commands.has_subscribers()):
-        time.sleep(0.05)
-    time.sleep(0.3)
+    scores = subscribe_scores_and_wait(bus, run_id, events, poses, commands)
 
     def header(seq: int) -> Header:
         return Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * spec.step_ns)
 
     points = load_circuit("simple").centreline.points_m
     events.publish(EpisodeEvent(header=header(0), kind=EventKind.START, spec=spec))
-    time.sleep(0.3)
+    wait_for_episode(scores)
     for seq in range(FRAMES + 1):
         x_m, y_m = points[seq % len(points)]
         if seq == FRAMES // 2:  # the intruder's pose for this frame comes first

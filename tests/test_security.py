@@ -8,13 +8,12 @@ import datetime
 import ipaddress
 import itertools
 import json
-import os
 import re
 import subprocess
 import sys
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from support.env import child_env as clean_env
+from support.processes import Processes
+from support.waits import wait_for_subscribers
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
@@ -130,65 +132,12 @@ def make_pki(folder: Path, names: list[str]) -> Path:
 # -- processes --
 
 
-def clean_env(**extra: str) -> dict[str, str]:
-    """The test's environment without the user's DRIVEBENCH_* settings; children die with us."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")}
-    return env | {"PYTHONUNBUFFERED": "1", "DRIVEBENCH_PARENT_PID": str(os.getpid())} | extra
-
-
 def tls_env(pki: Path, identity: str) -> dict[str, str]:
     return {
         "DRIVEBENCH_TLS_ROOT_CA": str(pki / "ca.pem"),
         "DRIVEBENCH_TLS_CERT": str(pki / f"{identity}.pem"),
         "DRIVEBENCH_TLS_KEY": str(pki / f"{identity}.key"),
     }
-
-
-@dataclass
-class Processes:
-    logs: Path
-    children: dict[str, subprocess.Popen] = field(default_factory=dict)
-
-    def start(self, name: str, argv: list[str], env: dict[str, str]) -> subprocess.Popen:
-        with open(self.logs / f"{name}.log", "ab") as log:
-            process = subprocess.Popen(
-                [sys.executable, "-m", *argv],
-                cwd=ROOT,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
-        self.children[name] = process
-        return process
-
-    def log(self, name: str) -> str:
-        return (self.logs / f"{name}.log").read_text(errors="replace")
-
-    def dead(self) -> str | None:
-        for name, process in self.children.items():
-            if process.poll() is not None:
-                return f"{name} exited with {process.returncode}: {self.log(name)[-1500:]}"
-        return None
-
-    def wait_for_log(self, name: str, text: str, timeout_s: float = 30) -> None:
-        deadline = time.monotonic() + timeout_s
-        while text not in self.log(name):
-            assert (dead := self.dead()) is None, dead
-            assert time.monotonic() < deadline, f"{name} did not log {text!r}: {self.log(name)[-1500:]}"
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        for process in self.children.values():
-            if process.poll() is None:
-                process.terminate()
-        for process in self.children.values():
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
 
 
 def start_router(processes: Processes, folder: Path, name: str, config: dict) -> None:
@@ -482,13 +431,14 @@ def test_a_brain_may_put_commands_only(secure_stack):
     with stack.bus("brain", name="spoofer") as brain:
         inbox = stack.orchestrator.subscribe(keys.pose(run), Pose).inbox
         commands = stack.orchestrator.subscribe(keys.command(run, "spoofer"), Command).inbox
-        time.sleep(0.5)
+        command = brain.publisher(keys.command(run, "spoofer"), Command, Traffic.COMMANDS)
+        # Both subscriptions were declared in this order on one session: once the second has reached the brain
+        # (through the router), the first has reached the router too.
+        wait_for_subscribers(command)
         pose = Pose(header=Header(run_id=run, episode=99, seq=0, stamp_ns=0), x_m=1.0, y_m=2.0, yaw_rad=0.0)
         for key in (keys.pose(run), keys.run_all(run), f"{keys.run_prefix(run)}/sim/*"):
             brain.publisher(key, Pose, Traffic.EVENTS).publish(pose)
-        brain.publisher(keys.command(run, "spoofer"), Command, Traffic.COMMANDS).publish(
-            Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0)
-        )
+        command.publish(Command(header=pose.header, brain="spoofer", frame_seq=0, speed_mps=0.0, yaw_rate_radps=0.0))
         assert commands.recv(timeout_s=3.0) is not None  # the allowed put arrives...
         assert inbox.recv(timeout_s=0.5) is None  # ... the forbidden ones never did
 
@@ -593,9 +543,13 @@ def test_tls_with_user_password_lets_known_users_in_and_refuses_a_wrong_password
         ):
             assert watcher.resolved.user == "watcher"
             inbox = sim.subscribe(keys.commands_all(run), Command).inbox
-            time.sleep(0.5)
-            for source, brain in ((watcher, "watcher"), (pilot, "pilot")):
-                source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS).publish(
+            publishers = {
+                brain: source.publisher(keys.command(run, brain), Command, Traffic.COMMANDS)
+                for source, brain in ((watcher, "watcher"), (pilot, "pilot"))
+            }
+            wait_for_subscribers(publishers["pilot"])  # the simulator's subscription reached the brain user
+            for brain, publisher in publishers.items():
+                publisher.publish(
                     Command(
                         header=Header(run_id=run, episode=0, seq=0, stamp_ns=0),
                         brain=brain,

@@ -6,15 +6,16 @@ import json
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 from mcap_validation import assert_valid_mcap
+from support.stacks import stop_episode
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.swap import SwapError, swap_brain
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, Inbox
+from protocol.bus import Inbox
 from protocol.messages import (
     CameraSpec,
     ControlReply,
@@ -48,13 +49,6 @@ def run_in_thread(stack, spec: EpisodeSpec) -> tuple[threading.Thread, dict]:
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
     return thread, outcome
-
-
-def wait_for(predicate, *, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
 
 
 def control(stack, request: ControlRequest) -> ControlReply:
@@ -255,15 +249,6 @@ def test_the_swap_command_without_a_running_stack_says_so_in_one_line(tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1
     result = drivebench("swap", "hal", "--runs-dir", str(tmp_path), timeout=30)
     assert result.returncode == 2 and "unknown brain 'hal'" in result.stderr
-
-
-def stop_episode(router: str, run_id: str) -> None:
-    with Bus(BusConfig(mode="peer", connect=[router]), name="test") as bus:
-        for _ in range(50):
-            if bus.request(keys.sim_control(run_id), codec.encode(ControlRequest(action="stop")), timeout_s=2.0):
-                return
-            time.sleep(0.1)
-    raise AssertionError("the simulator did not answer stop")
 
 
 def _read(path) -> str:

@@ -7,7 +7,7 @@ import os
 
 import msgpack
 import pytest
-from test_protocol import METRICS  # one set of example metrics for the message tests
+from support.messages import METRICS  # one set of example metrics for the message tests
 
 from orchestrator.cli.run import shadow_launches
 from orchestrator.cli.swap import brain_options

@@ -7,55 +7,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import msgspec
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_validation import assert_valid_mcap
+from support.recordings import LEGACY, expected_schemas, one_run, write
 
 from protocol import codec, keys
-from protocol.episodes import start_event
 from protocol.mapping import topics
-from protocol.messages import (
-    CameraFrame,
-    Command,
-    EndReason,
-    EpisodeEvent,
-    EpisodeMetrics,
-    EpisodeScore,
-    EpisodeSpec,
-    EventKind,
-    Header,
-    LiveMetrics,
-    Pose,
-)
 from recorder.dataset.build import DatasetOptions, build_dataset
 from recorder.reading import read_messages, recording_info
-from recorder.writer import RecordingWriter
-
-LEGACY = Path(__file__).resolve().parent / "fixtures" / "legacy-run-topics.mcap"  # see fixtures/README.md
-
-_JSON_SCHEMAS = {
-    topics.CAR_STATE: "drivebench.Pose.v1",
-    topics.EPISODE_EVENTS: "drivebench.EpisodeEvent.v1",
-    topics.METRICS_LIVE: "drivebench.LiveMetrics.v1",
-    topics.EPISODE_SCORE: "drivebench.EpisodeScore.v1",
-}
-_VIEW_SCHEMAS = {
-    topics.CAR_POSE: "foxglove.PoseInFrame",
-    topics.TF: "foxglove.FrameTransform",
-    topics.CIRCUIT: "foxglove.SceneUpdate",
-    topics.EPISODE_LOG: "foxglove.Log",
-}
-
-
-def expected_schemas(published: set[str], *, image: str) -> dict[str, str]:
-    """Schema name of every topic in ``published``, as recordings (image "raw" or "jpeg") and the live view ("jpeg")
-    write them; shared with tests/test_viz.py."""
-    image_schema = {"raw": "foxglove.RawImage", "jpeg": "foxglove.CompressedImage"}[image]
-    schemas = {topics.CAMERA_TRUTH: image_schema, topics.CAMERA_BRAIN: image_schema, **_JSON_SCHEMAS, **_VIEW_SCHEMAS}
-    return {t: schemas.get(t, "drivebench.Command.v1" if t.startswith("/brain/") else "?") for t in published}
-
 
 # -- the mapping -------------------------------------------------------------------------------------------------------
 
@@ -90,79 +51,6 @@ def test_legacy_run_id_topics_map_to_the_stable_ones():
 
 
 # -- a recording, as a viewer opens it ---------------------------------------------------------------------------------
-
-
-def zero_metrics() -> EpisodeMetrics:
-    """Metrics with every field zero / empty (the values do not matter here)."""
-    values = {}
-    for field in msgspec.structs.fields(EpisodeMetrics):
-        values[field.name] = [] if "list" in str(field.type) else None if "None" in str(field.type) else 0
-    return msgspec.convert(values, EpisodeMetrics)
-
-
-def one_run(run_id: str, *, brain: str = "explicit", steps: int = 25) -> list[tuple[str, msgspec.Struct]]:
-    """Every kind of recorded message of one run: START (a real circuit, so the track is drawn), per step two
-    cameras, a pose and a command, live metrics, a lap, END and the score."""
-    spec = EpisodeSpec(circuit="simple", active_brain=brain)
-
-    def header(seq: int) -> Header:
-        return Header(run_id=run_id, episode=0, seq=seq, stamp_ns=seq * 50_000_000)
-
-    messages: list[tuple[str, msgspec.Struct]] = [(keys.events(run_id), start_event(run_id, 0, spec))]
-    for seq in range(steps):
-        pixels = np.full((6, 8, 3), seq % 256, np.uint8).tobytes()
-        messages += [
-            (keys.camera_raw(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
-            (keys.camera_perturbed(run_id), CameraFrame(header=header(seq), width_px=8, height_px=6, data=pixels)),
-            (
-                keys.pose(run_id),
-                Pose(
-                    header=header(seq),
-                    x_m=0.1 * seq,
-                    y_m=1.0,
-                    yaw_rad=0.1,
-                    speed_mps=2.0,
-                    yaw_rate_radps=0.3,
-                    command_latency_ns=1_000_000,
-                ),
-            ),
-            (
-                keys.command(run_id, brain),
-                Command(header=header(seq), brain=brain, frame_seq=seq, speed_mps=2.0, yaw_rate_radps=0.3),
-            ),
-        ]
-    messages += [
-        (
-            keys.live_metrics(run_id),
-            LiveMetrics(
-                header=header(0),
-                progress_laps=0.1,
-                laps_target=1,
-                completed_laps=0,
-                sim_time_s=1.0,
-                real_time_factor=3.0,
-                cross_track_m=0.02,
-                speed_mps=2.0,
-            ),
-        ),
-        (keys.events(run_id), EpisodeEvent(header=header(1), kind=EventKind.LAP, lap=1)),
-        (keys.events(run_id), EpisodeEvent(header=header(2), kind=EventKind.END, reason=EndReason.LAPS_COMPLETED)),
-        (
-            keys.score(run_id),
-            EpisodeScore(
-                header=header(0), spec=spec, reason=EndReason.LAPS_COMPLETED, brain=brain, metrics=zero_metrics()
-            ),
-        ),
-    ]
-    return messages
-
-
-def write(path: Path, messages, *, run_id: str, image_format: str = "raw") -> Path:
-    with RecordingWriter(path, image_format=image_format) as writer:
-        writer.add_metadata("drivebench.run", {"run_id": run_id})
-        for key, message in messages:
-            writer.write(key, message)
-    return path
 
 
 def official_channels(path: Path) -> tuple[dict[str, str], list, dict[str, dict[str, str]]]:

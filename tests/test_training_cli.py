@@ -9,7 +9,7 @@ import shlex
 from pathlib import Path
 
 import pytest
-from test_dataset_cli import build, drivebench, one_line_error, record
+from support.datasets import build, drivebench, one_line_error, record
 
 pytest.importorskip("torch")
 WEIGHTS = Path(__file__).resolve().parents[1] / "brains" / "weights" / "deepest_lstm_tiny_pilotnet.ckpt"

@@ -11,25 +11,21 @@ import json
 import os
 import re
 import signal
-import socket
-import struct
 import subprocess
 import sys
 import threading
 import time
-from collections import defaultdict
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from test_topics import expected_schemas
-from websockets.client import ClientProtocol
-from websockets.frames import Opcode
-from websockets.sync.client import connect
-from websockets.uri import parse_uri
+from support.env import clean_env
+from support.recordings import expected_schemas
+from support.viewers import StuckClient, foxglove_client
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
@@ -47,143 +43,10 @@ from protocol.messages import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-SUBPROTOCOL = "foxglove.sdk.v1"
-MESSAGE_DATA = 1
 CAMERA = CameraSpec(width_px=320, height_px=240)
 
 
 # -- a Foxglove WebSocket client -------------------------------------------------------------------------------------
-
-
-@dataclass
-class Received:
-    arrival: float  # time.monotonic()
-    log_time_ns: int
-    payload: bytes
-
-
-@dataclass
-class FoxgloveClient:
-    """Reads everything on a background thread; subscribes to every advertised channel ``wanted`` accepts."""
-
-    ws: object
-    wanted: object  # topic -> bool
-    server_info: dict = field(default_factory=dict)
-    channels: dict[str, dict] = field(default_factory=dict)  # topic -> advertised channel
-    messages: dict[str, list[Received]] = field(default_factory=lambda: defaultdict(list))  # topic -> messages
-    _topic_of_subscription: dict[int, str] = field(default_factory=dict)
-    _advertised: threading.Condition = field(default_factory=threading.Condition)
-
-    def run(self) -> None:
-        try:
-            for message in self.ws:
-                if isinstance(message, str):
-                    self._on_text(json.loads(message))
-                elif message[0] == MESSAGE_DATA:
-                    subscription, log_time = struct.unpack_from("<IQ", message, 1)
-                    self.messages[self._topic_of_subscription[subscription]].append(
-                        Received(time.monotonic(), log_time, message[13:])
-                    )
-        except Exception:  # noqa: BLE001 - the connection closed under us at the end of a test
-            pass
-
-    def _on_text(self, message: dict) -> None:
-        if message["op"] == "serverInfo":
-            self.server_info = message
-        elif message["op"] == "advertise":
-            subscriptions = []
-            for channel in message["channels"]:
-                if self.wanted(channel["topic"]):
-                    subscription = len(self._topic_of_subscription)
-                    self._topic_of_subscription[subscription] = channel["topic"]
-                    subscriptions.append({"id": subscription, "channelId": channel["id"]})
-            if subscriptions:
-                self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
-            with self._advertised:
-                self.channels.update({channel["topic"]: channel for channel in message["channels"]})
-                self._advertised.notify_all()
-
-    def wait_for_channels(self, topics: set[str], timeout_s: float = 10.0) -> None:
-        with self._advertised:
-            assert self._advertised.wait_for(lambda: topics <= set(self.channels), timeout=timeout_s), (
-                f"never advertised: {topics - set(self.channels)}"
-            )
-
-
-@contextmanager
-def foxglove_client(port: int, wanted=lambda topic: True):
-    with connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None, open_timeout=10) as ws:
-        assert ws.subprotocol == SUBPROTOCOL
-        client = FoxgloveClient(ws=ws, wanted=wanted)
-        reader = threading.Thread(target=client.run, daemon=True)
-        reader.start()
-        yield client
-
-
-class StuckClient:
-    """A viewer that connects, subscribes to everything advertised, and then never reads again.
-
-    Sans-I/O ``websockets`` over a plain socket (64 kB receive buffer): once it stops calling ``recv`` nothing is
-    read at all, so the kernel's socket buffers (a few MB on loopback), then the server's per-client backlog fill.
-    """
-
-    def __init__(self, port: int, topics: set[str]):
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024)  # before connecting: sets the window
-        self.sock.connect(("127.0.0.1", port))
-        self.protocol = ClientProtocol(parse_uri(f"ws://127.0.0.1:{port}"), subprotocols=[SUBPROTOCOL], max_size=None)
-        self.protocol.send_request(self.protocol.connect())
-        self._send()
-        channels: dict[int, str] = {}
-        deadline = time.monotonic() + 10
-        while not topics <= set(channels.values()):
-            assert time.monotonic() < deadline, f"never advertised: {topics - set(channels.values())}"
-            self.sock.settimeout(max(0.1, deadline - time.monotonic()))
-            self.protocol.receive_data(self.sock.recv(65536))
-            for event in self.protocol.events_received():
-                if getattr(event, "opcode", None) == Opcode.TEXT and json.loads(event.data)["op"] == "advertise":
-                    channels.update({c["id"]: c["topic"] for c in json.loads(event.data)["channels"]})
-            self._send()
-        self.protocol.send_text(
-            json.dumps(
-                {
-                    "op": "subscribe",
-                    "subscriptions": [{"id": i, "channelId": channel} for i, channel in enumerate(channels)],
-                }
-            ).encode()
-        )
-        self._send()
-
-    def _send(self) -> None:
-        for data in self.protocol.data_to_send():
-            self.sock.sendall(data)
-
-    def drain(self, *, quiet_s: float = 1.0, limit_s: float = 10.0) -> tuple[int, bool]:
-        """Read what is waiting, until ``quiet_s`` without data: (messageData frames read, closed by the server)."""
-        self.sock.settimeout(quiet_s)
-        frames, closed, deadline = 0, False, time.monotonic() + limit_s
-        self.bytes_read = 0
-        try:
-            while time.monotonic() < deadline:
-                data = self.sock.recv(1 << 20)
-                if not data:
-                    closed = True
-                    break
-                self.bytes_read += len(data)
-                self.protocol.receive_data(data)
-                frames += sum(
-                    1
-                    for event in self.protocol.events_received()
-                    if getattr(event, "opcode", None) == Opcode.BINARY and event.data[0] == MESSAGE_DATA
-                )
-        except TimeoutError:
-            pass
-        except OSError:
-            closed = True
-        return frames, closed
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 # -- the viz process -------------------------------------------------------------------------------------------------
@@ -284,17 +147,26 @@ def test_a_viewer_gets_jpeg_camera_at_the_camera_rate_and_every_channel(make_sta
             "protobuf",
         )
         assert client.channels[topics.METRICS_LIVE]["schemaEncoding"] == "jsonschema"
-        time.sleep(0.5)  # the subscriptions reach the server
+        wait_for_viewers(viz, 1)
 
         frames = Inbox()  # the camera on the bus, as the simulator publishes it
         stack.bus.subscribe(keys.camera_raw(run), CameraFrame, inbox=frames)
         started, cpu_before = time.monotonic(), viz.cpu_s()
         score = stack.run_episode(EpisodeSpec(max_sim_seconds=8.0, camera=CAMERA))
         ended, cpu_used = time.monotonic(), viz.cpu_s() - cpu_before
-        time.sleep(1.0)  # the last messages in flight
+        on_bus: list = []
+
+        def last_image_arrived() -> bool:
+            """The viewer has the score and the image of the last camera frame on the bus (still in flight when
+            the episode ended)."""
+            on_bus.extend(r for r in frames.drain() if r.message.header.episode == score.header.episode)
+            images = client.messages[camera]
+            last_on_bus_ns = on_bus[-1].message.header.stamp_ns if on_bus else None
+            return bool(client.messages[topics.EPISODE_SCORE] and images and images[-1].log_time_ns == last_on_bus_ns)
+
+        wait_for(last_image_arrived, timeout_s=10.0, what="the score and the last camera image at the viewer")
 
     assert score.reason == EndReason.TIME_LIMIT
-    on_bus = [r for r in frames.drain() if r.message.header.episode == score.header.episode]
     last_stamp = on_bus[-1].message.header.stamp_ns
     assert [r.message.header.seq for r in on_bus] == list(range(len(on_bus))) and last_stamp >= 7_900_000_000
     images = [m for m in client.messages[camera] if started <= m.arrival <= ended + 1.0]
@@ -390,6 +262,22 @@ def test_channels_added_while_viewers_connect_reach_them():
         bridge.close()
 
 
+def wait_for_viewers(viz: Viz, count: int) -> None:
+    """Until ``count`` viewers have subscribed, as the viz logs it (a viewer's channels are subscribed in one
+    request, handled at once, so its first subscription stands for all of them)."""
+    wait_for(
+        lambda: viz.log().count(" subscribed (first to ") >= count,
+        timeout_s=10.0,
+        what=f"{count} viewer(s) subscribed at the viz",
+        alive=lambda: None if viz.process.poll() is None else f"the viz exited: {viz.log()[-1500:]}",
+    )
+
+
+def episodes_ended(viz: Viz) -> list[int]:
+    """Messages the viz had sent when each episode ended, from its log."""
+    return [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
+
+
 def sample_rss(viz: Viz, stop: threading.Event, samples: list[float]) -> None:
     while not stop.is_set():
         samples.append(viz.rss_mb())
@@ -414,13 +302,13 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
         alone = stack.run_episode(spec)  # the viz serves nobody
         with foxglove_client(viz.port) as reader:  # a viewer that keeps up, subscribed to every channel
             reader.wait_for_channels(everything)
-            time.sleep(0.5)
+            wait_for_viewers(viz, 1)
             reading = stack.run_episode(spec)
         rss_before = viz.rss_mb()
 
         # The same viewer, but it never reads: its messages pile up in the kernel, then in the server's backlog.
         stuck = StuckClient(viz.port, everything)
-        time.sleep(0.5)
+        wait_for_viewers(viz, 2)
         samples: list[float] = []
         stop = threading.Event()
         sampler = threading.Thread(target=sample_rss, args=(viz, stop, samples), daemon=True)
@@ -428,10 +316,10 @@ def test_a_viewer_that_never_reads_slows_nothing_and_costs_bounded_memory(make_s
         with_stuck = stack.run_episode(spec)
         stop.set()
         sampler.join()
-        time.sleep(0.5)
+        wait_for(lambda: len(episodes_ended(viz)) == 3, timeout_s=10.0, what="the viz's count of the third episode")
         read_late, closed = stuck.drain()  # what the socket buffers and the backlog still held
         stuck.close()
-    sent = [int(n) for n in re.findall(r"episode \d+ ended; so far: (\d+) messages sent", viz.log())]
+    sent = episodes_ended(viz)
     sent_while_stuck = sent[2] - sent[1]
     rtf = {
         name: score.metrics.real_time_factor
@@ -520,7 +408,7 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
     episode.start()
     time.sleep(1.0)  # its START event is long gone when the view joins
     port = free_loopback_port()
-    env = {k: v for k, v in os.environ.items() if k not in ("DRIVEBENCH_RUN_ID", "DRIVEBENCH_ROUTER")}
+    env = clean_env()
     view = subprocess.Popen(
         [sys.executable, "-m", "orchestrator.cli", "view", "--router", stack.endpoint, "--port", str(port)],
         cwd=ROOT,
@@ -536,11 +424,13 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
             lines.append(line)
         assert f"run {run} via {stack.endpoint}" in lines[-1] and f"ws://127.0.0.1:{port}" in lines[-1]
         with foxglove_client(port) as client:
-            deadline = time.monotonic() + 20
             wanted = (topics.CIRCUIT, topics.CAMERA_TRUTH, topics.command_topic("explicit"))
-            while not all(client.messages[topic] for topic in wanted):
-                assert time.monotonic() < deadline, f"missing: {[t for t in wanted if not client.messages[t]]}"
-                time.sleep(0.1)
+            # Generous: with the load at 12 on 2 cores, the first of them once took over 20 s to come.
+            wait_for(
+                lambda: all(client.messages[topic] for topic in wanted),
+                timeout_s=60,
+                what=f"messages on each of {wanted} at the viewer",
+            )
             track = SceneUpdate.FromString(client.messages[topics.CIRCUIT][0].payload)
             assert track.entities[0].id == "track"  # the circuit, from the spec the simulator gave for episode 0
             assert decode_jpeg_image(client.messages[topics.CAMERA_TRUTH][-1].payload).shape == (48, 64, 3)

@@ -9,7 +9,8 @@ import time
 import cv2
 import numpy as np
 import pytest
-from test_viz import MESSAGE_DATA, SUBPROTOCOL, StuckClient, foxglove_client
+from support.viewers import MESSAGE_DATA, SUBPROTOCOL, StuckClient, foxglove_client
+from support.waits import wait_for
 from websockets.exceptions import InvalidStatus
 from websockets.frames import Opcode
 from websockets.sync.client import connect
@@ -31,13 +32,6 @@ def noisy_frame(seq: int) -> CameraFrame:
     )
 
 
-def wait_until(condition, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
-
-
 def test_viewers_beyond_the_cap_are_refused_and_let_in_once_one_leaves():
     bridge = LiveBridge(run_id="r", host="127.0.0.1", port=0, backlog=100, max_viewers=2, backlog_bytes=1_000_000)
     try:
@@ -51,8 +45,12 @@ def test_viewers_beyond_the_cap_are_refused_and_let_in_once_one_leaves():
             assert (bridge.gate.stats.viewers, bridge.gate.stats.refused) == (2, 1)
             # The two let in still get their messages.
             bridge.publish_frame(keys.camera_raw("r"), noisy_frame(0))
-            wait_until(lambda: first.messages[topics.CAMERA_TRUTH] and second.messages[topics.CAMERA_TRUTH])
-        wait_until(lambda: bridge.gate.stats.viewers == 0)
+            wait_for(
+                lambda: first.messages[topics.CAMERA_TRUTH] and second.messages[topics.CAMERA_TRUTH],
+                timeout_s=10.0,
+                what="camera frames at both viewers",
+            )
+        wait_for(lambda: bridge.gate.stats.viewers == 0, timeout_s=10.0, what="no viewer left at the gate")
         with foxglove_client(bridge.port) as third:
             third.wait_for_channels({topics.CAMERA_TRUTH})
         assert (bridge.gate.stats.served, bridge.gate.stats.refused) == (3, 1)
@@ -97,7 +95,10 @@ def flood_a_stuck_viewer(*, backlog_bytes: int | None, frames: int = 200) -> tup
     bridge = LiveBridge(run_id="r", host="127.0.0.1", port=0, backlog=100_000, backlog_bytes=backlog_bytes)
     try:
         stuck = StuckClient(bridge.port, {topics.CAMERA_TRUTH})
-        time.sleep(0.5)  # the subscription reaches the server
+        # The server attaches a viewer's sink to the channel only after its subscribe callback (see LiveBridge):
+        # the channel having a sink is when frames start to reach the viewer.
+        camera = bridge._bus_channel(keys.camera_raw("r"), CameraFrame)
+        wait_for(camera.has_sinks, timeout_s=10.0, what="the stuck viewer's subscription to the camera")
         for seq in range(frames):
             assert bridge.publish_frame(keys.camera_raw("r"), noisy_frame(seq))
         time.sleep(1.0)
