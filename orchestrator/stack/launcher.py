@@ -146,6 +146,11 @@ class Child:
         return processes.last_log_line(self.log_path)
 
 
+# Our own simulator publishes an episode's END (and so our score comes) a moment before it is idle again: a start
+# right after a score may find it "busy" with the episode that just ended (seen under load, back-to-back episodes).
+OWN_SIMULATOR_BUSY_WAIT_S = 5.0
+
+
 @dataclass
 class LocalStack:
     """A stack on this machine. Use as a context manager; ``run_episode`` as often as needed inside."""
@@ -167,7 +172,7 @@ class LocalStack:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.process_group: int | None = None  # with one_group, once the first child is started
-        self._init_state(busy_wait_s=0.0)
+        self._init_state(busy_wait_s=OWN_SIMULATOR_BUSY_WAIT_S)
 
     def _init_state(self, *, busy_wait_s: float) -> None:
         """What a stack knows about itself before it starts (shared with :class:`AttachedStack`)."""
