@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import uuid
 from collections.abc import Iterator
 
@@ -9,6 +10,14 @@ import numpy as np
 import pytest
 
 from orchestrator.stack.launcher import BrainLaunch, LocalStack
+
+
+def pytest_configure(config) -> None:
+    """A suite started in the background (``pytest &`` in a script) inherits SIGINT ignored, and so would every
+    process it starts: the Ctrl-C tests would hang. Handle it again, as a terminal's suite does (exec resets a handled
+    signal to its default in each child)."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

@@ -183,6 +183,8 @@ def test_checkpoint_format(memdccp_run, datasets):
     assert raw["dataset"]["samples_train"] == manifest["split"]["train_samples"]
     assert raw["dataset"]["samples_val"] == manifest["split"]["val_samples"]
     assert len(raw["dataset"]["manifest_sha256"]) == 64
+    driven = {episode["circuit"] for source in manifest["sources"] for episode in source["episodes"]}
+    assert raw["dataset"]["circuits"] == sorted(driven) and driven  # what a held-out draw must avoid
     metrics = raw["metrics"]
     assert (
         set(metrics["train"])

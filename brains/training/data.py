@@ -96,6 +96,11 @@ def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str
         )
 
 
+def dataset_circuits(manifest: dict[str, Any]) -> list[str]:
+    """Every circuit a dataset's episodes drove (train and validation alike), sorted."""
+    return sorted({episode["circuit"] for source in manifest["sources"] for episode in source["episodes"]})
+
+
 def _crop(manifest: dict[str, Any]) -> tuple[float, float]:
     return float(manifest["options"]["crop_top_fraction"]), float(manifest["options"]["crop_bottom_fraction"])
 

@@ -16,7 +16,7 @@ Checkpoint format ``drivebench.checkpoint.v1`` (``torch.save`` of plain types an
     input          width_px, height_px, crop_top_fraction, crop_bottom_fraction, offsets_frames, offsets_s, step_s
     normalisation  image_mean, image_std (ImageNet, on pixels / 255), labels ("zscore" | "paper"),
                    label_mean, label_std: physical [v m/s, w rad/s] = network output * label_std + label_mean
-    dataset        path, manifest_sha256, samples_train, samples_val
+    dataset        path, manifest_sha256, samples_train, samples_val, circuits (every circuit the data drove)
     metrics        train / val: mae_speed_mps, mae_yaw_rate_radps, mse_normalised, mae_paper, mse_paper (val is
                    None without a val split); best_epoch, epochs_run, curve (one dict per epoch), monitor,
                    stopped_early, notes
@@ -53,7 +53,7 @@ from brains.nets import MODELS, make_model
 from brains.neural.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from brains.neural.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from brains.training.curve import plot_curve
-from brains.training.data import Split, crop_notes, evaluate, input_section, open_dataset, sha256
+from brains.training.data import Split, crop_notes, dataset_circuits, evaluate, input_section, open_dataset, sha256
 from brains.training.labels import BALANCE_CAP, LabelNorm, balance_weights, label_norm
 from brains.training.options import (
     BEST_FILE,
@@ -411,6 +411,8 @@ class _Trainer:
                 "manifest_sha256": sha256(manifest_path),
                 "samples_train": len(self.pool),
                 "samples_val": len(self.val_split) if self.val_split is not None else 0,
+                # Every circuit the dataset drove (both splits): a held-out matrix draw refuses these.
+                "circuits": dataset_circuits(self.train_split.dataset.manifest),
             },
             "metrics": self._metrics(),
             "training": {

@@ -27,7 +27,10 @@ Parts: a matrix may be several experiments over the same brains (the paper's tab
       noise: {circuits: [montreal], perturbations: [{salt_pepper: 0.2}, {salt_pepper: 0.4}]}
 
 A part sets any of circuits, variations or worlds, perturbations, repetitions, limits, exclude and include; what it
-does not set comes from the top level. Its episodes' keys start with ``<part>:``, and parts expand in written order.
+does not set comes from the top level. Instead of circuits and worlds, a part may ``draw`` held-out conditions
+from a seed (``orchestrator.matrix.draw``: ``draw: {count: 20, seed: 7, circuits: [random, twisty, montreal],
+variations: {line: [red, white]}}``), refusing circuits the brains' training data drove. Its episodes' keys start
+with ``<part>:``, and parts expand in written order.
 
 Expansion order: brains, then circuits, then the variation values (product, keys in written order), then
 perturbations, then repetitions (innermost). ``exclude`` applies to that product only; ``include`` entries come
@@ -74,6 +77,7 @@ from orchestrator.matrix.conditions import (
     read_world,
     read_worlds,
 )
+from orchestrator.matrix.draw import draw_conditions
 from orchestrator.matrix.plan import (
     DEFAULT_VARIATION,
     NO_PERTURBATION,
@@ -164,6 +168,11 @@ def _check_one_world_form(document: Document, entries: Entries) -> None:
         raise document.error(
             entries["worlds"][1], "give variations (a product) or worlds (a list), not both", at_key=True
         )
+    for key in ("circuits", "variations", "worlds"):
+        if "draw" in entries and key in entries:
+            raise document.error(
+                entries[key][1], f"give draw or {key}, not both (a draw picks its circuits and worlds)", at_key=True
+            )
 
 
 def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
@@ -171,7 +180,7 @@ def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
     top = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
     _check_one_world_form(document, top)
     if not isinstance(matrix.parts, dict):
-        if "circuits" not in top:
+        if "circuits" not in top and "draw" not in top:
             raise document.error((), "missing 'circuits' (a matrix needs brains and circuits)")
         return [("", top)]
     parts = []
@@ -187,8 +196,13 @@ def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
         if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
             merged.pop("variations", None)
             merged.pop("worlds", None)
+        if "draw" in entries:  # a draw replaces the top level's circuits and worlds; they replace its draw
+            for key in ("circuits", "variations", "worlds"):
+                merged.pop(key, None)
+        elif {"circuits", "variations", "worlds"} & entries.keys():
+            merged.pop("draw", None)
         merged.update(entries)
-        if "circuits" not in merged:
+        if "circuits" not in merged and "draw" not in merged:
             raise document.error(
                 where, f"part {name!r} has no circuits (give them in the part or at the top level)", at_key=True
             )
@@ -294,23 +308,33 @@ class _Plan:
     seed: int
     base: EpisodeSpec
     part: str = ""
+    conditions: tuple[tuple[str, World], ...] | None = None  # drawn (circuit, world) pairs instead of the product
 
     @classmethod
     def read(cls, document: Document, entries: Entries, *, base_dir: Path, part: str = "") -> _Plan:
         brains = read_brain_entries(document, *entries["brains"], base_dir=base_dir)
         shadows = read_brain_entries(document, *entries["shadows"], base_dir=base_dir) if "shadows" in entries else []
         check_unique_labels(document, brains + shadows)
-        if "worlds" in entries:
+        conditions = None
+        if "draw" in entries:
+            drawn = draw_conditions(
+                document, *entries["draw"], brains=tuple(entry for entry, _ in brains), check_circuit=_circuit
+            )
+            circuits, axes, worlds, conditions = drawn.circuits, list(drawn.axes), drawn.worlds, drawn.conditions
+        elif "worlds" in entries:
+            circuits = _circuits(document, *entries["circuits"])
             worlds, axes = read_listed_worlds(document, *entries["worlds"])
         else:
+            circuits = _circuits(document, *entries["circuits"])
             axes = read_axes(document, *entries.get("variations", (None, ())))
             worlds = read_worlds(axes)
         return cls(
             brains=tuple(entry for entry, _ in brains),
             shadows=tuple(entry for entry, _ in shadows),
-            circuits=_circuits(document, *entries["circuits"]),
+            circuits=circuits,
             axes=axes,
             worlds=worlds,
+            conditions=conditions,
             perturbations=read_perturbations(document, *entries.get("perturbations", (None, ()))),
             repetitions=entries.get("repetitions", (1, ()))[0],
             seed=entries.get("seed", (0, ()))[0],
@@ -344,8 +368,8 @@ class _Plan:
         ]
 
     def _check_size(self, document: Document, entries: Entries) -> None:
-        count = len(self.brains) * len(self.circuits) * len(self.perturbations) * self.repetitions
-        count *= len(self.worlds)
+        count = len(self.brains) * len(self.perturbations) * self.repetitions
+        count *= len(self.conditions) if self.conditions is not None else len(self.circuits) * len(self.worlds)
         if count > MAX_EPISODES:
             raise document.error(
                 entries.get("repetitions", (None, ()))[1],
@@ -353,9 +377,10 @@ class _Plan:
             )
 
     def _product(self) -> Iterator[_Combination]:
-        for brain, circuit, world, perturbation in itertools.product(
-            self.brains, self.circuits, self.worlds, self.perturbations
-        ):
+        conditions = self.conditions
+        if conditions is None:
+            conditions = tuple(itertools.product(self.circuits, self.worlds))
+        for brain, (circuit, world), perturbation in itertools.product(self.brains, conditions, self.perturbations):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
     def _exclude(self, document: Document, entry: dict[str, Any], path: At) -> dict[str, str]:

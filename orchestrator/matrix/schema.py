@@ -69,6 +69,18 @@ def _partial(base: type[msgspec.Struct], *, name: str, bounds: dict[str, Meta]) 
 CameraFields = _partial(CameraSpec, name="CameraFields", bounds=CAMERA_BOUNDS)
 
 
+MAX_DRAWN = 1000
+
+
+class Draw(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """A part's ``draw``: held-out conditions drawn from a seed (``orchestrator.matrix.draw``)."""
+
+    count: Annotated[int, Meta(ge=1, le=MAX_DRAWN)]
+    circuits: _one_or_more(Text)  # type: ignore[valid-type]  # names, or the families random and twisty
+    seed: Seed = 0
+    variations: dict[str, _one_or_more(Scalar)] = {}  # type: ignore[valid-type]
+
+
 class Part(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """What a part may set for itself; what it leaves UNSET comes from the top level."""
 
@@ -80,6 +92,7 @@ class Part(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     limits: Limits | UnsetType = UNSET
     exclude: _one_or_more(Mapping) | UnsetType = UNSET  # type: ignore[valid-type]
     include: _one_or_more(Mapping) | UnsetType = UNSET  # type: ignore[valid-type]
+    draw: Draw | UnsetType = UNSET  # instead of circuits and worlds: conditions drawn from a seed
 
 
 class MatrixFile(Part, forbid_unknown_fields=True, kw_only=True):
