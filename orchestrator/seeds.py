@@ -73,18 +73,39 @@ class SeedRun:
 
 
 def train_seeds(
-    *, seeds: tuple[int, ...], output: Path, recipe: list[str], data: Path, workers: int, log=print
+    *,
+    seeds: tuple[int, ...],
+    output: Path,
+    recipe: list[str],
+    data: Path,
+    workers: int,
+    ray_address: str | None = None,
+    ray_resources: dict[str, float] | None = None,
+    log=print,
 ) -> list[SeedRun]:
     """Train ``recipe`` (the train command's own options, without seed or output) once per seed into
-    ``output/seed-N``; returns every seed's run and writes ``output/training.json`` after each one ends."""
+    ``output/seed-N``; returns every seed's run and writes ``output/training.json`` after each one ends. With
+    ``ray_address``, each seed is a task on that Ray cluster (``orchestrator.seeds_ray``) instead of a local process."""
     output.mkdir(parents=True, exist_ok=True)
     runs: dict[int, SeedRun] = {}
     base = {"recipe": recipe, "data": str(data), "data_manifest_sha256": _manifest_hash(data), "seeds": list(seeds)}
+    if ray_address is not None:
+        from orchestrator.seeds_ray import train_seeds_on_ray
+
+        return train_seeds_on_ray(
+            seeds=seeds,
+            output=output,
+            recipe=recipe,
+            base=base,
+            address=ray_address,
+            resources=dict(ray_resources or {}),
+            log=log,
+        )
 
     def one(seed: int) -> SeedRun:
-        run = _train_one(seed=seed, folder=output / f"seed-{seed}", recipe=recipe, log=log)
+        run = _train_one(seed=seed, folder=seed_folder(output, seed), recipe=recipe, log=log)
         runs[seed] = run
-        _write_manifest(output, base, [runs[s] for s in seeds if s in runs])
+        write_manifest(output, base, [runs[s] for s in seeds if s in runs])
         return run
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
@@ -92,10 +113,14 @@ def train_seeds(
     return finished
 
 
+def seed_folder(output: Path, seed: int) -> Path:
+    return output / f"seed-{seed}"
+
+
 def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
-    if _finished(folder):
+    if finished(folder):
         log(f"seed {seed}: already trained ({folder / CHECKPOINT_FILE}), kept")
-        return _done(seed, folder)
+        return done_run(seed, folder)
     resume = ["--resume"] if (folder / LAST_CHECKPOINT_FILE).is_file() else []
     folder.mkdir(parents=True, exist_ok=True)
     log_path = folder / "train.log"
@@ -105,8 +130,8 @@ def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
     started = time.monotonic()
     with open(log_path, "ab") as out:
         code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    if code.returncode == 0 and _finished(folder):
-        run = _done(seed, folder)
+    if code.returncode == 0 and finished(folder):
+        run = done_run(seed, folder)
         log(f"seed {seed}: done in {time.monotonic() - started:.0f} s, best epoch {run.best_epoch}")
         return run
     status = "interrupted" if code.returncode in (130, -2) else "failed"
@@ -114,14 +139,14 @@ def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
     return SeedRun(seed=seed, folder=folder, status=status, log=log_path)
 
 
-def _finished(folder: Path) -> bool:
+def finished(folder: Path) -> bool:
     """A run is finished once its checkpoint is written and no partial training state is newer."""
     checkpoint = folder / CHECKPOINT_FILE
     last = folder / LAST_CHECKPOINT_FILE
     return checkpoint.is_file() and (not last.is_file() or checkpoint.stat().st_mtime >= last.stat().st_mtime)
 
 
-def _done(seed: int, folder: Path) -> SeedRun:
+def done_run(seed: int, folder: Path) -> SeedRun:
     from brains.neural.checkpoint import load_checkpoint
 
     checkpoint = load_checkpoint(folder / CHECKPOINT_FILE)
@@ -140,7 +165,7 @@ def _manifest_hash(data: Path) -> str | None:
     return hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None
 
 
-def _write_manifest(output: Path, base: dict[str, Any], runs: list[SeedRun]) -> None:
+def write_manifest(output: Path, base: dict[str, Any], runs: list[SeedRun]) -> None:
     document = {**base, "runs": [run.to_dict(output) for run in sorted(runs, key=lambda r: r.seed)]}
     temporary = output / f".{MANIFEST_FILE}.partial"
     temporary.write_text(json.dumps(document, indent=2) + "\n")

@@ -236,3 +236,28 @@ def test_paper_mistakes_are_one_line(args, words):
         [sys.executable, "-m", "orchestrator.cli", "paper", *args], cwd=ROOT, capture_output=True, text=True, timeout=60
     )
     assert done.returncode == 2 and words in done.stderr and done.stderr.count("\n") == 1, done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(900)  # 20 short episodes, each on its own stack, on a loaded machine
+def test_a_study_file_regenerates_its_tables_from_shipped_checkpoints_in_smoke_form(tmp_path):
+    """`drivebench paper --file experiments/memory_study.yaml --smoke`: two training runs of each brain (shipped under
+    brains/weights/study), the first cells of each part, and the report compares them with intervals."""
+    out = tmp_path / "study"
+    done = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "paper", "--file", "experiments/memory_study.yaml", "--smoke"]
+        + ["-o", str(out), "--renderer", "gl"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    with ResultStore(out, create=False) as store:
+        results = store.results()
+    assert {r.key.split(":")[1].split("/")[0] for r in results} == {"tiny-s0", "tiny-s1", "memdccp-s0", "memdccp-s1"}
+    assert all(r.status == "done" and r.score is not None for r in results)
+    report = (out / "report.md").read_text()
+    assert "Comparison with intervals" in report and "P(X > Y) [95 % CI]" in report
+    assert "| memdccp | tiny |" in report or "| tiny | memdccp |" in report

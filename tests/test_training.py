@@ -466,3 +466,50 @@ def test_bad_seed_lists_are_one_line_before_anything_starts(datasets, tmp_path, 
     result = train_seeds(datasets["crop"], tmp_path / "out", *seeds)
     assert result.returncode == 2 and message in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_seeds_train_as_ray_tasks_on_a_cluster_and_match_the_local_runs(datasets, tmp_path, monkeypatch):
+    """`train --seeds 0-1 --ray ADDRESS`: one task per seed on a real local Ray cluster (a head with no CPU, one
+    worker node), files landed in OUT/seed-N with the manifest; the same seed trains the same weights as locally."""
+    require("ray")
+    from ray.cluster_utils import Cluster
+
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # loopback only (see tests/test_ray_matrix.py)
+    cluster = Cluster(
+        initialize_head=True, connect=False, head_node_args={"num_cpus": 0, "node_ip_address": "127.0.0.1"}
+    )
+    try:
+        cluster.add_node(num_cpus=1, node_ip_address="127.0.0.1")
+        cluster.wait_for_nodes()
+        out = tmp_path / "on-ray"
+        done = train_seeds(datasets["crop"], out, "--seeds", "0-1", "--ray", cluster.address)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert "seed 0: done on" in done.stderr and "seed 1: done on" in done.stderr
+        manifest = json.loads((out / "training.json").read_text())
+        assert [(r["seed"], r["status"]) for r in manifest["runs"]] == [(0, "done"), (1, "done")]
+        assert (out / "seed-1" / "train.log").is_file() and (out / "seed-1" / "metrics.json").is_file()
+        local = train_seeds(datasets["crop"], tmp_path / "local", "--seeds", "1")
+        assert local.returncode == 0, local.stderr[-2000:]
+        assert_same_tensors(
+            state_dict(out / "seed-1" / "model.ckpt"), state_dict(tmp_path / "local" / "seed-1" / "model.ckpt")
+        )
+        again = train_seeds(datasets["crop"], out, "--seeds", "0-1", "--ray", cluster.address)
+        assert again.returncode == 0 and again.stderr.count("already trained") == 2, again.stderr[-2000:]
+    finally:
+        cluster.shutdown()
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--ray-resource", "GPU=1"], "--ray-resource goes with --ray"),
+        (["--ray", "127.0.0.1:9", "--ray-resource", "GPU=0"], "expected NAME=AMOUNT with AMOUNT > 0"),
+        (["--ray", "127.0.0.1:9", "--workers", "2"], "--workers is for a local run"),
+    ],
+)
+def test_seed_ray_mistakes_are_one_line(datasets, tmp_path, extra, message):
+    done = train_seeds(datasets["crop"], tmp_path / "out", "--seeds", "0-1", *extra)
+    assert done.returncode == 2 and message in done.stderr and done.stderr.count("\n") == 1, done.stderr

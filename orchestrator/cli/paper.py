@@ -33,8 +33,9 @@ def add(commands: argparse._SubParsersAction) -> None:
     paper.add_argument(
         "--smoke",
         action="store_true",
-        help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)}, the first {SMOKE_CELLS_PER_PART} "
-        f"cells of every table, {SMOKE_SIM_SECONDS:g} s each (what CI runs)",
+        help=f"a seconds-long form: {' and '.join(SMOKE_BRAINS)} (a study's file: the first two training runs of "
+        f"each brain), the first {SMOKE_CELLS_PER_PART} cells of every table, {SMOKE_SIM_SECONDS:g} s each "
+        "(what CI runs)",
     )
     paper.set_defaults(func=run_paper_command)
 

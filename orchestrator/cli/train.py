@@ -4,7 +4,8 @@
     drivebench train --model deepest_lstm_tiny_pilotnet --data DATASET -o RUN_DIR [--epochs 50] [--batch-size 64]
         [--lr 1e-3] [--device auto|cpu|cuda] [--seed 0] [--patience 10] [--labels zscore|paper]
         [--hyper KEY=VALUE ...] [--threads N] [--max-samples-per-epoch N] [--limit-train-samples N]
-        [--no-augment] [--no-balance] [--any-crop] [--resume | --overwrite] [--seeds 0-4 [--workers N]]
+        [--no-augment] [--no-balance] [--any-crop] [--resume | --overwrite]
+        [--seeds 0-4 [--workers N | --ray ADDRESS [--ray-resource GPU=1]]]
 
 Exit codes: 0 trained; 2 a request that cannot run (one line on stderr, ``drivebench: error: ...``); 130 after
 Ctrl-C, with last.ckpt saved and a line saying how to resume.
@@ -135,6 +136,19 @@ def add_seed_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--workers", type=int, default=1, metavar="N", help="with --seeds: train N seeds at once (default 1)"
     )
+    parser.add_argument(
+        "--ray",
+        metavar="ADDRESS",
+        help="with --seeds: one Ray task per seed on the cluster at ADDRESS (auto, HOST:PORT, ray://HOST:10001); "
+        "nodes need drivebench and the dataset at the same path",
+    )
+    parser.add_argument(
+        "--ray-resource",
+        action="append",
+        default=[],
+        metavar="NAME=AMOUNT",
+        help="with --ray: what one seed's task asks for besides one CPU, e.g. GPU=1 (repeatable)",
+    )
 
 
 def recipe_options(args: argparse.Namespace) -> list[str]:
@@ -169,14 +183,47 @@ def run_seeds(args: argparse.Namespace) -> int:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if not args.data.is_dir():
         raise UsageError(f"--data {args.data}: no such dataset folder")
+    resources = _ray_resources(args)
+    if args.ray is not None:
+        args.data = args.data.resolve()  # the nodes read it at the same path, whatever their working folder
     runs = train_seeds(
-        seeds=seeds, output=args.output, recipe=recipe_options(args), data=args.data, workers=args.workers, log=_log
+        seeds=seeds,
+        output=args.output,
+        recipe=recipe_options(args),
+        data=args.data,
+        workers=args.workers,
+        ray_address=args.ray,
+        ray_resources=resources,
+        log=_log,
     )
     failed = [run for run in runs if run.status != "done"]
     print(f"{args.output / 'training.json'}: {len(runs) - len(failed)} of {len(runs)} seeds trained")
     for run in failed:
         print(f"seed {run.seed}: {run.status}; see {run.log}", file=sys.stderr)
     return EXIT_INTERRUPTED if any(run.status == "interrupted" for run in failed) else (1 if failed else EXIT_OK)
+
+
+def _ray_resources(args: argparse.Namespace) -> dict[str, float]:
+    """``--ray-resource NAME=AMOUNT`` items as a mapping; UsageError (one line) for a mistake."""
+    if args.ray is None:
+        if args.ray_resource:
+            raise UsageError("--ray-resource goes with --ray ADDRESS")
+        return {}
+    if not args.ray.strip():
+        raise UsageError("--ray needs an address: auto, HOST:PORT or ray://HOST:10001")
+    if args.workers != 1:
+        raise UsageError("--workers is for a local run: on Ray, the nodes' CPUs set how many seeds train at once")
+    resources: dict[str, float] = {}
+    for item in args.ray_resource:
+        name, _, amount = item.partition("=")
+        try:
+            value = float(amount)
+        except ValueError:
+            value = -1.0
+        if not name.strip() or not value > 0:
+            raise UsageError(f"--ray-resource {item!r}: expected NAME=AMOUNT with AMOUNT > 0, e.g. GPU=1")
+        resources[name.strip()] = value
+    return resources
 
 
 def parse_hyper(items: list[str]) -> dict[str, Any]:
@@ -205,8 +252,8 @@ def run_train(args: argparse.Namespace) -> int:
     """Run ``drivebench train``; errors are one line on stderr, never a traceback."""
     if args.seeds is not None:
         return run_seeds(args)
-    if args.workers != 1:
-        raise UsageError("--workers goes with --seeds (one training run uses --threads)")
+    if args.workers != 1 or args.ray is not None:
+        raise UsageError("--workers and --ray go with --seeds (one training run uses --threads)")
     try:
         from brains.training import trainer as training
     except ImportError as error:

@@ -156,7 +156,7 @@ def smoke_form(
         if (wanted is not None and episode.brain.label not in wanted) or episode.repetition != 0:
             continue
         conditions = conditions_by_part.setdefault(episode.part, [])
-        condition = (episode.variation, episode.perturbation)
+        condition = (episode.circuit, episode.variation, episode.perturbation)
         if condition not in conditions:
             if len(conditions) >= cells_per_part:
                 continue

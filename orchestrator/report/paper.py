@@ -447,19 +447,33 @@ def circuits_table(results: Sequence[EpisodeResult]) -> Table:
 # -- smoke form ------------------------------------------------------------------------------------------------------
 
 
+SMOKE_RUNS_PER_BRAIN = 2  # a study's smoke form: the first two training runs of each brain (an interval needs two)
+
+
 def smoke_matrix(matrix):
     """The paper's matrix cut to seconds: the explicit and tiny brains, the first cells of every part, one
     repetition, a few simulated seconds on a small camera; keys stay the full matrix's so every episode still lands in
-    its table's cell."""
+    its table's cell. A study's file (brains over training seeds, without those two) keeps the first
+    SMOKE_RUNS_PER_BRAIN training runs of each brain instead."""
     from orchestrator.matrix.load import smoke_form
 
     return smoke_form(
         matrix,
-        brains=SMOKE_BRAINS,
+        brains=_smoke_brains(matrix),
         cells_per_part=SMOKE_CELLS_PER_PART,
         sim_seconds=SMOKE_SIM_SECONDS,
         camera_wh=SMOKE_CAMERA,
     )
+
+
+def _smoke_brains(matrix) -> tuple[str, ...]:
+    labels = [brain.label for brain in matrix.brains]
+    if set(SMOKE_BRAINS) & set(labels):
+        return SMOKE_BRAINS
+    runs: dict[str, list[str]] = {}
+    for brain in matrix.brains:
+        runs.setdefault(brain.compared_as, []).append(brain.label)
+    return tuple(label for group in runs.values() for label in group[:SMOKE_RUNS_PER_BRAIN])
 
 
 # -- command line ----------------------------------------------------------------------------------------------------
