@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from support.messages import METRICS
 
 from protocol import codec
 from protocol.mapping.recording import (
@@ -23,7 +24,6 @@ from protocol.messages import (
     Command,
     EndReason,
     EpisodeEvent,
-    EpisodeMetrics,
     EpisodeScore,
     EpisodeSpec,
     EventKind,
@@ -42,34 +42,6 @@ SPEC = EpisodeSpec(
     camera=CameraSpec(width_px=64, height_px=48, yaw_rad=0.1),
     world=WorldVariation(line="white", walls=False),
     noise=[SaltPepper(probability=0.1), Gaussian(sigma=3.5)],
-)
-METRICS = EpisodeMetrics(
-    sim_time_s=12.5,
-    wall_time_s=5.25,
-    real_time_factor=2.38,
-    steps=250,
-    completed_distance_m=40.1,
-    average_speed_mps=3.2,
-    percentage_completed=9.1,
-    bm_lap_seconds=None,
-    position_deviation_mae=1.01,
-    position_deviation_total_err=3.3,
-    suddenness_distance=0.2,
-    mean_inference_time_s=0.001,
-    progress_m=40.0,
-    progress_laps=0.09,
-    completed_laps=0,
-    lap_times_s=[],
-    cross_track_mean_m=0.04,
-    cross_track_rms_m=0.05,
-    cross_track_max_m=0.2,
-    cross_track_p95_m=0.15,
-    off_track_events=0,
-    command_rate_hz=20.0,
-    command_latency_p50_ms=1.5,
-    command_latency_p95_ms=2.5,
-    inference_p50_ms=0.4,
-    inference_p95_ms=0.9,
 )
 
 
