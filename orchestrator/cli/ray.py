@@ -60,15 +60,21 @@ def ray_options_from(args: argparse.Namespace) -> RayOptions | None:
         )
     if args.node_retries < 0:
         raise ValueError(f"--node-retries must be >= 0, got {args.node_retries}")
-    resources = {EPISODE_SLOT: 1.0}
-    for item in args.ray_resource:
+    resources = {EPISODE_SLOT: 1.0, **parse_ray_resources(args.ray_resource, example="GPU=0.25")}
+    artifacts = args.artifacts.resolve() if args.artifacts is not None else None
+    return RayOptions(address=address.strip(), artifacts=artifacts, resources=resources, node_retries=args.node_retries)
+
+
+def parse_ray_resources(items: list[str], *, example: str) -> dict[str, float]:
+    """``--ray-resource NAME=AMOUNT`` items as a mapping; ValueError (one line, with ``example``) for a mistake."""
+    resources: dict[str, float] = {}
+    for item in items:
         name, _, amount = item.partition("=")
         try:
             value = float(amount)
         except ValueError:
             value = -1.0
-        if not name.strip() or value <= 0:
-            raise ValueError(f"--ray-resource {item!r}: expected NAME=AMOUNT with AMOUNT > 0, e.g. GPU=0.25")
+        if not name.strip() or not value > 0:
+            raise ValueError(f"--ray-resource {item!r}: expected NAME=AMOUNT with AMOUNT > 0, e.g. {example}")
         resources[name.strip()] = value
-    artifacts = args.artifacts.resolve() if args.artifacts is not None else None
-    return RayOptions(address=address.strip(), artifacts=artifacts, resources=resources, node_retries=args.node_retries)
+    return resources

@@ -20,6 +20,7 @@ from typing import Any
 
 from brains.nets import MODELS
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, UsageError
+from orchestrator.cli.ray import parse_ray_resources
 
 
 class HyperError(ValueError):
@@ -213,17 +214,10 @@ def _ray_resources(args: argparse.Namespace) -> dict[str, float]:
         raise UsageError("--ray needs an address: auto, HOST:PORT or ray://HOST:10001")
     if args.workers != 1:
         raise UsageError("--workers is for a local run: on Ray, the nodes' CPUs set how many seeds train at once")
-    resources: dict[str, float] = {}
-    for item in args.ray_resource:
-        name, _, amount = item.partition("=")
-        try:
-            value = float(amount)
-        except ValueError:
-            value = -1.0
-        if not name.strip() or not value > 0:
-            raise UsageError(f"--ray-resource {item!r}: expected NAME=AMOUNT with AMOUNT > 0, e.g. GPU=1")
-        resources[name.strip()] = value
-    return resources
+    try:
+        return parse_ray_resources(args.ray_resource, example="GPU=1")
+    except ValueError as error:
+        raise UsageError(str(error)) from None
 
 
 def parse_hyper(items: list[str]) -> dict[str, Any]:
