@@ -219,8 +219,11 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         )
         for variation in args.variation:
             spec = apply_variation(spec, variation)
+        from services.noise.models import require_extras
+
+        require_extras(spec.noise)  # BM's perturbations without albumentations: one line now, not a dead injector
         return spec
-    except ValueError as error:  # VariationError and the specs' own checks
+    except ValueError as error:  # VariationError, MissingExtra and the specs' own checks
         raise UsageError(str(error)) from None
 
 

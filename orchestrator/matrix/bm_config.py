@@ -85,6 +85,9 @@ BM_WORLDS.update({"monaco_line": ("monaco", {}), "extended_simple_circuit": ("ex
 # BM's reference lap of the explicit brain (s, reference/behavior-metrics.md section 4); default timeout = x 1.1.
 REFERENCE_LAP_S = {"simple": 75.0, "many_curves": 151.0, "montmelo": 122.0, "montreal": 248.0, "nurburgring": 88.0}
 DEFAULT_TIMEOUT_FACTOR = 1.1
+# BM has no brain timeout (its loop paces on wall-clock time); a BM brain's first frame may load a network, and an
+# episode's first perturbed frame waits for albumentations' import (3 s idle, 13 s measured on a loaded 2-core box).
+BRAIN_TIMEOUT_S = 60.0
 BM_CAMERA = "640x480"  # BM's F1 camera; its brains crop rows of a 480-row image
 
 # Keys drivebench reads; every other key present is reported as dropped, with why.
@@ -100,7 +103,6 @@ _WHY_DROPPED = {
     "circuit's start line)",
     "Behaviors.Simulation.SpawnPoints": "BM's spawn points",
     "Behaviors.Experiment.UseWorldTimeouts": "a second timeout list (Timeout is what BM's headless loop uses)",
-    "Behaviors.Experiment.Description": "kept as a comment only",
     "Behaviors.Robot.AsyncMode": "lock-step is always in step with the simulator",
 }
 _READ = {
@@ -110,6 +112,7 @@ _READ = {
     "Behaviors.Robot.Type",
     "Behaviors.Simulation.World",
     "Behaviors.Experiment.Name",
+    "Behaviors.Experiment.Description",
     "Behaviors.Experiment.Timeout",
     "Behaviors.Experiment.Repetitions",
 }
@@ -245,7 +248,7 @@ def _brains(
         while label in labels:
             label, number = f"{path.stem}-{number}", number + 1
         labels.add(label)
-        options: dict[str, Any] = {"config": config}
+        options: dict[str, Any] = {"config": dict(config)}  # a copy each: no YAML anchors in the file
         if model:  # BM passes a model only when one is set ('' is none)
             options["model"] = str(model)
         if bm_root_option:
@@ -278,7 +281,7 @@ def _parts(simulation: dict[str, Any], experiment: dict[str, Any]) -> dict[str, 
         part: dict[str, Any] = {"circuits": [circuit]}
         if variation:
             part["worlds"] = [variation]
-        part["limits"] = {"laps": 1, "max_sim_seconds": float(timeout)}
+        part["limits"] = {"laps": 1, "max_sim_seconds": float(timeout), "brain_timeout_s": BRAIN_TIMEOUT_S}
         parts[part_name] = part
     return parts
 
