@@ -152,7 +152,8 @@ def main() -> int:
         if (label, sizes[0]) not in median_ms:
             continue  # skipped: its extra is not installed
         fields = stages[0].__struct_fields__ if stages else ()
-        params = ", ".join(f"{name}={getattr(stages[0], name)}" for name in fields) or "Behavior Metrics'"
+        params = ", ".join(f"{name}={getattr(stages[0], name)}" for name in fields)
+        params = params or ("Behavior Metrics'" if stages else "")
         cells = "".join(
             f" {fmt(median_ms[(label, size)])} | {fmt(median_ms[(label, size)] / copy_ms)} |" for size in sizes
         )
