@@ -151,6 +151,7 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_starts(checkout, tmp_p
 
 @pytest.mark.slow
 @pytest.mark.integration
+@pytest.mark.timeout(900)  # six episodes at 160x120, each on its own stack: about 3.5 min on a loaded 2-core box
 def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(checkout, tmp_path):
     out = tmp_path / "bm.yaml"
     converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(checkout))
