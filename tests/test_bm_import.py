@@ -172,3 +172,19 @@ def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_say
         assert failed.status == "failed" and failed.failure_kind == "brain_died", failed.failure
         assert "brain_f1_fails.py:15) KeyError: 'SteeringGain'" in failed.failure
     assert "night" in (tmp_path / "runs" / "report.md").read_text()
+
+
+def test_bm_perturbations_are_matrix_perturbations_with_their_names_as_labels(tmp_path):
+    path = tmp_path / "robust.yaml"
+    path.write_text("brains: [explicit]\ncircuits: [simple]\nperturbations: [none, rain, fog, night+affine]\n")
+    matrix = load_matrix(path)
+    assert [e.perturbation for e in matrix.episodes] == ["none", "rain", "fog", "night+affine"]
+    assert [[type(s).__name__ for s in e.spec.noise] for e in matrix.episodes] == [
+        [],
+        ["Rain"],
+        ["Fog"],
+        ["Night", "Affine"],
+    ]
+    path.write_text("brains: [explicit]\ncircuits: [simple]\nperturbations: [rain=3]\n")
+    with pytest.raises(ValueError, match="robust.yaml:3: .*noise model rain takes no value"):
+        load_matrix(path)
