@@ -173,7 +173,9 @@ def test_the_pose_is_the_frames_ground_truth_in_bm_conventions_and_there_is_no_l
     with pytest.raises(NoSuchSensor, match=r"get_laser\('laser_0'\): Behavior Metrics' F1 car has no laser"):
         brain.sensors.get_laser("laser_0")
     brain.reset(seed=0)  # no pose fed for 21 frames of driving: the brain's own check fails, naming where
-    with pytest.raises(BrainExecuteError, match=r"brain_f1_keywords.py:\d+\) RuntimeError: pose3d_0 has not moved"):
+    with pytest.raises(
+        BrainExecuteError, match=r"brain_f1_keywords.py:\d+: execute\(\) raised RuntimeError: pose3d_0 has not moved"
+    ):
         for seq in range(25):
             brain.act(observation((0, 0, 0), seq=seq))
 

@@ -35,7 +35,7 @@ import numpy as np
 import yaml
 
 from brains.base import Action, Observation
-from brains.behavior_metrics.checkout import load_brain_file, where_in
+from brains.behavior_metrics.checkout import line_in, load_brain_file, where_in
 from brains.behavior_metrics.interfaces import (
     TRANSFORM_OPTIONS,
     Actuators,
@@ -211,8 +211,10 @@ class BehaviorMetricsBrain:
         try:
             self._brain.execute()
         except Exception as error:  # the user's code: one line naming the file, the line and the error
+            # Short (the file's name, not its path): a failure quotes the host's last log line, cut to 200 chars.
+            line = line_in(self._path, error)
+            where = f"{self._path.name}:{line}" if line else self._path.name
             raise BrainExecuteError(
-                f"Behavior Metrics brain {self.file!r}: execute() raised{where_in(self._path, error)} "
-                f"{type(error).__name__}: {error}"
+                f"Behavior Metrics brain {where}: execute() raised {type(error).__name__}: {error}"
             ) from error
         return Action(speed_mps=self.motors.v_mps, yaw_rate_radps=self.motors.w_radps)

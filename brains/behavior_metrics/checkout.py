@@ -72,6 +72,11 @@ def _line_in(path: Path, traceback: TracebackType | None) -> tuple[int, str]:
     return found
 
 
+def line_in(path: Path, error: BaseException) -> int:
+    """The line of ``path`` where ``error`` last passed through it (0: it did not)."""
+    return _line_in(path, error.__traceback__)[0]
+
+
 def where_in(path: Path, error: BaseException) -> str:
     """`` (file.py:LINE)`` where ``error`` came out of ``path``, or "" if it did not pass through it."""
     number, _ = _line_in(path, error.__traceback__)
