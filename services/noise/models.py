@@ -386,11 +386,21 @@ def _albumentations():
     """albumentations, imported on first use (~3 s: scipy, pydantic), without its network check for updates."""
     import os
 
+    import sys
+
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # it would ask PyPI at import time, from every process
+    # Its package imports its torch helpers, and so torch where installed: 8 of 11 s of the import measured on a
+    # loaded 2-core machine, paid by an episode's first perturbed frame. None of BM's perturbations needs them.
+    blocked = "albumentations" not in sys.modules and "albumentations.pytorch" not in sys.modules
+    if blocked:
+        sys.modules["albumentations.pytorch"] = None  # importing it now raises ImportError
     try:
         import albumentations
     except ImportError:
         raise MissingExtra(f"Behavior Metrics' perturbations need albumentations: {BM_EXTRA_HINT}") from None
+    finally:
+        if blocked:
+            del sys.modules["albumentations.pytorch"]  # a brain that imports it later gets it, torch and all
     return albumentations
 
 
