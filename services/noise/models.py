@@ -383,9 +383,8 @@ def require_extras(stages: Sequence[NoiseStage]) -> None:
 
 
 def _albumentations():
-    """albumentations, imported on first use (~3 s: scipy, pydantic), without its network check for updates."""
+    """albumentations, imported on first use (seconds: scipy, pydantic), without its network check for updates."""
     import os
-
     import sys
 
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # it would ask PyPI at import time, from every process
