@@ -188,3 +188,32 @@ def test_bm_perturbations_are_matrix_perturbations_with_their_names_as_labels(tm
     path.write_text("brains: [explicit]\ncircuits: [simple]\nperturbations: [rain=3]\n")
     with pytest.raises(ValueError, match="robust.yaml:3: .*noise model rain takes no value"):
         load_matrix(path)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_real_stack(tmp_path):
+    """The brain host applies each of BM's perturbations through transform_image (the brain raises if one leaves its
+    frame as it was or changes its shape), while the noise injector rains on the frames it gets."""
+    import json
+
+    run = drivebench(
+        "run",
+        "--brain",
+        str(FIXTURES / "brain_f1_every_transform.py"),
+        "--noise",
+        "rain",
+        "--max-sim-seconds",
+        "2",
+        "--camera",
+        "160x120",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+        timeout_s=170,
+    )
+    assert run.returncode == 0, run.stderr
+    score = json.loads(run.stdout)
+    assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, run.stderr  # no frame raised
+    assert score["spec"]["noise"] == [{"model": "rain"}]
+    assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
