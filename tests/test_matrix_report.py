@@ -69,7 +69,8 @@ def drive(circuit_name: str, brain: str, repetition: int, *, fraction: float = 1
 
 def make_results(folder: Path) -> dict:
     """2 brains x 2 circuits x 2 variations x 2 repetitions (one crash, one stack failure) plus 2 episodes with
-    salt and pepper and 2 in Behavior Metrics' rain; returns the metrics by (brain, circuit, variation, perturbation, repetition)."""
+    salt and pepper and 2 in Behavior Metrics' rain; returns the metrics by (brain, circuit, variation, perturbation,
+    repetition)."""
     scores = {}
     plan = [(b, c, v, "none", rep) for b in BRAINS for c in CIRCUITS for v in VARIATIONS for rep in range(2)]
     plan += [("explicit", "simple", BASELINE, "salt_pepper=0.2", rep) for rep in range(2)]
