@@ -86,7 +86,7 @@ BM_WORLDS.update({"monaco_line": ("monaco", {}), "extended_simple_circuit": ("ex
 REFERENCE_LAP_S = {"simple": 75.0, "many_curves": 151.0, "montmelo": 122.0, "montreal": 248.0, "nurburgring": 88.0}
 DEFAULT_TIMEOUT_FACTOR = 1.1
 # BM has no brain timeout (its loop paces on wall-clock time); a BM brain's first frame may load a network, and an
-# episode's first perturbed frame waits for albumentations' import (3 s idle, 13 s measured on a loaded 2-core box).
+# episode's first perturbed frame waits for albumentations' import (1 s here; 13 s was seen under heavy load).
 BRAIN_TIMEOUT_S = 60.0
 BM_CAMERA = "640x480"  # BM's F1 camera; its brains crop rows of a 480-row image
 
