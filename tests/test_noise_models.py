@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import msgspec
 import numpy as np
@@ -31,7 +32,7 @@ from protocol.messages import (
     Sunflare,
 )
 from protocol.variations import VariationError, noise_stage
-from services.noise.models import DelayModel, NoiseModel, NoisePipeline, make_model
+from services.noise.models import DelayModel, MissingExtra, NoiseModel, NoisePipeline, make_model, require_extras
 
 os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # albumentations asks PyPI for updates at import otherwise
 
@@ -633,3 +634,10 @@ def test_bm_perturbations_are_named_as_bm_names_them_and_take_no_value():
     assert noise_stage({"fog": None}) == Fog()
     with pytest.raises(VariationError, match="noise model rain takes no value"):
         noise_stage("rain=0.5")
+
+
+def test_without_albumentations_bm_perturbations_are_refused_in_one_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "albumentations", None)  # as where it is not installed
+    require_extras([SaltPepper(probability=0.1)])  # drivebench's own models need nothing more
+    with pytest.raises(MissingExtra, match=r"noise model fog needs albumentations: pip install 'drivebench\[bm\]'"):
+        require_extras([Blur(kernel_px=3), Fog()])
