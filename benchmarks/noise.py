@@ -1,8 +1,9 @@
 """Noise models: per-frame cost of each camera perturbation, against the identity and a plain frame copy.
 
 Every model of ``services.noise.models`` with typical parameters (salt and pepper 0.2, gaussian sigma 10, blur 5,
-brightness -0.3 / contrast 1.2, occlusion 2 x 0.2, JPEG 75, delay 3, drop 0.1) and the identity (an empty
-pipeline), at each camera size, on camera-like frames (colour gradients, edges, texture, mild sensor noise). All
+brightness -0.3 / contrast 1.2, occlusion 2 x 0.2, JPEG 75, delay 3, drop 0.1), Behavior Metrics' perturbations
+(rain, night, daytime, shadow, snow, fog, sunflare, affine; where albumentations is installed) and the identity (an
+empty pipeline), at each camera size, on camera-like frames (colour gradients, edges, texture, mild sensor noise). All
 cases are timed side by side in one run, interleaved in short blocks so that load changes on a shared machine hit
 them alike; each figure is the median per-frame time over ``--frames`` frames after ``--warmup`` frames. Ratios are
 to one copy (``np.copy``) of a 640x480 RGB frame, timed in the same blocks, so they compare across machines; the
@@ -23,8 +24,19 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from protocol.messages import Blur, Brightness, Delay, Drop, Gaussian, Jpeg, NoiseStage, Occlusion, SaltPepper
-from services.noise.models import NoisePipeline, make_model
+from protocol.messages import (
+    BM_NOISE_MODELS,
+    Blur,
+    Brightness,
+    Delay,
+    Drop,
+    Gaussian,
+    Jpeg,
+    NoiseStage,
+    Occlusion,
+    SaltPepper,
+)
+from services.noise.models import MissingExtra, NoisePipeline, make_model, require_extras
 
 DEFAULT_SIZES = "640x480,200x66"
 BASELINE_SIZE = (640, 480)
@@ -41,6 +53,8 @@ CASES: list[tuple[str, list[NoiseStage]]] = [
     ("jpeg", [Jpeg(quality=75)]),
     ("delay", [Delay(frames=3)]),
     ("drop", [Drop(probability=0.1)]),
+    # Behavior Metrics' perturbations (albumentations, BM's parameters): skipped without drivebench[bm]
+    *((str(model.__struct_config__.tag), [model()]) for model in BM_NOISE_MODELS),
 ]
 
 
@@ -91,6 +105,11 @@ def main() -> int:
     # (label, size) -> per-frame callable; the baseline copy is one more case
     runners: dict[tuple[str, tuple[int, int]], Callable[[np.ndarray], object]] = {("np.copy", BASELINE_SIZE): np.copy}
     for label, stages in CASES:
+        try:
+            require_extras(stages)
+        except MissingExtra as missing:
+            print(f"skipped {label}: {missing}", file=sys.stderr)
+            continue
         for size in sizes:
             if stages:
                 model = make_model(stages[0])
@@ -130,8 +149,11 @@ def main() -> int:
     print(header)
     print("|---|---|" + "---:|---:|" * len(sizes))
     for label, stages in CASES:
+        if (label, sizes[0]) not in median_ms:
+            continue  # skipped: its extra is not installed
         fields = stages[0].__struct_fields__ if stages else ()
         params = ", ".join(f"{name}={getattr(stages[0], name)}" for name in fields)
+        params = params or ("Behavior Metrics'" if stages else "")
         cells = "".join(
             f" {fmt(median_ms[(label, size)])} | {fmt(median_ms[(label, size)] / copy_ms)} |" for size in sizes
         )

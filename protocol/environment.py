@@ -176,6 +176,14 @@ REQUIRE_MCAP_VALIDATOR = Variable(
     meaning="a missing MCAP validator fails the tests instead of skipping (scripts/test.sh sets it where node is)",
     read_by="the tests",
 )
+BM_ROOT = Variable(
+    name="DRIVEBENCH_BM_ROOT",
+    kind="path to a folder",
+    default="none: a Behavior Metrics brain file that imports BM's own modules is refused",
+    meaning="a BehaviorMetrics checkout (or its behavior_metrics folder): Behavior Metrics brain files import "
+    "`brains.gazebo...` and `utils...` from it (the brain option bm_root wins)",
+    read_by="brain hosts of Behavior Metrics brain files; `drivebench run`, `matrix`, `brains check` (their preflight)",
+)
 
 VARIABLES = (
     ROUTER,
@@ -196,6 +204,7 @@ VARIABLES = (
     GID,
     TORCH_VERSION,
     REQUIRE_MCAP_VALIDATOR,
+    BM_ROOT,
 )
 # How a process joins the bus; a local stack's children get none of them (they are meant for a standing stack).
 BUS = (ROUTER, MODE, LISTEN, TLS_ROOT_CA, TLS_CERT, TLS_KEY, USER, PASSWORD)

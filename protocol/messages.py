@@ -228,8 +228,73 @@ class Drop(_Noise, tag="drop", frozen=True):
         _check_probability("drop probability", self.probability)
 
 
-NoiseStage = SaltPepper | Gaussian | Blur | Brightness | Occlusion | Jpeg | Delay | Drop
-NOISE_MODELS: tuple[type[_Noise], ...] = (SaltPepper, Gaussian, Blur, Brightness, Occlusion, Jpeg, Delay, Drop)
+# Behavior Metrics' image perturbations (its ``ImageTranform`` options), with BM's parameters, applied through
+# albumentations as BM does (``pip install drivebench[bm]``). Each is seeded from the episode like every model.
+
+
+class Rain(_Noise, tag="rain", frozen=True):
+    """BM's rain: torrential drops slanted -10..10 degrees, 20 px long, 1 px wide, grey (200, 200, 200), blur 7,
+    brightness x 0.7."""
+
+
+class Night(_Noise, tag="night", frozen=True):
+    """BM's night: brightness -0.5 (of the full range)."""
+
+
+class Daytime(_Noise, tag="daytime", frozen=True):
+    """BM's daytime: brightness +0.3 (of the full range)."""
+
+
+class Shadow(_Noise, tag="shadow", frozen=True):
+    """BM's shadow: albumentations' random shadow with its defaults (1-2 shadows in the lower half)."""
+
+
+class Snow(_Noise, tag="snow", frozen=True):
+    """BM's snow: albumentations' random snow with its defaults."""
+
+
+class Fog(_Noise, tag="fog", frozen=True):
+    """BM's fog: albumentations' random fog with its defaults."""
+
+
+class Sunflare(_Noise, tag="sunflare", frozen=True):
+    """BM's sun flare: albumentations' random sun flare with its defaults (in the upper half)."""
+
+
+class Affine(_Noise, tag="affine", frozen=True):
+    """BM's affine: the image shifted 10 % of its width to the left (black fill), imitating a camera offset."""
+
+
+NoiseStage = (
+    SaltPepper
+    | Gaussian
+    | Blur
+    | Brightness
+    | Occlusion
+    | Jpeg
+    | Delay
+    | Drop
+    | Rain
+    | Night
+    | Daytime
+    | Shadow
+    | Snow
+    | Fog
+    | Sunflare
+    | Affine
+)
+BM_NOISE_MODELS: tuple[type[_Noise], ...] = (Rain, Night, Daytime, Shadow, Snow, Fog, Sunflare, Affine)
+NOISE_MODELS: tuple[type[_Noise], ...] = (
+    SaltPepper,
+    Gaussian,
+    Blur,
+    Brightness,
+    Occlusion,
+    Jpeg,
+    Delay,
+    Drop,
+    *BM_NOISE_MODELS,
+)
 
 
 class CameraSpec(msgspec.Struct, frozen=True, kw_only=True):

@@ -2,6 +2,7 @@
 
     apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun,direction=reverse")
     noise_stage("salt_pepper=0.2")  ->  SaltPepper(probability=0.2)
+    noise_stage("rain")  ->  Rain()   (Behavior Metrics' perturbations take no parameters)
     noise_stage({"occlusion": {"patches": 2, "size_fraction": 0.3}})
 
 Every mistake raises :class:`VariationError` naming the key or model and what is allowed.
@@ -127,7 +128,11 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
     ((model, params),) = item.items()
     if model not in _MODELS:
         raise VariationError(f"unknown noise model {model!r} (known: {', '.join(_MODELS)})")
+    if params is None:
+        params = {}
     if not isinstance(params, dict):
+        if model not in _PRIMARY:  # Behavior Metrics' perturbations: BM's fixed parameters, no value to give
+            raise VariationError(f"noise model {model} takes no value (write it alone: {model!r}), got {params!r}")
         params = {_PRIMARY[model]: params}
     try:
         return msgspec.convert(params, _MODELS[model])

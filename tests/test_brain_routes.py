@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import base64
 import json
+import math
+import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -12,9 +15,18 @@ import numpy as np
 import pytest
 from needs import require
 
-from brains.base import Observation
-from brains.behavior_metrics.adapter import BehaviorMetricsBrain
-from brains.registry import BrainOptionsError, UnknownBrainError, brain_sources, bus_name, make_brain, resolve
+from brains.base import GroundTruth, Observation
+from brains.behavior_metrics.adapter import BM_DEFAULT_CONFIG, BehaviorMetricsBrain, BrainExecuteError
+from brains.behavior_metrics.interfaces import TRANSFORM_OPTIONS, NoSuchSensor
+from brains.registry import (
+    BrainOptionsError,
+    UnknownBrainError,
+    brain_sources,
+    bus_name,
+    make_brain,
+    preflight,
+    resolve,
+)
 from protocol import codec
 from protocol.messages import CameraFrame, Command, Header
 from protocol.schema import BRAIN_MESSAGES, message_schema, schema_files
@@ -60,7 +72,7 @@ import numpy as np
 class Brain:
     instances = 0
 
-    def __init__(self, sensors, actuators, handler, model, config=None):
+    def __init__(self, sensors, actuators, model=None, handler=None, config=None):
         Brain.instances += 1
         self.camera = sensors.get_camera("camera_0")
         self.motors = actuators.get_motor("motors_0")
@@ -71,10 +83,11 @@ class Brain:
         image = self.camera.getImage().data
         self.frames += 1
         self.handler.update_frame("frame_0", image)
-        self.motors.sendV(float(image[0, 0, 0]))  # blue of the first pixel: the image is BGR
+        self.motors.sendV(float(image[0, 0, 0]))  # red of the first pixel: BM's frames are RGB
         if self.frames == 1:
             self.motors.sendW(np.random.uniform(-1, 1))  # later frames leave W as it was
 """
+FIXTURES = ROOT / "tests" / "fixtures" / "behavior_metrics"
 
 
 @pytest.fixture
@@ -84,28 +97,111 @@ def bm_file(tmp_path):
     return path
 
 
-def observation(rgb: tuple[int, int, int], seq: int = 0) -> Observation:
+@pytest.fixture
+def checkout(tmp_path):
+    """A fake Behavior Metrics checkout in a temporary folder, with the test brains in its brains/gazebo/f1."""
+    root = tmp_path / "BehaviorMetrics"
+    shutil.copytree(FIXTURES / "fake_checkout", root)
+    for brain in FIXTURES.glob("brain_f1_*.py"):
+        shutil.copy(brain, root / "behavior_metrics" / "brains" / "gazebo" / "f1")
+    return root
+
+
+def observation(rgb: tuple[int, int, int], seq: int = 0, truth: GroundTruth | None = None) -> Observation:
     image = np.zeros((4, 6, 3), np.uint8)
     image[...] = rgb
     image.flags.writeable = False
-    return Observation(image_rgb=image, stamp_ns=seq * 50_000_000, seq=seq)
+    return Observation(image_rgb=image, stamp_ns=seq * 50_000_000, seq=seq, ground_truth=truth)
 
 
-def test_behavior_metrics_brain_sees_bgr_and_drives_what_its_motors_were_told(bm_file):
+def test_behavior_metrics_brain_is_built_with_keywords_and_sees_rgb(bm_file):
     brain = BehaviorMetricsBrain(file=str(bm_file), model="weights.h5", config={"k": 1})
     brain.reset(seed=5)
     first = brain.act(observation((10, 20, 30)))
-    assert first.speed_mps == 30.0  # image[0, 0, 0] of a BGR frame is the blue value
-    second = brain.act(observation((10, 20, 40), seq=1))
+    assert first.speed_mps == 10.0  # image[0, 0, 0] of an RGB frame is the red value
+    second = brain.act(observation((40, 20, 30), seq=1))
     assert second.speed_mps == 40.0 and second.yaw_rate_radps == first.yaw_rate_radps  # motors keep the last W
-    assert brain._brain.model == "weights.h5" and brain._brain.config == {"k": 1}
+    # (sensors, actuators, model=None, handler=None, config=None): by keyword, each lands where it belongs
+    assert brain._brain.model == "weights.h5" and brain._brain.handler is brain.handler
+    assert brain._brain.config == {**BM_DEFAULT_CONFIG, "k": 1}  # BM's keys are always there
     assert list(brain.debug_images) == ["frame_0"] and brain.debug_images["frame_0"][0, 0, 0] == 40
     brain.reset(seed=5)
     assert brain._brain.frames == 0 and brain.debug_images == {}  # a new Brain: nothing carried over
     assert brain.act(observation((10, 20, 30))) == first  # seeded: numpy's global generator from reset's seed
+    assert not brain.needs_ground_truth  # it never reads the pose: its host does not wait for one
 
 
-def test_behavior_metrics_brain_file_mistakes_are_one_line(tmp_path):
+def test_config_comes_from_bm_defaults_then_a_bm_config_file_then_the_option(tmp_path, bm_file):
+    config_file = tmp_path / "bm.yml"
+    config_file.write_text(
+        "Behaviors:\n  Robot:\n    Parameters:\n      Model: net.pth\n      GPU: false\n      ImageTranform: rain\n"
+    )
+    brain = BehaviorMetricsBrain(file=str(bm_file), config_file=str(config_file), config={"ImageTranform": "fog"})
+    assert brain._brain.config == {**BM_DEFAULT_CONFIG, "GPU": False, "ImageTranform": "fog"}
+    assert brain._brain.model == "net.pth"  # the file's Model, passed as model= as BM does
+    no_model = BehaviorMetricsBrain(file=str(bm_file), model="")
+    assert no_model._brain.model is None  # BM passes model= only when one is set
+
+
+def test_transform_image_is_bm_perturbation_seeded_by_the_episode(bm_file):
+    os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # no network check at import
+    require("albumentations")
+    brain = BehaviorMetricsBrain(file=str(bm_file))
+    image = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    assert brain.handler.transform_image(image, "") is image
+    night = brain.handler.transform_image(np.full((8, 8, 3), 200, np.uint8), "night")
+    assert int(night[0, 0, 0]) in (72, 73)  # brightness -0.5 of the full range: 200 - 127.5
+    brain.reset(seed=3)
+    first = [brain.handler.transform_image(image, option) for option in TRANSFORM_OPTIONS[1:]]
+    brain.reset(seed=3)
+    again = [brain.handler.transform_image(image, option) for option in TRANSFORM_OPTIONS[1:]]
+    for option, a, b in zip(TRANSFORM_OPTIONS[1:], first, again, strict=True):
+        assert a.shape == image.shape and a.dtype == np.uint8 and not np.array_equal(a, image), option
+        assert np.array_equal(a, b), f"{option}: same seed, same frames, different output"
+    with pytest.raises(ValueError, match="unknown option 'hail'"):
+        brain.handler.transform_image(image, "hail")
+
+
+def test_the_pose_is_the_frames_ground_truth_in_bm_conventions_and_there_is_no_laser(checkout):
+    brain = BehaviorMetricsBrain(file=str(checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_keywords.py"))
+    assert brain.needs_ground_truth  # it reads get_pose3d: its host hands it the pose of every frame
+    brain.act(observation((0, 0, 0), truth=GroundTruth(x_m=3.0, y_m=-4.0, yaw_rad=math.pi / 2, circuit="simple")))
+    pose = brain.pose3d.getPose3d()
+    assert (pose.x, pose.y, pose.z, pose.yaw, pose.pitch, pose.roll) == (3.0, -4.0, 0.0, math.pi / 2, 0.0, 0.0)
+    assert pose.q == pytest.approx([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])  # [w, x, y, z]
+    assert brain.handler.reported_pose is pose  # handler.update_pose3d
+    with pytest.raises(NoSuchSensor, match=r"get_laser\('laser_0'\): Behavior Metrics' F1 car has no laser"):
+        brain.sensors.get_laser("laser_0")
+    brain.reset(seed=0)  # no pose fed for 21 frames of driving: the brain's own check fails, naming where
+    with pytest.raises(
+        BrainExecuteError, match=r"brain_f1_keywords.py:\d+: execute\(\) raised RuntimeError: pose3d_0 has not moved"
+    ):
+        for seq in range(25):
+            brain.act(observation((0, 0, 0), seq=seq))
+
+
+def test_a_file_importing_bm_modules_needs_the_checkout_and_then_imports_them(checkout, monkeypatch):
+    monkeypatch.delenv("DRIVEBENCH_BM_ROOT", raising=False)
+    file = checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
+    with pytest.raises(BrainOptionsError) as refused:
+        preflight(str(file), {"model": "gains.json"})
+    assert str(file) in str(refused.value) and "from utils.constants import" in str(refused.value)
+    assert "bm_root=PATH" in str(refused.value) and "DRIVEBENCH_BM_ROOT" in str(refused.value)
+    monkeypatch.setenv("DRIVEBENCH_BM_ROOT", str(checkout))  # the repository's root: its behavior_metrics is found
+    preflight(str(file), {"model": "gains.json"})
+    brain = make_brain(str(file), model="gains.json", bm_root=str(checkout / "behavior_metrics"))
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[20:, 10:14] = (255, 0, 0)  # the red line left of the centre: turn left
+    action = brain.act(Observation(image_rgb=image, stamp_ns=0, seq=0))
+    assert action.speed_mps == 5.0 and action.yaw_rate_radps > 0  # gains.json's speed, from the checkout's models
+    import brains.base
+
+    assert Path(brains.base.__file__).parent == ROOT / "brains"  # drivebench's own modules are untouched
+    with pytest.raises(BrainOptionsError, match="not a Behavior Metrics checkout"):
+        make_brain(str(file), model="gains.json", bm_root=str(checkout / "nowhere"))
+
+
+def test_behavior_metrics_brain_file_mistakes_are_one_line(tmp_path, bm_file):
     missing = tmp_path / "none.py"
     with pytest.raises(BrainOptionsError, match="not found"):
         BehaviorMetricsBrain(file=str(missing))
@@ -113,11 +209,19 @@ def test_behavior_metrics_brain_file_mistakes_are_one_line(tmp_path):
     with pytest.raises(BrainOptionsError, match="defines no class Brain"):
         BehaviorMetricsBrain(file=str(tmp_path / "no_class.py"))
     (tmp_path / "broken.py").write_text("import no_such_module_here\n")
-    with pytest.raises(BrainOptionsError, match="failed to import: ModuleNotFoundError"):
+    with pytest.raises(BrainOptionsError, match="failed to import at line 1: ModuleNotFoundError"):
         BehaviorMetricsBrain(file=str(tmp_path / "broken.py"))
     (tmp_path / "old.py").write_text("class Brain:\n    def __init__(self, sensors):\n        pass\n")
-    with pytest.raises(BrainOptionsError, match=r"Brain\(sensors, actuators, handler\) failed: TypeError"):
+    with pytest.raises(BrainOptionsError, match=r"does not take Brain\(sensors, actuators, handler=..., config=...\)"):
         BehaviorMetricsBrain(file=str(tmp_path / "old.py"))
+    (tmp_path / "needy.py").write_text(
+        "class Brain:\n    def __init__(self, sensors, actuators, handler=None, config=None):\n"
+        "        self.gain = config['SteeringGain']\n"
+    )
+    with pytest.raises(BrainOptionsError, match=r"needy.py:3\): missing config key 'SteeringGain'"):
+        BehaviorMetricsBrain(file=str(tmp_path / "needy.py"))
+    with pytest.raises(BrainOptionsError, match=r"brain_bm_style.py': unknown ImageTranform 'hail'"):
+        preflight(str(bm_file), {"config": {"ImageTranform": "hail"}})
 
 
 def test_the_shipped_behavior_metrics_example_is_found_by_its_path():

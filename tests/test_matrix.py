@@ -337,7 +337,7 @@ ERRORS = [
     (MINIMAL + "variations:\n  walls: [on, maybe]\n", 4, ["'maybe'", "on or off"]),
     (MINIMAL + "variations:\n  camera: [left, upside]\n", 4, ["'upside'", "rotate_down"]),
     (MINIMAL + "variations:\n  line: []\n", 4, ["line", "empty"]),
-    (MINIMAL + "perturbations:\n  - none\n  - {snow: 0.1}\n", 5, ["'snow'", "salt_pepper", "camera"]),
+    (MINIMAL + "perturbations:\n  - none\n  - {hail: 0.1}\n", 5, ["'hail'", "salt_pepper", "camera"]),
     (MINIMAL + "perturbations:\n  - salt_pepper=2\n", 4, ["salt_pepper", "0..1"]),
     (MINIMAL + "perturbations:\n  - {occlusion: {patches: 2, colour: red}}\n", 4, ["occlusion", "colour"]),
     (MINIMAL + "perturbations:\n  - {camera: upside}\n", 4, ["'upside'", "known"]),

@@ -68,11 +68,13 @@ def drive(circuit_name: str, brain: str, repetition: int, *, fraction: float = 1
 
 
 def make_results(folder: Path) -> dict:
-    """2 brains x 2 circuits x 2 variations x 2 repetitions (one crash, one stack failure) plus 2 perturbed
-    episodes; returns the metrics by (brain, circuit, variation, perturbation, repetition)."""
+    """2 brains x 2 circuits x 2 variations x 2 repetitions (one crash, one stack failure) plus 2 episodes with
+    salt and pepper and 2 in Behavior Metrics' rain; returns the metrics by (brain, circuit, variation, perturbation,
+    repetition)."""
     scores = {}
     plan = [(b, c, v, "none", rep) for b in BRAINS for c in CIRCUITS for v in VARIATIONS for rep in range(2)]
     plan += [("explicit", "simple", BASELINE, "salt_pepper=0.2", rep) for rep in range(2)]
+    plan += [("explicit", "simple", BASELINE, "rain", rep) for rep in range(2)]  # Behavior Metrics' rain
     (folder / "trajectories").mkdir(parents=True)
     with ResultStore(folder) as store:
         store.set_fact("name", "demo")
@@ -203,6 +205,7 @@ def test_grids_mark_failures_with_reason_and_count(report):
     assert f"{statistics.fmean(laps):.1f} s" in pilot_row
     robustness = text.split("## Robustness")[1].split("## ")[0]
     assert "salt_pepper=0.2" in robustness and "%" in robustness
+    assert "| simple · rain |" in robustness  # BM's perturbations are columns like any other
     failures = text.split("## Failures")[1].split("## ")[0]
     assert "brain_died: brain 'x' exited with code -9" in failures and "logs/" in failures
     # A missing checkpoint is a note, not a crash; a missing trajectory file too.
@@ -214,7 +217,7 @@ def test_csv_has_one_row_per_episode(report):
     _, scores, files = report
     with open(files.csv, newline="") as file:
         rows = list(csv.DictReader(file))
-    assert len(rows) == 18
+    assert len(rows) == 20
     by_key = {row["key"]: row for row in rows}
     row = by_key[f"pilotnet/simple/{BASELINE}/none/r1"]
     metrics = scores[("pilotnet", "simple", BASELINE, "none", 1)]

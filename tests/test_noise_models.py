@@ -3,24 +3,38 @@
 from __future__ import annotations
 
 import math
+import os
+import sys
 
 import msgspec
 import numpy as np
 import pytest
+from needs import require
 
 from protocol.messages import (
     NOISE_MODELS,
+    Affine,
     Blur,
     Brightness,
+    Daytime,
     Delay,
     Drop,
+    Fog,
     Gaussian,
     Jpeg,
+    Night,
     NoiseStage,
     Occlusion,
+    Rain,
     SaltPepper,
+    Shadow,
+    Snow,
+    Sunflare,
 )
-from services.noise.models import DelayModel, NoiseModel, NoisePipeline, make_model
+from protocol.variations import VariationError, noise_stage
+from services.noise.models import DelayModel, MissingExtra, NoiseModel, NoisePipeline, make_model, require_extras
+
+os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # albumentations asks PyPI for updates at import otherwise
 
 H, W = 120, 160
 
@@ -566,8 +580,9 @@ def test_invalid_stage_parameters_from_the_wire_name_the_field():
         msgspec.json.decode(b'{"noise": [{"model": "blur", "kernel_px": 4}]}', type=_NoiseHolder)
     with pytest.raises(msgspec.ValidationError, match="sigmaa"):
         msgspec.json.decode(b'{"model": "gaussian", "sigmaa": 3}', type=NoiseStage)
-    with pytest.raises(msgspec.ValidationError, match="fog"):
-        msgspec.json.decode(b'{"model": "fog"}', type=NoiseStage)
+    with pytest.raises(msgspec.ValidationError, match="hail"):
+        msgspec.json.decode(b'{"model": "hail"}', type=NoiseStage)
+    assert msgspec.json.decode(b'{"model": "fog"}', type=NoiseStage) == Fog()  # BM's fog takes no parameters
 
 
 class _NoiseHolder(msgspec.Struct):
@@ -581,3 +596,48 @@ def test_seeds_can_be_negative_and_must_be_ints():
     assert not np.array_equal(a.apply(constant(128)), b.apply(constant(128)))
     with pytest.raises(TypeError):
         a.reset(seed=1.5)
+
+
+# -- Behavior Metrics' perturbations (albumentations, as BM's transform_image) --
+
+BM_RANDOM = [Rain(), Shadow(), Snow(), Fog(), Sunflare()]
+
+
+def test_bm_night_daytime_and_affine_are_bm_s_exact_transforms():
+    require("albumentations")
+    night = make_model(Night()).apply(constant(200))
+    assert np.all(np.abs(night.astype(int) - 72) <= 1)  # brightness -0.5 of the full range: 200 - 127.5
+    daytime = make_model(Daytime()).apply(constant(100))
+    assert np.all(np.abs(daytime.astype(int) - 176) <= 1)  # +0.3: 100 + 76.5
+    image = textured()
+    shifted = make_model(Affine()).apply(image)
+    # 10 % of the width to the left: column c shows column c + 16; the right-hand strip is black
+    assert np.abs(shifted[:, 10:100].astype(int) - image[:, 26:116].astype(int)).mean() < 2
+    assert np.all(shifted[:, -8:] == 0)
+
+
+@pytest.mark.parametrize("stage", BM_RANDOM, ids=stage_id)
+def test_bm_random_perturbations_depend_on_the_seed_and_change_from_frame_to_frame(stage):
+    require("albumentations")
+    frames = [textured()] * 4
+    outputs = []
+    for seed in (1, 2):
+        model = make_model(stage)
+        model.reset(seed=seed)
+        outputs.append(run(model, frames))
+    assert not same_outputs(outputs[0], outputs[1])
+    assert not same_outputs(outputs[0][:2], outputs[0][2:])
+
+
+def test_bm_perturbations_are_named_as_bm_names_them_and_take_no_value():
+    assert [noise_stage(name) for name in ("rain", "night", "affine")] == [Rain(), Night(), Affine()]
+    assert noise_stage({"fog": None}) == Fog()
+    with pytest.raises(VariationError, match="noise model rain takes no value"):
+        noise_stage("rain=0.5")
+
+
+def test_without_albumentations_bm_perturbations_are_refused_in_one_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "albumentations", None)  # as where it is not installed
+    require_extras([SaltPepper(probability=0.1)])  # drivebench's own models need nothing more
+    with pytest.raises(MissingExtra, match=r"noise model fog needs albumentations: pip install 'drivebench\[bm\]'"):
+        require_extras([Blur(kernel_px=3), Fog()])

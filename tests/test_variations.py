@@ -128,7 +128,7 @@ def test_noise_shorthands():
     assert noise_stage("occlusion:patches=3,size_fraction=0.1") == Occlusion(patches=3, size_fraction=0.1)
     assert noise_stage({"drop": {"probability": 0.5}}) == Drop(probability=0.5)
     for bad, message in [
-        ("rain=1", "unknown noise model 'rain'"),
+        ("hail=1", "unknown noise model 'hail'"),
         ("jpeg=0", "quality must be within 1..100"),
         ("salt_pepper=lots", "Expected `float`"),
         ({"a": 1, "b": 2}, "one model"),

@@ -5,7 +5,7 @@
     drivebench matrix FILE [-o DIR] [--workers N] [--record] [--resume]; drivebench report DIR; drivebench paper
     drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
     drivebench recorder info|repair, replay, dataset build|collect, train, export, pack, brains list|check|schema,
-    circuits list|show|import
+    circuits list|show|import, bm import (a Behavior Metrics config as a matrix)
 
 Each module of :data:`COMMANDS` has ``add(commands)``, which adds its subcommand(s) with ``set_defaults(func=...)``;
 ``main`` calls that function and turns the errors of ``orchestrator.cli.errors`` (and a stack that could not run)
@@ -20,6 +20,7 @@ import os
 import sys
 
 from orchestrator.cli import (
+    bm,
     brains,
     circuits,
     export,
@@ -38,7 +39,7 @@ from orchestrator.stack.launcher import StackError, StackFailure
 from protocol.bus import BusError
 from protocol.deploy.runtime import exit_on_sigterm
 
-COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits)
+COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits, bm)
 
 
 def build_parser() -> argparse.ArgumentParser:

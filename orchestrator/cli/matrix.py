@@ -105,7 +105,12 @@ def _preflight(matrix) -> None:
     """Every brain of the matrix checked before the first episode (weights load and fit, options are taken)."""
     from orchestrator.matrix.runner import brain_launch
     from orchestrator.stack.launcher import preflight_launches
+    from services.noise.models import MissingExtra, require_extras
 
+    try:
+        require_extras([stage for episode in matrix.episodes for stage in episode.spec.noise])
+    except MissingExtra as error:
+        raise UsageError(f"{matrix.name}: {error}") from None
     for entry in matrix.brains + matrix.shadows:
         try:
             preflight_launches([brain_launch(entry)])

@@ -31,7 +31,7 @@ from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError, Sta
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
-from protocol.messages import RENDERERS, CameraSpec, EpisodeScore, EpisodeSpec
+from protocol.messages import RENDERERS, CameraSpec, EndReason, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
 
@@ -219,8 +219,11 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         )
         for variation in args.variation:
             spec = apply_variation(spec, variation)
+        from services.noise.models import require_extras
+
+        require_extras(spec.noise)  # BM's perturbations without albumentations: one line now, not a dead injector
         return spec
-    except ValueError as error:  # VariationError and the specs' own checks
+    except ValueError as error:  # VariationError, MissingExtra and the specs' own checks
         raise UsageError(str(error)) from None
 
 
@@ -278,6 +281,9 @@ def command_run(args: argparse.Namespace) -> int:
             stack.write_stack_file()  # drivebench swap finds the running stack through it
             with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
                 score = stack.run_episode(spec, on_live=progress.update)
+            if score.reason == EndReason.BRAIN_LOST:  # scored up to its death: say what killed it (its last line)
+                dead = stack.dead_child_reason(wait_s=5.0) or "the brain lost its liveliness token"
+                print(f"drivebench: brain_died: {dead}", file=sys.stderr)
     finally:
         progress.close()
     (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")

@@ -50,6 +50,9 @@ from protocol.bus import Bus, BusConfig, Inbox
 from protocol.messages import EndReason, EpisodeScore, LiveMetrics, Pose
 
 log = logging.getLogger("drivebench.matrix")
+# A brain whose episode ended brain_lost: how long to wait for its process to exit, so the failure names its last
+# log line (a raising brain's traceback is written after its bus session, and so its token, is gone).
+BRAIN_EXIT_WAIT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -273,7 +276,9 @@ class MatrixRunner:
                 abort=self._stopping.is_set,  # the wall-clock guard is the launcher's one rule (wall_guard_s)
             )
             if outcome["score"].reason == EndReason.BRAIN_LOST:  # scored, but the stack failed it
-                detail = stack.dead_child_reason() or "the active brain lost its liveliness token"
+                detail = (
+                    stack.dead_child_reason(wait_s=BRAIN_EXIT_WAIT_S) or "the active brain lost its liveliness token"
+                )
                 outcome.update(status="failed", failure=f"brain_died: {detail}")
         except EpisodeAborted:
             return None

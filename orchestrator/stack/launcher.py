@@ -292,9 +292,14 @@ class LocalStack:
                 )
         return None
 
-    def dead_child_reason(self) -> str | None:
-        """Which process of this stack has exited, with its exit code and last log line (None: all running)."""
-        return self._dead_child_reason()
+    def dead_child_reason(self, *, wait_s: float = 0.0) -> str | None:
+        """Which process of this stack has exited, with its exit code and last log line (None: all running after
+        ``wait_s``). A brain whose code raised closes its bus session (its token goes, the episode ends brain_lost)
+        before Python writes the traceback and exits: waiting a moment gets the error line instead of nothing."""
+        deadline = time.monotonic() + wait_s
+        while (reason := self._dead_child_reason()) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return reason
 
     def _failure(self) -> StackFailure | None:
         """A process of this stack that died, or a required liveliness token that vanished, as a typed failure."""

@@ -1,8 +1,10 @@
 """Camera perturbations as plain, seeded NumPy/OpenCV models: the pure core of the noise injector (no bus).
 
 One model class per noise stage of ``protocol.messages`` (``SaltPepper``, ``Gaussian``, ``Blur``, ``Brightness``,
-``Occlusion``, ``Jpeg``, ``Delay``, ``Drop``); the struct's docstring defines what the stage does, the model class
-says how. Every model has
+``Occlusion``, ``Jpeg``, ``Delay``, ``Drop``), and one for Behavior Metrics' perturbations (``Rain``, ``Night``,
+``Daytime``, ``Shadow``, ``Snow``, ``Fog``, ``Sunflare``, ``Affine``: albumentations, as BM applies them, from the
+optional extra ``drivebench[bm]``); the struct's docstring defines what the stage does, the model class says how.
+Every model has
 
   * ``reset(*, seed)``: start a new episode: (re)seed its generator, clear its state (Delay's buffer);
   * ``apply(image_rgb) -> image_rgb | None``: perturb one camera frame, ``H x W x 3`` uint8 RGB in, the same shape and
@@ -37,15 +39,24 @@ import cv2
 import numpy as np
 
 from protocol.messages import (
+    BM_NOISE_MODELS,
+    Affine,
     Blur,
     Brightness,
+    Daytime,
     Delay,
     Drop,
+    Fog,
     Gaussian,
     Jpeg,
+    Night,
     NoiseStage,
     Occlusion,
+    Rain,
     SaltPepper,
+    Shadow,
+    Snow,
+    Sunflare,
 )
 
 __all__ = [
@@ -59,7 +70,10 @@ __all__ = [
     "NoisePipeline",
     "OcclusionModel",
     "SaltPepperModel",
+    "AlbumentationsModel",
+    "MissingExtra",
     "make_model",
+    "require_extras",
 ]
 
 _U16_LEVELS = 1 << 16
@@ -351,7 +365,98 @@ class DropModel(NoiseModel):
         return image_rgb
 
 
+class MissingExtra(ValueError):
+    """A noise model needs a package that is not installed (one line naming the extra that brings it)."""
+
+
+_BM_MIN_PX = 32  # smaller frames (tests' tiny images, not cameras) are perturbed on a canvas this big
+BM_EXTRA_HINT = "pip install 'drivebench[bm]' (scripts/setup.sh installs it)"
+
+
+def require_extras(stages: Sequence[NoiseStage]) -> None:
+    """:class:`MissingExtra` when a stage needs albumentations and it is not installed, before anything starts."""
+    import importlib.util
+
+    needing = [str(type(stage).__struct_config__.tag) for stage in stages if isinstance(stage, BM_NOISE_MODELS)]
+    if needing and importlib.util.find_spec("albumentations") is None:
+        raise MissingExtra(f"noise model {needing[0]} needs albumentations: {BM_EXTRA_HINT}")
+
+
+def _albumentations():
+    """albumentations, imported on first use (seconds: scipy, pydantic), without its network check for updates."""
+    import os
+    import sys
+
+    os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # it would ask PyPI at import time, from every process
+    # Its package imports its torch helpers, and so torch where installed: 8 of 11 s of the import measured on a
+    # loaded 2-core machine, paid by an episode's first perturbed frame. None of BM's perturbations needs them.
+    blocked = "albumentations" not in sys.modules and "albumentations.pytorch" not in sys.modules
+    if blocked:
+        sys.modules["albumentations.pytorch"] = None  # importing it now raises ImportError
+    try:
+        import albumentations
+    except ImportError:
+        raise MissingExtra(f"Behavior Metrics' perturbations need albumentations: {BM_EXTRA_HINT}") from None
+    finally:
+        if blocked:
+            del sys.modules["albumentations.pytorch"]  # a brain that imports it later gets it, torch and all
+    return albumentations
+
+
+def _bm_transform(stage: NoiseStage):
+    """The albumentations transform of one of Behavior Metrics' perturbations, with BM's parameters; always applied
+    (BM's ``always_apply=True``). The library's defaults for shadow, snow, fog and sun flare are those BM used."""
+    A = _albumentations()  # noqa: N806 (the library's usual name)
+    if isinstance(stage, Rain):
+        return A.RandomRain(
+            slant_range=(-10, 10),
+            drop_length=20,
+            drop_width=1,
+            drop_color=(200, 200, 200),
+            blur_value=7,
+            brightness_coefficient=0.7,
+            rain_type="torrential",
+            p=1.0,
+        )
+    if isinstance(stage, Night | Daytime):
+        shift = -0.5 if isinstance(stage, Night) else 0.3
+        return A.RandomBrightnessContrast(brightness_limit=(shift, shift), contrast_limit=(0.0, 0.0), p=1.0)
+    simple = {Shadow: A.RandomShadow, Snow: A.RandomSnow, Fog: A.RandomFog, Sunflare: A.RandomSunFlare}
+    if type(stage) in simple:
+        return simple[type(stage)](p=1.0)
+    if isinstance(stage, Affine):
+        return A.Affine(translate_percent={"x": -0.1, "y": 0.0}, p=1.0)
+    raise TypeError(f"not one of Behavior Metrics' perturbations: {stage!r}")
+
+
+class AlbumentationsModel(NoiseModel):
+    """One of Behavior Metrics' perturbations (rain, night, daytime, shadow, snow, fog, sunflare, affine) through
+    albumentations, as BM's ``transform_image`` applies them. Seeded: ``reset(seed=...)`` reseeds the transform from
+    the seed's entropy, so the same seed and the same frames give the same output (on one albumentations version:
+    the library's random draws may change between releases). Costs several ms a frame at 640x480 (rain, fog and
+    sunflare the most: ``benchmarks/noise.py``)."""
+
+    def __init__(self, stage: NoiseStage):
+        self._compose = _albumentations().Compose([_bm_transform(stage)])
+        super().__init__(stage)
+
+    def reset(self, *, seed: Seed) -> None:
+        super().reset(seed=seed)
+        state = np.random.SeedSequence(_seed_entropy(seed)).generate_state(1)[0]
+        self._compose.set_random_seed(int(state))
+
+    def apply(self, image_rgb: np.ndarray) -> np.ndarray:
+        image = _check_image(image_rgb)
+        height, width = image.shape[:2]
+        if min(height, width) < _BM_MIN_PX:  # rain's 20 px drops need room: perturb a padded canvas, crop it back
+            pad_y, pad_x = max(0, _BM_MIN_PX - height), max(0, _BM_MIN_PX - width)
+            canvas = cv2.copyMakeBorder(image, 0, pad_y, 0, pad_x, cv2.BORDER_REPLICATE)
+            return np.ascontiguousarray(self._compose(image=canvas)["image"][:height, :width], dtype=np.uint8)
+        return np.ascontiguousarray(self._compose(image=image)["image"], dtype=np.uint8)
+
+
 _MODELS: dict[type, type[NoiseModel]] = {
+    **{model: AlbumentationsModel for model in BM_NOISE_MODELS},
     SaltPepper: SaltPepperModel,
     Gaussian: GaussianModel,
     Blur: BlurModel,

@@ -1,0 +1,219 @@
+"""Behavior Metrics experiment configs as drivebench matrices (``drivebench bm import``), and BM brains in them
+through the real stack. The configs and brains are written for these tests in BM's shape (tests/fixtures/
+behavior_metrics), never copied from BM."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from orchestrator.matrix.bm_config import BM_WORLDS, BMConfigError, convert_bm_config, world_of
+from orchestrator.matrix.load import load_matrix
+from orchestrator.matrix.results import ResultStore
+
+ROOT = Path(__file__).resolve().parent.parent
+FIXTURES = ROOT / "tests" / "fixtures" / "behavior_metrics"
+CONFIG = FIXTURES / "multi_brain_multi_world.yml"
+
+
+def drivebench(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout_s
+    )
+
+
+@pytest.fixture
+def checkout(tmp_path):
+    """A fake BehaviorMetrics checkout in a temporary folder, with the test brains in its brains/gazebo/f1."""
+    root = tmp_path / "BehaviorMetrics"
+    shutil.copytree(FIXTURES / "fake_checkout", root)
+    for brain in FIXTURES.glob("brain_f1_*.py"):
+        shutil.copy(brain, root / "behavior_metrics" / "brains" / "gazebo" / "f1")
+    return root
+
+
+def test_every_bm_world_name_maps_to_a_circuit_and_variation():
+    assert world_of("/opt/jderobot/share/jderobot/gazebo/launch/simple_circuit.launch") == (
+        "simple_circuit",
+        "simple",
+        {},
+    )
+    assert world_of("montmelo_white_road_no_red_line.launch") == (
+        "montmelo_white_road_no_red_line",
+        "montmelo",
+        {"road": "white", "line": "none"},
+    )
+    assert world_of("many_curves_no_red_line_no_wall") == (
+        "many_curves_no_red_line_no_wall",
+        "many_curves",
+        {"line": "none", "walls": "off"},
+    )
+    assert world_of("nurburgring_line_no_wall.launch")[1:] == ("nurburgring", {"walls": "off"})
+    assert len([name for name in BM_WORLDS if name.startswith("simple_circuit")]) == 9  # BM's nine variants
+    with pytest.raises(
+        BMConfigError, match=r"unknown Behavior Metrics world 'many_curves_white_line.launch' \(known: "
+    ):
+        world_of("many_curves_white_line.launch")  # the docs claim it; BM ships none
+
+
+def test_a_multi_brain_multi_world_config_converts_to_a_matrix_that_loads(checkout, tmp_path):
+    out = tmp_path / "bm.yaml"
+    conversion = convert_bm_config(
+        yaml.safe_load(CONFIG.read_text()),
+        config_path=CONFIG,
+        out_path=out,
+        bm_root=checkout / "behavior_metrics",
+        bm_root_option=str(checkout),
+    )
+    out.write_text(conversion.text(source=str(CONFIG)))
+    matrix = load_matrix(out)
+    assert [brain.label for brain in matrix.brains] == ["brain_f1_fake_net", "brain_f1_keywords", "brain_f1_fails"]
+    fake_net = dict(matrix.brains[0].options)
+    assert fake_net["model"] == "gains.json" and fake_net["bm_root"] == str(checkout)
+    assert fake_net["config"] == {"ImageCropped": True, "GPU": False, "ImageTranform": ""}  # moved to the matrix
+    assert "model" not in dict(matrix.brains[1].options)  # Model '' is no model, as in BM
+    episodes = {(e.brain.label, e.spec.circuit, e.spec.world.walls, e.spec.max_sim_seconds) for e in matrix.episodes}
+    assert episodes == {
+        (brain, circuit, walls, timeout)
+        for brain in ("brain_f1_fake_net", "brain_f1_keywords", "brain_f1_fails")
+        for circuit, walls, timeout in (("simple", True, 60.0), ("many_curves", False, 90.0))
+    }
+    assert {e.spec.camera.width_px for e in matrix.episodes} == {640}
+    assert all([type(stage).__name__ for stage in e.spec.noise] == ["Night"] for e in matrix.episodes)
+    dropped = [line.split(":")[0] for line in conversion.dropped]
+    assert dropped == [
+        "Behaviors.Robot.Sensors",
+        "Behaviors.Robot.Actuators",
+        "Behaviors.Simulation.RealTimeUpdateRate",
+        "Behaviors.Dataset",
+        "Behaviors.Stats",
+        "Behaviors.Layout",
+    ]  # each once, the outermost key only
+    assert all(f"# dropped: {line}" in out.read_text() for line in conversion.dropped)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda b: b["Simulation"].update(World="hockenheim.launch"), "unknown Behavior Metrics world 'hockenheim"),
+        (lambda b: b["Experiment"].update(Timeout=[1, 2, 3]), "Experiment.Timeout has 3 entries for 2 worlds"),
+        (lambda b: b["Robot"].update(Type="drone"), "drivebench runs Behavior Metrics' F1 car only"),
+        (lambda b: b["Robot"]["Parameters"].update(Model=["a", "b"]), "Parameters.Model has 2 entries for 3 brains"),
+        (
+            lambda b: b["Robot"].update(BrainPath="brains/gazebo/f1/nope.py"),
+            "brain file 'brains/gazebo/f1/nope.py' not found",
+        ),
+    ],
+)
+def test_a_config_drivebench_cannot_convert_is_one_line_naming_the_key(checkout, tmp_path, edit, message):
+    data = yaml.safe_load(CONFIG.read_text())
+    edit(data["Behaviors"])
+    with pytest.raises(BMConfigError, match=message):
+        convert_bm_config(data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=checkout / "behavior_metrics")
+
+
+def test_without_a_timeout_each_world_gets_bm_s_default_reference_lap_times_1_1(checkout, tmp_path):
+    data = yaml.safe_load(CONFIG.read_text())
+    del data["Behaviors"]["Experiment"]["Timeout"]
+    parts = convert_bm_config(
+        data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=checkout / "behavior_metrics"
+    ).matrix["parts"]
+    assert [part["limits"]["max_sim_seconds"] for part in parts.values()] == [82.5, 166.1]  # 75 s and 151 s x 1.1
+
+
+def test_bad_input_is_one_line_and_exit_2_before_anything_starts(checkout, tmp_path):
+    bad = tmp_path / "bad.yml"
+    bad.write_text(CONFIG.read_text().replace("many_curves_no_wall.launch", "many_curves_night.launch"))
+    run = drivebench("bm", "import", str(bad), "-o", str(tmp_path / "m.yaml"), "--bm-root", str(checkout))
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert "unknown Behavior Metrics world" in run.stderr and "simple_circuit_white_line" in run.stderr
+    assert not (tmp_path / "m.yaml").exists()
+    raising = tmp_path / "brain_f1_raises.py"
+    raising.write_text(
+        "class Brain:\n    def __init__(self, sensors, actuators, handler=None, config=None):\n"
+        "        raise RuntimeError('no camera calibration')\n"
+    )
+    run = drivebench("run", "--brain", str(raising), "--out", str(tmp_path / "run"))
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    assert str(raising) in run.stderr and "brain_f1_raises.py:3): RuntimeError: no camera calibration" in run.stderr
+    fake_net = checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
+    run = drivebench(
+        "run", "--brain", str(fake_net), "--brain-option", "model=gains.json", "--out", str(tmp_path / "r")
+    )
+    assert run.returncode == 2 and "bm_root=PATH" in run.stderr and "from utils.constants import" in run.stderr
+    assert not (tmp_path / "r" / "launcher.log").exists()  # refused before the stack
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(900)  # six episodes at 160x120, each on its own stack: about 3.5 min on a loaded 2-core box
+def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(checkout, tmp_path):
+    out = tmp_path / "bm.yaml"
+    converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(checkout))
+    assert converted.returncode == 0, converted.stderr
+    assert converted.stderr.count("not converted: Behaviors.Layout") == 1
+    run = drivebench("matrix", str(out), "--smoke", "-o", str(tmp_path / "runs"), "--workers", "1", timeout_s=600)
+    assert run.returncode == 3, run.stderr  # the matrix ran; the failing brain's episodes failed
+    with ResultStore(tmp_path / "runs", create=False) as store:
+        results = store.results()
+    by_brain: dict[str, list] = {}
+    for result in results:
+        by_brain.setdefault(result.brain, []).append(result)
+        assert result.perturbation == "night"
+    for brain in ("brain_f1_fake_net", "brain_f1_keywords"):  # imports from the checkout; keywords, pose, config
+        assert [r.status for r in by_brain[brain]] == ["done", "done"], [r.failure for r in by_brain[brain]]
+        assert all(r.score.metrics.completed_distance_m > 5.0 for r in by_brain[brain])  # it drove, in both worlds
+    for failed in by_brain["brain_f1_fails"]:
+        assert failed.status == "failed" and failed.failure_kind == "brain_died", failed.failure
+        assert "brain_f1_fails.py:15: execute() raised KeyError: 'SteeringGain'" in failed.failure
+    assert "night" in (tmp_path / "runs" / "report.md").read_text()
+
+
+def test_bm_perturbations_are_matrix_perturbations_with_their_names_as_labels(tmp_path):
+    path = tmp_path / "robust.yaml"
+    path.write_text("brains: [explicit]\ncircuits: [simple]\nperturbations: [none, rain, fog, night+affine]\n")
+    matrix = load_matrix(path)
+    assert [e.perturbation for e in matrix.episodes] == ["none", "rain", "fog", "night+affine"]
+    assert [[type(s).__name__ for s in e.spec.noise] for e in matrix.episodes] == [
+        [],
+        ["Rain"],
+        ["Fog"],
+        ["Night", "Affine"],
+    ]
+    path.write_text("brains: [explicit]\ncircuits: [simple]\nperturbations: [rain=3]\n")
+    with pytest.raises(ValueError, match="robust.yaml:3: .*noise model rain takes no value"):
+        load_matrix(path)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_real_stack(tmp_path):
+    """The brain host applies each of BM's perturbations through transform_image (the brain raises if one leaves its
+    frame as it was or changes its shape), while the noise injector rains on the frames it gets."""
+    import json
+
+    run = drivebench(
+        "run",
+        "--brain",
+        str(FIXTURES / "brain_f1_every_transform.py"),
+        "--noise",
+        "rain",
+        "--max-sim-seconds",
+        "2",
+        "--camera",
+        "160x120",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+        timeout_s=170,
+    )
+    assert run.returncode == 0, run.stderr
+    score = json.loads(run.stdout)
+    assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, run.stderr  # no frame raised
+    assert score["spec"]["noise"] == [{"model": "rain"}]
+    assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
