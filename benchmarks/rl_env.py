@@ -1,0 +1,127 @@
+"""Environment steps per second: drivebench/LaneFollow-v0 over the real stack, beside Gymnasium's CarRacing-v3
+(Box2D, the anchor RL users know) and drivebench's in-process loop (the ceiling: the same rendering and physics in
+one Python loop, no bus, no processes).
+
+For each camera size, 1 env and 2 envs (``gymnasium.vector.AsyncVectorEnv``, each env its own stack) take random
+actions for ``--steps`` steps each after a reset; only the stepping is timed (autoreset included: an episode that
+ends starts the next on the same stack). CarRacing renders 96 x 96 only, so its 320 x 240 cells are empty. The
+in-process loop is one env only. Configurations run one after the other under the same machine load; on a shared
+machine only the ratios within one run mean anything.
+
+    .venv/bin/python benchmarks/rl_env.py [--steps 300] [--sizes 96x96,320x240] [--renderer pybullet]
+
+Not a timed test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AsyncVectorEnv
+
+import drivebench  # noqa: F401 - registers the environment
+from drivebench.rl.env import LaneFollowEnv
+from protocol.messages import CameraSpec, EpisodeSpec
+from services.simulator.episode import EpisodeSim, SceneCache
+
+
+def steps_per_s(env, *, steps: int, vector: bool, seed: int = 0) -> float:
+    """Env steps per second (a vector env of n counts n per step) over ``steps`` random steps after a reset."""
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    started = time.perf_counter()
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if not vector and (terminated or truncated):
+            env.reset()
+    elapsed = time.perf_counter() - started
+    return steps * (env.num_envs if vector else 1) / elapsed
+
+
+def drivebench_env(*, width: int, height: int, renderer: str):
+    # Random actions crash within seconds: the speed range keeps episodes going long enough to time steps.
+    return functools.partial(
+        LaneFollowEnv, camera=(width, height), renderer=renderer, speed_range_mps=(0.0, 3.0), live_metrics=False
+    )
+
+
+def measure_drivebench(*, width: int, height: int, renderer: str, envs: int, steps: int) -> float:
+    make = drivebench_env(width=width, height=height, renderer=renderer)
+    env = make() if envs == 1 else AsyncVectorEnv([make] * envs, context="spawn")
+    try:
+        return steps_per_s(env, steps=steps, vector=envs > 1)
+    finally:
+        env.close()
+
+
+def measure_car_racing(*, envs: int, steps: int) -> float | None:
+    try:
+        make = functools.partial(gym.make, "CarRacing-v3")
+        env = make() if envs == 1 else AsyncVectorEnv([make] * envs, context="spawn")
+    except (gym.error.DependencyNotInstalled, ImportError):
+        return None
+    try:
+        return steps_per_s(env, steps=steps, vector=envs > 1)
+    finally:
+        env.close()
+
+
+def measure_in_process(*, width: int, height: int, renderer: str, steps: int) -> float:
+    """EpisodeSim.render -> a random command -> EpisodeSim.step, in this process (what every env step does, less
+    the bus, the processes, the scorer and the reward)."""
+    spec = EpisodeSpec(camera=CameraSpec(width_px=width, height_px=height), renderer=renderer, max_sim_seconds=1e4)
+    scenes = SceneCache()
+    rng = np.random.default_rng(0)
+    try:
+        sim = EpisodeSim(spec, scenes=scenes)
+        sim.render()
+        started = time.perf_counter()
+        for _ in range(steps):
+            sim.render()
+            result = sim.step(speed_mps=float(rng.uniform(0, 3)), yaw_rate_radps=float(rng.uniform(-2, 2)))
+            if result.end is not None:
+                sim = EpisodeSim(spec, scenes=scenes)
+        return steps / (time.perf_counter() - started)
+    finally:
+        scenes.close()
+
+
+def cell(value: float | None) -> str:
+    return "-" if value is None else f"{value:8.0f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=300, help="timed steps per configuration (per env)")
+    parser.add_argument("--sizes", default="96x96,320x240")
+    parser.add_argument("--renderer", default="pybullet", choices=("pybullet", "gl"))
+    args = parser.parse_args()
+    sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
+    rows = []
+    for width, height in sizes:
+        kw = dict(width=width, height=height, renderer=args.renderer)
+        one = measure_drivebench(**kw, envs=1, steps=args.steps)
+        two = measure_drivebench(**kw, envs=2, steps=args.steps)
+        native = (width, height) == (96, 96)
+        racing = [measure_car_racing(envs=n, steps=args.steps) if native else None for n in (1, 2)]
+        ceiling = measure_in_process(**kw, steps=args.steps)
+        rows.append((f"{width}x{height}", one, two, *racing, ceiling))
+    print(f"\nenv steps per second ({args.steps} random steps per env, renderer {args.renderer})")
+    print(
+        f"{'camera':>9} {'drivebench 1':>13} {'drivebench 2':>13} {'CarRacing 1':>12} {'CarRacing 2':>12} "
+        f"{'in-process':>11} {'1 env / in-process':>19}"
+    )
+    for size, one, two, racing_one, racing_two, ceiling in rows:
+        print(
+            f"{size:>9} {cell(one):>13} {cell(two):>13} {cell(racing_one):>12} {cell(racing_two):>12} "
+            f"{cell(ceiling):>11} {one / ceiling:>19.2f}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
