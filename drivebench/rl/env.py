@@ -67,7 +67,7 @@ class LaneFollowEnv(gym.Env):
         *,
         circuit: str | list[str] = "simple",
         variation: str | list[str] = "",
-        noise: str | list = (),
+        noise: str | list | tuple = (),
         camera: Any = (320, 240),
         renderer: str = "pybullet",
         observation: str = "image",

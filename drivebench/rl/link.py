@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol import keys
-from protocol.bus import Bus, Inbox, Traffic
+from protocol.bus import Bus, Inbox, Subscription, Traffic
 from protocol.images import frame_image
 from protocol.messages import (
     CameraFrame,
@@ -163,7 +163,8 @@ class BrainLink:
 
     def close(self) -> None:
         self._withdraw()
-        for subscription in [*self._subscriptions, self._live, self._scores]:
+        subscriptions: list[Subscription] = [*self._subscriptions, self._live, self._scores]
+        for subscription in subscriptions:
             subscription.close()
 
 
