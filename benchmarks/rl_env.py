@@ -141,7 +141,9 @@ def main() -> int:
     parser.add_argument("--renderer", default="pybullet", choices=("pybullet", "gl"))
     args = parser.parse_args()
     sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
-    rows = []
+    names = ("drivebench 1", "drivebench 2", "CarRacing 1", "CarRacing 2", "in-process")
+    print(f"env steps per second (CPU ms per env step), {args.steps} random steps per env, renderer {args.renderer}")
+    print(f"{'camera':>9} " + " ".join(f"{name:>15}" for name in names) + f" {'CPU/step vs in-process':>23}")
     for width, height in sizes:
         kw = dict(width=width, height=height, renderer=args.renderer)
         one = measure_drivebench(**kw, envs=1, steps=args.steps)
@@ -149,17 +151,10 @@ def main() -> int:
         native = (width, height) == (96, 96)
         racing = [measure_car_racing(envs=n, steps=args.steps) if native else None for n in (1, 2)]
         ceiling = measure_in_process(**kw, steps=args.steps)
-        rows.append((f"{width}x{height}", one, two, *racing, ceiling))
-    print(f"\nenv steps per second ({args.steps} random steps per env, renderer {args.renderer})")
-    print(
-        f"{'camera':>9} {'drivebench 1':>13} {'drivebench 2':>13} {'CarRacing 1':>12} {'CarRacing 2':>12} "
-        f"{'in-process':>11} {'1 env / in-process':>19}"
-    )
-    for size, one, two, racing_one, racing_two, ceiling in rows:
-        print(
-            f"{size:>9} {cell(one):>13} {cell(two):>13} {cell(racing_one):>12} {cell(racing_two):>12} "
-            f"{cell(ceiling):>11} {one / ceiling:>19.2f}"
-        )
+        rates = (one, two, *racing, ceiling)
+        ratio = one.cpu_ms_per_step / ceiling.cpu_ms_per_step
+        size = f"{width}x{height}"
+        print(f"{size:>9} " + " ".join(f"{cell(r):>15}" for r in rates) + f" {ratio:>22.1f}x", flush=True)
     return 0
 
 

@@ -64,6 +64,19 @@ def test_same_seed_and_actions_give_the_same_observations_and_rewards_bit_for_bi
     assert not np.array_equal(obs_a[0], obs_d[0])  # another seed: other noise
 
 
+def test_a_generated_circuit_is_drawn_from_the_seed():
+    env = gym.make(ENV_ID, circuit=["simple", "random:*"], **SMALL)
+    try:
+        names = [env.reset(seed=seed, options={"circuit": "random:*"})[1]["circuit"] for seed in (1, 2, 1)]
+        _, info = env.reset(seed=1)
+        with pytest.raises(ValueError, match="not one of"):
+            env.reset(options={"circuit": "montmelo"})
+    finally:
+        env.close()
+    assert names[0] == names[2] != names[1] and all(name.startswith("random:") for name in names)
+    assert info["circuit"] in ("simple", names[0])
+
+
 def test_a_scripted_sequence_drives_as_the_same_commands_through_a_brain_host(tmp_path):
     """The environment's trajectory equals that of a stack whose brain host answers with the same commands."""
     from brains.lane_policy.features import scaled

@@ -7,6 +7,7 @@ every later episode; ``router=`` joins a stack that is already running (this mac
 
 from __future__ import annotations
 
+import fnmatch
 import shutil
 import tempfile
 import uuid
@@ -22,7 +23,7 @@ from gymnasium import spaces
 from brains.lane_policy.features import FEATURES, line_features, scaled
 from circuits import Circuit, load_circuit
 from drivebench.rl.link import BrainLink, Transition, ending
-from drivebench.rl.options import env_options
+from drivebench.rl.options import GENERATED, env_options
 from drivebench.rl.reward import ProgressReward
 from drivebench.rl.stack import StackError, open_stack
 from protocol.bus_config import BusError, probe_router
@@ -32,6 +33,7 @@ FIRST_FRAME_TIMEOUT_S = 120.0  # a new circuit's scene is built before its first
 STEP_TIMEOUT_S = 60.0
 SCORE_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 30.0
+CIRCUITS_KEPT = 16
 
 
 class LaneFollowEnv(gym.Env):
@@ -55,8 +57,9 @@ class LaneFollowEnv(gym.Env):
     time, so they are the one part of a step that is not reproducible); at the end ``end_reason`` and ``score``, the
     scorer's metrics of the episode (the same as ``drivebench run``'s).
 
-    ``reset(seed=...)`` draws the circuit (from the ``circuit`` list), the variation (from the ``variation`` list)
-    and the episode seed (which seeds the noise) from ``seed``; ``options={"circuit": ..., "variation_index": ...}``
+    ``reset(seed=...)`` draws the circuit (from the ``circuit`` list; ``"random:*"`` or ``"twisty:*"`` in it is a
+    new generated circuit each time it is drawn), the variation (from the ``variation`` list) and the episode seed
+    (which seeds the noise) from ``seed``; ``options={"circuit": ..., "variation_index": ...}``
     choose them instead. The car starts at the circuit's start pose.
     """
 
@@ -159,6 +162,8 @@ class LaneFollowEnv(gym.Env):
 
     def _circuit(self, spec: EpisodeSpec) -> Circuit:
         key = (spec.circuit, spec.direction)
+        if len(self._circuits) > CIRCUITS_KEPT:  # generated circuits: a new one nearly every episode
+            self._circuits.clear()
         if key not in self._circuits:
             self._circuits[key] = load_circuit(spec.circuit, direction=spec.direction)
         return self._circuits[key]
@@ -174,8 +179,8 @@ class LaneFollowEnv(gym.Env):
         self._episode = stack.begin(spec)
         self._running = True
         link.follow(self._episode)
-        first = link.wait(0, timeout_s=FIRST_FRAME_TIMEOUT_S)
         self._spec = spec
+        first = link.wait(0, timeout_s=FIRST_FRAME_TIMEOUT_S)
         self._reward = ProgressReward(self._circuit(spec), smoothness=self.smoothness, crash_penalty=self.crash_penalty)
         self._previous_action = np.zeros(2, np.float32)
         self._speed_mps = 0.0
@@ -190,9 +195,12 @@ class LaneFollowEnv(gym.Env):
         circuit = circuits[int(self.np_random.integers(len(circuits)))]
         index = int(self.np_random.integers(len(specs)))
         seed = int(self.np_random.integers(2**31 - 1))
+        generated_seed = int(self.np_random.integers(1_000_000))
         circuit = options.get("circuit", circuit)
-        if circuit not in circuits:
+        if not any(circuit == name or fnmatch.fnmatchcase(circuit, name) for name in circuits):
             raise ValueError(f"reset options: circuit {circuit!r} is not one of this environment's {list(circuits)}")
+        if circuit in GENERATED:
+            circuit = circuit.replace("*", str(generated_seed))
         index = options.get("variation_index", index)
         if not isinstance(index, int) or not 0 <= index < len(specs):
             raise ValueError(f"reset options: variation_index must be an int within 0..{len(specs) - 1}, got {index!r}")
@@ -265,6 +273,7 @@ class LaneFollowEnv(gym.Env):
     def _step_info(self, outcome: Transition, terms) -> dict[str, Any]:
         info: dict[str, Any] = {
             "run_id": self.run_id,
+            "circuit": self._spec.circuit,
             "seq": outcome.seq,
             "sim_time_s": outcome.pose.header.stamp_ns / 1e9,
             "x_m": outcome.pose.x_m,
