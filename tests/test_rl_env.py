@@ -1,9 +1,12 @@
 """drivebench/LaneFollow-v0 over the real stack: Gymnasium's checker, determinism, the same trajectory as the same
-commands through a stack with a brain host, bad input, clean close, attaching, vector envs, a training smoke."""
+commands through ``drivebench run``, bad input, clean close, attaching, vector envs, a training smoke."""
 
 from __future__ import annotations
 
 import functools
+import json
+import subprocess
+import sys
 import uuid
 from pathlib import Path
 
@@ -77,11 +80,9 @@ def test_a_generated_circuit_is_drawn_from_the_seed():
     assert info["circuit"] in ("simple", names[0])
 
 
-def test_a_scripted_sequence_drives_as_the_same_commands_through_a_brain_host(tmp_path):
-    """The environment's trajectory equals that of a stack whose brain host answers with the same commands."""
+def test_a_scripted_sequence_drives_as_the_same_commands_through_drivebench_run(tmp_path):
+    """The environment's trajectory equals that of ``drivebench run`` with a brain that answers the same commands."""
     from brains.lane_policy.features import scaled
-    from orchestrator.stack.launcher import BrainLaunch, LocalStack
-    from protocol.messages import CameraSpec, EpisodeSpec
 
     speed_range, yaw_range = (0.0, 4.0), (-0.25, 0.25)
     action = np.array([0.5, 0.5], np.float32)  # -> 3.0 m/s, 0.125 rad/s exactly
@@ -95,16 +96,21 @@ def test_a_scripted_sequence_drives_as_the_same_commands_through_a_brain_host(tm
             steps += 1
     finally:
         env.close()
-    launch = BrainLaunch("constant", options=(f"speed_mps={speed_mps}", f"yaw_rate_radps={yaw_rate_radps}"))
-    spec = EpisodeSpec(camera=CameraSpec(width_px=64, height_px=48), max_sim_seconds=20.0, active_brain="constant")
-    with LocalStack(run_id=f"t-{uuid.uuid4().hex[:6]}", run_dir=tmp_path, brains=[launch]) as stack:
-        score = stack.run_episode(spec)
-    ours = info["score"]
-    assert info["end_reason"] == str(score.reason) == "crash"
-    assert steps == ours["steps"] == score.metrics.steps
+    # The constant brain sends the same command every frame; the run's renderer default is the env's (pybullet).
+    argv = ["run", "--brain", "constant", "--brain-option", f"speed_mps={speed_mps}"]
+    argv += ["--brain-option", f"yaw_rate_radps={yaw_rate_radps}", "--camera", "64x48", "--max-sim-seconds", "20"]
+    argv += ["--json", "--runs-dir", str(tmp_path)]
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *argv], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    score = json.loads(result.stdout.strip().splitlines()[-1])
+    ours, theirs = info["score"], score["metrics"]
+    assert info["end_reason"] == score["reason"] == "crash"
+    assert steps == ours["steps"] == theirs["steps"]
     for name in ("progress_m", "completed_distance_m", "cross_track_mean_m", "cross_track_max_m", "sim_time_s"):
-        assert ours[name] == getattr(score.metrics, name), name
-    assert info["progress_m"] == pytest.approx(score.metrics.progress_m, abs=1e-9)
+        assert ours[name] == theirs[name], name
+    assert info["progress_m"] == pytest.approx(theirs["progress_m"], abs=1e-9)
 
 
 def test_bad_input_is_one_clear_error_and_the_env_goes_on():
