@@ -41,7 +41,7 @@ pip_install --upgrade pip
 if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   pip_install "torch==${DRIVEBENCH_TORCH_VERSION:-2.13.0}"
 fi
-pip_install -e ".[stack,test,ml,gl,cluster,bm]"  # cluster: Ray, so CI tests --ray; bm: BM's perturbations
+pip_install -e ".[stack,test,ml,gl,cluster,bm,rl]"  # cluster: Ray, so CI tests --ray; bm: BM's perturbations; rl: Gymnasium
 # The out-of-tree brain example (its own package, found through the drivebench.brains entry point); its tests and
 # CI's smoke run of examples/my_brain/compare.yaml need it installed, as a user's package would be.
 pip_install -e examples/my_brain

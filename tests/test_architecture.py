@@ -1,7 +1,7 @@
 """The folders' rules (ARCHITECTURE.md), held by reading every import of every module (lazy ones included).
 
 * Which top-level package may import which: nothing imports upward (protocol/ is the floor every process stands on,
-  orchestrator/ the roof).
+  orchestrator/ the roof of the processes, drivebench/ the library face above it).
 * No cycle between packages: the subpackages (orchestrator/stack, matrix, report; protocol/deploy, mapping; ...) form
   a graph without loops, so each can be read knowing only what it imports.
 * Only protocol/ imports zenoh; no package folder holds more than 15 modules.
@@ -16,7 +16,7 @@ from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-TOP_LEVEL = ("circuits", "protocol", "services", "brains", "recorder", "orchestrator")
+TOP_LEVEL = ("circuits", "protocol", "services", "brains", "recorder", "orchestrator", "drivebench")
 # What each top-level package may import besides itself. brains/ renders the checker's frames with the simulator's
 # scene (services/simulator) and trains from recordings (recorder/, from brains/training only); the Behavior Metrics
 # adapter's handler perturbs frames with the noise injector's own models (transform_image = --noise rain, ...).
@@ -27,6 +27,8 @@ MAY_IMPORT = {
     "recorder": {"protocol", "circuits"},
     "brains": {"protocol", "circuits", "services", "recorder"},
     "orchestrator": {"protocol", "circuits", "services", "brains", "recorder"},
+    # The library face above the CLI: the Gymnasium environment drives stacks the orchestrator's launcher starts.
+    "drivebench": {"protocol", "circuits", "services", "brains", "recorder", "orchestrator"},
 }
 ONLY_FROM = {
     ("brains", "recorder"): ("brains.training",),

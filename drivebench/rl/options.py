@@ -1,0 +1,116 @@
+"""The environment's keyword arguments, checked before anything starts: each mistake is one ValueError that names
+the argument and what is allowed (Gymnasium's convention: an exception, never a process exit)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from circuits import CircuitError, load_circuit
+from protocol.messages import CameraSpec, EpisodeSpec, NoiseStage
+from protocol.variations import VariationError, apply_variation, noise_stage
+
+OBSERVATIONS = ("image", "image+state", "features")
+
+
+@dataclass(frozen=True)
+class EnvOptions:
+    """What the keyword arguments resolved to. ``specs``: one base episode spec per variation (circuit, seed and
+    brain are filled in per episode); ``circuits``: the circuits an episode is drawn from."""
+
+    circuits: tuple[str, ...]
+    specs: tuple[EpisodeSpec, ...]
+    observation: str
+    speed_range_mps: tuple[float, float]
+    yaw_rate_range_radps: tuple[float, float]
+
+
+def as_names(value: Any, *, what: str) -> tuple[str, ...]:
+    """A name or a non-empty list of names."""
+    names = (value,) if isinstance(value, str) else tuple(value) if isinstance(value, Sequence) else ()
+    if not names or not all(isinstance(name, str) for name in names):
+        raise ValueError(f"{what} must be a name or a non-empty list of names, got {value!r}")
+    return names
+
+
+def camera_spec(camera: Any) -> CameraSpec:
+    """``(width_px, height_px)``, ``"WxH"`` or a CameraSpec."""
+    if isinstance(camera, CameraSpec):
+        return camera
+    try:
+        width, height = (int(v) for v in camera.lower().split("x")) if isinstance(camera, str) else camera
+        return CameraSpec(width_px=int(width), height_px=int(height))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"camera must be (width_px, height_px) or 'WxH' within 8..4096, got {camera!r}: {error}")
+
+
+def value_range(value: Any, *, what: str) -> tuple[float, float]:
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be (low, high), got {value!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ValueError(f"{what} must be finite with low < high, got {value!r}")
+    return low, high
+
+
+GENERATED = ("random:*", "twisty:*")  # a fresh generated circuit per episode, its seed drawn from reset's seed
+
+
+def check_circuits(names: tuple[str, ...]) -> None:
+    for name in names:
+        try:
+            load_circuit(name.replace(":*", ":0") if name in GENERATED else name)
+        except CircuitError as error:
+            raise ValueError(f"circuit={name!r}: {error}") from None
+
+
+def base_specs(*, variations: tuple[str, ...], camera: Any, renderer: str, noise: Any, **spec_fields) -> tuple:
+    """One base spec per variation; ValueError naming the argument on any bad value."""
+    try:
+        stages: list[NoiseStage] = [noise_stage(item) for item in ([noise] if isinstance(noise, str) else noise)]
+    except (VariationError, TypeError) as error:
+        raise ValueError(f"noise={noise!r}: {error}") from None
+    try:
+        base = EpisodeSpec(camera=camera_spec(camera), renderer=renderer, noise=stages, **spec_fields)
+    except (ValueError, msgspec.ValidationError) as error:
+        raise ValueError(f"bad episode settings: {error}") from None
+    specs = []
+    for text in variations:
+        try:
+            specs.append(apply_variation(base, text))
+        except VariationError as error:
+            raise ValueError(f"variation={text!r}: {error}") from None
+    return tuple(specs)
+
+
+def env_options(
+    *,
+    circuit: Any,
+    variation: Any,
+    noise: Any,
+    camera: Any,
+    renderer: str,
+    observation: str,
+    speed_range_mps: Any,
+    yaw_rate_range_radps: Any,
+    **spec_fields,
+) -> EnvOptions:
+    """Check every keyword argument of the environment; ValueError (one line, naming it) on the first bad one."""
+    circuits = as_names(circuit, what="circuit")
+    check_circuits(circuits)
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation must be one of {', '.join(OBSERVATIONS)}, got {observation!r}")
+    variations = as_names(variation, what="variation")
+    specs = base_specs(variations=variations, camera=camera, renderer=renderer, noise=noise, **spec_fields)
+    return EnvOptions(
+        circuits=circuits,
+        specs=specs,
+        observation=observation,
+        speed_range_mps=value_range(speed_range_mps, what="speed_range_mps"),
+        yaw_rate_range_radps=value_range(yaw_rate_range_radps, what="yaw_rate_range_radps"),
+    )
