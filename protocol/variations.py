@@ -15,6 +15,7 @@ import msgspec
 import yaml
 
 from protocol.messages import DIRECTIONS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+from protocol.suggest import did_you_mean
 
 
 class VariationError(ValueError):
@@ -57,6 +58,7 @@ _PRIMARY = {
     "drop": "probability",
 }
 _MODELS: dict[str, Any] = {str(model.__struct_config__.tag): model for model in NOISE_MODELS}
+_VARIATION_NAMES = (*_WORLD_KEYS, "camera", *_CAMERA_KEYS, *ROUTE_KEYS)
 
 
 def parse_pairs(text: str) -> list[tuple[str, str]]:
@@ -92,13 +94,16 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
             world[key] = str(value)
         elif key == "camera":
             if value not in CAMERA_PRESETS:
-                raise VariationError(f"unknown camera preset {value!r} (known: {', '.join(CAMERA_PRESETS)})")
+                raise VariationError(
+                    f"unknown camera preset {value!r}{did_you_mean(value, CAMERA_PRESETS)} "
+                    f"(known: {', '.join(CAMERA_PRESETS)})"
+                )
             camera.update({field: camera[field] + delta for field, delta in CAMERA_PRESETS[value].items()})
         elif key in _CAMERA_KEYS:
             camera[_CAMERA_KEYS[key]] = _number(key, value)
         else:
             raise VariationError(
-                f"unknown variation {key!r} (known: {', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS, *ROUTE_KEYS])})"
+                f"unknown variation {key!r}{did_you_mean(key, _VARIATION_NAMES)} (known: {', '.join(_VARIATION_NAMES)})"
             )
     try:
         return msgspec.structs.replace(
@@ -126,7 +131,9 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
         raise VariationError(f"a noise stage is one model with its parameters, got {item!r}")
     ((model, params),) = item.items()
     if model not in _MODELS:
-        raise VariationError(f"unknown noise model {model!r} (known: {', '.join(_MODELS)})")
+        raise VariationError(
+            f"unknown noise model {model!r}{did_you_mean(model, _MODELS)} (known: {', '.join(_MODELS)})"
+        )
     if not isinstance(params, dict):
         params = {_PRIMARY[model]: params}
     try:

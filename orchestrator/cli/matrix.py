@@ -66,6 +66,9 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
         "--retry-failed", action="store_true", help="with --resume: also run again the episodes the stack failed"
     )
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+    parser.add_argument(
+        "--json", action="store_true", help="with --plan: the planned episodes as one JSON array (index, key, spec)"
+    )
     # camera and variations come from the matrix file; the renderer may be overridden for every episode
     add_scene_options(
         parser,
@@ -152,11 +155,20 @@ def run_matrix_args(
     ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
     facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix.runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
+    from orchestrator.matrix.runner import (
+        MatrixRunner,
+        ProgressDisplay,
+        RunOptions,
+        plan_json,
+        plan_table,
+        summary_line,
+    )
 
     if args.plan:
-        print(plan_table(matrix))
+        print(plan_json(matrix) if args.json else plan_table(matrix))
         return EXIT_OK
+    if args.json:
+        raise UsageError("--json goes with --plan (a matrix's results are in DIR/results.sqlite and episodes.csv)")
     _check_run_options(args, what=what)
     ray_options = _ray_options(args)
     # On a cluster, "auto" is resolved by each node's simulator: this machine's EGL says nothing about theirs.

@@ -91,6 +91,7 @@ from protocol.deploy.typed_yaml import Document, compose, convert
 from protocol.deploy.typed_yaml import Path as At
 from protocol.keys import check_name
 from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.suggest import did_you_mean
 from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer
 
@@ -204,7 +205,7 @@ def _circuit(document: Document, value: Any, path: At) -> str:
     if not is_circuit_name(name):
         raise document.error(
             path,
-            f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
+            f"unknown circuit {name!r}{did_you_mean(name, circuit_names())} (known: {', '.join(circuit_names())}, "
             f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
         )
     return name

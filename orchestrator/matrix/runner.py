@@ -507,4 +507,21 @@ def plan_table(matrix: Matrix) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["MatrixRunner", "RunOptions", "MatrixProgress", "ProgressDisplay", "summary_line", "plan_table"]
+def plan_json(matrix: Matrix) -> str:
+    """The planned episodes as one JSON array (``drivebench matrix FILE --plan --json``)."""
+    episodes = [
+        {"index": episode.index, "key": episode.key, "spec": msgspec.to_builtins(episode.spec)}
+        for episode in matrix.episodes
+    ]
+    return json.dumps(episodes, indent=2)
+
+
+__all__ = [
+    "MatrixRunner",
+    "RunOptions",
+    "MatrixProgress",
+    "ProgressDisplay",
+    "summary_line",
+    "plan_table",
+    "plan_json",
+]

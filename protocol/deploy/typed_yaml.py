@@ -20,6 +20,8 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
+from protocol.suggest import did_you_mean
+
 T = TypeVar("T")
 Path = tuple[Hashable, ...]  # keys of mappings and indexes of lists, from the top
 
@@ -209,8 +211,10 @@ def explain(error: msgspec.ValidationError, type_: Any, data: Any, *, path: Path
     if field:
         if field[1] == "missing required":
             return Fault(where, f"{subject} is missing {field[2]!r}")
-        allowed = ", ".join(_field_names(value_type, value))
-        return Fault((*where, field[2]), f"unknown key {field[2]!r} in {subject} (allowed: {allowed})", at_key=True)
+        names = _field_names(value_type, value)
+        hint = did_you_mean(field[2], names)
+        message = f"unknown key {field[2]!r} in {subject}{hint} (allowed: {', '.join(names)})"
+        return Fault((*where, field[2]), message, at_key=True)
     if text.startswith("Invalid enum value"):
         allowed = ", ".join(str(choice) for choice in _literal_values(value_type))
         return Fault(where, f"{subject} must be one of {allowed}, got {value!r}")
