@@ -132,8 +132,8 @@ def resolve(name: str) -> BrainSource:
     if name in installed:
         return installed[name]
     raise UnknownBrainError(
-        f"unknown brain {name!r}{did_you_mean(name, brain_names())} (known: {', '.join(brain_names())}; or give "
-        f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)"
+        f"unknown brain {name!r} (known: {', '.join(brain_names())}; or give "
+        f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)" + did_you_mean(name, brain_names())
     )
 
 

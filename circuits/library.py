@@ -185,7 +185,7 @@ def _load_forward(name: str) -> Circuit:
         return GENERATORS[prefix](seed)
     close = difflib.get_close_matches(name, circuit_names(), n=1)  # protocol.suggest's rule; circuits/ is below it
     hint = f"; did you mean {close[0]!r}?" if close else ""
-    raise CircuitError(f"unknown circuit {name!r}{hint} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")
+    raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES}){hint}")
 
 
 def circuit_from_file(path: Path, *, check: bool = False) -> Circuit:

@@ -95,15 +95,16 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
         elif key == "camera":
             if value not in CAMERA_PRESETS:
                 raise VariationError(
-                    f"unknown camera preset {value!r}{did_you_mean(value, CAMERA_PRESETS)} "
-                    f"(known: {', '.join(CAMERA_PRESETS)})"
+                    f"unknown camera preset {value!r} (known: {', '.join(CAMERA_PRESETS)})"
+                    + did_you_mean(value, CAMERA_PRESETS)
                 )
             camera.update({field: camera[field] + delta for field, delta in CAMERA_PRESETS[value].items()})
         elif key in _CAMERA_KEYS:
             camera[_CAMERA_KEYS[key]] = _number(key, value)
         else:
             raise VariationError(
-                f"unknown variation {key!r}{did_you_mean(key, _VARIATION_NAMES)} (known: {', '.join(_VARIATION_NAMES)})"
+                f"unknown variation {key!r} (known: {', '.join(_VARIATION_NAMES)})"
+                + did_you_mean(key, _VARIATION_NAMES)
             )
     try:
         return msgspec.structs.replace(
@@ -132,7 +133,7 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
     ((model, params),) = item.items()
     if model not in _MODELS:
         raise VariationError(
-            f"unknown noise model {model!r}{did_you_mean(model, _MODELS)} (known: {', '.join(_MODELS)})"
+            f"unknown noise model {model!r} (known: {', '.join(_MODELS)})" + did_you_mean(model, _MODELS)
         )
     if not isinstance(params, dict):
         params = {_PRIMARY[model]: params}

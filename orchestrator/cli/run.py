@@ -353,6 +353,8 @@ def command_run(args: argparse.Namespace) -> int:
 
 def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainLaunch]]:
     args.brain = args.brain or "explicit"
+    with flag(f"--brain {args.brain}"):
+        require_brain(args.brain)
     spec = episode_spec(args)
     options = tuple(args.brain_option)
     if args.weights is not None:

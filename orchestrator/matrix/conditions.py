@@ -89,7 +89,7 @@ def _check_variation_key(document: Document, path: At, key: str) -> None:
     if key not in VARIATION_KEYS:
         hint = did_you_mean(key, VARIATION_KEYS)
         raise document.error(
-            path, f"unknown variation key {key!r}{hint} (allowed: {', '.join(VARIATION_KEYS)})", at_key=True
+            path, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)}){hint}", at_key=True
         )
 
 

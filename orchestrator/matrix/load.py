@@ -205,8 +205,8 @@ def _circuit(document: Document, value: Any, path: At) -> str:
     if not is_circuit_name(name):
         raise document.error(
             path,
-            f"unknown circuit {name!r}{did_you_mean(name, circuit_names())} (known: {', '.join(circuit_names())}, "
-            f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
+            f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
+            f"or {GENERATED_NAMES}; see `drivebench circuits list`)" + did_you_mean(name, circuit_names()),
         )
     return name
 
