@@ -166,7 +166,7 @@ def test_a_run_folders_config_runs_the_same_episode_again(tmp_path):
     assert after["spec"] == before["spec"] and before["spec"]["circuit"] == "nurburgring"
     for metric in ("progress_m", "cross_track_mean_m", "cross_track_max_m"):
         assert after["metrics"][metric] == before["metrics"][metric], metric
-    assert before["run_id"] != after["run_id"]
+    assert before["header"]["run_id"] != after["header"]["run_id"]
 
 
 def test_a_bad_config_file_is_one_line(tmp_path):
