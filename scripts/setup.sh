@@ -39,7 +39,7 @@ fi
 pip_install() {
   # pip's whole output to the log; the packages it collects, one line each, to stderr (progress for a first install).
   if ! .venv/bin/python -m pip install --disable-pip-version-check "$@" 2>&1 | tee -a "$LOG" |
-    { grep --line-buffered -E '^(Collecting|Installing collected)' | cut -c1-110 | sed -u 's/^/  /' >&2 || true; }; then
+    { grep --line-buffered -E '^(Collecting|Installing collected)' | sed -u -E 's/^(.{0,110}).*/  \1/' >&2 || true; }; then
     echo "scripts/setup.sh: pip install $* failed; the end of $LOG:" >&2
     tail -n 20 "$LOG" >&2
     exit 1
@@ -49,8 +49,20 @@ pip_install() {
 echo "setting up .venv ($PROFILE; pip's log: $LOG) ..." >&2
 : >"$LOG"
 .venv/bin/python -m pip install --disable-pip-version-check --quiet --upgrade pip >>"$LOG" 2>&1
+trim_pybullet() {
+  # As the Docker image does: pybullet's wheel carries ~126 MB of debug symbols and ~170 MB of example robots and
+  # environments that drivebench never loads (it builds its own scene). Checked by connecting once afterwards.
+  local site
+  site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
+  rm -rf "$site"/pybullet_data "$site"/pybullet_envs "$site"/pybullet_examples "$site"/pybullet_robots \
+    "$site"/pybullet_utils
+  if command -v strip >/dev/null 2>&1; then strip --strip-unneeded "$site"/pybullet*.so; fi
+  .venv/bin/python -c "import pybullet; pybullet.connect(pybullet.DIRECT); pybullet.disconnect()" >>"$LOG" 2>&1
+}
+
 if [ "$PROFILE" = demo ]; then
   pip_install -e ".[stack]"
+  trim_pybullet
   echo "$wanted demo" >"$STAMP"
   echo "set up .venv (demo): done; bash scripts/setup.sh adds torch, Ray and the test tools" >&2
   exit 0
