@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from needs import require
 
 ROOT = Path(__file__).resolve().parent.parent
 LEGACY_RECORDING = ROOT / "tests" / "fixtures" / "legacy-run-topics.mcap"
@@ -208,7 +209,7 @@ def _docs_hooks():
 
 
 def test_the_docs_cli_reference_is_every_command_of_the_parser():
-    pytest.importorskip("mkdocs", reason="the docs extra (scripts/setup.sh installs it)")
+    require("mkdocs")  # the docs extra, which scripts/setup.sh installs
     reference = _docs_hooks().cli_reference()
     for heading in (
         "## drivebench run",

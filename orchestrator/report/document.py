@@ -91,9 +91,9 @@ table.facts th { display: none; }
 table.facts td:first-child { font-weight: 600; background: #eef1f5; }
 p.note { color: #555; font-size: 12.5px; max-width: 1000px; }
 code { background: #f1f3f5; padding: 0 3px; border-radius: 3px; font-size: 12px; }
-figure { margin: 14px 0 22px; }
-figure img { width: 100%; max-height: 92vh; object-fit: contain; object-position: left top;
-             border: 1px solid #e1e4e8; }
+figure { margin: 14px 22px 22px 0; display: inline-table; vertical-align: top; max-width: 100%; }
+figure figcaption { display: table-caption; caption-side: bottom; }
+figure img { max-width: 100%; height: auto; border: 1px solid #e1e4e8; }
 figcaption { color: #555; font-size: 12.5px; max-width: 1000px; }
 """
 

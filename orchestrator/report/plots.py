@@ -80,7 +80,7 @@ class ReportPlots:
         import matplotlib.pyplot as plt
 
         path = self.plots_dir / name
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=130)  # figures flow side by side across the page (document.py), at their own size
         plt.close(fig)
         self.plots.append(path)
         return path
