@@ -221,3 +221,15 @@ def test_the_docs_cli_reference_is_every_command_of_the_parser():
     assert "--max-sim-seconds" in reference and "--record-images" in reference
     messages = _docs_hooks().messages_reference(ROOT / "docs" / "protocol")
     assert "## Command" in messages and "| `speed_mps` |" in messages
+
+
+@pytest.mark.slow
+def test_the_readmes_own_brain_meets_the_brain_contract(tmp_path):
+    """The README's brain, written to the file it names, checked as the README says (from its folder)."""
+    block = re.search(r"```python\n(# (\w+)\.py, in the folder.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert block is not None, "the README's own-brain example is gone"
+    (tmp_path / f"{block.group(2)}.py").write_text(block.group(1))
+    classes = re.findall(r"^class (\w+)", block.group(1), re.M)
+    result = drivebench("brains", "check", f"{block.group(2)}:{classes[0]}", "--memory-steps", "5", cwd=tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "meets the brain contract" in result.stderr
