@@ -27,7 +27,7 @@ from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
-# Without --renderer or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+# Without --renderer or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: docs/guides/renderers.md).
 COLLECT_RENDERER = environment.RENDERER_BY_COMMAND["dataset collect"]
 
 

@@ -96,7 +96,7 @@ from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer
 
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
-# Without `renderer:` or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+# Without `renderer:` or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: docs/guides/renderers.md).
 MATRIX_RENDERER = environment.RENDERER_BY_COMMAND["matrix"]
 
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
