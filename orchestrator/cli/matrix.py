@@ -19,6 +19,14 @@ from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED,
 from orchestrator.cli.ray import add_ray_options, ray_options_from
 from orchestrator.cli.run import add_scene_options
 
+MATRIX_EXAMPLES = """examples:
+  drivebench matrix experiments/smoke.yaml -o runs/smoke                  eight short episodes, then the report
+  drivebench matrix experiments/generalization.yaml --plan --json         the planned episodes; nothing starts
+  drivebench matrix experiments/generalization.yaml --workers 2 -o runs/gen --record
+  drivebench matrix experiments/generalization.yaml -o runs/gen --resume  after Ctrl-C, SIGKILL or a crash
+  drivebench matrix experiments/generalization.yaml --ray auto -o runs/gen --artifacts /shared/gen
+"""
+
 
 def add(commands: argparse._SubParsersAction) -> None:
     matrix = commands.add_parser(
@@ -26,6 +34,8 @@ def add(commands: argparse._SubParsersAction) -> None:
         help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
         description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
         "as each episode ends, then write DIR/report.html and report.md.",
+        epilog=MATRIX_EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     matrix.add_argument("file", type=Path, help="matrix file (YAML)")
     add_run_options(matrix, default_out="runs/matrix-<name>-<time>", default_workers=1)
