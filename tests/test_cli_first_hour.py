@@ -233,3 +233,19 @@ def test_the_readmes_own_brain_meets_the_brain_contract(tmp_path):
     result = drivebench("brains", "check", f"{block.group(2)}:{classes[0]}", "--memory-steps", "5", cwd=tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "meets the brain contract" in result.stderr
+
+
+def test_a_command_that_needs_a_missing_extra_names_what_to_install():
+    """scripts/demo.sh's lean set has no torch: a network brain says which extra it needs, in one line (the
+    interpreter is told torch is absent, as it is in that set)."""
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from orchestrator.cli import main\n"
+        "sys.exit(main(['run', '--brain', 'deepest_lstm_tiny_pilotnet', '--max-sim-seconds', '1']))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip() == (
+        "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
+        "(or bash scripts/setup.sh, which installs every extra)"
+    )

@@ -38,6 +38,22 @@ from orchestrator.stack.launcher import StackError, StackFailure
 from protocol.bus import BusError
 from protocol.deploy.runtime import exit_on_sigterm
 
+# The optional extras (pyproject.toml) by a module each provides: a command that needs one names what to install
+# (scripts/demo.sh's lean set has the stack, not torch or Ray).
+EXTRA_OF_MODULE = {
+    "torch": "ml",
+    "onnxruntime": "ml",
+    "onnx": "ml",
+    "ray": "cluster",
+    "moderngl": "gl",
+    "pybullet": "sim",
+    "scipy": "sim",
+    "matplotlib": "report",
+    "mcap": "record",
+    "zstandard": "record",
+    "foxglove": "view",
+}
+
 COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits)
 
 
@@ -109,6 +125,16 @@ def main(argv: list[str] | None = None) -> int:
     except (StackError, BusError) as error:
         kind = f" ({error.kind})" if isinstance(error, StackFailure) else ""
         print(f"drivebench: the stack could not run{kind}: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    except ModuleNotFoundError as error:
+        extra = EXTRA_OF_MODULE.get((error.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(
+            f"drivebench: this needs {error.name}, which is not installed: pip install 'drivebench[{extra}]' "
+            "(or bash scripts/setup.sh, which installs every extra)",
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
