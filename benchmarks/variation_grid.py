@@ -1,4 +1,4 @@
-"""A grid of sample frames, one per world variation and camera preset, for the README (docs/variations.png).
+"""A grid of sample frames, one per world variation and camera preset, for the docs (docs/variations.png).
 
 .venv/bin/python benchmarks/variation_grid.py [-o docs/variations.png]
 """

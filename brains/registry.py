@@ -27,6 +27,7 @@ from typing import Any
 
 from brains.base import Brain
 from brains.nets import MODELS
+from protocol.suggest import did_you_mean
 
 ENTRY_POINT_GROUP = "drivebench.brains"
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights"  # brains/weights/<network>.ckpt, in a wheel too
@@ -133,7 +134,7 @@ def resolve(name: str) -> BrainSource:
         return installed[name]
     raise UnknownBrainError(
         f"unknown brain {name!r} (known: {', '.join(brain_names())}; or give "
-        f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)"
+        f"package.module:Class, or a Behavior Metrics brain file path/to/brain.py)" + did_you_mean(name, brain_names())
     )
 
 

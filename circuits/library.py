@@ -14,6 +14,7 @@ Three kinds of names:
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import re
 from collections.abc import Callable
@@ -182,7 +183,9 @@ def _load_forward(name: str) -> Circuit:
                 f"bad generated circuit name {name!r}: want {prefix}SEED with SEED a non-negative integer"
             )
         return GENERATORS[prefix](seed)
-    raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES})")
+    close = difflib.get_close_matches(name, circuit_names(), n=1)  # protocol.suggest's rule; circuits/ is below it
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    raise CircuitError(f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, or {GENERATED_NAMES}){hint}")
 
 
 def circuit_from_file(path: Path, *, check: bool = False) -> Circuit:

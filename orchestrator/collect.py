@@ -27,7 +27,7 @@ from protocol.variations import apply_variation, noise_stage
 from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
-# Without --renderer or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+# Without --renderer or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: docs/guides/renderers.md).
 COLLECT_RENDERER = environment.RENDERER_BY_COMMAND["dataset collect"]
 
 
@@ -57,6 +57,16 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
         renderer = choose_renderer(getattr(args, "renderer", None), fallback=COLLECT_RENDERER)
     except ValueError as error:
         raise CollectError(str(error)) from None
+    width, height = args.camera
+    try:
+        camera = CameraSpec(width_px=width, height_px=height)
+    except ValueError as error:
+        raise CollectError(f"--camera {width}x{height}: {error}") from None
+    for circuit in circuits:
+        try:
+            load_circuit(circuit)
+        except CircuitError as error:
+            raise CollectError(f"--circuits {args.circuits}: {error}") from None
     specs = []
     for index, circuit in enumerate(circuits):
         for direction in directions:
@@ -69,7 +79,7 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                     laps=args.laps,
                     max_sim_seconds=args.max_sim_seconds,
                     seed=seed,
-                    camera=CameraSpec(width_px=args.camera[0], height_px=args.camera[1]),
+                    camera=camera,
                     active_brain=DRIVER if args.recovery_noise > 0 else args.brain,
                     direction=direction,
                     renderer=renderer,

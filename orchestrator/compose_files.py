@@ -1,6 +1,6 @@
 """Files generated from the process graph (``protocol.deploy.graph``): compose.yaml, compose.secure.yaml, the secure
 router's
-roles (deploy/secure/router.yaml) and the README's architecture table.
+roles (deploy/secure/router.yaml) and the docs' architecture table (docs/architecture.md).
 
     python -m orchestrator.compose_files --check   # exit 1, naming each file that differs from what the graph gives
     python -m orchestrator.compose_files --write   # rewrite them
@@ -190,7 +190,7 @@ def router_roles_yaml() -> str:
 
 
 def architecture_table() -> str:
-    """The README's table of processes (between :data:`README_BEGIN` and :data:`README_END`)."""
+    """The docs' table of processes (docs/architecture.md) (between :data:`README_BEGIN` and :data:`README_END`)."""
     rows = [f"| {row.summary} | {row.source} | {row.consumes} | {row.produces} | {_puts(row)} |" for row in graph.ROLES]
     return "\n".join(
         [
@@ -210,10 +210,11 @@ def _puts(row: graph.Role) -> str:
 
 
 def readme_with_table(readme: str) -> str:
-    """The README with its architecture table replaced by :func:`architecture_table` (ValueError: no markers)."""
+    """docs/architecture.md with its process table replaced by :func:`architecture_table` (ValueError: no markers)."""
     start, end = readme.find(README_BEGIN), readme.find(README_END)
     if start < 0 or end < start:
-        raise ValueError(f"README.md has no generated process table (markers {README_BEGIN!r} ... {README_END!r})")
+        markers = f"{README_BEGIN!r} ... {README_END!r}"
+        raise ValueError(f"docs/architecture.md has no generated process table (markers {markers})")
     return readme[:start] + architecture_table() + readme[end + len(README_END) :]
 
 
@@ -223,7 +224,7 @@ def generated_files(root: Path = ROOT) -> dict[Path, str]:
         root / "compose.yaml": compose_yaml(),
         root / "compose.secure.yaml": compose_secure_yaml(),
         root / "deploy" / "secure" / "router.yaml": router_roles_yaml(),
-        root / "README.md": readme_with_table((root / "README.md").read_text()),
+        root / "docs" / "architecture.md": readme_with_table((root / "docs" / "architecture.md").read_text()),
     }
 
 

@@ -42,7 +42,8 @@ class Variable:
 
 
 # The default renderer of each command that takes --renderer, when neither --renderer nor $DRIVEBENCH_RENDERER
-# says: `run` keeps the reference renderer, the long runs take the faster one where its parity is measured (README).
+# says: `run` keeps the reference renderer, the long runs take the faster one where its parity is measured
+# (docs/guides/renderers.md).
 RENDERER_BY_COMMAND = {"run": "pybullet", "matrix": "auto", "dataset collect": "auto"}
 
 ROUTER = Variable(

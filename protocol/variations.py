@@ -16,6 +16,7 @@ import msgspec
 import yaml
 
 from protocol.messages import DIRECTIONS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+from protocol.suggest import did_you_mean
 
 
 class VariationError(ValueError):
@@ -58,6 +59,7 @@ _PRIMARY = {
     "drop": "probability",
 }
 _MODELS: dict[str, Any] = {str(model.__struct_config__.tag): model for model in NOISE_MODELS}
+_VARIATION_NAMES = (*_WORLD_KEYS, "camera", *_CAMERA_KEYS, *ROUTE_KEYS)
 
 
 def parse_pairs(text: str) -> list[tuple[str, str]]:
@@ -93,13 +95,17 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
             world[key] = str(value)
         elif key == "camera":
             if value not in CAMERA_PRESETS:
-                raise VariationError(f"unknown camera preset {value!r} (known: {', '.join(CAMERA_PRESETS)})")
+                raise VariationError(
+                    f"unknown camera preset {value!r} (known: {', '.join(CAMERA_PRESETS)})"
+                    + did_you_mean(value, CAMERA_PRESETS)
+                )
             camera.update({field: camera[field] + delta for field, delta in CAMERA_PRESETS[value].items()})
         elif key in _CAMERA_KEYS:
             camera[_CAMERA_KEYS[key]] = _number(key, value)
         else:
             raise VariationError(
-                f"unknown variation {key!r} (known: {', '.join([*_WORLD_KEYS, 'camera', *_CAMERA_KEYS, *ROUTE_KEYS])})"
+                f"unknown variation {key!r} (known: {', '.join(_VARIATION_NAMES)})"
+                + did_you_mean(key, _VARIATION_NAMES)
             )
     try:
         return msgspec.structs.replace(
@@ -127,7 +133,9 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
         raise VariationError(f"a noise stage is one model with its parameters, got {item!r}")
     ((model, params),) = item.items()
     if model not in _MODELS:
-        raise VariationError(f"unknown noise model {model!r} (known: {', '.join(_MODELS)})")
+        raise VariationError(
+            f"unknown noise model {model!r} (known: {', '.join(_MODELS)})" + did_you_mean(model, _MODELS)
+        )
     if params is None:
         params = {}
     if not isinstance(params, dict):

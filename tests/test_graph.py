@@ -1,8 +1,8 @@
 """The process graph (protocol/deploy/graph.py) against everything that used to spell it out by hand.
 
-The generated files (compose.yaml, compose.secure.yaml, deploy/secure/router.yaml, the README's table) must be what
-the graph gives; scripts/make-certs.sh must make a certificate for every identity in it; and a real stack must put
-only keys that some row publishes and that row's access rules allow.
+The generated files (compose.yaml, compose.secure.yaml, deploy/secure/router.yaml, the process table of
+docs/architecture.md) must be what the graph gives; scripts/make-certs.sh must make a certificate for every identity
+in it; and a real stack must put only keys that some row publishes and that row's access rules allow.
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ def test_the_check_names_a_stale_file_and_write_mends_it(tmp_path):
     compose.write_text(compose.read_text().replace('"services.scorer"', '"services.referee"'))
     (stale,) = compose_files.stale_files(tmp_path)
     assert stale.startswith("compose.yaml differs from the process graph") and "services.referee" in stale
-    readme = tmp_path / "README.md"
+    readme = tmp_path / "docs" / "architecture.md"
     readme.write_text(readme.read_text().replace(compose_files.README_END, ""))
-    with pytest.raises(ValueError, match="README.md has no generated process table"):
+    with pytest.raises(ValueError, match="docs/architecture.md has no generated process table"):
         compose_files.stale_files(tmp_path)
 
 

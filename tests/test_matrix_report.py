@@ -239,7 +239,7 @@ def test_html_is_self_contained(report):
     assert not re.search(r"""(src|href)\s*=\s*["']?\s*https?://""", page, re.IGNORECASE)
     assert "http://" not in page and "https://" not in page
     assert page.count("data:image/png;base64,") == len(files.plots)
-    assert "<table>" in page and "✗ crash 1/2" in page
+    assert '<table class="sortable">' in page and "✗ crash 1/2" in page
 
 
 def test_output_folder_and_cli(report, tmp_path, capsys):
@@ -360,3 +360,37 @@ def test_internal_metrics_come_from_the_checkpoint(tmp_path):
     assert "0.077" in row and "0.0456" in row and "0.0123" in row and row.rstrip().endswith("| 7 |")
     # One variation and one perturbation: the grids point to the main table instead.
     assert "One world variation only" in text and "One perturbation only" in text
+
+
+def test_the_page_has_a_table_of_contents_and_sortable_tables(report):
+    _, _, files = report
+    page = files.html.read_text()
+    anchors = re.findall(r'<h2 id="([^"]+)">', page)
+    assert len(anchors) >= 4
+    toc = page[page.index('<nav class="toc">') : page.index("</nav>")]
+    assert [f"#{anchor}" for anchor in anchors] == re.findall(r'href="([^"]+)"', toc)
+    assert page.count('<table class="sortable">') >= 3 and 'querySelectorAll("table.sortable")' in page
+
+
+def test_a_lapped_episodes_progress_curve_ends_on_its_lap_target(report):
+    from orchestrator.report.plots import _to_the_finish
+
+    folder, _, _ = report
+    with ResultStore(folder) as store:
+        lapped = [r for r in store.results() if r.reason == "laps_completed" and r.perturbation == "none"]
+    assert lapped
+    for r in lapped:
+        arrays = np.load(folder / r.trajectory)
+        time_s, progress = _to_the_finish(r, arrays["live_sim_time_s"], arrays["live_progress_laps"])
+        finish_s = sum(r.score.metrics.lap_times_s[:1])
+        assert (time_s[-1], progress[-1]) == (pytest.approx(finish_s), 1.0)
+        assert np.all(np.diff(time_s) > 0) and np.all(progress[:-1] < 1.0 + 1e-9)
+
+
+def test_the_cross_track_colour_scale_is_the_datas_not_the_roads():
+    from orchestrator.report.plots import _colour_scale
+
+    xte_m = np.linspace(0.0, 0.05, 200)  # a good brain: centimetres off the line on a 3 m road
+    data = {"a": (np.zeros(200), np.zeros(200), np.ones(200), xte_m)}
+    norm, _, label = _colour_scale("xte", data=data)
+    assert norm.vmax == pytest.approx(np.percentile(xte_m, 99)) and "99th" in label

@@ -127,7 +127,8 @@ def test_an_episode_runs_with_router_brain_and_scorer_in_separate_namespaces(tmp
         )
         for module in ("services.simulator", "services.noise"):
             processes.append(net.popen("A", [sys.executable, "-m", module], env=env_a, log=tmp_path / f"{module}.log"))
-        # The brain's machine as the README sets it up: a client, so only the router's port must be reachable.
+        # The brain's machine as docs/guides/deployment.md sets it up: a client, so only the router's port must be
+        # reachable.
         # (As a peer it relies on a direct link to the simulator; twice in full-suite runs the simulator had not
         # seen the brain's token 5 s after the driver had.)
         processes.append(

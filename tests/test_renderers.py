@@ -166,7 +166,8 @@ def test_each_renderer_is_bitwise_deterministic(renderer):
     assert child.stdout.split() == digests
 
 
-# Measured by benchmarks/renderer_parity.py over every built-in circuit, world variation and camera preset (README):
+# Measured by benchmarks/renderer_parity.py over every built-in circuit, world variation and camera preset
+# (docs/guides/renderers.md):
 # MAD <= 0.3 grey levels, SSIM >= 0.997, at most 0.05 % of pixels off by more than 8 levels (edge pixels where the two
 # rasterisers round differently, and far line ends where the 5 mm gap to the road is below depth precision). The
 # thresholds are 3-10x looser, so another Mesa or LLVM version may round differently without failing, while a real

@@ -1,95 +1,72 @@
-"""The training curve as a PNG, drawn with OpenCV (matplotlib is not a dependency of training)."""
+"""The training curve as a PNG, drawn with matplotlib (Agg): losses and validation MAE per epoch, log axes with
+real ticks, each panel's legend below it, outside the lines."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-
-_COLOURS = {
-    "train_loss": (200, 120, 0),
-    "train_eval_loss": (0, 160, 0),
-    "val_loss": (0, 0, 220),
-    "val_mae_speed_mps": (160, 0, 160),
-    "val_mae_yaw_rate_radps": (0, 140, 220),
+_LABELS = {
+    "train_loss": "training loss (while training)",
+    "train_eval_loss": "training loss (evaluated)",
+    "val_loss": "validation loss",
+    "val_mae_speed_mps": "validation MAE, speed (m/s)",
+    "val_mae_yaw_rate_radps": "validation MAE, yaw rate (rad/s)",
 }
+_COLOURS = {
+    "train_loss": "#d97706",
+    "train_eval_loss": "#15803d",
+    "val_loss": "#1d4ed8",
+    "val_mae_speed_mps": "#9333ea",
+    "val_mae_yaw_rate_radps": "#0891b2",
+}
+PANELS = (
+    (("train_loss", "train_eval_loss", "val_loss"), "loss", "no loss recorded"),
+    (("val_mae_speed_mps", "val_mae_yaw_rate_radps"), "validation MAE", "no validation split"),
+)
 
 
 def plot_curve(curve: list[dict[str, Any]], path: Path) -> bool:
-    """PNG of the curve drawn with OpenCV (matplotlib is not a dependency): losses on a log scale (left) and
-    validation MAE (right), one point per epoch."""
-    image = np.full((420, 960, 3), 255, np.uint8)
-    _panel(image, (0, 0, 480, 420), curve, ("train_loss", "train_eval_loss", "val_loss"), "loss (log10)", log=True)
-    _panel(
-        image,
-        (480, 0, 480, 420),
-        curve,
-        ("val_mae_speed_mps", "val_mae_yaw_rate_radps"),
-        "val MAE (log10; v m/s, w rad/s)",
-        log=True,
-        empty="no validation split",
-    )
-    return bool(cv2.imwrite(str(path), image))  # False: it could not be written
+    """PNG of ``curve`` (one dict per epoch) at ``path``: losses (left) and validation MAE (right), each on a log
+    axis; False when the file could not be written."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display: training runs headless
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10.0, 4.4), layout="constrained")
+    for ax, (keys, title, empty) in zip(axes, PANELS):
+        _panel(ax, curve, keys, title=title, empty=empty)
+    try:
+        fig.savefig(path, dpi=110)
+    except OSError:
+        return False
+    finally:
+        plt.close(fig)
+    return True
 
 
-def _panel(
-    image: np.ndarray,
-    box: tuple[int, int, int, int],
-    curve: list[dict[str, Any]],
-    keys: tuple[str, ...],
-    title: str,
-    *,
-    log: bool,
-    empty: str = "no data",
-) -> None:
-    x0, y0, width, height = box
-    left, top, right, bottom = x0 + 60, y0 + 30, x0 + width - 15, y0 + height - 45
-    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
-    cv2.putText(image, title, (left, top - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    series = {
-        k: [(e["epoch"], e[k]) for e in curve if e.get(k) is not None and e[k] > (0 if log else -math.inf)]
-        for k in keys
-    }
-    values = [math.log10(v) if log else v for points in series.values() for _, v in points]
-    if not values:
-        cv2.putText(
-            image, empty, (left + 20, (top + bottom) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (90, 90, 90), 1, cv2.LINE_AA
-        )
+def _panel(ax, curve: list[dict[str, Any]], keys: tuple[str, ...], *, title: str, empty: str) -> None:
+    series = {key: [(e["epoch"], e[key]) for e in curve if e.get(key) is not None and e[key] > 0] for key in keys}
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("epoch", fontsize=9)
+    drawn = [key for key in keys if series[key]]
+    if not drawn:
+        ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes, color="0.4")
+        ax.set_xticks([])
+        ax.set_yticks([])
         return
-    low, high = min(values), max(values)
-    high = high if high > low else low + 1.0
-    epochs = [e["epoch"] for e in curve]
-    first, last = min(epochs), max(max(epochs), min(epochs) + 1)
+    for key in drawn:
+        epochs, values = zip(*series[key])
+        ax.plot(epochs, values, color=_COLOURS[key], lw=1.8, marker="o" if len(epochs) < 12 else None, ms=4)
+        ax.lines[-1].set_label(_LABELS[key])
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    def to_px(epoch: float, v: float) -> tuple[int, int]:
-        return (
-            int(left + (epoch - first) / (last - first) * (right - left)),
-            int(bottom - ((math.log10(v) if log else v) - low) / (high - low) * (bottom - top)),
-        )
-
-    for row, key in enumerate(k for k in keys if series[k]):
-        points = np.array([to_px(e, v) for e, v in series[key]], np.int32)
-        cv2.polylines(image, [points], False, _COLOURS[key], 2, cv2.LINE_AA)
-        for point in points if len(points) < 12 else ():  # a lone epoch is a point, not a line
-            cv2.circle(image, tuple(int(v) for v in point), 3, _COLOURS[key], -1, cv2.LINE_AA)
-        cv2.putText(
-            image, key, (left + 8, top + 18 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42, _COLOURS[key], 1, cv2.LINE_AA
-        )
-    label = (lambda v: f"{10**v:.3g}") if log else (lambda v: f"{v:.3g}")
-    for text, y in ((label(high), top + 5), (label(low), bottom)):
-        cv2.putText(image, text, (x0 + 4, y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for text, x in ((str(first), left), (str(last), right - 20)):
-        cv2.putText(image, text, (x, bottom + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(
-        image,
-        "epoch",
-        ((left + right) // 2 - 20, bottom + 36),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.45,
-        (0, 0, 0),
-        1,
-        cv2.LINE_AA,
-    )
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))  # labelled ticks, not only decades
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.grid(True, which="both", color="0.92")
+    ax.tick_params(labelsize=8)
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncols=1, fontsize=8, frameon=False)

@@ -39,7 +39,33 @@ from orchestrator.stack.launcher import StackError, StackFailure
 from protocol.bus import BusError
 from protocol.deploy.runtime import exit_on_sigterm
 
+# The optional extras (pyproject.toml) by a module each provides: a command that needs one names what to install
+# (scripts/demo.sh's lean set has the stack, not torch or Ray).
+EXTRA_OF_MODULE = {
+    "torch": "ml",
+    "onnxruntime": "ml",
+    "onnx": "ml",
+    "ray": "cluster",
+    "moderngl": "gl",
+    "pybullet": "sim",
+    "scipy": "sim",
+    "matplotlib": "report",
+    "mcap": "record",
+    "zstandard": "record",
+    "foxglove": "view",
+}
+
 COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits, bm)
+
+
+EXAMPLES = """examples:
+  drivebench run                                    the explicit brain drives one lap of simple
+  drivebench run --brain my_module:MyBrain          your own brain (drivebench brains check it first)
+  drivebench matrix experiments/smoke.yaml -o runs/smoke      a matrix of episodes, then its report
+  drivebench circuits list --json                   every list and inspect command has --json
+
+`drivebench COMMAND --help` for one command; shell completion: drivebench completion bash|zsh.
+Documentation: docs/ (bash scripts/docs.sh serve)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,15 +73,47 @@ def build_parser() -> argparse.ArgumentParser:
         prog="drivebench",
         description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
         "them, build datasets, train and serve networks.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser.add_argument("--version", action="version", version=f"drivebench {_version()}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMANDS:
         module.add(commands)
+    completion = commands.add_parser(
+        "completion", help="print the shell completion script for bash or zsh (generated from this parser)"
+    )
+    completion.add_argument("shell", choices=("bash", "zsh"))
+    completion.set_defaults(func=command_completion)
     return parser
 
 
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("drivebench")
+    except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def command_completion(args: argparse.Namespace) -> int:
+    """``drivebench completion bash|zsh``: shtab's script for the whole parser, on stdout.
+
+    bash: ``drivebench completion bash > ~/.local/share/bash-completion/completions/drivebench``;
+    zsh: ``drivebench completion zsh > "${fpath[1]}/_drivebench"``."""
+    import shtab
+
+    print(shtab.complete(build_parser(), shell=args.shell))
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:  # `drivebench` alone: the help, as git and docker do
+        parser.print_help()
+        return EXIT_OK
     exit_on_sigterm()  # SIGTERM stops the stack as cleanly as Ctrl-C does
     try:
         return args.func(args)
@@ -68,6 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     except (StackError, BusError) as error:
         kind = f" ({error.kind})" if isinstance(error, StackFailure) else ""
         print(f"drivebench: the stack could not run{kind}: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    except ModuleNotFoundError as error:
+        extra = EXTRA_OF_MODULE.get((error.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(
+            f"drivebench: this needs {error.name}, which is not installed: pip install 'drivebench[{extra}]' "
+            "(or bash scripts/setup.sh, which installs every extra)",
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import json
 import os
 import sys
 import tempfile
@@ -23,13 +25,19 @@ def add(commands: argparse._SubParsersAction) -> None:
         "brains", help="list brains, check one against the brain contract, write the wire contract's JSON Schemas"
     )
     sub = brains.add_subparsers(dest="brains_command", required=True)
-    sub.add_parser("list", help="every brain known by name, and where it comes from (built-in or which package)")
+    listing = sub.add_parser(
+        "list", help="every brain known by name, and where it comes from (built-in or which package)"
+    )
+    listing.add_argument("--json", action="store_true", help="one JSON array on stdout instead of the table")
     check = sub.add_parser(
         "check",
         help="run the brain contract on a brain, one line per check with the fix for "
         "each failure (exit 1 if any fails)",
     )
     check.add_argument("brain", help="name, installed brain, package.module:Class, or a Behavior Metrics brain file")
+    check.add_argument(
+        "--json", action="store_true", help="one JSON array of the checks on stdout (name, status, detail, fix)"
+    )
     check.add_argument("--weights", type=Path, metavar="CKPT", help="checkpoint of a neural brain")
     check.add_argument(
         "--brain-option",
@@ -62,21 +70,33 @@ def add(commands: argparse._SubParsersAction) -> None:
 
 def run_brains_command(args: argparse.Namespace) -> int:
     if args.brains_command == "list":
-        return _list()
+        return _list(as_json=args.json)
     if args.brains_command == "check":
         return _check(args)
     return _schema(args.output)
 
 
-def _list() -> int:
+def _list(*, as_json: bool) -> int:
     from brains.registry import brain_sources
 
     sources = brain_sources()
-    width = max(len(source.name) for source in sources)
-    for source in sources:
-        print(f"{source.name:<{width}}  {source.origin:<40} {source.target}")
+    if as_json:
+        rows = [{"name": source.name, "origin": source.origin, "target": source.target} for source in sources]
+        print(json.dumps(rows, indent=2))
+        return 0
+    width = max(len(source.name) for source in [*sources, _HEADER])
+    origin_width = max(len(source.origin) for source in [*sources, _HEADER])
+    for source in [_HEADER, *sources]:
+        print(f"{source.name:<{width}}  {source.origin:<{origin_width}}  {source.target}")
     print("\nalso: --brain package.module:Class, or a Behavior Metrics brain file path/to/brain.py", file=sys.stderr)
     return 0
+
+
+class _Heading:
+    name, origin, target = "name", "from", "made by"
+
+
+_HEADER = _Heading()
 
 
 def brain_option_dict(items: list[str], weights: Path | None) -> dict[str, Any]:
@@ -108,6 +128,7 @@ def _check(args: argparse.Namespace) -> int:
     if not args.brain_timeout > 0:
         raise UsageError(f"--brain-timeout must be positive, got {args.brain_timeout}")
     print(f"checking brain {args.brain!r} on rendered frames of simple ...", file=sys.stderr)
+    _import_pybullet_quietly()
     results = []
     stage = ["make"]
 
@@ -125,7 +146,8 @@ def _check(args: argparse.Namespace) -> int:
                 progress=progress,
             ):
                 results.append(result)
-                report(result.line())
+                if not args.json:
+                    report(result.line())
         except KeyboardInterrupt:
             print(
                 f"{args.brain}: interrupted during {stage[0]}; {len(results)} check(s) done, above "
@@ -133,11 +155,30 @@ def _check(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return EXIT_INTERRUPTED
+    if args.json:
+        print(json.dumps([dataclasses.asdict(result) for result in results], indent=2))
     failures = sum(result.status == "fail" for result in results)
     print(
         f"{args.brain}: " + (f"{failures} check(s) failed" if failures else "meets the brain contract"), file=sys.stderr
     )
     return 0 if passed(results) else 1
+
+
+def _import_pybullet_quietly() -> None:
+    """PyBullet's C code writes its build time to file descriptor 2 when first imported; the checker renders frames
+    with it, so import it here, with fd 2 on /dev/null, and the report's stderr holds only our lines."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                import pybullet  # noqa: F401
+            except ImportError:  # no simulator installed: the checker says so itself
+                pass
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 BRAIN_OUTPUT_SHOWN = 5  # lines of what the brain printed, shown on stderr after the report

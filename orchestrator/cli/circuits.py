@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -13,7 +14,8 @@ from orchestrator.cli.errors import EXIT_OK, UsageError
 def add(commands: argparse._SubParsersAction) -> None:
     circuits = commands.add_parser("circuits", help="list, show and import circuits")
     circuit_commands = circuits.add_subparsers(dest="circuits_command", required=True)
-    circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
+    listing = circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
+    listing.add_argument("--json", action="store_true", help="one JSON array on stdout instead of the table")
     show = circuit_commands.add_parser("show", help="a top-down picture of a circuit (start point and direction)")
     show.add_argument("name", help="circuit name (also random:SEED, twisty:SEED)")
     show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
@@ -28,22 +30,44 @@ def add(commands: argparse._SubParsersAction) -> None:
     circuits.set_defaults(func=command_circuits)
 
 
+GENERATED = (
+    ("random:SEED", "400-1500", "3.0", "generated from the seed: a spline, gentle bends"),
+    ("twisty:SEED", "400-1500", "3.0", "generated from the seed: straights and 8.5-12 m hairpins"),
+)
+
+
+def _list(*, as_json: bool) -> None:
+    """Every circuit; a user's circuit that cannot load is listed with the reason, never hides the others."""
+    found: list[dict[str, object]] = []
+    for name in circuit_names():
+        try:
+            circuit = load_circuit(name)
+        except CircuitError as error:
+            found.append({"name": name, "length_m": None, "road_width_m": None, "source": f"cannot load: {error}"})
+            continue
+        width_m = round(2 * circuit.road_half_width_m, 3)
+        found.append(
+            {"name": name, "length_m": round(circuit.length_m, 1), "road_width_m": width_m, "source": circuit.source}
+        )
+    if as_json:
+        generated = [{"name": row[0], "length_m": None, "road_width_m": 3.0, "source": row[3]} for row in GENERATED]
+        print(json.dumps(found + generated, indent=2))
+        return
+    rows = [("name", "lap (m)", "road (m)", "source")]
+    for item in found:
+        length = "-" if item["length_m"] is None else f"{item['length_m']:.1f}"
+        width = "-" if item["road_width_m"] is None else f"{item['road_width_m']:.1f}"
+        rows.append((str(item["name"]), length, width, str(item["source"])))
+    rows += GENERATED
+    widths = [max(len(row[i]) for row in rows) for i in range(3)]
+    for row in rows:
+        print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")
+
+
 def command_circuits(args: argparse.Namespace) -> int:
     try:
         if args.circuits_command == "list":
-            rows = [("name", "lap (m)", "road (m)", "source")]
-            for name in circuit_names():
-                try:
-                    circuit = load_circuit(name)
-                except CircuitError as error:  # one broken user file must not hide the others
-                    rows.append((name, "-", "-", f"cannot load: {error}"))
-                    continue
-                rows.append((name, f"{circuit.length_m:.1f}", f"{2 * circuit.road_half_width_m:.1f}", circuit.source))
-            rows.append(("random:SEED", "400-1500", "3.0", "generated from the seed: a spline, gentle bends"))
-            rows.append(("twisty:SEED", "400-1500", "3.0", "generated from the seed: straights and 8.5-12 m hairpins"))
-            widths = [max(len(row[i]) for row in rows) for i in range(3)]
-            for row in rows:
-                print(f"{row[0]:<{widths[0]}}  {row[1]:>{widths[1]}}  {row[2]:>{widths[2]}}  {row[3]}")
+            _list(as_json=args.json)
         elif args.circuits_command == "show":
             from circuits.picture import save_circuit_picture
 

@@ -19,6 +19,14 @@ from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED,
 from orchestrator.cli.ray import add_ray_options, ray_options_from
 from orchestrator.cli.run import add_scene_options
 
+MATRIX_EXAMPLES = """examples:
+  drivebench matrix experiments/smoke.yaml -o runs/smoke                  eight short episodes, then the report
+  drivebench matrix experiments/generalization.yaml --plan --json         the planned episodes; nothing starts
+  drivebench matrix experiments/generalization.yaml --workers 2 -o runs/gen --record
+  drivebench matrix experiments/generalization.yaml -o runs/gen --resume  after Ctrl-C, SIGKILL or a crash
+  drivebench matrix experiments/generalization.yaml --ray auto -o runs/gen --artifacts /shared/gen
+"""
+
 
 def add(commands: argparse._SubParsersAction) -> None:
     matrix = commands.add_parser(
@@ -26,6 +34,8 @@ def add(commands: argparse._SubParsersAction) -> None:
         help="run a test matrix (brains x circuits x variations x perturbations x repetitions) and report",
         description="Run every episode of a matrix file, each on its own stack, results into DIR/results.sqlite "
         "as each episode ends, then write DIR/report.html and report.md.",
+        epilog=MATRIX_EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     matrix.add_argument("file", type=Path, help="matrix file (YAML)")
     add_run_options(matrix, default_out="runs/matrix-<name>-<time>", default_workers=1)
@@ -66,6 +76,9 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
         "--retry-failed", action="store_true", help="with --resume: also run again the episodes the stack failed"
     )
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
+    parser.add_argument(
+        "--json", action="store_true", help="with --plan: the planned episodes as one JSON array (index, key, spec)"
+    )
     # camera and variations come from the matrix file; the renderer may be overridden for every episode
     add_scene_options(
         parser,
@@ -157,11 +170,20 @@ def run_matrix_args(
     ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
     facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix.runner import MatrixRunner, ProgressDisplay, RunOptions, plan_table, summary_line
+    from orchestrator.matrix.runner import (
+        MatrixRunner,
+        ProgressDisplay,
+        RunOptions,
+        plan_json,
+        plan_table,
+        summary_line,
+    )
 
     if args.plan:
-        print(plan_table(matrix))
+        print(plan_json(matrix) if args.json else plan_table(matrix))
         return EXIT_OK
+    if args.json:
+        raise UsageError("--json goes with --plan (a matrix's results are in DIR/results.sqlite and episodes.csv)")
     _check_run_options(args, what=what)
     ray_options = _ray_options(args)
     # On a cluster, "auto" is resolved by each node's simulator: this machine's EGL says nothing about theirs.

@@ -11,6 +11,7 @@ drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fnmatch
 import functools
 import json
@@ -50,6 +51,9 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     recorder_commands = recorder.add_subparsers(dest="recorder_command", required=True)
     info = recorder_commands.add_parser("info", help="channels, message counts, episodes of a recording")
     info.add_argument("file", type=Path)
+    info.add_argument(
+        "--json", action="store_true", help="one JSON object on stdout: messages, duration, channels, metadata"
+    )
     info.set_defaults(func=_usage_errors(_info))
     repair = recorder_commands.add_parser("repair", help="recover everything readable from a killed recorder's file")
     repair.add_argument("file", type=Path, help="a .mcap.part file, or a truncated .mcap")
@@ -237,6 +241,20 @@ def _merge(args: argparse.Namespace) -> int:
 
 def _info(args: argparse.Namespace) -> int:
     info = recording_info(args.file)
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "path": str(info.path),
+                    "messages": info.messages,
+                    "duration_s": info.duration_s,
+                    "channels": [dataclasses.asdict(channel) for channel in info.channels],
+                    "metadata": info.metadata,
+                },
+                indent=2,
+            )
+        )
+        return EXIT_OK
     print(f"{info.path}: {info.messages} messages over {info.duration_s:.1f} s of recording time")
     width = max((len(c.topic) for c in info.channels), default=10)
     for channel in sorted(info.channels, key=lambda c: c.topic):

@@ -19,6 +19,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import yaml
@@ -44,7 +45,7 @@ def parse_camera(text: str) -> tuple[int, int]:
 
 
 def add_scene_options(
-    parser: argparse.ArgumentParser, *, renderer_default: str, camera: bool = True, variation: bool = True
+    parser: argparse._ActionsContainer, *, renderer_default: str, camera: bool = True, variation: bool = True
 ) -> None:
     """``--camera``, ``--renderer`` and ``--variation`` with one help text for every command that takes them (run,
     dataset collect, matrix), so they cannot drift apart; only the default, which differs by command, is stated per
@@ -75,25 +76,49 @@ def add_scene_options(
         )
 
 
+RUN_EXAMPLES = """examples:
+  drivebench run                                              the explicit brain, one lap of simple
+  drivebench run --circuit montmelo --camera 640x480 --laps 2
+  drivebench run --brain my_module:MyBrain --brain-option speed_mps=4
+  drivebench run --brain deepest_lstm_tiny_pilotnet --variation line=white --noise salt_pepper=0.2
+  drivebench run --record runs/simple.mcap --json              record everything; the score as JSON on stdout
+  drivebench run --config runs/20261202-101500-ab12cd34/config.yaml    run a run again, as it was
+  drivebench run --attach --router tcp/10.0.0.5:7447           drive on a stack that is already running
+
+exit codes: 0 the episode ran (whatever the brain did), 1 the stack could not run, 2 a usage mistake
+"""
+
+
 def add(commands: argparse._SubParsersAction) -> None:
-    run = commands.add_parser("run", help="drive one episode on a local stack and print its metrics")
-    run.add_argument("--circuit", default="simple", help="circuit name (default: simple)")
-    run.add_argument(
+    run = commands.add_parser(
+        "run",
+        help="drive one episode on a local stack and print its metrics",
+        description="Drive one episode on a local stack (every component its own process) and print its metrics.\n"
+        "The run folder keeps the resolved config, the score and every process's log.",
+        epilog=RUN_EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    world = run.add_argument_group("world", "the circuit, what the world looks like and what the brain's camera sees")
+    world.add_argument("--circuit", default="simple", help="circuit name (default: simple; drivebench circuits list)")
+    world.add_argument(
         "--direction",
         choices=("forward", "reverse"),
         default="forward",
         help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
         "way round (default: forward; also --variation direction=reverse)",
     )
-    _add_brain_options(run)
-    _add_episode_options(run)
-    _add_run_folder_options(run)
-    _add_attach_options(run)
-    _add_output_options(run)
+    add_scene_options(world, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
+    _add_noise_option(world)
+    _add_brain_options(run.add_argument_group("brain", "who drives, and who watches"))
+    _add_episode_options(run.add_argument_group("episode", "limits, seed and pacing"))
+    output = run.add_argument_group("output", "the run folder, what is printed and recorded")
+    _add_run_folder_options(output)
+    _add_output_options(output)
+    _add_attach_options(run.add_argument_group("attach", "drive on a stack that is already running"))
     run.set_defaults(func=command_run)
 
 
-def _add_brain_options(run: argparse.ArgumentParser) -> None:
+def _add_brain_options(run: argparse._ActionsContainer) -> None:
     """The driving brain, its weights and options, and shadow brains."""
     run.add_argument(
         "--brain",
@@ -123,20 +148,17 @@ def _add_brain_options(run: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_episode_options(run: argparse.ArgumentParser) -> None:
-    """What the episode is: limits, scene, perturbations, seed, pacing."""
+def _add_episode_options(run: argparse._ActionsContainer) -> None:
+    """What the episode is: limits, seed, pacing; or all of it from a run folder's config.yaml."""
+    run.add_argument(
+        "--config",
+        type=Path,
+        metavar="RUN/config.yaml",
+        help="run the episode and brains of an earlier run again, exactly (its config.yaml); the options of the "
+        "world, brain and episode groups are then not taken",
+    )
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
-    add_scene_options(run, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
-    run.add_argument(
-        "--noise",
-        action="append",
-        default=[],
-        metavar="MODEL[=VALUE]",
-        help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
-        "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
-        "drop=0.1",
-    )
     run.add_argument("--seed", type=int, default=0, help="seed of every random generator (default: 0)")
     run.add_argument(
         "--realtime",
@@ -152,7 +174,19 @@ def _add_episode_options(run: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_run_folder_options(run: argparse.ArgumentParser) -> None:
+def _add_noise_option(run: argparse._ActionsContainer) -> None:
+    run.add_argument(
+        "--noise",
+        action="append",
+        default=[],
+        metavar="MODEL[=VALUE]",
+        help="camera perturbation, applied in order (repeatable): salt_pepper=0.2, gaussian=10, "
+        "blur=5, brightness=-0.3, occlusion:patches=2,size_fraction=0.3, jpeg=40, delay=2, "
+        "drop=0.1",
+    )
+
+
+def _add_run_folder_options(run: argparse._ActionsContainer) -> None:
     """The run id and where the run folder goes."""
     run.add_argument(
         "--run-id",
@@ -163,7 +197,7 @@ def _add_run_folder_options(run: argparse.ArgumentParser) -> None:
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run folders go (default: runs)")
 
 
-def _add_attach_options(run: argparse.ArgumentParser) -> None:
+def _add_attach_options(run: argparse._ActionsContainer) -> None:
     """Driving on a stack that is already running instead of starting one."""
     run.add_argument(
         "--attach",
@@ -185,7 +219,7 @@ def _add_attach_options(run: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_output_options(run: argparse.ArgumentParser) -> None:
+def _add_output_options(run: argparse._ActionsContainer) -> None:
     """What the run prints and records."""
     run.add_argument("--json", action="store_true", help="print the final score as one JSON object on stdout")
     run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the whole run to this MCAP file")
@@ -197,34 +231,65 @@ def _add_output_options(run: argparse.ArgumentParser) -> None:
     )
 
 
+@contextlib.contextmanager
+def flag(text: str):
+    """A mistake in one option's value as one line that starts with the option as the user typed it
+    (``--camera 0x0: width_px must be within 8..4096, got 0``)."""
+    try:
+        yield
+    except (ValueError, CircuitError, UnknownBrainError) as error:  # VariationError, the specs' own checks
+        raise UsageError(f"{text}: {error}") from None
+
+
+SPEC_FLAGS = {"laps": "laps", "max_sim_seconds": "max_sim_seconds", "brain_timeout_s": "brain_timeout"}
+
+
+@contextlib.contextmanager
+def spec_flags(args: argparse.Namespace):
+    """EpisodeSpec's own checks name the field first (``laps must be >= 1, got 0``): name the option instead."""
+    try:
+        yield
+    except ValueError as error:
+        field = str(error).split(" ", 1)[0]
+        dest = SPEC_FLAGS.get(field)
+        where = f"--{dest.replace('_', '-')} {getattr(args, dest)}" if dest else "drivebench run"
+        raise UsageError(f"{where}: {error}") from None
+
+
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
-    try:
+    with flag(f"--circuit {args.circuit}"):
         load_circuit(args.circuit)
-    except CircuitError as error:
-        raise UsageError(str(error)) from None
     width, height = args.camera
-    try:
+    with flag(f"--camera {width}x{height}"):
+        camera = CameraSpec(width_px=width, height_px=height)
+    noise = []
+    for item in args.noise:
+        with flag(f"--noise {item}"):
+            noise.append(noise_stage(item))
+    with flag(f"--brain {args.brain}"):
+        brain = args.brain if args.attach else bus_name(args.brain)
+    with spec_flags(args):
         spec = EpisodeSpec(
             circuit=args.circuit,
             laps=args.laps,
             max_sim_seconds=args.max_sim_seconds,
             seed=args.seed,
             realtime=args.realtime,
-            camera=CameraSpec(width_px=width, height_px=height),
-            active_brain=args.brain if args.attach else bus_name(args.brain),
+            camera=camera,
+            active_brain=brain,
             brain_timeout_s=args.brain_timeout,
-            noise=[noise_stage(item) for item in args.noise],
+            noise=noise,
             direction=args.direction,
             renderer=choose_renderer(args.renderer, local=not args.attach),
         )
-        for variation in args.variation:
+    for variation in args.variation:
+        with flag(f"--variation {variation}"):
             spec = apply_variation(spec, variation)
-        from services.noise.models import require_extras
+    from services.noise.models import require_extras
 
+    with flag("--noise"):
         require_extras(spec.noise)  # BM's perturbations without albumentations: one line now, not a dead injector
-        return spec
-    except ValueError as error:  # VariationError, MissingExtra and the specs' own checks
-        raise UsageError(str(error)) from None
+    return spec
 
 
 def command_run(args: argparse.Namespace) -> int:
@@ -232,15 +297,7 @@ def command_run(args: argparse.Namespace) -> int:
         return command_run_attached(args)
     if args.router is not None:
         raise UsageError("--router needs --attach (without it, drivebench run starts its own router)")
-    args.brain = args.brain or "explicit"
-    spec = episode_spec(args)
-    options = tuple(args.brain_option)
-    if args.weights is not None:
-        if not args.weights.is_file():
-            raise UsageError(f"--weights: no such file {args.weights}")
-        options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
-    brains = [BrainLaunch(args.brain, options=options)]
-    brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
+    spec, brains = run_from_config(args.config) if args.config else run_from_options(args)
     try:
         preflight_launches(brains)  # bad weights or options: one line now, not a dead brain after start-up
     except ValueError as error:
@@ -256,7 +313,10 @@ def command_run(args: argparse.Namespace) -> int:
             {
                 "run_id": run_id,
                 "episode": msgspec.to_builtins(spec),
-                "brains": [{"brain": b.brain, "name": b.bus_name, "options": list(b.options)} for b in brains],
+                "brains": [
+                    {"brain": b.brain, "name": b.bus_name, "options": list(b.options), "host": list(b.host)}
+                    for b in brains
+                ],
             },
             sort_keys=False,
         )
@@ -296,6 +356,52 @@ def command_run(args: argparse.Namespace) -> int:
     elif args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
+
+
+def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainLaunch]]:
+    args.brain = args.brain or "explicit"
+    with flag(f"--brain {args.brain}"):
+        require_brain(args.brain)
+    spec = episode_spec(args)
+    options = tuple(args.brain_option)
+    if args.weights is not None:
+        if not args.weights.is_file():
+            raise UsageError(f"--weights: no such file {args.weights}")
+        options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
+    brains = [BrainLaunch(args.brain, options=options)]
+    brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
+    return spec, brains
+
+
+class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=False):
+    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched."""
+
+    episode: EpisodeSpec
+    brains: list[dict[str, Any]]
+
+
+def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
+    """The episode and brains of an earlier run (``--config RUN/config.yaml``), checked as the options would be."""
+    if not path.is_file():
+        raise UsageError(f"--config {path}: no such file")
+    try:
+        config = msgspec.convert(yaml.safe_load(path.read_text()), RunConfig)
+        brains = [
+            BrainLaunch(
+                str(entry["brain"]),
+                name=str(entry.get("name", "")),
+                options=tuple(entry.get("options", ())),
+                host=tuple(entry.get("host", ())),
+            )
+            for entry in config.brains
+        ]
+    except (yaml.YAMLError, msgspec.ValidationError, KeyError, TypeError) as error:
+        raise UsageError(f"--config {path}: not a run's config.yaml ({error})") from None
+    if not brains:
+        raise UsageError(f"--config {path}: names no brain")
+    with flag(f"--config {path}"):
+        load_circuit(config.episode.circuit)
+    return config.episode, brains
 
 
 @contextlib.contextmanager

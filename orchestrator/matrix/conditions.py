@@ -18,6 +18,7 @@ from orchestrator.matrix.schema import items
 from protocol.deploy.typed_yaml import Document
 from protocol.deploy.typed_yaml import Path as At
 from protocol.messages import NOISE_MODELS, EpisodeSpec, NoiseStage
+from protocol.suggest import did_you_mean
 
 # The protocol's own lists of world and camera variation keys (it has no public name for them).
 from protocol.variations import (
@@ -86,7 +87,10 @@ def read_variation_value(document: Document, value: Any, path: At, *, key: str) 
 
 def _check_variation_key(document: Document, path: At, key: str) -> None:
     if key not in VARIATION_KEYS:
-        raise document.error(path, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)})", at_key=True)
+        hint = did_you_mean(key, VARIATION_KEYS)
+        raise document.error(
+            path, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)}){hint}", at_key=True
+        )
 
 
 def read_axes(document: Document, variations: dict[str, Any] | None, path: At) -> list[Axis]:

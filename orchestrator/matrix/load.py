@@ -95,11 +95,12 @@ from protocol.deploy.typed_yaml import Document, compose, convert
 from protocol.deploy.typed_yaml import Path as At
 from protocol.keys import check_name
 from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.suggest import did_you_mean
 from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer
 
 MAX_EPISODES = 100_000  # a typo in repetitions should fail here, not exhaust memory
-# Without `renderer:` or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: README).
+# Without `renderer:` or $DRIVEBENCH_RENDERER: auto, gl where EGL works (parity: docs/guides/renderers.md).
 MATRIX_RENDERER = environment.RENDERER_BY_COMMAND["matrix"]
 
 _CAMERA_SIZE = re.compile(r"\s*(\d+)\s*[xX]\s*(\d+)\s*")
@@ -219,7 +220,7 @@ def _circuit(document: Document, value: Any, path: At) -> str:
         raise document.error(
             path,
             f"unknown circuit {name!r} (known: {', '.join(circuit_names())}, "
-            f"or {GENERATED_NAMES}; see `drivebench circuits list`)",
+            f"or {GENERATED_NAMES}; see `drivebench circuits list`)" + did_you_mean(name, circuit_names()),
         )
     return name
 

@@ -484,12 +484,16 @@ class ProgressDisplay:
 
 
 def _result_line(result: EpisodeResult) -> str:
-    """``explicit/simple/default/none/r0: laps_completed, lap 57.9 s (21.3 s wall)`` or the failure."""
+    """``explicit/simple/default/none/r0: laps_completed, BM lap 57.20 s (21.3 s wall)`` or the failure: the lap
+    time the report's tables give (BM lap seconds; the arc-length lap when BM counts no lap), named as there."""
     wall = f"({result.wall_s:.1f} s wall)"
     if result.status == "failed":
         return f"{result.key}: FAILED {result.failure} {wall}"
     metrics = result.score.metrics
-    lap = f", lap {metrics.lap_times_s[0]:.2f} s" if metrics.lap_times_s else ""
+    if metrics.bm_lap_seconds is not None:
+        lap = f", BM lap {metrics.bm_lap_seconds:.2f} s"
+    else:
+        lap = f", lap (arc length) {metrics.lap_times_s[0]:.2f} s" if metrics.lap_times_s else ""
     return (
         f"{result.key}: {result.reason}{lap}, {metrics.percentage_completed:.0f} % of a lap in "
         f"{metrics.sim_time_s:.1f} s sim {wall}"
@@ -512,4 +516,21 @@ def plan_table(matrix: Matrix) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["MatrixRunner", "RunOptions", "MatrixProgress", "ProgressDisplay", "summary_line", "plan_table"]
+def plan_json(matrix: Matrix) -> str:
+    """The planned episodes as one JSON array (``drivebench matrix FILE --plan --json``)."""
+    episodes = [
+        {"index": episode.index, "key": episode.key, "spec": msgspec.to_builtins(episode.spec)}
+        for episode in matrix.episodes
+    ]
+    return json.dumps(episodes, indent=2)
+
+
+__all__ = [
+    "MatrixRunner",
+    "RunOptions",
+    "MatrixProgress",
+    "ProgressDisplay",
+    "summary_line",
+    "plan_table",
+    "plan_json",
+]

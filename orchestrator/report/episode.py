@@ -28,7 +28,7 @@ def metrics_table(score: EpisodeScore) -> str:
         ),
         ("ended by", f"{score.reason} ({score.detail})" if score.detail else str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),
-        ("lap times", f"{laps} s"),
+        ("lap times (arc length)", f"{laps} s"),
         ("progress", f"{_fmt(m.progress_m, ' m', 1)} ({_fmt(m.progress_laps * 100, ' %', 1)})"),
         (
             "cross-track |e| mean / rms / max",

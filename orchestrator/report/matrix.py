@@ -286,7 +286,10 @@ class _Report(ReportPlots):
                 )
         legend = (
             "Each figure is mean ± sample standard deviation over the repetitions (the mean alone for one). "
-            "Lap (s): BM lap seconds (first lap), over the episodes that completed it only. Position deviation: "
+            "Lap (s): BM lap seconds (first lap: Behavior Metrics' own lap time, from its 5 m checkpoints, the one "
+            "the paper's tables use), over the episodes that completed it only. `drivebench run` also prints "
+            "'lap times (arc length)', timed at full resolution from the progress along the centre line: the two "
+            "differ by about 1 % (57.93 s and 57.20 s for the explicit brain on simple). Position deviation: "
             "Behavior Metrics' `position_deviation_mae`, the mean of 1000^d over the circuit's checkpoints, d being "
             "a checkpoint's distance in metres to the car's path (1: on it, 2: 0.1 m off, 31.6: 0.5 m off, 1000: "
             "1 m off); not metres. Cross-track: |distance| of the car to the centre line, in metres. Completed: BM "
@@ -536,7 +539,8 @@ class _Report(ReportPlots):
 
 
 _CELL_LEGEND = (
-    f"A cell: the mean first-lap time (s) when every repetition reached its lap target; otherwise "
+    f"A cell: the mean first-lap time (s, BM lap seconds, as in every table here) when every repetition reached its "
+    f"lap target; otherwise "
     f"{FAIL_MARK} with the most common way the others ended (end reason, or the stack failure's kind) and "
     "how many of the cell's episodes ended that way."
 )

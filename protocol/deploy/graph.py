@@ -9,7 +9,7 @@ service(s) that run it. Everything that used to spell the graph out by hand read
 only
   what it serves, query only what it queries, declare only its own token);
 * ``orchestrator.compose_files`` generates ``compose.yaml``, ``compose.secure.yaml`` and ``deploy/secure/router.yaml``
-  from it, and the README's architecture table (tests fail when the committed files differ);
+  from it, and the process table of docs/architecture.md (tests fail when the committed files differ);
 * ``drivebench health ROLE`` takes its roles from it.
 
 Adding a process role is one row here (then ``python -m orchestrator.compose_files --write``).
@@ -53,11 +53,11 @@ class Role:
     """One process role of the graph."""
 
     name: str  # the role in access rules and in ``drivebench health``
-    summary: str  # what it is, for the README's architecture table
+    summary: str  # what it is, for the process table of docs/architecture.md
     module: str  # ``python -m MODULE`` runs it ("" for a role only ``drivebench`` subcommands play)
-    source: str  # where its code lives, for the README
-    consumes: str  # what it takes, in words, for the README
-    produces: str  # what it gives, in words, for the README
+    source: str  # where its code lives, for that table
+    consumes: str  # what it takes, in words, for that table
+    produces: str  # what it gives, in words, for that table
     alive_as: str = ""  # the role in its liveliness token (default: ``name``); "" with ``token=None``: none
     token: str | None = ""  # the name in its liveliness token: fixed ("sim") or "" for its own ``--name``
     publishes: tuple[str, ...] = ()

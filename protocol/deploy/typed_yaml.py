@@ -20,6 +20,8 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
+from protocol.suggest import did_you_mean
+
 T = TypeVar("T")
 Path = tuple[Hashable, ...]  # keys of mappings and indexes of lists, from the top
 
@@ -190,8 +192,56 @@ def convert(
     try:
         return msgspec.convert(data, type_)
     except msgspec.ValidationError as error:
-        fault = explain(error, type_, data, path=path, what=what)
-        raise document.error(fault.path, fault.message, at_key=fault.at_key) from None
+        faults = _every_fault(explain(error, type_, data, path=path, what=what), data, type_, path=path, what=what)
+    first, *more = [document.error(fault.path, fault.message, at_key=fault.at_key) for fault in faults]
+    if more:  # one line per mistake, the first as before; the CLI prints them all
+        first.args = ("\n".join(str(found) for found in (first, *more)),)
+    raise first
+
+
+MAX_FAULTS = 10  # mistakes reported at once: enough for a file typed by hand, short enough to read
+
+
+def _every_fault(fault: Fault, data: Any, type_: Any, *, path: Path, what: str) -> list[Fault]:
+    """``fault`` and the next ones msgspec finds once each faulty value is left out (up to :data:`MAX_FAULTS`).
+
+    msgspec stops at the first mistake; leaving that value out and converting again finds the next. A value whose
+    absence is itself a mistake ("is missing") ends the search: that would report our removal, not the file."""
+    faults = [fault]
+    while len(faults) < MAX_FAULTS and "is missing" not in fault.message:
+        data = _without(data, fault.path[len(path) :])
+        if data is None:
+            break
+        try:
+            msgspec.convert(data, type_)
+            break
+        except msgspec.ValidationError as error:
+            fault = explain(error, type_, data, path=path, what=what)
+        if fault in faults or "is missing" in fault.message:
+            break
+        faults.append(fault)
+    return faults
+
+
+def _without(data: Any, relative: Path) -> Any:
+    """A copy of ``data`` without the value at ``relative`` (None where there is no such value to leave out)."""
+    if not relative:
+        return None
+    head, rest = relative[0], relative[1:]
+    if isinstance(data, dict) and head in data:
+        inner = {key: value for key, value in data.items() if key != head}
+        if rest:
+            child = _without(data[head], rest)
+            if child is None:
+                return None
+            inner[head] = child
+        return inner
+    if isinstance(data, list) and isinstance(head, int) and 0 <= head < len(data):
+        if not rest:
+            return None  # leaving an item out would shift the others' paths and lines
+        child = _without(data[head], rest)
+        return None if child is None else [*data[:head], child, *data[head + 1 :]]
+    return None
 
 
 def explain(error: msgspec.ValidationError, type_: Any, data: Any, *, path: Path = (), what: str = "the file") -> Fault:
@@ -209,8 +259,10 @@ def explain(error: msgspec.ValidationError, type_: Any, data: Any, *, path: Path
     if field:
         if field[1] == "missing required":
             return Fault(where, f"{subject} is missing {field[2]!r}")
-        allowed = ", ".join(_field_names(value_type, value))
-        return Fault((*where, field[2]), f"unknown key {field[2]!r} in {subject} (allowed: {allowed})", at_key=True)
+        names = _field_names(value_type, value)
+        hint = did_you_mean(field[2], names)
+        message = f"unknown key {field[2]!r} in {subject} (allowed: {', '.join(names)}){hint}"
+        return Fault((*where, field[2]), message, at_key=True)
     if text.startswith("Invalid enum value"):
         allowed = ", ".join(str(choice) for choice in _literal_values(value_type))
         return Fault(where, f"{subject} must be one of {allowed}, got {value!r}")

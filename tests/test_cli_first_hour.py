@@ -1,0 +1,251 @@
+"""The CLI as a newcomer meets it: help with no arguments, --version, shell completion, did-you-mean, errors that
+name the option typed, --json on the list and inspect commands, every mistake of a matrix file at once, run --config,
+and the README's runnable commands run as written."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from needs import require
+
+ROOT = Path(__file__).resolve().parent.parent
+LEGACY_RECORDING = ROOT / "tests" / "fixtures" / "legacy-run-topics.mcap"
+
+
+def drivebench(*args: str, timeout: float = 120, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=cwd
+    )
+
+
+def one_error_line(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 2, result
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    return lines[0]
+
+
+def test_drivebench_alone_prints_the_help_with_every_command():
+    result = drivebench()
+    assert result.returncode == 0, result.stderr
+    for command in ("run", "matrix", "brains", "circuits", "completion", "examples:"):
+        assert command in result.stdout
+    assert result.stderr == ""
+
+
+def test_version_is_the_installed_distributions():
+    from importlib import metadata
+
+    result = drivebench("--version")
+    assert (result.returncode, result.stdout.strip()) == (0, f"drivebench {metadata.version('drivebench')}")
+
+
+def test_bash_completion_is_valid_bash_that_knows_the_commands_and_options():
+    script = drivebench("completion", "bash").stdout
+    assert "matrix" in script and "--circuit" in script and "--max-sim-seconds" in script
+    bash = shutil.which("bash")
+    assert bash is not None
+    checked = subprocess.run([bash, "-n"], input=script, capture_output=True, text=True)
+    assert checked.returncode == 0, checked.stderr
+    zsh = drivebench("completion", "zsh").stdout
+    assert zsh.startswith("#compdef drivebench") and "--brain-timeout" in zsh
+
+
+@pytest.mark.parametrize(
+    ("args", "starts", "suggests"),
+    [
+        (["run", "--circuit", "simpel"], "--circuit simpel: unknown circuit 'simpel'", "did you mean 'simple'?"),
+        (["run", "--brain", "explicti"], "--brain explicti: unknown brain 'explicti'", "did you mean 'explicit'?"),
+        (["run", "--noise", "salt_peper=0.2"], "--noise salt_peper=0.2: unknown noise model", "'salt_pepper'?"),
+        (["run", "--variation", "lien=red"], "--variation lien=red: unknown variation 'lien'", "'line'?"),
+        (["run", "--variation", "camera=lefft"], "--variation camera=lefft: unknown camera preset", "'left'?"),
+        (["run", "--camera", "0x0"], "--camera 0x0: width_px must be within 8..4096, got 0", ""),
+        (["run", "--laps", "0"], "--laps 0: laps must be >= 1, got 0", ""),
+    ],
+)
+def test_a_bad_option_is_one_line_that_names_it_as_typed_and_suggests_the_closest_name(args, starts, suggests):
+    line = one_error_line(drivebench(*args))
+    assert line.startswith(f"drivebench: error: {starts}"), line
+    assert line.endswith(suggests), line
+
+
+def test_no_suggestion_when_nothing_is_close():
+    line = one_error_line(drivebench("run", "--circuit", "atlantis"))
+    assert "did you mean" not in line
+
+
+def test_every_schema_mistake_of_a_matrix_file_is_reported_at_once(tmp_path):
+    path = tmp_path / "m.yaml"
+    path.write_text(
+        "name: m\nbrains: [explicit]\ncircuits: [simple]\nlimit: {laps: 1}\nrepetitions: many\n"
+        "camera: {width_px: 0, heigth_px: 9}\n"
+    )
+    result = drivebench("matrix", str(path), "--plan")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert lines[0] == (
+        f"drivebench: error: {path}:4: unknown key 'limit' in the matrix (allowed: circuits, variations, worlds, "
+        "perturbations, repetitions, limits, exclude, include, name, brains, shadows, camera, seed, realtime, "
+        "renderer, parts); did you mean 'limits'?"
+    )
+    assert lines[1:3] == [
+        f"{path}:5: repetitions must be an integer, got 'many'",
+        f"{path}:6: camera.width_px must be an integer >= 8, got 0",
+    ]
+    assert lines[3].startswith(f"{path}:6: unknown key 'heigth_px' in camera") and "'height_px'?" in lines[3]
+
+
+def test_list_and_inspect_commands_print_json():
+    circuits = json.loads(drivebench("circuits", "list", "--json").stdout)
+    simple = next(c for c in circuits if c["name"] == "simple")
+    assert 400 < simple["length_m"] < 500 and simple["road_width_m"] == 3.0
+    brains = json.loads(drivebench("brains", "list", "--json").stdout)
+    assert {"name": "explicit", "origin": "built-in", "target": "brains.explicit.brain:ExplicitBrain"} in brains
+    plan_text = drivebench("matrix", "experiments/generalization.yaml", "--plan", cwd=ROOT).stdout.splitlines()
+    plan = json.loads(drivebench("matrix", "experiments/generalization.yaml", "--plan", "--json", cwd=ROOT).stdout)
+    assert len(plan) == len(plan_text) - 1 == 16
+    assert [episode["key"] for episode in plan] == [line.split()[1] for line in plan_text[1:]]
+    assert plan[0]["spec"]["circuit"] == "simple" and plan[0]["spec"]["seed"] == 7
+    info = json.loads(drivebench("recorder", "info", str(LEGACY_RECORDING), "--json").stdout)
+    assert info["messages"] == sum(channel["messages"] for channel in info["channels"]) > 0
+
+
+def test_brains_list_has_a_header_row():
+    lines = drivebench("brains", "list").stdout.splitlines()
+    assert lines[0].split()[:2] == ["name", "from"]
+    assert any(line.startswith("explicit ") for line in lines[1:])
+
+
+def test_brains_check_shows_no_third_party_banner():
+    result = drivebench("brains", "check", "explicit", "--memory-steps", "5")
+    assert result.returncode == 0, result.stderr
+    assert "pybullet" not in result.stderr.lower() and "pybullet" not in result.stdout.lower()
+    assert "PASS  act" in result.stdout
+
+
+def test_run_help_groups_its_options_and_ends_with_examples():
+    text = drivebench("run", "--help").stdout
+    for group in ("world:", "brain:", "episode:", "output:", "attach:"):
+        assert f"\n{group}\n" in text, group
+    groups = text[text.index("\nworld:\n") :]  # past the usage line
+    assert groups.index("--circuit") < groups.index("\nbrain:\n") < groups.index("--shadow")
+    assert "examples:" in text and "drivebench run --config" in text
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_run_folders_config_runs_the_same_episode_again(tmp_path):
+    first = drivebench(
+        "run",
+        "--circuit",
+        "nurburgring",
+        "--noise",
+        "gaussian=8",
+        "--seed",
+        "3",
+        "--max-sim-seconds",
+        "6",
+        "--json",
+        "--out",
+        str(tmp_path / "first"),
+        timeout=180,
+    )
+    assert first.returncode == 0, first.stderr
+    again = drivebench(
+        "run", "--config", str(tmp_path / "first" / "config.yaml"), "--json", "--out", str(tmp_path / "again")
+    )
+    assert again.returncode == 0, again.stderr
+    before, after = json.loads(first.stdout), json.loads(again.stdout)
+    assert after["spec"] == before["spec"] and before["spec"]["circuit"] == "nurburgring"
+    for metric in ("progress_m", "cross_track_mean_m", "cross_track_max_m"):
+        assert after["metrics"][metric] == before["metrics"][metric], metric
+    assert before["header"]["run_id"] != after["header"]["run_id"]
+
+
+def test_a_bad_config_file_is_one_line(tmp_path):
+    path = tmp_path / "config.yaml"
+    path.write_text("episode: {circuit: simple}\n")
+    line = one_error_line(drivebench("run", "--config", str(path)))
+    assert line.startswith(f"drivebench: error: --config {path}: not a run's config.yaml")
+
+
+RUNNABLE = re.compile(r"<!-- runnable -->\n```bash\n(.*?)```", re.S)
+
+
+def readme_runnable_commands() -> list[str]:
+    commands = []
+    for block in RUNNABLE.findall((ROOT / "README.md").read_text()):
+        commands += [line.split("#", 1)[0].strip() for line in block.splitlines() if line.split("#", 1)[0].strip()]
+    return commands
+
+
+def test_the_readme_marks_commands_as_runnable():
+    commands = readme_runnable_commands()
+    assert len(commands) >= 4 and all(command.startswith("drivebench ") for command in commands), commands
+
+
+@pytest.mark.slow
+def test_the_readmes_runnable_commands_run_as_written():
+    for command in readme_runnable_commands():
+        result = drivebench(*shlex.split(command)[1:], cwd=ROOT)
+        assert result.returncode == 0, f"{command}: {result.stderr}"
+        assert result.stdout.strip(), command
+
+
+def _docs_hooks():
+    spec = importlib.util.spec_from_file_location("docs_hooks", ROOT / "scripts" / "docs_hooks.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_docs_cli_reference_is_every_command_of_the_parser():
+    require("mkdocs")  # the docs extra, which scripts/setup.sh installs
+    reference = _docs_hooks().cli_reference()
+    for heading in (
+        "## drivebench run",
+        "## drivebench matrix",
+        "## drivebench recorder info",
+        "## drivebench completion",
+    ):
+        assert f"\n{heading}\n" in reference, heading
+    assert "--max-sim-seconds" in reference and "--record-images" in reference
+    messages = _docs_hooks().messages_reference(ROOT / "docs" / "protocol")
+    assert "## Command" in messages and "| `speed_mps` |" in messages
+
+
+@pytest.mark.slow
+def test_the_readmes_own_brain_meets_the_brain_contract(tmp_path):
+    """The README's brain, written to the file it names, checked as the README says (from its folder)."""
+    block = re.search(r"```python\n(# (\w+)\.py, in the folder.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert block is not None, "the README's own-brain example is gone"
+    (tmp_path / f"{block.group(2)}.py").write_text(block.group(1))
+    classes = re.findall(r"^class (\w+)", block.group(1), re.M)
+    result = drivebench("brains", "check", f"{block.group(2)}:{classes[0]}", "--memory-steps", "5", cwd=tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "meets the brain contract" in result.stderr
+
+
+def test_a_command_that_needs_a_missing_extra_names_what_to_install():
+    """scripts/demo.sh's lean set has no torch: a network brain says which extra it needs, in one line (the
+    interpreter is told torch is absent, as it is in that set)."""
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from orchestrator.cli import main\n"
+        "sys.exit(main(['run', '--brain', 'deepest_lstm_tiny_pilotnet', '--max-sim-seconds', '1']))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip() == (
+        "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
+        "(or bash scripts/setup.sh, which installs every extra)"
+    )
