@@ -32,7 +32,7 @@ from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.messages import RENDERERS, CameraSpec, EpisodeScore, EpisodeSpec
-from protocol.variations import apply_variation, noise_stage
+from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
 
@@ -219,6 +219,7 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         )
         for variation in args.variation:
             spec = apply_variation(spec, variation)
+        check_look(spec)
         return spec
     except ValueError as error:  # VariationError and the specs' own checks
         raise UsageError(str(error)) from None

@@ -20,7 +20,7 @@ import numpy as np
 
 from circuits import Circuit
 from protocol import environment
-from protocol.messages import RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
+from protocol.messages import LOOK_RENDERERS, RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 
 log = logging.getLogger("drivebench.simulator")
@@ -104,7 +104,13 @@ def resolve_spec(spec: EpisodeSpec) -> EpisodeSpec:
 
 
 def make_scene(circuit: Circuit, world: WorldVariation, *, renderer: str) -> Renderer:
-    """A scene of ``circuit`` with ``world`` drawn by ``renderer`` ("pybullet" or "gl"; resolve "auto" first)."""
+    """A scene of ``circuit`` with ``world`` drawn by ``renderer`` ("pybullet" or "gl"; resolve "auto" first).
+
+    RendererUnavailable when ``renderer`` cannot draw ``world.look`` (the commands check that before starting)."""
+    if renderer not in LOOK_RENDERERS[world.look]:
+        raise RendererUnavailable(
+            f"renderer {renderer} cannot draw look={world.look} (it needs {' or '.join(LOOK_RENDERERS[world.look])})"
+        )
     if renderer == "pybullet":
         from services.simulator.scene import Scene
 
