@@ -19,6 +19,8 @@ Deterministic: the same pose gives the same pixels on one machine (no time, no r
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from protocol.messages import CameraSpec
@@ -209,7 +211,10 @@ class GazeboPasses:
         self._sky_program["clouds"].value = 3
         self._sky_vbo = ctx.buffer(np.array([-1, -1, 3, -1, -1, 3], dtype="f4").tobytes())
         self._sky_vao = ctx.vertex_array(self._sky_program, [(self._sky_vbo, "2f", "in_ndc")])
-        self._shadow_map = self._shadow_framebuffer = self._shadow_vao = self._shadow_program = None
+        self._shadow_map: Any = None
+        self._shadow_framebuffer: Any = None
+        self._shadow_vao: Any = None
+        self._shadow_program: Any = None
         if light.shadows:
             self._shadow_map = ctx.depth_texture((SHADOW_MAP_PX, SHADOW_MAP_PX))
             self._shadow_map.compare_func = "<="

@@ -27,12 +27,16 @@ from __future__ import annotations
 
 import os
 import threading
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from circuits import Circuit
 from protocol.messages import CameraSpec, WorldVariation
 from services.simulator.car import CarState
+
+if TYPE_CHECKING:
+    from services.simulator.gl_gazebo import GazeboPasses
 from services.simulator.world import (
     SceneDescription,
     camera_eye_and_axes,
@@ -122,8 +126,10 @@ class GLScene:
         self.circuit = description.circuit
         self.cull_margin_m = cull_margin_m
         self._ctx = gl_context()
-        self._gazebo = None
-        self._program = self._vbo = self._vao = None
+        self._gazebo: GazeboPasses | None = None
+        self._program: Any = None
+        self._vbo: Any = None
+        self._vao: Any = None
         if description.look == "gazebo":
             from services.simulator.gl_gazebo import GazeboPasses
 
@@ -234,8 +240,9 @@ class GLScene:
                 attachment.release()
             framebuffer.release()
         self._framebuffers = {}
-        if getattr(self, "_gazebo", None) is not None:
-            self._gazebo.release()
+        gazebo = getattr(self, "_gazebo", None)
+        if gazebo is not None:
+            gazebo.release()
             self._gazebo = None
         for name in ("_vao", "_vbo", "_program"):
             resource = getattr(self, name, None)

@@ -139,7 +139,8 @@ def describe_gazebo(circuit: Circuit, world: WorldVariation) -> SceneDescription
     if world.line != "none":
         meshes += _strip(points, normals, width / 2, LINE_HEIGHT_M, LINE_COLOURS[world.line], "line")
     for side in (1.0, -1.0):  # edge lines just inside the road edge, clear of the wall's foot
-        meshes += _strip(points + side * (half - 1.5 * width) * normals, normals, width / 2, LINE_HEIGHT_M, edge, "edge")
+        edge_centre = points + side * (half - 1.5 * width) * normals
+        meshes += _strip(edge_centre, normals, width / 2, LINE_HEIGHT_M, edge, "edge")
     if world.walls:
         for side in (1.0, -1.0):
             meshes += _wall(points + side * half * normals, circuit.wall_height_m, rgba=grey, normals=normals)
