@@ -130,4 +130,3 @@ def cloud_texture(size_px: int = 256) -> np.ndarray:
     noise = _tileable_noise(rng, size_px, slope=1.6, low_cut=1, high_cut=size_px // 4)
     cover = np.clip((noise - 0.4) / 1.4, 0.0, 1.0)  # about a third of the sky clouded
     return np.rint(255 * cover).astype(np.uint8)
-
