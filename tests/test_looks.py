@@ -9,7 +9,9 @@ them and fail in CI, which installs the gl extra (scripts/setup.sh).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 import subprocess
 import sys
 
@@ -205,3 +207,21 @@ def test_randomised_recipe_draws_looks_only_when_asked_and_leaves_other_draws_al
             b.world.walls,
             b.world.lighting,
         )
+
+
+@pytest.mark.integration
+def test_run_draws_the_gazebo_look_with_gl_when_no_renderer_is_named(tmp_path):
+    require_gl()
+    env = {key: value for key, value in os.environ.items() if key != "DRIVEBENCH_RENDERER"}
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "run", "--variation", "look=gazebo", "--max-sim-seconds", "2"]
+        + ["--camera", "160x120", "--json", "--out", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert result.returncode == 0, result.stderr
+    score = json.loads(result.stdout)
+    assert score["spec"]["renderer"] == "gl" and score["spec"]["world"]["look"] == "gazebo"
+    assert score["metrics"]["steps"] == 40

@@ -61,7 +61,8 @@ def add_scene_options(
         "--renderer",
         choices=RENDERERS,
         help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same scene, "
-        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default}",
+        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default} "
+        "(look=gazebo: auto)",
     )
     if variation:
         parser.add_argument(
@@ -70,8 +71,9 @@ def add_scene_options(
             default=[],
             metavar="KEY=VALUE,...",
             help="world and camera variation, applied in order (repeatable), e.g. line=white,road=white,walls=off,"
-            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
-            "direction=reverse",
+            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1, "
+            "direction=reverse or look=gazebo (textured, shaded, shadowed, as Behavior Metrics' Gazebo worlds; "
+            "gl renderer only, and run's default renderer becomes auto)",
         )
 
 
@@ -215,10 +217,14 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
             brain_timeout_s=args.brain_timeout,
             noise=[noise_stage(item) for item in args.noise],
             direction=args.direction,
-            renderer=choose_renderer(args.renderer, local=not args.attach),
         )
         for variation in args.variation:
             spec = apply_variation(spec, variation)
+        # Only gl draws the gazebo look: there the default is auto (gl where EGL works), not run's pybullet.
+        fallback = "auto" if spec.world.look != "flat" else environment.RENDERER_BY_COMMAND["run"]
+        spec = msgspec.structs.replace(
+            spec, renderer=choose_renderer(args.renderer, fallback=fallback, local=not args.attach)
+        )
         check_look(spec)
         return spec
     except ValueError as error:  # VariationError and the specs' own checks
