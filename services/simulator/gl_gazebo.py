@@ -39,7 +39,7 @@ from services.simulator.looks import (
 )
 from services.simulator.world import SceneDescription
 
-SHADOW_MAP_PX = 2048
+SHADOW_MAP_PX = 1024
 SHADOW_BOX_HALF_M = 17.0  # the view frustum to 15 m (90 deg wide) fits in a sphere of 16.8 m around its middle
 SHADOW_DEPTH_M = 50.0
 MATERIAL_IDS = {"flat": 0.0, "asphalt": 1.0, "grass": 2.0, "wall": 3.0}
@@ -98,11 +98,13 @@ float sunlit(vec3 n) {
     vec4 p = shadow_from_world * vec4(v_world + 0.02 * n, 1.0);
     vec3 q = p.xyz * 0.5 + 0.5;
     if (q.x <= 0.0 || q.y <= 0.0 || q.x >= 1.0 || q.y >= 1.0) return 1.0;
+    // Four bilinear comparison taps (the sampler filters linearly): a soft 3x3-texel edge.
     float lit = 0.0;
-    for (int i = -1; i <= 1; i++)
-        for (int j = -1; j <= 1; j++)
-            lit += texture(shadow_map, vec3(q.xy + vec2(i, j) * shadow_texel, q.z - shadow_bias));
-    return lit / 9.0;
+    for (int i = 0; i < 4; i++) {
+        vec2 offset = vec2(float(i & 1) - 0.5, float(i >> 1) - 0.5) * shadow_texel;
+        lit += texture(shadow_map, vec3(q.xy + offset, q.z - shadow_bias));
+    }
+    return 0.25 * lit;
 }
 
 void main() {
@@ -221,9 +223,12 @@ class GazeboPasses:
         self._shadow_vao: Any = None
         self._shadow_program: Any = None
         if light.shadows:
+            import moderngl
+
             self._shadow_map = ctx.depth_texture((SHADOW_MAP_PX, SHADOW_MAP_PX))
             self._shadow_map.compare_func = "<="
             self._shadow_map.repeat_x = self._shadow_map.repeat_y = False
+            self._shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)  # bilinear comparison: 2x2 samples a tap
             self._shadow_framebuffer = ctx.framebuffer(depth_attachment=self._shadow_map)
             self._shadow_program = ctx.program(vertex_shader=_SHADOW_VERTEX, fragment_shader=_SHADOW_FRAGMENT)
             self._shadow_vao = ctx.vertex_array(self._shadow_program, [(self._vbo, "3f 36x", "in_position")])
