@@ -225,3 +225,19 @@ def test_run_draws_the_gazebo_look_with_gl_when_no_renderer_is_named(tmp_path):
     score = json.loads(result.stdout)
     assert score["spec"]["renderer"] == "gl" and score["spec"]["world"]["look"] == "gazebo"
     assert score["metrics"]["steps"] == 40
+
+
+@pytest.mark.integration
+def test_run_refuses_the_gazebo_look_where_auto_falls_back_to_pybullet(tmp_path):
+    env = {**os.environ, "GLCONTEXT_LINUX_LIBEGL": "/nonexistent/libEGL.so.1"}  # no EGL: auto means pybullet
+    env.pop("DRIVEBENCH_RENDERER", None)
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "run", "--variation", "look=gazebo", "--out", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+    assert result.returncode == 2, result.stderr
+    assert "look=gazebo needs the gl renderer: renderer auto: using pybullet (" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "r").exists()

@@ -223,7 +223,8 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         # Only gl draws the gazebo look: there the default is auto (gl where EGL works), not run's pybullet.
         fallback = "auto" if spec.world.look != "flat" else environment.RENDERER_BY_COMMAND["run"]
         spec = msgspec.structs.replace(
-            spec, renderer=choose_renderer(args.renderer, fallback=fallback, local=not args.attach)
+            spec,
+            renderer=choose_renderer(args.renderer, fallback=fallback, local=not args.attach, look=spec.world.look),
         )
         check_look(spec)
         return spec

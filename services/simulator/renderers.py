@@ -79,15 +79,22 @@ def resolve_renderer(requested: str) -> Resolution:
 
 
 def choose_renderer(
-    requested: str | None, *, fallback: str = environment.RENDERER_BY_COMMAND["run"], local: bool = True
+    requested: str | None,
+    *,
+    fallback: str = environment.RENDERER_BY_COMMAND["run"],
+    local: bool = True,
+    look: str = "flat",
 ) -> str:
     """The renderer a command puts in its specs: ``requested`` (--renderer), else $DRIVEBENCH_RENDERER, else
     ``fallback``. For a stack started here (``local``) "auto" is resolved now, its notice printed on stderr in one
-    line, and "gl" is checked; an attached stack's simulator resolves it there. ValueError says what is wrong."""
+    line, and "gl" is checked; an attached stack's simulator resolves it there. ValueError says what is wrong,
+    RendererUnavailable (one line) where "auto" falls back to a renderer that cannot draw ``look``."""
     name = requested or default_renderer(fallback)
     if not local:
         return name
     resolution = resolve_renderer(name)
+    if resolution.notice and resolution.name not in LOOK_RENDERERS[look]:
+        raise RendererUnavailable(f"look={look} needs the gl renderer: {resolution.notice}")
     if resolution.notice:
         print(f"drivebench: {resolution.notice}", file=sys.stderr)
     return resolution.name
