@@ -8,8 +8,9 @@ can be drawn is measured side by side, interleaved so that all see the same mach
   * pipeline: ``drivebench run``'s stack (router, simulator, noise injector, brain host, scorer processes),
     lock-step over Zenoh (real-time factor).
 
-The pybullet renderer cannot draw the gazebo look: its row says so (the line a user gets). The last column is the
-frame cost over the flat look's on the same renderer (gl).
+The pybullet renderer cannot draw the gazebo look: its row says so (the line a user gets). The last columns are the
+frame cost over the flat look's on the same renderer (gl), in wall time and in CPU time (this process's, which a
+shared machine's load moves far less).
 
     .venv/bin/python benchmarks/looks.py [--sim-seconds 10] [--repeats 2] [--sizes 320x240,640x480]
         [--circuits simple,montreal]
@@ -42,16 +43,20 @@ LOOKS = (("pybullet", "flat"), ("pybullet", "gazebo"), ("gl", "flat"), ("gl", "g
 FRAME_POSES = 24
 
 
-def frame_s(spec: EpisodeSpec, scenes: SceneCache) -> float:
-    """Median seconds of one frame over poses spread round the circuit (the scene built beforehand)."""
+def frame_s(spec: EpisodeSpec, scenes: SceneCache) -> tuple[float, float]:
+    """Median wall and CPU seconds of one frame over poses spread round the circuit (the scene built beforehand).
+
+    CPU: this process's, llvmpipe's rendering thread included (it runs in the process); on a shared machine it
+    moves far less with the load than the wall time does."""
     circuit = load_circuit(spec.circuit)
     scene = scenes.get(circuit, spec.world, renderer=spec.renderer)
-    times = []
+    wall, cpu = [], []
     for car in parity_poses(circuit, count=FRAME_POSES):
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.process_time()
         scene.render(car, spec.camera)
-        times.append(time.perf_counter() - started)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - started)
+        cpu.append(time.process_time() - started_cpu)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def specs_for(args, size: tuple[int, int], circuit: str) -> tuple[dict[tuple[str, str], EpisodeSpec], list[str]]:
@@ -73,14 +78,16 @@ def specs_for(args, size: tuple[int, int], circuit: str) -> tuple[dict[tuple[str
 
 def measure(args, scenes: SceneCache, stack: LocalStack, specs: dict, progress) -> dict:
     """(renderer, look) -> median frame seconds, in-process and pipeline steps per second."""
-    results: dict = {key: {"frame": [], "in-process": [], "pipeline": []} for key in specs}
+    results: dict = {key: {"frame": [], "frame cpu": [], "in-process": [], "pipeline": []} for key in specs}
     for spec in specs.values():  # warm: scene build, GL context, textures
         warm = msgspec.structs.replace(spec, max_sim_seconds=0.5)
         in_process_steps_per_s(warm, scenes)
         pipeline_steps_per_s(warm, stack)
     for _ in range(args.repeats):
         for key, spec in specs.items():  # interleaved
-            results[key]["frame"].append(frame_s(spec, scenes))
+            wall_s, cpu_s = frame_s(spec, scenes)
+            results[key]["frame"].append(wall_s)
+            results[key]["frame cpu"].append(cpu_s)
             results[key]["in-process"].append(in_process_steps_per_s(spec, scenes))
             results[key]["pipeline"].append(pipeline_steps_per_s(spec, stack))
             progress.update()
@@ -88,15 +95,18 @@ def measure(args, scenes: SceneCache, stack: LocalStack, specs: dict, progress) 
 
 
 def print_rows(size: tuple[int, int], circuit: str, measured: dict, refused: list[str], step_s: float) -> None:
-    flat_gl = measured.get(("gl", "flat"), {}).get("frame")
+    flat_gl = measured.get(("gl", "flat"), {})
     for (renderer, look), row in measured.items():
-        ratio = f"{row['frame'] / flat_gl:.2f}" if flat_gl and renderer == "gl" else "-"
+        ratios = "- | -"
+        if flat_gl and renderer == "gl":
+            ratios = f"{row['frame'] / flat_gl['frame']:.2f} | {row['frame cpu'] / flat_gl['frame cpu']:.2f}"
         print(
             f"| {size[0]}x{size[1]} | {circuit} | {renderer} | {look} | {1e3 * row['frame']:.2f} | "
-            f"{row['in-process'] * step_s:.2f}x | {row['pipeline'] * step_s:.2f}x | {ratio} |"
+            f"{1e3 * row['frame cpu']:.2f} | {row['in-process'] * step_s:.2f}x | {row['pipeline'] * step_s:.2f}x | "
+            f"{ratios} |"
         )
     for line in refused:
-        print(f"| {size[0]}x{size[1]} | {circuit} | refused | | {line} | | | |")
+        print(f"| {size[0]}x{size[1]} | {circuit} | {line} | | | | | | | |")
 
 
 def main() -> int:
@@ -124,8 +134,11 @@ def main() -> int:
         f"median render over {FRAME_POSES} poses; lock-step at {1 / step_s:.0f} Hz"
     )
     print()
-    print("| camera | circuit | renderer | look | frame ms | in-process RTF | pipeline RTF | frame / gl flat frame |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| camera | circuit | renderer | look | frame ms | frame CPU ms | in-process RTF | pipeline RTF "
+        "| frame / gl flat | frame CPU / gl flat |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for size, circuit, measured, refused in results:
         print_rows(size, circuit, measured, refused, step_s)
     return 0
