@@ -60,7 +60,7 @@ def frame_s(spec: EpisodeSpec, scenes: SceneCache) -> tuple[float, float]:
 
 
 def specs_for(args, size: tuple[int, int], circuit: str) -> tuple[dict[tuple[str, str], EpisodeSpec], list[str]]:
-    """The drawable (renderer, look) specs, and the refusal line of each that is not."""
+    """The drawable (renderer, look) specs, and the table cells (the refusal) of each that is not."""
     base = EpisodeSpec(
         circuit=circuit, max_sim_seconds=args.sim_seconds, camera=CameraSpec(width_px=size[0], height_px=size[1])
     )
@@ -70,7 +70,7 @@ def specs_for(args, size: tuple[int, int], circuit: str) -> tuple[dict[tuple[str
         try:
             check_look(spec)
         except VariationError as error:
-            refused.append(f"{renderer} / {look}: {error}")
+            refused.append(f"| {renderer} | {look} | refused: `{str(error).split(' (')[0]}` | | | | | |")
             continue
         specs[(renderer, look)] = spec
     return specs, refused
@@ -105,8 +105,8 @@ def print_rows(size: tuple[int, int], circuit: str, measured: dict, refused: lis
             f"{1e3 * row['frame cpu']:.2f} | {row['in-process'] * step_s:.2f}x | {row['pipeline'] * step_s:.2f}x | "
             f"{ratios} |"
         )
-    for line in refused:
-        print(f"| {size[0]}x{size[1]} | {circuit} | {line} | | | | | | | |")
+    for cells in refused:
+        print(f"| {size[0]}x{size[1]} | {circuit} {cells}")
 
 
 def main() -> int:
