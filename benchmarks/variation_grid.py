@@ -1,6 +1,8 @@
-"""A grid of sample frames, one per world variation and camera preset, for the docs (docs/variations.png).
+"""A grid of sample frames, one per world variation and camera preset, for the docs (docs/variations.png), in
+either look (the gazebo look needs the gl renderer: docs/variations_gazebo.png).
 
 .venv/bin/python benchmarks/variation_grid.py [-o docs/variations.png]
+.venv/bin/python benchmarks/variation_grid.py --look gazebo -o docs/variations_gazebo.png
 """
 
 from __future__ import annotations
@@ -35,11 +37,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("-o", "--output", default="docs/variations.png")
     parser.add_argument("--distance-m", type=float, default=48.0, help="where on the simple circuit (arc length)")
+    parser.add_argument("--look", choices=("flat", "gazebo"), default="flat", help="the look (default flat)")
     args = parser.parse_args()
+    renderer = "gl" if args.look == "gazebo" else "pybullet"
     scenes = SceneCache(capacity=2)
     tiles = []
     for text in VARIATIONS:
-        spec = apply_variation(EpisodeSpec(circuit="simple"), text)
+        spec = apply_variation(EpisodeSpec(circuit="simple", renderer=renderer), f"{text},look={args.look}")
         sim = EpisodeSim(spec, scenes=scenes)
         x, y, yaw = sim.circuit.centreline.pose_at(args.distance_m)
         sim.car = type(sim.car)(x_m=x, y_m=y, yaw_rad=yaw)

@@ -23,7 +23,7 @@ from orchestrator.stack.launcher import BrainLaunch, LocalStack
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import environment
 from protocol.messages import CameraSpec, EpisodeSpec
-from protocol.variations import apply_variation, noise_stage
+from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
 DRIVER = "driver"  # bus name of the noisy driver when collecting recovery data
@@ -53,6 +53,8 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
     if not circuits:
         raise CollectError("--circuits needs at least one circuit name")
     directions = ("forward", "reverse") if args.direction == "both" else (args.direction,)
+    if getattr(args, "looks", None) and not getattr(args, "randomise", False):
+        raise CollectError("--looks needs --randomise (without it, pin one look with --variation look=gazebo)")
     try:
         renderer = choose_renderer(getattr(args, "renderer", None), fallback=COLLECT_RENDERER)
     except ValueError as error:
@@ -85,22 +87,25 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                     renderer=renderer,
                 )
                 if getattr(args, "randomise", False):
-                    spec = randomised(spec)
+                    spec = randomised(spec, looks=tuple(getattr(args, "looks", None) or ("flat",)))
                 for variation in args.variation:  # after the draw: what is pinned stays pinned
                     spec = apply_variation(spec, variation)
+                check_look(spec)
             except (CircuitError, ValueError) as error:
                 raise CollectError(str(error)) from None
             specs.append(spec)
     return specs
 
 
-def randomised(spec: EpisodeSpec) -> EpisodeSpec:
+def randomised(spec: EpisodeSpec, *, looks: tuple[str, ...] = ("flat",)) -> EpisodeSpec:
     """The spec in a world, camera mount and camera noise drawn from its seed: domain randomisation.
 
     Every world variation is equally likely (line red / white / none, road grey / white, walls on / off, lighting sun
     / no sun); the camera mount jitters up to 0.08 m sideways and pitches -0.03..0.22 rad down (the paper's rotated
     camera is 0.2 rad); 5 episodes in 11 see a clean camera, the others one of salt and pepper (two draws in six up
-    to 0.7), Gaussian noise, blur, brightness or occlusion. The direction stays what the caller chose.
+    to 0.7), Gaussian noise, blur, brightness or occlusion. The direction stays what the caller chose. The look is
+    drawn from ``looks`` (equally likely) by a generator of its own, so that adding looks leaves every other draw of
+    a seed as it was.
 
     The sideways jitter stays small on purpose: an expert labels from the car's true offset, and a camera moved
     sideways looks exactly like the car moved sideways, so a large random mount turns recovery labels into noise
@@ -129,6 +134,10 @@ def randomised(spec: EpisodeSpec) -> EpisodeSpec:
         "occlusion:patches=2,size_fraction=0.25",
     ]
     noise = noises[int(rng.integers(len(noises)))]
+    if len(looks) > 1:
+        world["look"] = str(np.random.default_rng([spec.seed, 0x100C]).choice(list(looks)))
+    elif looks != ("flat",):
+        world["look"] = looks[0]
     spec = apply_variation(spec, world)
     return msgspec.structs.replace(spec, noise=[noise_stage(noise)] if noise else [])
 

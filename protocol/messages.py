@@ -60,6 +60,9 @@ class EventKind(enum.StrEnum):
 # Driving directions of an episode round its circuit (``EpisodeSpec.direction``).
 DIRECTIONS: tuple[str, ...] = ("forward", "reverse")
 RENDERERS: tuple[str, ...] = ("pybullet", "gl", "auto")  # EpisodeSpec.renderer
+LOOKS: tuple[str, ...] = ("flat", "gazebo")  # WorldVariation.look
+# The renderers that draw each look ("auto" picks gl, and fails the look where it falls back to pybullet).
+LOOK_RENDERERS: dict[str, tuple[str, ...]] = {"flat": ("pybullet", "gl", "auto"), "gazebo": ("gl", "auto")}
 
 # Bounds of spec fields, one table for both places that check them: a spec built in code (``__post_init__``, via
 # :func:`check_bounds`) and a matrix file (``orchestrator.matrix.schema``, as msgspec constraints at the value's line;
@@ -107,18 +110,22 @@ class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     line: centre line colour, "red", "white" or "none". road: "grey" (asphalt) or "white".
     walls: 0.5 m walls on both road edges; without them grass is seen beyond the road edge.
     lighting: "sun" (flat, bright) or "no_sun" (darker, as BM's *_no_sun worlds).
+    look: "flat" (flat colours: the parity reference both renderers draw) or "gazebo" (textured asphalt and grass,
+        shading, shadows and a cloudy sky as Behavior Metrics' Gazebo worlds; the gl renderer only).
     """
 
     line: str = "red"
     road: str = "grey"
     walls: bool = True
     lighting: str = "sun"
+    look: str = "flat"
 
     def __post_init__(self) -> None:
         for field_name, allowed in (
             ("line", ("red", "white", "none")),
             ("road", ("grey", "white")),
             ("lighting", ("sun", "no_sun")),
+            ("look", LOOKS),
         ):
             if getattr(self, field_name) not in allowed:
                 raise ValueError(f"{field_name} must be one of {', '.join(allowed)}, got {getattr(self, field_name)!r}")

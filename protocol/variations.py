@@ -1,6 +1,7 @@
 """Short forms of world variations, camera presets and noise stages, for command lines and matrix files.
 
     apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun,direction=reverse")
+    apply_variation(spec, "look=gazebo")  ->  then check_look(spec) once the renderer is known
     noise_stage("salt_pepper=0.2")  ->  SaltPepper(probability=0.2)
     noise_stage("rain")  ->  Rain()   (Behavior Metrics' perturbations take no parameters)
     noise_stage({"occlusion": {"patches": 2, "size_fraction": 0.3}})
@@ -15,7 +16,7 @@ from typing import Any
 import msgspec
 import yaml
 
-from protocol.messages import DIRECTIONS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+from protocol.messages import DIRECTIONS, LOOK_RENDERERS, LOOKS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
 from protocol.suggest import did_you_mean
 
 
@@ -41,7 +42,7 @@ _CAMERA_KEYS = {
     "camera_yaw_rad": "yaw_rad",
     "camera_hfov_rad": "hfov_rad",
 }
-_WORLD_KEYS = ("line", "road", "walls", "lighting")
+_WORLD_KEYS = ("line", "road", "walls", "lighting", "look")
 WORLD_KEYS: tuple[str, ...] = _WORLD_KEYS  # variation keys that change the world
 CAMERA_KEYS: tuple[str, ...] = ("camera", *_CAMERA_KEYS)  # variation keys that move the camera
 ROUTE_KEYS: tuple[str, ...] = ("direction",)  # variation keys that change the route driven, not the pictures
@@ -91,6 +92,8 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
             if walls is None:
                 raise VariationError(f"walls must be on or off, got {value!r}")
             world["walls"] = walls
+        elif key == "look" and value not in LOOKS:
+            raise VariationError(f"unknown look {value!r} (looks: {', '.join(LOOKS)})")
         elif key in _WORLD_KEYS:
             world[key] = str(value)
         elif key == "camera":
@@ -116,6 +119,17 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
         )
     except msgspec.ValidationError as error:
         raise VariationError(str(error)) from None
+
+
+def check_look(spec: EpisodeSpec) -> None:
+    """VariationError (one line naming the choices) when ``spec.renderer`` cannot draw ``spec.world.look``."""
+    look, renderer = spec.world.look, spec.renderer
+    if renderer not in LOOK_RENDERERS[look]:
+        raise VariationError(
+            f"look={look} needs renderer {' or '.join(LOOK_RENDERERS[look])}, got renderer {renderer} "
+            f"(looks: {', '.join(LOOKS)}; renderer {renderer} draws look="
+            f"{', '.join(name for name, renderers in LOOK_RENDERERS.items() if renderer in renderers)})"
+        )
 
 
 def noise_stage(item: str | dict[str, Any]) -> NoiseStage:

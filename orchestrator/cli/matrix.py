@@ -150,7 +150,20 @@ def _resolve_renderers(matrix, requested: str | None, *, here: bool = True):
                 raise UsageError(f"{matrix.name}: {error}") from None
         return chosen[wanted]
 
-    return with_renderer(matrix, choose)
+    matrix = with_renderer(matrix, choose)
+    _check_looks(matrix)
+    return matrix
+
+
+def _check_looks(matrix) -> None:
+    """Every episode's look drawable by its renderer, before the first episode (one line naming the choices)."""
+    from protocol.variations import VariationError, check_look
+
+    for episode in matrix.episodes:
+        try:
+            check_look(episode.spec)
+        except VariationError as error:
+            raise UsageError(f"{matrix.name}: {error}") from None
 
 
 def run_matrix_args(

@@ -111,6 +111,13 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
         "--brain expert, which drives on ground truth); --variation pins what it names, e.g. "
         "line=none,walls=off, and the rest is still drawn",
     )
+    collect.add_argument(
+        "--looks",
+        type=_looks,
+        metavar="LOOK,LOOK",
+        help="with --randomise: the looks each episode draws from, e.g. flat,gazebo (default flat; gazebo needs "
+        "the gl renderer)",
+    )
     collect.add_argument("--max-sim-seconds", type=float, default=600.0, help="limit per circuit (default 600)")
     collect.add_argument(
         "--recovery-noise",
@@ -122,6 +129,16 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     )
     _add_build_options(collect)
     collect.set_defaults(func=_usage_errors(_collect))
+
+
+def _looks(text: str) -> tuple[str, ...]:
+    from protocol.messages import LOOKS
+
+    looks = tuple(dict.fromkeys(item.strip() for item in text.split(",") if item.strip()))
+    unknown = [look for look in looks if look not in LOOKS]
+    if not looks or unknown:
+        raise argparse.ArgumentTypeError(f"unknown look {', '.join(unknown) or text!r} (looks: {', '.join(LOOKS)})")
+    return looks
 
 
 def _add_build_options(parser: argparse.ArgumentParser) -> None:

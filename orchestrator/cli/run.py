@@ -33,7 +33,7 @@ from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.messages import RENDERERS, CameraSpec, EndReason, EpisodeScore, EpisodeSpec
-from protocol.variations import apply_variation, noise_stage
+from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
 
@@ -62,7 +62,8 @@ def add_scene_options(
         "--renderer",
         choices=RENDERERS,
         help="camera renderer: pybullet (TinyRenderer, the reference), gl (OpenGL on headless EGL, same scene, "
-        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default}",
+        f"~10x faster) or auto (gl where EGL works, else pybullet); default: {renderer_default} "
+        "(look=gazebo: auto)",
     )
     if variation:
         parser.add_argument(
@@ -71,8 +72,9 @@ def add_scene_options(
             default=[],
             metavar="KEY=VALUE,...",
             help="world and camera variation, applied in order (repeatable), e.g. line=white,road=white,walls=off,"
-            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1 or "
-            "direction=reverse",
+            "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1, "
+            "direction=reverse or look=gazebo (textured, shaded, shadowed, as Behavior Metrics' Gazebo worlds; "
+            "gl renderer only, and run's default renderer becomes auto)",
         )
 
 
@@ -280,11 +282,20 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
             brain_timeout_s=args.brain_timeout,
             noise=noise,
             direction=args.direction,
-            renderer=choose_renderer(args.renderer, local=not args.attach),
         )
     for variation in args.variation:
         with flag(f"--variation {variation}"):
             spec = apply_variation(spec, variation)
+    # Only gl draws the gazebo look: there the default is auto (gl where EGL works), not run's pybullet.
+    fallback = "auto" if spec.world.look != "flat" else environment.RENDERER_BY_COMMAND["run"]
+    try:
+        spec = msgspec.structs.replace(
+            spec,
+            renderer=choose_renderer(args.renderer, fallback=fallback, local=not args.attach, look=spec.world.look),
+        )
+        check_look(spec)
+    except ValueError as error:  # VariationError: a look this renderer cannot draw
+        raise UsageError(str(error)) from None
     from services.noise.models import require_extras
 
     with flag("--noise"):

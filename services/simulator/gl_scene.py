@@ -27,12 +27,16 @@ from __future__ import annotations
 
 import os
 import threading
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from circuits import Circuit
 from protocol.messages import CameraSpec, WorldVariation
 from services.simulator.car import CarState
+
+if TYPE_CHECKING:
+    from services.simulator.gl_gazebo import GazeboPasses
 from services.simulator.world import (
     SceneDescription,
     camera_eye_and_axes,
@@ -122,13 +126,24 @@ class GLScene:
         self.circuit = description.circuit
         self.cull_margin_m = cull_margin_m
         self._ctx = gl_context()
-        self._program = self._ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-        self._program["light_towards"].value = description.light_towards
-        self._program["ambient"].value = description.ambient
-        self._program["diffuse"].value = description.diffuse
-        vertices, self._first, self._count = _triangle_soup(description)
-        self._vbo = self._ctx.buffer(vertices.tobytes())
-        self._vao = self._ctx.vertex_array(self._program, [(self._vbo, "3f 3f", "in_position", "in_colour")])
+        self._gazebo: GazeboPasses | None = None
+        self._program: Any = None
+        self._vbo: Any = None
+        self._vao: Any = None
+        if description.look == "gazebo":
+            from services.simulator.gl_gazebo import GazeboPasses
+
+            self._gazebo = GazeboPasses(self._ctx, description)
+            self._first, self._count = self._gazebo.first, self._gazebo.count
+        else:
+            self._program = self._ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+            self._program["light_towards"].value = description.light_towards
+            self._program["ambient"].value = description.ambient
+            self._program["diffuse"].value = description.diffuse
+            vertices, self._first, self._count = _triangle_soup(description)
+            self._vbo = self._ctx.buffer(vertices.tobytes())
+            self._vao = self._ctx.vertex_array(self._program, [(self._vbo, "3f 3f", "in_position", "in_colour")])
+        self._is_wall = np.array([mesh.kind == "wall" for mesh in description.meshes])
         self._centres = np.stack([mesh.centre_m for mesh in description.meshes])
         self._radii = np.array([mesh.radius_m for mesh in description.meshes])
         self._framebuffers: dict[tuple[int, int], object] = {}
@@ -137,7 +152,7 @@ class GLScene:
 
     @classmethod
     def for_world(cls, circuit: Circuit, world: WorldVariation) -> GLScene:
-        """The scene of ``circuit`` with a world variation (line, road, walls, lighting)."""
+        """The scene of ``circuit`` with a world variation (line, road, walls, lighting, look)."""
         return cls(describe_world(circuit, world))
 
     @property
@@ -158,8 +173,8 @@ class GLScene:
             self._framebuffers[(width_px, height_px)] = framebuffer
         return framebuffer
 
-    def _visible_runs(self, eye: np.ndarray, far_m: float) -> list[tuple[int, int]]:
-        """(first vertex, vertex count) of each run of consecutive chunks to draw.
+    def _visible(self, eye: np.ndarray, far_m: float) -> np.ndarray:
+        """Which chunks to draw (bool per chunk).
 
         Unlike the PyBullet scene, the grass is not hidden when the walls occlude it: here the depth test rejects
         its pixels for less than the centre-line projection that decides it costs (measured: 0.13 ms a frame).
@@ -171,6 +186,16 @@ class GLScene:
             gaps = np.sqrt(np.einsum("ij,ij->i", offsets, offsets)) - self._radii
             draw = gaps <= far_m + self.cull_margin_m
         self.visible_chunk_count = int(draw.sum())
+        return draw
+
+    def _visible_runs(self, eye: np.ndarray, far_m: float) -> list[tuple[int, int]]:
+        """(first vertex, vertex count) of each run of consecutive chunks to draw."""
+        return self._runs(self._visible(eye, far_m))
+
+    def _runs(self, draw: np.ndarray) -> list[tuple[int, int]]:
+        """(first vertex, vertex count) of each run of consecutive chunks where ``draw`` is set."""
+        if not draw.any():
+            return []
         # Runs of consecutive drawn chunks: one draw call each.
         edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
         starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
@@ -180,16 +205,30 @@ class GLScene:
 
     def render(self, car: CarState, camera: CameraSpec) -> np.ndarray:
         """The camera image for the car at ``car``: height_px x width_px x 3 uint8 RGB, row 0 at the top."""
-        eye, _, _ = camera_eye_and_axes(car, camera)
-        clip_from_world = _tinyrenderer_sampling(camera) @ view_matrix(car, camera)
-        self._program["clip_from_world"].write(clip_from_world.T.astype("f4").tobytes())  # GL wants column-major
+        eye, forward, up = camera_eye_and_axes(car, camera)
+        projection = _tinyrenderer_sampling(camera)
+        clip_from_world = projection @ view_matrix(car, camera)
         width, height = camera.width_px, camera.height_px
         framebuffer = self._framebuffer(width, height)
-        framebuffer.use()
-        self._ctx.enable(self._ctx.DEPTH_TEST | self._ctx.CULL_FACE)
-        framebuffer.clear(*self._sky, 1.0, depth=1.0)
-        for first, count in self._visible_runs(eye, camera.far_m):
-            self._vao.render(first=first, vertices=count)
+        if self._gazebo is not None:
+            draw = self._visible(eye, camera.far_m)
+            self._gazebo.draw(
+                framebuffer=framebuffer,
+                clip_from_world=clip_from_world,
+                eye=eye,
+                camera_axes=(forward, up),
+                camera=camera,
+                projection=projection,
+                runs=self._runs(draw),
+                wall_runs=self._runs(draw & self._is_wall) if self._gazebo.shadows else [],
+            )
+        else:
+            self._program["clip_from_world"].write(clip_from_world.T.astype("f4").tobytes())  # GL: column-major
+            framebuffer.use()
+            self._ctx.enable(self._ctx.DEPTH_TEST | self._ctx.CULL_FACE)
+            framebuffer.clear(*self._sky, 1.0, depth=1.0)
+            for first, count in self._visible_runs(eye, camera.far_m):
+                self._vao.render(first=first, vertices=count)
         data = framebuffer.read(components=3, alignment=1)
         # GL's rows run bottom-up; flipped into a fresh, writeable, C-contiguous array.
         return np.ascontiguousarray(np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3)[::-1])
@@ -201,6 +240,10 @@ class GLScene:
                 attachment.release()
             framebuffer.release()
         self._framebuffers = {}
+        gazebo = getattr(self, "_gazebo", None)
+        if gazebo is not None:
+            gazebo.release()
+            self._gazebo = None
         for name in ("_vao", "_vbo", "_program"):
             resource = getattr(self, name, None)
             if resource is not None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from circuits import Circuit
 from protocol import environment
-from protocol.messages import RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
+from protocol.messages import LOOK_RENDERERS, RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 
 log = logging.getLogger("drivebench.simulator")
@@ -79,15 +79,22 @@ def resolve_renderer(requested: str) -> Resolution:
 
 
 def choose_renderer(
-    requested: str | None, *, fallback: str = environment.RENDERER_BY_COMMAND["run"], local: bool = True
+    requested: str | None,
+    *,
+    fallback: str = environment.RENDERER_BY_COMMAND["run"],
+    local: bool = True,
+    look: str = "flat",
 ) -> str:
     """The renderer a command puts in its specs: ``requested`` (--renderer), else $DRIVEBENCH_RENDERER, else
     ``fallback``. For a stack started here (``local``) "auto" is resolved now, its notice printed on stderr in one
-    line, and "gl" is checked; an attached stack's simulator resolves it there. ValueError says what is wrong."""
+    line, and "gl" is checked; an attached stack's simulator resolves it there. ValueError says what is wrong,
+    RendererUnavailable (one line) where "auto" falls back to a renderer that cannot draw ``look``."""
     name = requested or default_renderer(fallback)
     if not local:
         return name
     resolution = resolve_renderer(name)
+    if resolution.notice and resolution.name not in LOOK_RENDERERS[look]:
+        raise RendererUnavailable(f"look={look} needs the gl renderer: {resolution.notice}")
     if resolution.notice:
         print(f"drivebench: {resolution.notice}", file=sys.stderr)
     return resolution.name
@@ -104,7 +111,13 @@ def resolve_spec(spec: EpisodeSpec) -> EpisodeSpec:
 
 
 def make_scene(circuit: Circuit, world: WorldVariation, *, renderer: str) -> Renderer:
-    """A scene of ``circuit`` with ``world`` drawn by ``renderer`` ("pybullet" or "gl"; resolve "auto" first)."""
+    """A scene of ``circuit`` with ``world`` drawn by ``renderer`` ("pybullet" or "gl"; resolve "auto" first).
+
+    RendererUnavailable when ``renderer`` cannot draw ``world.look`` (the commands check that before starting)."""
+    if renderer not in LOOK_RENDERERS[world.look]:
+        raise RendererUnavailable(
+            f"renderer {renderer} cannot draw look={world.look} (it needs {' or '.join(LOOK_RENDERERS[world.look])})"
+        )
     if renderer == "pybullet":
         from services.simulator.scene import Scene
 

@@ -15,6 +15,7 @@ Frames: world x/y on the ground, z up; the road surface is z = 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -24,6 +25,7 @@ import numpy as np
 from circuits import Circuit
 from protocol.messages import CameraSpec, WorldVariation
 from services.simulator.car import CarState
+from services.simulator.looks import ASPHALT_TILE_M, EDGE_LINE_GREY, WALL_GREY, GazeboLighting, gazebo_lighting
 
 MAX_TRIANGLES_PER_CHUNK = 200
 LINE_HEIGHT_M = 0.005  # the centre line floats above the road so that it wins the depth test
@@ -52,7 +54,9 @@ DEFAULT_LIGHT_TOWARDS = (-50.0, 30.0, 100.0)
 
 LineColour = Literal["red", "white", "none"]
 RoadColour = Literal["grey", "white"]
-MeshKind = Literal["line", "wall", "road", "grass"]
+MeshKind = Literal["line", "edge", "wall", "road", "grass"]
+# How the gazebo look shades a mesh: flat colour, a texture (asphalt, grass), or flat with a specular term (wall).
+Material = Literal["flat", "asphalt", "grass", "wall"]
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,10 @@ class Mesh:
 
     vertices_m: (N, 3) world coordinates; indices: (3T,) int32, anticlockwise seen from the side that faces the
     camera (walls carry both windings). centre_m, radius_m: a bounding sphere, for culling.
+    material: how the gazebo look shades it (the flat look draws every mesh in its flat colour).
+    texcoords_m: (N, 2) texture coordinates in metres, or None: (arc length, lateral offset) on the road, world
+        (x, y) on the grass. normals: (N, 3) smooth unit normals of one side, or None (the triangles' own normals);
+        a renderer turns them to the side each triangle faces.
     """
 
     kind: MeshKind
@@ -69,6 +77,9 @@ class Mesh:
     rgba: tuple[float, float, float, float]
     centre_m: np.ndarray
     radius_m: float
+    material: Material = "flat"
+    texcoords_m: np.ndarray | None = None
+    normals: np.ndarray | None = None
 
     @property
     def triangles(self) -> int:
@@ -83,8 +94,9 @@ class SceneDescription:
     ambient, diffuse: lighting coefficients (TinyRenderer's ``lightAmbientCoeff`` / ``lightDiffuseCoeff``);
         a surface's colour is ``rgb * (ambient + diffuse * max(0, n . l))`` with ``l`` towards the light.
     light_towards: unit vector towards the light, world frame.
-    sky_rgb: uint8 colour of every pixel nothing covers.
+    sky_rgb: uint8 colour of every pixel nothing covers (the flat look).
     walls: whether there are walls; wall_height_m, road_half_width_m: for grass occlusion.
+    look: "flat" or "gazebo"; gazebo: the gazebo look's light (None in the flat look).
     """
 
     circuit: Circuit
@@ -95,6 +107,8 @@ class SceneDescription:
     light_towards: tuple[float, float, float]
     sky_rgb: tuple[int, int, int]
     walls: bool
+    look: str = "flat"
+    gazebo: GazeboLighting | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -102,8 +116,49 @@ class SceneDescription:
 
 
 def describe_world(circuit: Circuit, world: WorldVariation = WorldVariation()) -> SceneDescription:
-    """The scene of ``circuit`` with a world variation (line colour, road colour, walls, lighting)."""
+    """The scene of ``circuit`` with a world variation (line colour, road colour, walls, lighting, look)."""
+    if world.look == "gazebo":
+        return describe_gazebo(circuit, world)
     return describe(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls, lighting=world.lighting)
+
+
+def describe_gazebo(circuit: Circuit, world: WorldVariation) -> SceneDescription:
+    """The gazebo look of ``circuit``: the flat look's meshes with materials, texture coordinates along the road and
+    smooth wall normals, plus light-grey edge lines, lit as Behavior Metrics' Gazebo world of that circuit
+    (:mod:`services.simulator.looks`)."""
+    flat = describe(circuit, line_colour=world.line, road_colour=world.road, walls=world.walls, lighting=world.lighting)
+    centreline = circuit.centreline
+    points, normals = centreline.points_m, centreline.left_normals()
+    half, width = circuit.road_half_width_m, circuit.line_width_m
+    # An integer number of asphalt tiles round the loop, so that the texture meets itself at the start line.
+    tiles = max(1, round(centreline.length_m / ASPHALT_TILE_M))
+    s_m = np.append(centreline.s_m, centreline.length_m) * (tiles * ASPHALT_TILE_M / centreline.length_m)
+    grey: RGBA = (WALL_GREY, WALL_GREY, WALL_GREY, 1.0)
+    edge: RGBA = (EDGE_LINE_GREY, EDGE_LINE_GREY, EDGE_LINE_GREY, 1.0)
+    meshes: list[Mesh] = []
+    if world.line != "none":
+        meshes += _strip(points, normals, width / 2, LINE_HEIGHT_M, LINE_COLOURS[world.line], "line")
+    for side in (1.0, -1.0):  # edge lines just inside the road edge, clear of the wall's foot
+        edge_centre = points + side * (half - 1.5 * width) * normals
+        meshes += _strip(edge_centre, normals, width / 2, LINE_HEIGHT_M, edge, "edge")
+    if world.walls:
+        for side in (1.0, -1.0):
+            meshes += _wall(points + side * half * normals, circuit.wall_height_m, rgba=grey, normals=normals)
+    if world.road == "grey":
+        meshes += _strip(points, normals, half, 0.0, ROAD_COLOURS["grey"], "road", arc_m=s_m)
+    else:
+        meshes += _strip(points, normals, half, 0.0, ROAD_COLOURS[world.road], "road")
+    meshes += [dataclasses.replace(m, material="grass", texcoords_m=m.vertices_m[:, :2].copy()) for m in _grass(points)]
+    light = gazebo_lighting(circuit.name, world.lighting)
+    return dataclasses.replace(
+        flat,
+        meshes=tuple(meshes),
+        ambient=light.ambient,
+        diffuse=light.diffuse,
+        light_towards=light.light_towards,
+        look="gazebo",
+        gazebo=light,
+    )
 
 
 def describe(
@@ -176,9 +231,17 @@ def _grass(points: np.ndarray) -> list[Mesh]:
 
 
 def _strip(
-    points: np.ndarray, normals: np.ndarray, half_width_m: float, z_m: float, rgba: RGBA, kind: MeshKind
+    points: np.ndarray,
+    normals: np.ndarray,
+    half_width_m: float,
+    z_m: float,
+    rgba: RGBA,
+    kind: MeshKind,
+    *,
+    arc_m: np.ndarray | None = None,
 ) -> list[Mesh]:
-    """A closed ribbon of width 2*half_width_m along the points, facing up, split into chunks."""
+    """A closed ribbon of width 2*half_width_m along the points, facing up, split into chunks. With ``arc_m`` (the
+    arc length of each point, plus the loop's length at the end) it is asphalt, textured along its length."""
     left = points + half_width_m * normals
     right = points - half_width_m * normals
     segments_per_chunk = MAX_TRIANGLES_PER_CHUNK // 2
@@ -197,12 +260,21 @@ def _strip(
             # Anticlockwise seen from above (normal up) whichever way the track turns: TinyRenderer culls back
             # faces. Driving direction d and left normal make (r0, r1, l1) anticlockwise.
             indices += [r0, r1, l1, r0, l1, l0]
-        meshes.append(_mesh(kind, vertices, indices, rgba))
+        mesh = _mesh(kind, vertices, indices, rgba)
+        if arc_m is not None:
+            texcoords = np.empty((2 * n, 2))
+            texcoords[:, 0] = np.tile(arc_m[np.arange(start, start + n)], 2)  # the closing vertex: the loop's length
+            texcoords[:n, 1], texcoords[n:, 1] = half_width_m, -half_width_m
+            mesh = dataclasses.replace(mesh, material="asphalt", texcoords_m=texcoords)
+        meshes.append(mesh)
     return meshes
 
 
-def _wall(base: np.ndarray, height_m: float) -> list[Mesh]:
-    """A closed vertical wall along the points, both windings (visible from either side), split into chunks."""
+def _wall(
+    base: np.ndarray, height_m: float, *, rgba: RGBA = WALL_COLOUR, normals: np.ndarray | None = None
+) -> list[Mesh]:
+    """A closed vertical wall along the points, both windings (visible from either side), split into chunks. With
+    ``normals`` (left normals at the points) it is the gazebo look's wall, smoothly shaded."""
     segments_per_chunk = MAX_TRIANGLES_PER_CHUNK // 4
     count = len(base)
     meshes = []
@@ -218,7 +290,12 @@ def _wall(base: np.ndarray, height_m: float) -> list[Mesh]:
             b0, b1, t0, t1 = k, k + 1, n + k, n + k + 1
             indices += [b0, b1, t1, b0, t1, t0]  # one side
             indices += [b0, t1, b1, b0, t0, t1]  # the other
-        meshes.append(_mesh("wall", vertices, indices, WALL_COLOUR))
+        mesh = _mesh("wall", vertices, indices, rgba)
+        if normals is not None:
+            smooth = np.zeros((2 * n, 3))
+            smooth[:, :2] = np.tile(normals[ids], (2, 1))
+            mesh = dataclasses.replace(mesh, material="wall", normals=smooth)
+        meshes.append(mesh)
     return meshes
 
 
