@@ -26,6 +26,7 @@ COPY services services
 COPY brains brains
 COPY recorder recorder
 COPY orchestrator orchestrator
+COPY drivebench drivebench
 # orchestrator/experiments links here: the wheel carries the matrix files that commands default to.
 COPY experiments experiments
 RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"

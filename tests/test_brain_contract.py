@@ -186,7 +186,7 @@ def test_unknown_brain_names_the_known_ones_and_the_other_forms():
     with pytest.raises(
         UnknownBrainError,
         match=r"unknown brain 'hal' \(known: behavior_metrics, constant, "
-        r"deepest_lstm_tiny_pilotnet, expert, explicit, memdccp, .*; or give "
+        r"deepest_lstm_tiny_pilotnet, expert, explicit, .*memdccp, .*; or give "
         r"package.module:Class, or a Behavior Metrics brain file",
     ):
         make_brain("hal")

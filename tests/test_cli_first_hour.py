@@ -93,7 +93,7 @@ def test_every_schema_mistake_of_a_matrix_file_is_reported_at_once(tmp_path):
     lines = result.stderr.strip().splitlines()
     assert lines[0] == (
         f"drivebench: error: {path}:4: unknown key 'limit' in the matrix (allowed: circuits, variations, worlds, "
-        "perturbations, repetitions, limits, exclude, include, name, brains, shadows, camera, seed, realtime, "
+        "perturbations, repetitions, limits, exclude, include, draw, name, brains, shadows, camera, seed, realtime, "
         "renderer, parts); did you mean 'limits'?"
     )
     assert lines[1:3] == [

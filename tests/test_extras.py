@@ -72,7 +72,8 @@ def test_a_brain_host_without_the_stacks_extras_drives_an_episode(tmp_path):
 def test_the_core_is_small_and_the_stack_extra_holds_every_role():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     core = {requirement.split("=")[0].split(">")[0].split("<")[0] for requirement in project["dependencies"]}
-    assert core == {"eclipse-zenoh", "msgspec", "numpy", "opencv-python-headless", "pyyaml", "tqdm"}
+    # shtab: `drivebench completion bash|zsh` (30 kB, pure Python)
+    assert core == {"eclipse-zenoh", "msgspec", "numpy", "opencv-python-headless", "pyyaml", "shtab", "tqdm"}
     extras = project["optional-dependencies"]
     assert extras["stack"] == ["drivebench[sim,record,view,report]"]
     everything = " ".join(extras["sim"] + extras["record"] + extras["view"] + extras["report"])
