@@ -134,7 +134,9 @@ def test_warm_recordings_are_closed_complete_and_one_episode_each(tmp_path):
     progress = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1, record=True)).run()
     assert (progress.done, progress.failed) == (3, 0)
     results = results_by_key(tmp_path / "out")
-    assert len({result.run_id for result in results.values()}) == 1  # one warm stack, a recorder per episode
+    (run_id,) = {result.run_id for result in results.values()}  # one warm stack ...
+    recorder_log = (tmp_path / "out" / "stacks" / run_id / "logs" / "recorder.log").read_text()
+    assert recorder_log.count("recording run") == 1 and recorder_log.count("finished ") == 3  # ... one recorder
     assert not list((tmp_path / "out").rglob("*.part"))  # every file finished
     for result in results.values():
         path = tmp_path / "out" / result.recording

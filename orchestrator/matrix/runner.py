@@ -301,16 +301,19 @@ class MatrixRunner:
             stacks.append(stack)
             stack.record_options = (f"image_format={self.options.record_images}",)
             self._write_config(folder, episode, stack.run_id)
-            if self.options.record:
-                stack.start_recorder(folder / "recording.mcap", attach=(folder / "config.yaml",))
+            if self.options.record:  # the stack's recorder (started at its first episode) opens this file
+                stack.record_episode(folder / "recording.mcap", attach=(folder / "config.yaml",))
             return stack
 
         try:
             outcome = self._drive(episode, state, trace, prepare)
         finally:
             trace.detach()
-            if stacks and self.options.record and lane.stack is not None:
-                lane.stack.stop_recorder()  # a complete, indexed file before the next episode starts
+        if stacks and self.options.record and lane.stack is not None and outcome is not None:
+            try:
+                lane.stack.finish_recording()  # a complete, indexed file before the next episode starts
+            except StackFailure as failure:
+                lane.stack.recording_failure = failure  # scored all the same; the stack is replaced
         if outcome is None:
             lane.retire("its episode was abandoned")
             return None

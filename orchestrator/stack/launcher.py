@@ -274,12 +274,45 @@ class LocalStack:
         while self._watch is not None and token in self._watch.alive() and time.monotonic() < deadline:
             time.sleep(0.05)
 
-    def start_recorder(self, output: Path, *, attach: tuple[Path, ...] = ()) -> None:
-        """Start a recorder of this running stack into ``output`` (one episode's file) and wait until it records."""
-        self.record = output
-        key = self._spawn_role(graph.role("recorder"), self._recorder_argv(attach=attach))
-        self._wait_alive({key})
-        self._required.add(key)
+    def record_episode(self, output: Path, *, attach: tuple[Path, ...] = ()) -> None:
+        """Record what this running stack publishes from now on into ``output`` (one episode's file): the first
+        time, a recorder is started into it; later, the running recorder is asked to open it. Returns once the
+        recorder writes there; StackFailure (``recorder_died``) when it does not within its grace period."""
+        if not any(child.role == "recorder" for child in self.children):
+            self.record = output
+            key = self._spawn_role(graph.role("recorder"), self._recorder_argv(attach=attach))
+            self._wait_alive({key})
+            self._required.add(key)
+            return
+        path = str(Path(output).resolve())
+        request = ControlRequest(action="open", output=path, attach=[str(Path(f).resolve()) for f in attach])
+        self._recorder_request(request, done=lambda reply: reply.output == path)
+
+    def finish_recording(self) -> None:
+        """Have the recorder finish its file (what is on its way, then summary and index) and wait until it has:
+        the episode's recording is complete before the next episode starts."""
+        self._recorder_request(ControlRequest(action="close"), done=lambda reply: reply.output == "")
+
+    def _recorder_request(self, request: ControlRequest, *, done: Callable[[ControlReply], bool]) -> None:
+        assert self.bus is not None
+        key = keys.recorder_control(self.run_id)
+        payload = self.bus.request(key, codec.encode(request), timeout_s=2.0)
+        reply = None if payload is None else codec.decode(payload, ControlReply)
+        if reply is None or not reply.ok:
+            why = "no answer" if reply is None else reply.detail
+            raise StackFailure("recorder_died", f"the recorder did not take {request.action!r} on {key}: {why}")
+        deadline = time.monotonic() + RECORDER_STOP_GRACE_S
+        status = codec.encode(ControlRequest(action="status"))
+        while time.monotonic() < deadline:
+            payload = self.bus.request(key, status, timeout_s=2.0)
+            if payload is not None and done(codec.decode(payload, ControlReply)):
+                return
+            if (dead := self._dead_child_reason()) is not None:
+                raise StackFailure("recorder_died", dead)
+            time.sleep(0.02)
+        raise StackFailure(
+            "recorder_died", f"the recorder did not {request.action} a file within {RECORDER_STOP_GRACE_S:.0f} s"
+        )
 
     def stop_recorder(self) -> None:
         """Stop this stack's recorder: it drains what is still on its way, then writes a complete, indexed file."""
