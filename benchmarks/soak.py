@@ -6,7 +6,8 @@ One worker runs ``--episodes`` short episodes (explicit brain, ``simple``, 1 s s
 the noise injector does real work) on one warm stack. Right after the ``--early``-th and the ``--episodes``-th episode
 (before the next one starts: one more episode is run than measured) it reads from /proc, for each role (the matrix
 driver, i.e. this process, the simulator, noise injector, scorer and brain host), resident memory and open file
-descriptors, and prints both and the change. Flat after warm-up is the goal; the table says what grew.
+descriptors, and prints both and the change (and a line of the same after every ``--early`` episodes, as it goes).
+Flat after warm-up is the goal; the table says what grew.
 With ``--record`` each episode also gets a recorder, started and stopped per episode (so its row
 is a new process each time).
 """
@@ -97,8 +98,12 @@ def main() -> int:
         def _finish(self, result, store, progress: MatrixProgress) -> None:
             super()._finish(result, store, progress)
             finished = progress.done + progress.failed
-            if finished in marks:
-                marks[finished] = (finished, snapshot())
+            if finished in marks or finished % args.early == 0:
+                rows = snapshot()
+                if finished in marks:
+                    marks[finished] = (finished, rows)
+                line = ", ".join(f"{role} {mb:.1f} MB {fds} fds" for role, (_, mb, fds) in rows.items())
+                print(f"after episode {finished} ({time.monotonic() - started:.0f} s): {line}", flush=True)
 
     started = time.monotonic()
     with tempfile.TemporaryDirectory() as folder:
