@@ -287,7 +287,7 @@ class MatrixRunner:
             outcome = self._drive(episode, state, trace, lambda: (stack.start(), stack)[1])
         finally:
             stack.close()
-        return self._land(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
+        return self._episode_result(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
 
     def _run_warm(self, episode: PlannedEpisode, lane: WarmLane, state: WorkerState) -> EpisodeResult | None:
         """One episode on the lane's warm stack (started, or its brain hosts changed, as the episode needs)."""
@@ -318,9 +318,9 @@ class MatrixRunner:
             lane.retire("its episode was abandoned")
             return None
         if not stacks:  # the stack did not come up: nothing ran on it
-            return self._land(episode, None, outcome, trace=trace, folder=folder, started_at=started_at)
+            return self._episode_result(episode, None, outcome, trace=trace, folder=folder, started_at=started_at)
         stack = stacks[0]
-        result = self._land(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
+        result = self._episode_result(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
         lane.after_episode(failed=outcome["status"] == "failed")
         return result
 
@@ -351,7 +351,7 @@ class MatrixRunner:
             outcome.update(status="failed", failure=f"error: {type(error).__name__}: {error}")
         return outcome
 
-    def _land(
+    def _episode_result(
         self,
         episode: PlannedEpisode,
         stack: LocalStack | None,
