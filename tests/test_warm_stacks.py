@@ -4,10 +4,14 @@ and nothing of one episode leaks into the next. Real processes, one real Zenoh r
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
+from support.matrices import processes_with
+from support.waits import wait_for
 
 from orchestrator.matrix.load import parse_matrix
 from orchestrator.matrix.results import ResultStore
@@ -152,3 +156,36 @@ def test_warm_recordings_are_closed_complete_and_one_episode_each(tmp_path):
         for stream in ("sim/camera", "noise/camera"):
             seqs = {m.message.header.seq for m in messages if isinstance(m.message, CameraFrame) and stream in m.key}
             assert seqs == set(range(result.score.metrics.steps)), (result.key, stream)
+
+
+def test_a_process_that_dies_between_episodes_is_replaced_before_the_next_one(tmp_path):
+    """The noise injector of a warm stack killed after its first episode: the next episode runs on a new stack and is
+    an ordinary result, not a failure (nothing was running when it died)."""
+    matrix = parse_matrix(
+        "brains: [explicit]\ncircuits: [simple]\nrepetitions: 2\nlimits: {max_sim_seconds: 2}\ncamera: 96x72\n"
+    )
+    killed: list[int] = []
+
+    class KillsBetweenEpisodes(MatrixRunner):
+        def _finish(self, result, store, progress) -> None:
+            super()._finish(result, store, progress)
+            if not killed:
+                for pid in processes_with(f"--run-id {result.run_id}"):
+                    if " -m services.noise " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                        os.kill(pid, signal.SIGKILL)
+                        killed.append(pid)
+                wait_for(lambda: all(map(zombie, killed)), timeout_s=10, what="the killed noise injector gone")
+
+    progress = KillsBetweenEpisodes(matrix, tmp_path / "out", RunOptions(workers=1)).run()
+    assert len(killed) == 1
+    assert (progress.done, progress.failed) == (2, 0)
+    first, second = sorted(results_by_key(tmp_path / "out").values(), key=lambda result: result.started_at)
+    assert first.run_id != second.run_id  # a new stack
+    assert second.score.header.episode == 0 and second.reason == "time_limit"
+
+
+def zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1][0] == "Z"
+    except OSError:
+        return True
