@@ -153,6 +153,9 @@ def test_warm_recordings_are_closed_complete_and_one_episode_each(tmp_path):
         assert len(starts) == 1 and len(ends) == 1, result.key
         episode = result.score.header.episode
         assert {m.message.header.episode for m in messages if hasattr(m.message, "header")} == {episode}
+        # The episode's folder holds its own slice of the stack's logs.
+        simulator_log = (tmp_path / "out" / result.logs / "simulator.log").read_text()
+        assert simulator_log.count(" started: ") == 1 and f"episode {episode} started: " in simulator_log
         for stream in ("sim/camera", "noise/camera"):
             seqs = {m.message.header.seq for m in messages if isinstance(m.message, CameraFrame) and stream in m.key}
             assert seqs == set(range(result.score.metrics.steps)), (result.key, stream)

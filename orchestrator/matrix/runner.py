@@ -36,7 +36,7 @@ import yaml
 from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
 from orchestrator.matrix.resume import PLANNED_KEYS_FACT, resume_matrix
-from orchestrator.matrix.warm import JobQueue, WarmLane
+from orchestrator.matrix.warm import JobQueue, WarmLane, copy_episode_logs, log_marks
 from orchestrator.stack.launcher import (
     BrainLaunch,
     EpisodeAborted,
@@ -295,8 +295,11 @@ class MatrixRunner:
         started_at = time.time()
         trace = Trace()
         stacks: list[LocalStack] = []
+        marks: dict[Path, int] = {}
 
         def prepare() -> LocalStack:
+            if lane.stack is not None:  # where the episode's log lines begin (a new stack's: at their first line)
+                marks.update(log_marks(lane.stack))
             stack = lane.stack_for(self._launches(episode))
             stacks.append(stack)
             stack.record_options = (f"image_format={self.options.record_images}",)
@@ -314,6 +317,8 @@ class MatrixRunner:
                 lane.stack.finish_recording()  # a complete, indexed file before the next episode starts
             except StackFailure as failure:
                 lane.stack.recording_failure = failure  # scored all the same; the stack is replaced
+        if stacks:
+            copy_episode_logs(stacks[0], marks, folder / "logs")
         if outcome is None:
             lane.retire("its episode was abandoned")
             return None
@@ -376,7 +381,7 @@ class MatrixRunner:
             (folder / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
         trajectory = trace.save(folder / "trajectory.npz", episode=None if stack is None else stack.last_episode)
         recording = folder / "recording.mcap"
-        logs = stack.run_dir / "logs" if stack is not None else folder / "logs"
+        logs = folder / "logs"  # a warm stack's episode: the lines its processes logged during the episode
         return EpisodeResult.of(
             episode,
             status=outcome["status"],

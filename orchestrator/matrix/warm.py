@@ -118,4 +118,29 @@ class WarmLane:
             stack.close()
 
 
-__all__ = ["JobQueue", "WarmLane"]
+def log_marks(stack: LocalStack) -> dict[Path, int]:
+    """Where each of the stack's logs ends now (bytes): an episode's lines start there."""
+    return {child.log_path: _size(child.log_path) for child in stack.children}
+
+
+def copy_episode_logs(stack: LocalStack, marks: dict[Path, int], folder: Path) -> None:
+    """Each process log's lines since ``marks`` (all of it for a process started since) into ``folder``, under the
+    log's own name: an episode's folder holds its own logs, as with fresh stacks; the stack's folder keeps them all."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for child in stack.children:
+        try:
+            with child.log_path.open("rb") as log_file:
+                log_file.seek(marks.get(child.log_path, 0))
+                (folder / child.log_path.name).write_bytes(log_file.read())
+        except OSError as error:
+            log.warning("could not copy %s for the episode: %s", child.log_path, error)
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+__all__ = ["JobQueue", "WarmLane", "copy_episode_logs", "log_marks"]
