@@ -17,7 +17,8 @@ from orchestrator.matrix.load import parse_matrix
 from orchestrator.matrix.results import ResultStore
 from orchestrator.matrix.runner import MatrixRunner, RunOptions, Trace, brain_launch
 from orchestrator.stack.launcher import LocalStack
-from protocol.messages import CameraFrame, EpisodeEvent, EpisodeScore, EventKind
+from protocol.bus import Received
+from protocol.messages import CameraFrame, EpisodeEvent, EpisodeScore, EventKind, Header, Pose
 from recorder.reading import read_messages, recording_info
 
 pytestmark = pytest.mark.integration
@@ -192,3 +193,28 @@ def zombie(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1][0] == "Z"
     except OSError:
         return True
+
+
+def test_a_trajectory_keeps_each_frames_first_pose_not_a_resends_zeroed_one(tmp_path):
+    """A lock-step resend (a brain slow to its first answer) publishes the frame's pose again with the speed zeroed;
+    the trajectory takes the pose as first published, so it does not depend on how fast the brain warmed up. Poses of
+    another episode (a warm stack's previous one, trailing in) are left out."""
+
+    def pose(*, episode: int, seq: int, speed_mps: float) -> Received:
+        header = Header(run_id="r", episode=episode, seq=seq, stamp_ns=seq * 50_000_000)
+        return Received(
+            key="k", message=Pose(header=header, x_m=seq, y_m=0.0, yaw_rad=0.0, speed_mps=speed_mps), arrival_ns=0
+        )
+
+    trace = Trace()
+    for item in (
+        pose(episode=3, seq=9, speed_mps=9.0),  # the episode before, late
+        pose(episode=4, seq=0, speed_mps=0.0),
+        pose(episode=4, seq=1, speed_mps=2.0),
+        pose(episode=4, seq=1, speed_mps=0.0),  # resent: same frame, speed zeroed
+        pose(episode=4, seq=2, speed_mps=2.5),
+    ):
+        trace._poses.put(item)
+    saved = trajectory(trace.save(tmp_path / "t.npz", episode=4))
+    assert saved["x_m"].tolist() == [0.0, 1.0, 2.0]
+    assert saved["speed_mps"].tolist() == [0.0, 2.0, 2.5]

@@ -472,7 +472,12 @@ class Trace:
         received = [p.message for p in self._poses.drain()]
         if episode is not None:
             received = [pose for pose in received if pose.header.episode == episode]
-        poses = sorted({pose.header.seq: pose for pose in received}.items())
+        # The first pose of each frame: a lock-step resend of a frame nobody answered yet publishes its pose again
+        # with the speed zeroed, and the trajectory must not depend on whether the brain was slow to its first answer.
+        first: dict[int, Pose] = {}
+        for pose in received:
+            first.setdefault(pose.header.seq, pose)
+        poses = sorted(first.items())
         rows = np.array(
             [(pose.header.stamp_ns / 1e9, pose.x_m, pose.y_m, pose.yaw_rad, pose.speed_mps) for _, pose in poses],
             dtype=np.float64,
