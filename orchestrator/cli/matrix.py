@@ -54,8 +54,8 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     parser.add_argument(
         "--fresh-stacks",
         action="store_true",
-        help="start a new stack for every episode (default: each worker keeps its stack warm across episodes, "
-        "with the same results; see docs/warm-stacks.md)",
+        help="start a new stack for every episode (default: each worker keeps its stack warm across episodes; "
+        "see docs/warm-stacks.md)",
     )
     parser.add_argument(
         "--record-images",

@@ -1,10 +1,11 @@
-"""Runs a test matrix: every planned episode on its own stack, N at a time on one router, results into SQLite.
+"""Runs a test matrix: N workers on one router, each keeping a warm stack across its episodes, results into SQLite.
 
-Each episode gets a fresh stack (simulator, noise injector, scorer, its brain and any shadow brains, optionally a
-recorder) under its own run id, so episodes of different brains run side by side on one router without
-cross-talk, and a process that dies takes down only its own episode: the next episode starts on fresh processes.
-Each finished episode is committed to ``results.sqlite`` at once (see :mod:`orchestrator.matrix.results`); ``resume``
-runs only the episodes the database does not hold.
+Each worker runs its episodes on one stack (simulator, noise injector, scorer, the episode's brain and any shadow
+brains, optionally a recorder) under the worker's own run id, so workers run side by side on one router without
+cross-talk; between episodes it changes only the brain hosts an episode needs (``orchestrator.matrix.warm``). A
+stack that fails an episode, or whose process dies, is replaced before the next one. ``--fresh-stacks`` gives every
+episode a new stack of its own instead. Each finished episode is committed to ``results.sqlite`` at once (see
+:mod:`orchestrator.matrix.results`); ``resume`` runs only the episodes the database does not hold.
 
 Folder layout of a matrix run::
 
@@ -12,6 +13,7 @@ Folder layout of a matrix run::
     DIR/matrix.yaml                      the matrix file as run
     DIR/episodes/<index>/                one folder per episode: config.yaml, score.json, logs/, trajectory.npz,
                                          recording.mcap (with --record)
+    DIR/stacks/<run id>/logs/            the whole logs of each warm stack (an episode's logs/ holds its lines)
     DIR/report.html, report.md, ...      written at the end (``drivebench report DIR`` writes them again)
 """
 
@@ -62,7 +64,7 @@ class RunOptions:
     resume: skip episodes the results database already holds (``retry_failed``: except failed ones).
     startup_timeout_s: per stack, how long its processes may take to come up.
     fresh_stacks: a new stack for every episode (``--fresh-stacks``); default: each worker keeps a warm stack
-        across episodes (``orchestrator.matrix.warm``), with the same results.
+        across episodes (``orchestrator.matrix.warm``), meant to give the same results (docs/warm-stacks.md).
     facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
     """
 
