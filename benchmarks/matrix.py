@@ -1,19 +1,21 @@
-"""Episodes per hour of a matrix, with 1 and with N workers, side by side in one run; and what a fresh stack per
-episode costs against the episode itself.
+"""Episodes per hour of a matrix on fresh and on warm stacks, with 1 and with N workers, side by side in one run; and
+what starting and stopping a stack costs against the episode itself.
 
     .venv/bin/python benchmarks/matrix.py [--episodes 6] [--sim-seconds 20] [--workers 2] [--renderers pybullet,gl]
     .venv/bin/python benchmarks/matrix.py --ray [--episodes 4] [--sim-seconds 60]
 
-Each renderer (``--renderers``) runs both cases, side by side in one run.
-
-Every episode gets a fresh stack (its own processes under its own run id); the start-up share says what that
-isolation costs. Lock-step episodes are CPU-bound, so more workers than cores buys nothing.
+Each renderer (``--renderers``) runs four cases one after another: fresh stacks (``--fresh-stacks``: every episode
+starts its own processes under its own run id) and warm stacks (each worker keeps its stack across episodes,
+``orchestrator.matrix.warm``), each with 1 and with ``--workers`` workers. "rest per episode" is an episode's wall
+time in the matrix less its simulation loop: for fresh stacks mostly starting and stopping the stack, for warm ones
+the start request, the score's trip and writing the episode's files. Lock-step episodes are CPU-bound, so more
+workers than cores buys nothing.
 
 ``--ray`` (needs ``drivebench[cluster]``) compares instead: 1 local worker, then a Ray cluster on this machine (a
 head that runs no episode plus 1, then 2 worker nodes of one episode_slot each, every raylet on 127.0.0.1) running
 the same matrix, and the time Ray adds per episode (task dispatch, a worker process, the episode's own router, the
-result's trip) against the local worker, as a share of one episode. The local case runs with the idle cluster
-beside it, so that both share the cores with Ray's own processes.
+result's trip) against the local worker, as a share of one episode. The local case runs fresh stacks, as every Ray
+task does, with the idle cluster beside it, so that both share the cores with Ray's own processes.
 """
 
 from __future__ import annotations
@@ -37,11 +39,12 @@ def matrix_text(*, episodes: int, sim_seconds: float, camera: str, renderer: str
     )
 
 
-def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict:
+def run_case(text: str, workers: int, *, fresh: bool = True, ray_address: str | None = None) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         started = time.monotonic()
         if ray_address is None:
-            runner = MatrixRunner(parse_matrix(text), Path(folder), RunOptions(workers=workers))
+            options = RunOptions(workers=workers, fresh_stacks=fresh)
+            runner = MatrixRunner(parse_matrix(text), Path(folder), options)
         else:
             from orchestrator.matrix.ray_options import RayOptions
             from orchestrator.matrix.ray_runner import RayMatrixRunner
@@ -57,6 +60,8 @@ def run_case(text: str, workers: int, *, ray_address: str | None = None) -> dict
     totals = [r.wall_s for r in results]
     return {
         "workers": workers,
+        "stacks": "fresh" if fresh else "warm",
+        "stacks_started": len({r.run_id for r in results}),
         "done": progress.done,
         "failed": progress.failed,
         "wall_s": wall_s,
@@ -81,20 +86,27 @@ def main() -> int:
     rows = []
     for renderer in args.renderers.split(","):
         text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera, renderer=renderer)
-        rows += [{**run_case(text, 1), "renderer": renderer}, {**run_case(text, args.workers), "renderer": renderer}]
+        for workers in (1, args.workers):
+            for fresh in (True, False):
+                rows.append({**run_case(text, workers, fresh=fresh), "renderer": renderer})
     print(
         f"{args.episodes} episodes of at most {args.sim_seconds:.0f} s sim, one lap (explicit, simple, {args.camera})\n"
     )
     print(
-        "| renderer | workers | wall | episodes/hour | vs 1 worker | episode (sim loop) | stack start + stop per "
-        "episode |"
+        "| renderer | workers | stacks | stacks started | wall | episodes/hour | warm vs fresh | vs 1 worker | "
+        "episode (sim loop) | rest per episode |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
-        base = next(r for r in rows if r["renderer"] == row["renderer"])["episodes_per_hour"]
+        same = [r for r in rows if r["renderer"] == row["renderer"]]
+        fresh = next(r for r in same if r["workers"] == row["workers"] and r["stacks"] == "fresh")
+        one = next(r for r in same if r["workers"] == 1 and r["stacks"] == row["stacks"])
         print(
-            f"| {row['renderer']} | {row['workers']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
-            f"{row['episodes_per_hour'] / base:.2f}x | {row['episode_s']:.1f} s | {row['overhead_s']:.1f} s |"
+            f"| {row['renderer']} | {row['workers']} | {row['stacks']} | {row['stacks_started']} | "
+            f"{row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+            f"{row['episodes_per_hour'] / fresh['episodes_per_hour']:.2f}x | "
+            f"{row['episodes_per_hour'] / one['episodes_per_hour']:.2f}x | {row['episode_s']:.1f} s | "
+            f"{row['overhead_s']:.2f} s |"
         )
     failed = sum(row["failed"] for row in rows)
     if failed:

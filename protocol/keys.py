@@ -86,6 +86,12 @@ def sim_status(run_id: str) -> str:
     return f"{run_prefix(run_id)}/sim/status"
 
 
+def recorder_control(run_id: str) -> str:
+    """The recorder's control queryable (``status``; ``open`` a file, ``close`` it: one file per episode of a warm
+    matrix stack)."""
+    return f"{run_prefix(run_id)}/recorder/control"
+
+
 def command(run_id: str, brain: str) -> str:
     return f"{run_prefix(run_id)}/brain/{check_name(brain, what='brain name')}/cmd"
 

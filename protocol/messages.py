@@ -598,21 +598,27 @@ class ControlRequest(
         driver)``); when it is gone for ``DRIVER_GRACE_S`` the simulator ends the episode ``driver_lost`` (a dead
         man's switch: an episode whose driver died would otherwise run to its time limit and block the next one).
         Empty: no watch.
+    Recorder (``keys.recorder_control``): "status"; "open" (needs ``output``, an absolute ``.mcap`` path; ``attach``:
+        text files stored in its metadata) starts writing the run into a new file; "close" finishes the file being
+        written (what is still on its way, until quiet, then summary and index) and records nothing until the next
+        "open". Both are carried out by the recorder's writing thread: poll "status" until ``output`` says it is done.
     """
 
     action: str
     spec: EpisodeSpec | None = None
     brain: str = ""
     driver: str = ""
+    output: str = ""
+    attach: list[str] = []
 
 
 class ServerState(enum.StrEnum):
     """The state of the process that answers run control, as a :class:`ControlReply` reports it."""
 
-    IDLE = "idle"  # simulator: no episode, ready to start one
+    IDLE = "idle"  # simulator: no episode, ready to start one; recorder: between two files
     STARTING = "starting"  # simulator: a start was accepted, the episode's START is not out yet
     RUNNING = "running"  # simulator: an episode runs
-    SERVING = "serving"  # brain host: answering frames
+    SERVING = "serving"  # brain host: answering frames; recorder: writing a file
     STOPPING = "stopping"  # brain host: asked to stop, exiting cleanly
 
 
@@ -639,6 +645,7 @@ class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Co
     server's state (:class:`ServerState`). episode: the current (or next) episode number, -1 before the first.
     active_brain: the brain driving now (simulator). spec: the running episode's spec (simulator "status" while an
     episode runs), so a process that joined mid-episode can set up as the episode's START told the others.
+    output: recorder: the file being written now ("" between a "close" and the next "open").
     """
 
     ok: bool
@@ -650,6 +657,7 @@ class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Co
     episode: int = -1
     active_brain: str = ""
     spec: EpisodeSpec | None = None
+    output: str = ""
 
 
 BUS_MESSAGES: tuple[type[msgspec.Struct], ...] = (

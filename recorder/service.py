@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import subprocess
 import time
 from pathlib import Path
@@ -28,7 +29,7 @@ from protocol.mapping.recording import (
     check_image_format,
     check_recordable,
 )
-from protocol.messages import EpisodeEvent, EventKind
+from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EventKind, ReplyCode, ServerState
 from recorder.repair import repair_leftovers
 from recorder.writer import RecordingWriter
 
@@ -78,7 +79,19 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 class RecorderService:
     def __init__(self, config: RecorderConfig, bus: Bus):
         self.config = config
-        path = config.output_path
+        self._bus = bus
+        self.writer: RecordingWriter | None = None
+        self._open(config.output_path, attach=config.attach)
+        self._inbox = Inbox()
+        # Control requests ("open", "close"), carried out by the writing thread: the writer is not thread-safe.
+        self._requests: queue.Queue[ControlRequest] = queue.Queue()
+        self._closed_through = -1  # episodes up to this one went into closed files: their stragglers are dropped
+        self._subscription = bus.subscribe(keys.run_all(config.run_id), RecordedMessage, inbox=self._inbox)
+        bus.serve(keys.recorder_control(config.run_id), self._on_control)
+        bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
+
+    def _open(self, path: Path, *, attach: list[str]) -> None:
+        """Start writing into ``path`` (repairing what a killed recorder left in its folder)."""
         if path.suffix != ".mcap":
             raise UserError(f"recorder output must end in .mcap, got {path}")
         for report in repair_leftovers(path.parent):
@@ -87,22 +100,19 @@ class RecorderService:
             )
         self.writer = RecordingWriter(
             path,
-            image_format=config.image_format,
-            jpeg_quality=config.jpeg_quality,
-            views=config.views,
-            flush_interval_s=config.flush_interval_s,
+            image_format=self.config.image_format,
+            jpeg_quality=self.config.jpeg_quality,
+            views=self.config.views,
+            flush_interval_s=self.config.flush_interval_s,
         )
-        self.writer.add_metadata("drivebench.run", _run_metadata(config))
-        for name in config.attach:
+        self.writer.add_metadata("drivebench.run", _run_metadata(self.config))
+        for name in attach:
             self._attach(Path(name))
-        self._inbox = Inbox()
-        self._bus = bus
         self._started: set[int] = set()  # episodes whose START is written
         self._asked: set[int] = set()  # episodes whose missing START we asked the simulator for
-        self._subscription = bus.subscribe(keys.run_all(config.run_id), RecordedMessage, inbox=self._inbox)
-        bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
 
     def _attach(self, path: Path) -> None:
+        assert self.writer is not None
         try:
             text = path.read_text()
         except OSError as error:
@@ -118,27 +128,78 @@ class RecorderService:
         the middle of a chunk, and ``close()`` would then write the rest after a half-written record (a CI run lost
         8 steps to a corrupted chunk that way, which is why every service now stops on the flag).
         """
-        log.info("recording run %s to %s", self.config.run_id, self.writer.path)
+        log.info("recording run %s to %s", self.config.run_id, self.config.output_path)
         stop_on_signals()  # also when embedded in another main (a service's main installs it already)
         while not stop_requested():
             self.record_pending(timeout_s=0.2)
-        # Messages still on their way when the stop came (a burst the recorder lags behind) are recorded too:
-        # until nothing has arrived for STOP_QUIET_S, for at most STOP_DRAIN_MAX_S.
+            self._carry_out_requests()
+        self._drain()
+
+    def _drain(self) -> None:
+        """Record what is still on its way (a burst the recorder lags behind): until nothing has arrived for
+        STOP_QUIET_S, for at most STOP_DRAIN_MAX_S."""
         deadline = time.monotonic() + STOP_DRAIN_MAX_S
         while self.record_pending(timeout_s=STOP_QUIET_S) and time.monotonic() < deadline:
             pass
+
+    # -- control: one file per episode on a warm stack (the writing thread carries requests out) --
+
+    def _on_control(self, payload: bytes) -> bytes:
+        """The control queryable (Zenoh's callback thread: never block): "status" at once; "open" and "close" are
+        queued for the writing thread, and "status" says when they are done."""
+        request = codec.decode(payload, ControlRequest)
+        if request.action in ("open", "close"):
+            if request.action == "open" and not request.output.endswith(".mcap"):
+                return self._reply(ok=False, code=ReplyCode.BAD_REQUEST, detail="open needs an output ending in .mcap")
+            self._requests.put(request)
+        elif request.action != "status":
+            return self._reply(ok=False, code=ReplyCode.UNKNOWN_ACTION, detail=f"unknown action {request.action!r}")
+        return self._reply(ok=True)
+
+    def _reply(self, *, ok: bool, code: ReplyCode = ReplyCode.OK, detail: str = "") -> bytes:
+        writer = self.writer
+        state = ServerState.IDLE if writer is None else ServerState.SERVING
+        output = "" if writer is None else str(writer.path)
+        return codec.encode(ControlReply(ok=ok, code=code, detail=detail, state=state, output=output))
+
+    def _carry_out_requests(self) -> None:
+        while True:
+            try:
+                request = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            self._close_file()
+            if request.action == "open":
+                try:
+                    self._open(Path(request.output), attach=list(request.attach))
+                except (UserError, OSError) as error:
+                    log.error("cannot open %s: %s", request.output, error)
+
+    def _close_file(self) -> None:
+        """Finish the file being written (what is still on its way first); record nothing until the next open."""
+        if self.writer is None:
+            return
+        self._drain()
+        self._closed_through = max([self._closed_through, *self._started, *self._asked])
+        self.writer.close()
+        log.info("finished %s", self.writer.path)
+        self.writer = None
 
     def record_pending(self, *, timeout_s: float) -> int:
         """Write what has arrived (waiting up to ``timeout_s`` for the first); flush when due."""
         written = 0
         received = self._inbox.recv(timeout_s)
         while received is not None:
+            if self.writer is None:  # between two files: not recorded
+                self._inbox.drain()
+                return written
             self._write(received.key, received.message)
             written += 1
             if self.writer.flush_if_due():
                 break  # keep the flush period even under a steady stream
             received = self._inbox.try_recv()
-        self.writer.flush_if_due()
+        if self.writer is not None:
+            self.writer.flush_if_due()
         return written
 
     def _write(self, key: str, message: msgspec.Struct) -> None:
@@ -149,8 +210,11 @@ class RecorderService:
             # message, so the rest of the run is still recorded.
             self._bus.rejects.reject(key, error)
             return
+        assert self.writer is not None
         is_start = isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None
         episode = getattr(getattr(message, "header", None), "episode", None)
+        if episode is not None and episode <= self._closed_through:
+            return  # a straggler of an episode whose file is finished
         if is_start and episode in self._started:
             return  # recovered from the simulator before it arrived: the same message, already written
         if not is_start and episode is not None and episode not in self._started | self._asked:
@@ -174,9 +238,10 @@ class RecorderService:
 
     def close(self) -> None:
         self._subscription.close()
-        for received in self._inbox.drain():  # what arrived while we were stopping is still recorded
-            self._write(received.key, received.message)
-        self.writer.close()
+        if self.writer is not None:
+            for received in self._inbox.drain():  # what arrived while we were stopping is still recorded
+                self._write(received.key, received.message)
+            self.writer.close()
         if self._bus.rejects.total:
             log.warning("dropped %d malformed messages: %s", self._bus.rejects.total, dict(self._bus.rejects.counts))
 

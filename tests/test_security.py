@@ -614,7 +614,9 @@ def test_acl_grants_each_role_its_own_keys_only():
         "drivebench/run/*/sim/control",
         "drivebench/run/*/sim/status",
         "drivebench/run/*/brain/*/control",
+        "drivebench/run/*/recorder/control",  # a warm matrix stack's recorder: one file per episode
     }
+    assert "drivebench/run/*/recorder/control" in _allowed(acl, cn("s"), "ingress", "declare_queryable")
     for name in ("b", "v", "s"):
         assert "drivebench/run/*/sim/control" not in _allowed(acl, cn(name), "ingress", "query")
         assert _allowed(acl, cn(name), "ingress", "query") == {"drivebench/run/*/sim/status"}
@@ -639,6 +641,7 @@ def test_acl_patterns_come_from_the_keys_module():
         keys.brain_control(run, "x"),
         keys.sim_control(run),
         keys.sim_status(run),
+        keys.recorder_control(run),
         keys.camera_raw(run),
         keys.camera_perturbed(run),
         keys.pose(run),

@@ -62,6 +62,12 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     )
     parser.add_argument("--record", action="store_true", help="record every episode to MCAP in its folder")
     parser.add_argument(
+        "--fresh-stacks",
+        action="store_true",
+        help="start a new stack for every episode (default: each worker keeps its stack warm across episodes; "
+        "see docs/warm-stacks.md)",
+    )
+    parser.add_argument(
         "--record-images",
         choices=("raw", "jpeg"),
         default="jpeg",
@@ -210,6 +216,7 @@ def run_matrix_args(
         resume=args.resume,
         retry_failed=args.retry_failed,
         facts=dict(facts or {}),
+        fresh_stacks=args.fresh_stacks,
     )
     where = f"{args.workers} worker(s)" if ray_options is None else f"Ray cluster {ray_options.address}"
     print(

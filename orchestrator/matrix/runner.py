@@ -1,10 +1,11 @@
-"""Runs a test matrix: every planned episode on its own stack, N at a time on one router, results into SQLite.
+"""Runs a test matrix: N workers on one router, each keeping a warm stack across its episodes, results into SQLite.
 
-Each episode gets a fresh stack (simulator, noise injector, scorer, its brain and any shadow brains, optionally a
-recorder) under its own run id, so episodes of different brains run side by side on one router without
-cross-talk, and a process that dies takes down only its own episode: the next episode starts on fresh processes.
-Each finished episode is committed to ``results.sqlite`` at once (see :mod:`orchestrator.matrix.results`); ``resume``
-runs only the episodes the database does not hold.
+Each worker runs its episodes on one stack (simulator, noise injector, scorer, the episode's brain and any shadow
+brains, optionally a recorder) under the worker's own run id, so workers run side by side on one router without
+cross-talk; between episodes it changes only the brain hosts an episode needs (``orchestrator.matrix.warm``). A
+stack that fails an episode, or whose process dies, is replaced before the next one. ``--fresh-stacks`` gives every
+episode a new stack of its own instead. Each finished episode is committed to ``results.sqlite`` at once (see
+:mod:`orchestrator.matrix.results`); ``resume`` runs only the episodes the database does not hold.
 
 Folder layout of a matrix run::
 
@@ -12,6 +13,7 @@ Folder layout of a matrix run::
     DIR/matrix.yaml                      the matrix file as run
     DIR/episodes/<index>/                one folder per episode: config.yaml, score.json, logs/, trajectory.npz,
                                          recording.mcap (with --record)
+    DIR/stacks/<run id>/logs/            the whole logs of each warm stack (an episode's logs/ holds its lines)
     DIR/report.html, report.md, ...      written at the end (``drivebench report DIR`` writes them again)
 """
 
@@ -19,7 +21,6 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import shutil
 import socket
 import sys
@@ -37,6 +38,7 @@ import yaml
 from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
 from orchestrator.matrix.resume import PLANNED_KEYS_FACT, resume_matrix
+from orchestrator.matrix.warm import JobQueue, WarmLane, copy_episode_logs, log_marks
 from orchestrator.stack.launcher import (
     BrainLaunch,
     EpisodeAborted,
@@ -64,6 +66,8 @@ class RunOptions:
     record_images: "raw" (lossless) or "jpeg" camera images in recordings.
     resume: skip episodes the results database already holds (``retry_failed``: except failed ones).
     startup_timeout_s: per stack, how long its processes may take to come up.
+    fresh_stacks: a new stack for every episode (``--fresh-stacks``); default: each worker keeps a warm stack
+        across episodes (``orchestrator.matrix.warm``), meant to give the same results (docs/warm-stacks.md).
     facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
     """
 
@@ -74,6 +78,7 @@ class RunOptions:
     retry_failed: bool = False
     startup_timeout_s: float = 90.0
     facts: dict = field(default_factory=dict)
+    fresh_stacks: bool = False
 
 
 @dataclass
@@ -153,9 +158,7 @@ class MatrixRunner:
     def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
         """Run ``todo``, each result through :meth:`_finish`, calling ``on_change`` as it goes. Here: worker threads
         on this machine; :mod:`orchestrator.matrix.ray_runner` runs them as tasks on a Ray cluster instead."""
-        jobs: queue.Queue[PlannedEpisode] = queue.Queue()
-        for episode in todo:
-            jobs.put(episode)
+        jobs = JobQueue(todo, launches=self._launches)
         # One router for the whole matrix, embedded here; every episode's processes connect to it.
         router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
         endpoint = router.config.listen[0]
@@ -170,7 +173,7 @@ class MatrixRunner:
         threads = [
             threading.Thread(
                 target=self._lane,
-                args=(done, jobs, store, progress, state, endpoint),
+                args=(done, jobs, store, progress, state, endpoint, i),
                 name=f"matrix-worker-{i}",
                 daemon=False,
             )
@@ -224,21 +227,39 @@ class MatrixRunner:
             done.set()
 
     def _work(
-        self, jobs: queue.Queue, store: ResultStore, progress: MatrixProgress, state: WorkerState, endpoint: str
+        self,
+        jobs: JobQueue,
+        store: ResultStore,
+        progress: MatrixProgress,
+        state: WorkerState,
+        endpoint: str,
+        lane_index: int,
     ) -> None:
-        while not self._stopping.is_set():
-            try:
-                episode = jobs.get_nowait()
-            except queue.Empty:
-                return
-            with progress.lock:
-                state.episode, state.live = episode, None
-            result = self._run_one(episode, endpoint, state)
-            with progress.lock:
-                state.episode, state.live = None, None
-            if result is None:  # abandoned: not a result
-                return
-            self._finish(result, store, progress)
+        lane = None
+        if not self.options.fresh_stacks:
+            settings = {"router_endpoint": endpoint, "startup_timeout_s": self.options.startup_timeout_s}
+            lane = WarmLane(
+                lane=lane_index, stacks_dir=self.out_dir / "stacks", make_stack=self._make_stack, settings=settings
+            )
+        try:
+            while not self._stopping.is_set():
+                episode = jobs.take(prefer=None if lane is None else lane.brains)
+                if episode is None:
+                    return
+                with progress.lock:
+                    state.episode, state.live = episode, None
+                if lane is None:
+                    result = self._run_one(episode, endpoint, state)
+                else:
+                    result = self._run_warm(episode, lane, state)
+                with progress.lock:
+                    state.episode, state.live = None, None
+                if result is None:  # abandoned: not a result
+                    return
+                self._finish(result, store, progress)
+        finally:
+            if lane is not None:
+                lane.close()
 
     def _finish(self, result: EpisodeResult, store: ResultStore, progress: MatrixProgress) -> None:
         """One finished episode: committed to the results, then counted."""
@@ -252,11 +273,10 @@ class MatrixRunner:
                 progress.failed += 1
 
     def _run_one(self, episode: PlannedEpisode, endpoint: str, state: WorkerState) -> EpisodeResult | None:
+        """One episode on a fresh stack of its own (``--fresh-stacks``, and every Ray task)."""
         folder = self._episode_folder(episode)
         run_id = f"m{episode.index:04d}-{uuid.uuid4().hex[:6]}"
         started_at = time.time()
-        trace = Trace()
-        outcome: dict = {"status": "done", "score": None, "failure": None}
         stack = self._make_stack(
             run_id=run_id,
             run_dir=folder,
@@ -267,8 +287,60 @@ class MatrixRunner:
             record_options=(f"image_format={self.options.record_images}",),
         )
         self._write_config(folder, episode, run_id)
+        trace = Trace()
         try:
-            stack.start()
+            outcome = self._drive(episode, state, trace, lambda: (stack.start(), stack)[1])
+        finally:
+            stack.close()
+        return self._episode_result(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
+
+    def _run_warm(self, episode: PlannedEpisode, lane: WarmLane, state: WorkerState) -> EpisodeResult | None:
+        """One episode on the lane's warm stack (started, or its brain hosts changed, as the episode needs)."""
+        folder = self._episode_folder(episode)
+        started_at = time.time()
+        trace = Trace()
+        stacks: list[LocalStack] = []
+        marks: dict[Path, int] = {}
+
+        def prepare() -> LocalStack:
+            if lane.stack is not None:  # where the episode's log lines begin (a new stack's: at their first line)
+                marks.update(log_marks(lane.stack))
+            stack = lane.stack_for(self._launches(episode))
+            stacks.append(stack)
+            stack.record_options = (f"image_format={self.options.record_images}",)
+            self._write_config(folder, episode, stack.run_id)
+            if self.options.record:  # the stack's recorder (started at its first episode) opens this file
+                stack.record_episode(folder / "recording.mcap", attach=(folder / "config.yaml",))
+            return stack
+
+        try:
+            outcome = self._drive(episode, state, trace, prepare)
+        finally:
+            trace.detach()
+        if stacks and self.options.record and lane.stack is not None and outcome is not None:
+            try:
+                lane.stack.finish_recording()  # a complete, indexed file before the next episode starts
+            except StackFailure as failure:
+                lane.stack.recording_failure = failure  # scored all the same; the stack is replaced
+        if stacks:
+            copy_episode_logs(stacks[0], marks, folder / "logs")
+        if outcome is None:
+            lane.retire("its episode was abandoned")
+            return None
+        if not stacks:  # the stack did not come up: nothing ran on it
+            return self._episode_result(episode, None, outcome, trace=trace, folder=folder, started_at=started_at)
+        stack = stacks[0]
+        result = self._episode_result(episode, stack, outcome, trace=trace, folder=folder, started_at=started_at)
+        lane.after_episode(failed=outcome["status"] == "failed")
+        return result
+
+    def _drive(
+        self, episode: PlannedEpisode, state: WorkerState, trace: Trace, prepare: Callable[[], LocalStack]
+    ) -> dict | None:
+        """Prepare a stack and run the episode on it: {"status", "score", "failure"}, or None when abandoned."""
+        outcome: dict = {"status": "done", "score": None, "failure": None}
+        try:
+            stack = prepare()
             trace.attach(stack)
             outcome["score"] = stack.run_episode(
                 episode.spec,
@@ -289,9 +361,23 @@ class MatrixRunner:
         except Exception as error:  # noqa: BLE001 - one broken episode must not end the matrix
             log.exception("episode %s", episode.key)
             outcome.update(status="failed", failure=f"error: {type(error).__name__}: {error}")
-        finally:
-            stack.close()
-        if stack.recording_failure is not None:  # scored all the same; the recording beside it is incomplete
+        return outcome
+
+    def _episode_result(
+        self,
+        episode: PlannedEpisode,
+        stack: LocalStack | None,
+        outcome: dict | None,
+        *,
+        trace: Trace,
+        folder: Path,
+        started_at: float,
+    ) -> EpisodeResult | None:
+        """An episode's files (score, trajectory, a recording failure) and its result; None when it is no result."""
+        if outcome is None:
+            return None
+        run_id = stack.run_id if stack is not None else ""
+        if stack is not None and stack.recording_failure is not None:  # scored; the recording beside it is incomplete
             (folder / "recording_failure.json").write_text(
                 json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n"
             )
@@ -300,8 +386,9 @@ class MatrixRunner:
         score: EpisodeScore | None = outcome["score"]
         if score is not None:
             (folder / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
-        trajectory = trace.save(folder / "trajectory.npz")
+        trajectory = trace.save(folder / "trajectory.npz", episode=None if stack is None else stack.last_episode)
         recording = folder / "recording.mcap"
+        logs = folder / "logs"  # a warm stack's episode: the lines its processes logged during the episode
         return EpisodeResult.of(
             episode,
             status=outcome["status"],
@@ -313,7 +400,7 @@ class MatrixRunner:
             score=score,
             recording=self._relative(recording) if recording.is_file() else None,
             trajectory=self._relative(trajectory),
-            logs=self._relative(folder / "logs"),
+            logs=self._relative(logs),
             node=self._node_name(),
         )
 
@@ -377,11 +464,27 @@ class Trace:
         assert stack.bus is not None
         self._subscription = stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=self._poses)
 
+    def detach(self) -> None:
+        """Stop receiving poses (a warm stack's bus outlives the episode; its subscriptions must not pile up)."""
+        if self._subscription is not None:
+            self._subscription.close()
+            self._subscription = None
+
     def add_live(self, live: LiveMetrics) -> None:
         self._live.append((live.sim_time_s, live.progress_laps, live.cross_track_m))
 
-    def save(self, path: Path) -> Path:
-        poses = sorted({p.message.header.seq: p.message for p in self._poses.drain()}.items())
+    def save(self, path: Path, *, episode: int | None = None) -> Path:
+        """Write the trajectory; ``episode``: keep only that episode's poses (on a warm stack, a pose of the episode
+        before may still trail in after this one's subscription began)."""
+        received = [p.message for p in self._poses.drain()]
+        if episode is not None:
+            received = [pose for pose in received if pose.header.episode == episode]
+        # The first pose of each frame: a lock-step resend of a frame nobody answered yet publishes its pose again
+        # with the speed zeroed, and the trajectory must not depend on whether the brain was slow to its first answer.
+        first: dict[int, Pose] = {}
+        for pose in received:
+            first.setdefault(pose.header.seq, pose)
+        poses = sorted(first.items())
         rows = np.array(
             [(pose.header.stamp_ns / 1e9, pose.x_m, pose.y_m, pose.yaw_rad, pose.speed_mps) for _, pose in poses],
             dtype=np.float64,

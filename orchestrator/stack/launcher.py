@@ -182,6 +182,7 @@ class LocalStack:
         self.busy_wait_s = busy_wait_s  # how long a start waits for a simulator busy with another episode
         self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
         self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
+        self.last_episode: int | None = None  # the simulator's number of the episode run last (a warm stack runs many)
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
         # the simulator itself ends the episode with brain_lost when the active brain's token goes)
 
@@ -212,21 +213,30 @@ class LocalStack:
             self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
             self._wait_for_router()
             self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher", env=LOCAL_ENV)
-        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
+        self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted: set[str] = set()
         if self.record is not None:
             # First, so that its subscription is in place before anything is published.
             wanted.add(self._spawn_role(graph.role("recorder"), self._recorder_argv()))
         for row in graph.local_stack_roles():
             wanted.add(self._spawn_role(row, []))
-        for launch in self.brains:
-            argv = ["--brain", launch.brain, "--name", launch.bus_name]
-            for option in launch.options:
-                argv += ["--set", f"options.{option}"]
-            for setting in launch.host:
-                argv += ["--set", setting]
-            wanted.add(self._spawn_role(graph.role("brain"), argv, name=launch.bus_name))
-        missing = watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
+        wanted |= {self._spawn_brain(launch) for launch in self.brains}
+        self._wait_alive(wanted)
+        self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
+        log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
+
+    def _spawn_brain(self, launch: BrainLaunch) -> str:
+        argv = ["--brain", launch.brain, "--name", launch.bus_name]
+        for option in launch.options:
+            argv += ["--set", f"options.{option}"]
+        for setting in launch.host:
+            argv += ["--set", setting]
+        return self._spawn_role(graph.role("brain"), argv, name=launch.bus_name)
+
+    def _wait_alive(self, wanted: set[str]) -> None:
+        """Until every liveliness key in ``wanted`` is alive; StackError (one line) when a child dies or time is up."""
+        assert self._watch is not None
+        missing = self._watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
         if (dead := self._dead_child_reason()) is not None:
             raise StackError(dead)
         if missing:
@@ -234,14 +244,92 @@ class LocalStack:
             raise StackError(
                 f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})"
             )
-        self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
-        log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
-    def _recorder_argv(self) -> list[str]:
+    # -- a warm stack: what changes from one episode to the next (orchestrator.matrix.warm) --
+
+    def set_brains(self, launches: list[BrainLaunch]) -> tuple[int, int]:
+        """Make ``launches`` this running stack's brain hosts: a host started with the same launch (brain, bus name,
+        options including weights, host settings) stays, and its brain is reset with each episode's seed; the others
+        stop, and missing ones start and are waited for. Returns (kept, started)."""
+        assert self._watch is not None, "start the stack first"
+        retired = [launch for launch in self.brains if launch not in launches]
+        for launch in retired:
+            self._retire_child("brain", launch.bus_name)
+        started = [launch for launch in launches if launch not in self.brains]
+        self.brains = list(launches)
+        self._wait_alive({self._spawn_brain(launch) for launch in started})
+        return len(launches) - len(started), len(started)
+
+    def _retire_child(self, role: str, name: str) -> None:
+        """Stop one child on purpose (SIGTERM, its grace, then SIGKILL) and forget it; wait until its liveliness
+        token is gone, so that a successor of the same name is never taken for dead when the old token's removal
+        arrives late."""
+        child = self.child(role, name)
+        self.children.remove(child)
+        token = graph.role(role).token_key(self.run_id, name)
+        self._required.discard(token)
+        grace_s = RECORDER_STOP_GRACE_S if role == "recorder" else STOP_GRACE_S
+        self._stop([child], grace_s=grace_s)
+        deadline = time.monotonic() + STOP_GRACE_S
+        while self._watch is not None and token in self._watch.alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    def record_episode(self, output: Path, *, attach: tuple[Path, ...] = ()) -> None:
+        """Record what this running stack publishes from now on into ``output`` (one episode's file): the first
+        time, a recorder is started into it; later, the running recorder is asked to open it. Returns once the
+        recorder writes there; StackFailure (``recorder_died``) when it does not within its grace period."""
+        if not any(child.role == "recorder" for child in self.children):
+            self.record = output
+            key = self._spawn_role(graph.role("recorder"), self._recorder_argv(attach=attach))
+            self._wait_alive({key})
+            self._required.add(key)
+            return
+        path = str(Path(output).resolve())
+        request = ControlRequest(action="open", output=path, attach=[str(Path(f).resolve()) for f in attach])
+        self._recorder_request(request, done=lambda reply: reply.output == path)
+
+    def finish_recording(self) -> None:
+        """Have the recorder finish its file (what is on its way, then summary and index) and wait until it has:
+        the episode's recording is complete before the next episode starts."""
+        self._recorder_request(ControlRequest(action="close"), done=lambda reply: reply.output == "")
+
+    def _recorder_request(self, request: ControlRequest, *, done: Callable[[ControlReply], bool]) -> None:
+        assert self.bus is not None
+        key = keys.recorder_control(self.run_id)
+        payload = self.bus.request(key, codec.encode(request), timeout_s=2.0)
+        reply = None if payload is None else codec.decode(payload, ControlReply)
+        if reply is None or not reply.ok:
+            why = "no answer" if reply is None else reply.detail
+            raise StackFailure("recorder_died", f"the recorder did not take {request.action!r} on {key}: {why}")
+        deadline = time.monotonic() + RECORDER_STOP_GRACE_S
+        status = codec.encode(ControlRequest(action="status"))
+        while time.monotonic() < deadline:
+            payload = self.bus.request(key, status, timeout_s=2.0)
+            if payload is not None and done(codec.decode(payload, ControlReply)):
+                return
+            if (dead := self._dead_child_reason()) is not None:
+                raise StackFailure("recorder_died", dead)
+            time.sleep(0.02)
+        raise StackFailure(
+            "recorder_died", f"the recorder did not {request.action} a file within {RECORDER_STOP_GRACE_S:.0f} s"
+        )
+
+    def stop_recorder(self) -> None:
+        """Stop this stack's recorder: it drains what is still on its way, then writes a complete, indexed file."""
+        for child in [c for c in self.children if c.role == "recorder"]:
+            self._retire_child("recorder", child.name)
+        self.record = None
+
+    def failure_now(self) -> StackFailure | None:
+        """A process of this stack that has died, or a required token gone, as a typed failure (None: healthy)."""
+        return self._failure()
+
+    def _recorder_argv(self, *, attach: tuple[Path, ...] | None = None) -> list[str]:
         argv = ["--set", f"output={json.dumps(str(Path(self.record).resolve()))}"]
         config = self.run_dir / "config.yaml"
-        if config.is_file():
-            argv += ["--set", f"attach=[{json.dumps(str(config.resolve()))}]"]
+        files = attach if attach is not None else ((config,) if config.is_file() else ())
+        if files:
+            argv += ["--set", f"attach=[{', '.join(json.dumps(str(Path(f).resolve())) for f in files)}]"]
         for option in self.record_options:
             argv += ["--set", option]
         return argv
@@ -425,10 +513,11 @@ class LocalStack:
                 subscription.close()
 
     def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s, abort) -> EpisodeScore:
+        self.last_episode = None
         reply = self._start(spec)
         if not reply.ok:
             raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
-        episode = reply.episode
+        episode = self.last_episode = reply.episode
         guard = wall_timeout_s or wall_guard_s(max_sim_seconds=spec.max_sim_seconds)
         deadline = time.monotonic() + guard
         failure: StackFailure | None = None

@@ -222,7 +222,7 @@ ROLES: tuple[Role, ...] = (
         produces="run control (as the episode's driver: a liveliness token the simulator watches), run folder, "
         "failure records, matrix results and reports",
         alive_as="driver",
-        queries=(keys.sim_control(RUN), keys.brain_control(RUN, NAME)),
+        queries=(keys.sim_control(RUN), keys.brain_control(RUN, NAME), keys.recorder_control(RUN)),
         claims=(keys.name_claims(RUN),),
         subscribes=(keys.live_metrics(RUN), keys.score(RUN)),
         identity="orchestrator",
@@ -283,6 +283,7 @@ ROLES: tuple[Role, ...] = (
         consumes="every key of one run",
         produces="an MCAP file (also: repair, replay, datasets)",
         subscribes=(keys.run_all(RUN),),
+        serves=(keys.recorder_control(RUN),),
         token="recorder",
         bus_mode="client",
         identity="recorder",

@@ -1,0 +1,220 @@
+"""Integration: warm stacks (a matrix worker keeps its stack across episodes) give exactly the results of fresh stacks,
+and nothing of one episode leaks into the next. Real processes, one real Zenoh router, real PyBullet, real MCAP."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support.matrices import processes_with
+from support.waits import wait_for
+
+from orchestrator.matrix.load import parse_matrix
+from orchestrator.matrix.results import ResultStore
+from orchestrator.matrix.runner import MatrixRunner, RunOptions, Trace, brain_launch
+from orchestrator.stack.launcher import LocalStack
+from protocol.bus import Received
+from protocol.messages import CameraFrame, EpisodeEvent, EpisodeScore, EventKind, Header, Pose
+from recorder.reading import read_messages, recording_info
+
+pytestmark = pytest.mark.integration
+
+# Two brains (one draws seeded steering bursts, so a brain not reset would drive differently), two circuits, two
+# worlds (line colour), with and without seeded noise: 8 episodes of 3 s sim.
+MIXED = """
+name: mixed
+brains: [explicit, {name: noisy, options: {burst_probability: 0.2, steering_noise_radps: 0.8}}]
+circuits: [simple, many_curves]
+variations: {line: [red, white]}
+perturbations: [none, {salt_pepper: 0.2}]
+exclude: [{circuit: simple, line: white}, {circuit: many_curves, line: red}]
+limits: {laps: 1, max_sim_seconds: 3}
+camera: 96x72
+"""
+# What the simulation alone decides (the rest of EpisodeMetrics measures wall time: latency, inference, rates).
+SIMULATED = (
+    "sim_time_s",
+    "steps",
+    "completed_distance_m",
+    "average_speed_mps",
+    "percentage_completed",
+    "bm_lap_seconds",
+    "position_deviation_mae",
+    "position_deviation_total_err",
+    "suddenness_distance",
+    "progress_m",
+    "progress_laps",
+    "completed_laps",
+    "lap_times_s",
+    "cross_track_mean_m",
+    "cross_track_rms_m",
+    "cross_track_max_m",
+    "cross_track_p95_m",
+    "off_track_events",
+)
+TRAJECTORY = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
+
+
+def simulated(score: EpisodeScore) -> dict:
+    return {"reason": score.reason, "spec": score.spec, **{f: getattr(score.metrics, f) for f in SIMULATED}}
+
+
+def trajectory(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        return {name: data[name] for name in TRAJECTORY}
+
+
+def assert_same_trajectory(one: dict[str, np.ndarray], other: dict[str, np.ndarray], *, what: str) -> None:
+    for name in TRAJECTORY:
+        assert one[name].shape == other[name].shape and np.array_equal(one[name], other[name]), f"{what}: {name}"
+
+
+def results_by_key(out: Path) -> dict:
+    with ResultStore(out, create=False) as store:
+        return {result.key: result for result in store.results()}
+
+
+@pytest.mark.slow
+def test_a_matrix_on_warm_stacks_gives_bit_for_bit_the_results_of_fresh_stacks(tmp_path):
+    matrix = parse_matrix(MIXED)
+    assert len(matrix.episodes) == 8
+    fresh = MatrixRunner(matrix, tmp_path / "fresh", RunOptions(workers=1, fresh_stacks=True)).run()
+    warm = MatrixRunner(matrix, tmp_path / "warm", RunOptions(workers=1)).run()
+    assert (fresh.done, fresh.failed, warm.done, warm.failed) == (8, 0, 8, 0)
+    fresh_results, warm_results = results_by_key(tmp_path / "fresh"), results_by_key(tmp_path / "warm")
+    assert fresh_results.keys() == warm_results.keys()
+    # Fresh: a stack (run id) per episode. Warm: one stack for all 8, its brain hosts changed once.
+    assert len({result.run_id for result in fresh_results.values()}) == 8
+    assert len({result.run_id for result in warm_results.values()}) == 1
+    assert sorted(result.score.header.episode for result in warm_results.values()) == list(range(8))
+    for key, result in warm_results.items():
+        other = fresh_results[key]
+        assert simulated(result.score) == simulated(other.score), key
+        warm_path, fresh_path = tmp_path / "warm" / result.trajectory, tmp_path / "fresh" / other.trajectory
+        assert_same_trajectory(trajectory(warm_path), trajectory(fresh_path), what=key)
+        assert len(trajectory(warm_path)["x_m"]) == result.score.metrics.steps + 1  # poses 0..steps, none of others
+    # The noise and the noisy brain's bursts did change the driving, so equality above is not a trivial one.
+    distances = {round(r.score.metrics.completed_distance_m, 6) for r in warm_results.values()}
+    assert len(distances) >= 6
+
+
+def run_traced(stack: LocalStack, spec, folder: Path, name: str) -> tuple[EpisodeScore, dict[str, np.ndarray]]:
+    trace = Trace()
+    trace.attach(stack)
+    try:
+        score = stack.run_episode(spec)
+    finally:
+        trace.detach()
+    return score, trajectory(trace.save(folder / f"{name}.npz", episode=stack.last_episode))
+
+
+def test_an_episode_after_others_on_one_warm_stack_is_the_episode_on_its_own(tmp_path):
+    """Isolation: the brain is reset with the episode's seed (the noisy brain's bursts), the noise model reseeded
+    (salt and pepper), and the scorer starts anew (metrics and trajectory of the repeat equal the first run's)."""
+    episodes = {episode.key: episode for episode in parse_matrix(MIXED).episodes}
+    noisy = episodes["noisy/simple/line=red/salt_pepper=0.2/r0"]
+    other = episodes["noisy/many_curves/line=white/none/r0"]
+    with LocalStack(run_id="warm-isolation", run_dir=tmp_path, brains=[brain_launch(noisy.brain)]) as stack:
+        first, first_path = run_traced(stack, noisy.spec, tmp_path, "first")
+        between, between_path = run_traced(stack, other.spec, tmp_path, "between")
+        again, again_path = run_traced(stack, noisy.spec, tmp_path, "again")
+        pids = [child.process.pid for child in stack.children]
+        assert all(child.process.poll() is None for child in stack.children)
+    assert [score.header.episode for score in (first, between, again)] == [0, 1, 2]  # one stack ran all three
+    assert len(pids) == 4  # simulator, noise injector, scorer, one brain host: none restarted
+    assert simulated(again) == simulated(first)
+    assert_same_trajectory(again_path, first_path, what="the repeated episode")
+    # The episode between drove elsewhere, and its score holds its own poses only.
+    assert between.spec.circuit == "many_curves" and len(between_path["x_m"]) == between.metrics.steps + 1
+    assert not np.array_equal(between_path["x_m"][:10], first_path["x_m"][:10])
+
+
+def test_warm_recordings_are_closed_complete_and_one_episode_each(tmp_path):
+    matrix = parse_matrix(MIXED.replace("name: mixed", "name: recorded").replace("brains: [explicit, ", "brains: ["))
+    matrix = dataclasses.replace(matrix, episodes=matrix.episodes[:3])
+    progress = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1, record=True)).run()
+    assert (progress.done, progress.failed) == (3, 0)
+    results = results_by_key(tmp_path / "out")
+    (run_id,) = {result.run_id for result in results.values()}  # one warm stack ...
+    recorder_log = (tmp_path / "out" / "stacks" / run_id / "logs" / "recorder.log").read_text()
+    assert recorder_log.count("recording run") == 1 and recorder_log.count("finished ") == 3  # ... one recorder
+    assert not list((tmp_path / "out").rglob("*.part"))  # every file finished
+    for result in results.values():
+        path = tmp_path / "out" / result.recording
+        info = recording_info(path)  # reads the summary: a closed, indexed file
+        assert "file:config.yaml" in info.metadata
+        messages = list(read_messages(path))
+        events = [m.message for m in messages if isinstance(m.message, EpisodeEvent)]
+        starts = [e for e in events if e.kind == EventKind.START]
+        ends = [e for e in events if e.kind == EventKind.END]
+        assert len(starts) == 1 and len(ends) == 1, result.key
+        episode = result.score.header.episode
+        assert {m.message.header.episode for m in messages if hasattr(m.message, "header")} == {episode}
+        # The episode's folder holds its own slice of the stack's logs.
+        simulator_log = (tmp_path / "out" / result.logs / "simulator.log").read_text()
+        assert simulator_log.count(" started: ") == 1 and f"episode {episode} started: " in simulator_log
+        for stream in ("sim/camera", "noise/camera"):
+            seqs = {m.message.header.seq for m in messages if isinstance(m.message, CameraFrame) and stream in m.key}
+            assert seqs == set(range(result.score.metrics.steps)), (result.key, stream)
+
+
+def test_a_process_that_dies_between_episodes_is_replaced_before_the_next_one(tmp_path):
+    """The noise injector of a warm stack killed after its first episode: the next episode runs on a new stack and is
+    an ordinary result, not a failure (nothing was running when it died)."""
+    matrix = parse_matrix(
+        "brains: [explicit]\ncircuits: [simple]\nrepetitions: 2\nlimits: {max_sim_seconds: 2}\ncamera: 96x72\n"
+    )
+    killed: list[int] = []
+
+    class KillsBetweenEpisodes(MatrixRunner):
+        def _finish(self, result, store, progress) -> None:
+            super()._finish(result, store, progress)
+            if not killed:
+                for pid in processes_with(f"--run-id {result.run_id}"):
+                    if " -m services.noise " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                        os.kill(pid, signal.SIGKILL)
+                        killed.append(pid)
+                wait_for(lambda: all(map(zombie, killed)), timeout_s=10, what="the killed noise injector gone")
+
+    progress = KillsBetweenEpisodes(matrix, tmp_path / "out", RunOptions(workers=1)).run()
+    assert len(killed) == 1
+    assert (progress.done, progress.failed) == (2, 0)
+    first, second = sorted(results_by_key(tmp_path / "out").values(), key=lambda result: result.started_at)
+    assert first.run_id != second.run_id  # a new stack
+    assert second.score.header.episode == 0 and second.reason == "time_limit"
+
+
+def zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1][0] == "Z"
+    except OSError:
+        return True
+
+
+def test_a_trajectory_keeps_each_frames_first_pose_not_a_resends_zeroed_one(tmp_path):
+    """A lock-step resend (a brain slow to its first answer) publishes the frame's pose again with the speed zeroed;
+    the trajectory takes the pose as first published, so it does not depend on how fast the brain warmed up. Poses of
+    another episode (a warm stack's previous one, trailing in) are left out."""
+
+    def pose(*, episode: int, seq: int, speed_mps: float) -> Received:
+        header = Header(run_id="r", episode=episode, seq=seq, stamp_ns=seq * 50_000_000)
+        return Received(
+            key="k", message=Pose(header=header, x_m=seq, y_m=0.0, yaw_rad=0.0, speed_mps=speed_mps), arrival_ns=0
+        )
+
+    trace = Trace()
+    for item in (
+        pose(episode=3, seq=9, speed_mps=9.0),  # the episode before, late
+        pose(episode=4, seq=0, speed_mps=0.0),
+        pose(episode=4, seq=1, speed_mps=2.0),
+        pose(episode=4, seq=1, speed_mps=0.0),  # resent: same frame, speed zeroed
+        pose(episode=4, seq=2, speed_mps=2.5),
+    ):
+        trace._poses.put(item)
+    saved = trajectory(trace.save(tmp_path / "t.npz", episode=4))
+    assert saved["x_m"].tolist() == [0.0, 1.0, 2.0]
+    assert saved["speed_mps"].tolist() == [0.0, 2.0, 2.5]
