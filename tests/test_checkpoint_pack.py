@@ -170,6 +170,7 @@ def test_pack_command_errors_are_one_line(tmp_path, capsys):
     assert err.count("\n") == 1 and not (tmp_path / "o.ckpt").exists()
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_pack_command_end_to_end(pilotnet, tmp_path):
     out = tmp_path / "git" / "pilotnet.ckpt"
     done = subprocess.run(

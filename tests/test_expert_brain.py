@@ -44,6 +44,7 @@ def test_it_steers_back_to_the_centre_line_from_either_side():
     assert left.yaw_rate_radps < -0.1 < 0.1 < right.yaw_rate_radps
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_it_slows_down_before_a_tight_curve_and_speeds_up_on_a_straight():
     centreline = load_circuit("montmelo").centreline
     expert = make_brain("expert")

@@ -64,4 +64,5 @@ def test_each_scene_option_has_one_help_text_less_its_default(helps, option):
 
 @pytest.mark.parametrize("command", list(COMMANDS))
 def test_each_command_states_its_renderer_default(helps, command):
-    assert helps[command]["--renderer"].endswith(f"default: {RENDERER_DEFAULTS[command]}")
+    # ... and the look that needs gl says what it picks (look=gazebo: auto)
+    assert helps[command]["--renderer"].endswith(f"default: {RENDERER_DEFAULTS[command]} (look=gazebo: auto)")

@@ -50,6 +50,7 @@ def test_probability_of_improvement_counts_pairs_of_runs_per_condition():
     assert probability_of_improvement(x, y) == pytest.approx((0.5 + 0.25) / 2)
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_the_95_percent_interval_covers_the_true_mean_in_93_to_97_percent_of_experiments():
     """1,000 synthetic experiments, each 30 training runs x 10 conditions of a known mean: the stratified bootstrap's
     percentile interval must cover that mean about 95 % of the time: 94.2 % here. (With 5 runs the same experiment

@@ -433,6 +433,7 @@ def train_seeds(data: Path, output: Path, *extra: str) -> subprocess.CompletedPr
     )  # fmt: skip
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_seeds_train_one_run_each_with_a_manifest_and_a_rerun_keeps_them(datasets, tmp_path):
     out = tmp_path / "tiny"
     first = train_seeds(datasets["crop"], out, "--seeds", "0-2", "--workers", "2")

@@ -28,6 +28,7 @@ def train(data: Path, output: Path, *options: str, model: str = "deepest_lstm_ti
     )  # fmt: skip
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_the_whole_frame_for_a_network_of_the_lower_half_is_an_error_unless_asked(recordings, tmp_path):
     data = tmp_path / "whole"
     assert build(*recordings, "-o", data, "--split", "none", size="100x50").returncode == 0
@@ -40,6 +41,7 @@ def test_the_whole_frame_for_a_network_of_the_lower_half_is_an_error_unless_aske
     assert "differ from the reference" in result.stderr  # still said
 
 
+@pytest.mark.slow  # over 9 s: out of the quick tier
 def test_the_lower_half_for_a_whole_frame_network_trains_with_a_note(recordings, tmp_path):
     """The paper's recipe trains memDCCP on the lower half (brains/weights/README.md): a narrower crop than the
     network's is a choice, not an error."""
