@@ -13,6 +13,7 @@ import hashlib
 import json
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -102,10 +103,13 @@ def train_seeds(
             log=log,
         )
 
+    manifest_lock = threading.Lock()  # two seeds may end at once: one writer of training.json at a time
+
     def one(seed: int) -> SeedRun:
         run = _train_one(seed=seed, folder=seed_folder(output, seed), recipe=recipe, log=log)
-        runs[seed] = run
-        write_manifest(output, base, [runs[s] for s in seeds if s in runs])
+        with manifest_lock:
+            runs[seed] = run
+            write_manifest(output, base, [runs[s] for s in seeds if s in runs])
         return run
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:

@@ -147,20 +147,20 @@ def smoke_form(
     camera_wh: tuple[int, int] = (160, 120),
 ) -> Matrix:
     """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
-    first ``cells_per_part`` conditions of every part, repetition 0, ``sim_seconds`` of simulated time on a small
-    camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
+    first ``cells_per_part`` conditions (world x perturbation) on the first ``cells_per_part`` circuits of every part,
+    repetition 0, ``sim_seconds`` of simulated time on a small camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
     wanted = None if brains is None else set(brains)
     kept: list[PlannedEpisode] = []
     conditions_by_part: dict[str, list] = {}
+    circuits_by_part: dict[str, list] = {}
     for episode in matrix.episodes:
         if (wanted is not None and episode.brain.label not in wanted) or episode.repetition != 0:
             continue
+        if not _kept(circuits_by_part.setdefault(episode.part, []), episode.circuit, cells_per_part):
+            continue
         conditions = conditions_by_part.setdefault(episode.part, [])
-        condition = (episode.circuit, episode.variation, episode.perturbation)
-        if condition not in conditions:
-            if len(conditions) >= cells_per_part:
-                continue
-            conditions.append(condition)
+        if not _kept(conditions, (episode.variation, episode.perturbation), cells_per_part):
+            continue
         camera = msgspec.structs.replace(episode.spec.camera, width_px=camera_wh[0], height_px=camera_wh[1])
         spec = msgspec.structs.replace(episode.spec, max_sim_seconds=sim_seconds, camera=camera)
         kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
@@ -170,6 +170,16 @@ def smoke_form(
         episodes=tuple(kept),
         brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted),
     )
+
+
+def _kept(seen: list, item: Any, limit: int) -> bool:
+    """Whether ``item`` is among the first ``limit`` distinct items met (recording it when there is room)."""
+    if item in seen:
+        return True
+    if len(seen) >= limit:
+        return False
+    seen.append(item)
+    return True
 
 
 def with_renderer(matrix: Matrix, choose: Callable[[str], str]) -> Matrix:
