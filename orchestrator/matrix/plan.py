@@ -148,7 +148,8 @@ def smoke_form(
 ) -> Matrix:
     """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
     first ``cells_per_part`` conditions (world x perturbation) on the first ``cells_per_part`` circuits of every part,
-    repetition 0, ``sim_seconds`` of simulated time on a small camera. Keys stay the full matrix's, so every kept episode still lands in its report cell."""
+    repetition 0, ``sim_seconds`` of simulated time on a small camera. Keys stay the full matrix's, so every kept
+    episode still lands in its report cell."""
     wanted = None if brains is None else set(brains)
     kept: list[PlannedEpisode] = []
     conditions_by_part: dict[str, list] = {}
