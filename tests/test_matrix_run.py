@@ -262,7 +262,9 @@ def test_ctrl_c_on_a_two_worker_matrix_exits_cleanly_every_time(tmp_path):
     path = write_matrix(
         tmp_path,
         "name: interrupted\nbrains: [explicit, {name: constant, options: {speed_mps: 1.0}}]\ncircuits: [simple]\n"
-        "repetitions: 3\nlimits: {laps: 1, max_sim_seconds: 20}\ncamera: 96x72\n",
+        # 12 episodes of up to 40 s sim: warm stacks run one in about a second of wall time, and the last SIGINT
+        # (5 s after both stacks started) must still find episodes left to resume.
+        "repetitions: 6\nlimits: {laps: 1, max_sim_seconds: 40}\ncamera: 96x72\n",
     )
     for attempt, delay_s in enumerate((0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 1.5, 2.5)):
         out = tmp_path / f"out{attempt}"
