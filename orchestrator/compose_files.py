@@ -1,6 +1,5 @@
 """Files generated from the process graph (``protocol.deploy.graph``): compose.yaml, compose.secure.yaml, the secure
-router's
-roles (deploy/secure/router.yaml) and the docs' architecture table (docs/architecture.md).
+router's roles (deploy/secure/router.yaml) and the docs' architecture table (docs/architecture.md).
 
     python -m orchestrator.compose_files --check   # exit 1, naming each file that differs from what the graph gives
     python -m orchestrator.compose_files --write   # rewrite them

@@ -95,9 +95,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
 @dataclass(frozen=True)
 class ChannelInfo:
     """One channel of a recording. topic: its name in viewers (stable, ``protocol.mapping.topics``, in files recorded
-    since
-    format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not say.
-    view: a channel the recorder made for viewers; neither bus nor view: another tool's channel."""
+    since format 2; the bus key before). key: the bus key it holds ("" for a view). run_id: "" where the file does not
+    say. view: a channel the recorder made for viewers; neither bus nor view: another tool's channel."""
 
     topic: str
     schema: str

@@ -1,8 +1,7 @@
 """Putting a recording back on the bus: the recorded messages, on their keys, as their original wire bytes.
 
 Each recorded message is rebuilt by the protocol's mapping (``protocol.mapping.recording``) and encoded by the
-protocol's
-codec, so subscribers receive what the original publishers sent (byte for byte for raw-image recordings; JPEG
+protocol's codec, so subscribers receive what the original publishers sent (byte for byte for raw-image recordings; JPEG
 images come back decoded). ``run_id`` moves everything to another run: keys and headers both. Every key is
 published reliably (blocking, never dropping): a replay exists to deliver all of it, unlike a live camera.
 """

@@ -121,8 +121,7 @@ class RecorderService:
 
     def serve_forever(self) -> None:
         """Record until SIGTERM or SIGINT (:func:`~protocol.deploy.runtime.stop_requested`), then return after the
-        current
-        write (the process exits 143 or 130).
+        current write (the process exits 143 or 130).
 
         The signals only set a flag: raised at an arbitrary point, an exception could interrupt the MCAP writer in
         the middle of a chunk, and ``close()`` would then write the rest after a half-written record (a CI run lost

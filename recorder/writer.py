@@ -6,9 +6,8 @@
 * ``flush_if_due`` closes the open chunk every ~1 s of wall time *or* of simulated time, whichever comes first, so
   a recorder killed with SIGKILL loses at most the last second of either (lock-step runs several times faster
   than real time); ``recorder.repair`` rebuilds a complete file from what was flushed.
-* Topics are stable (``protocol.mapping.topics``: ``/camera/truth``, ``/car/pose``, ...), the same in every run; the
-bus key
-  and run id of each channel are in its metadata.
+* Topics are stable (``protocol.mapping.topics``: ``/camera/truth``, ``/car/pose``, ...), the same in every run; the bus
+  key and run id of each channel are in its metadata.
 * Log time is the simulated time of each message on one clock for the whole file: episode n's stamps are offset
   to start one second after the last message of episode n-1, so episodes follow each other on the timeline.
 """

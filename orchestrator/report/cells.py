@@ -2,9 +2,8 @@
 how an episode ended (:func:`lap_seconds`, :func:`reached_target`, :func:`outcome`), the baseline condition
 (:func:`baseline_variation`) and the small formatting helpers of numbers, durations, dates and names.
 
-Pure functions of :class:`~orchestrator.matrix.results.EpisodeResult` and plain values, separate from the report's
-tables and
-plots so that both, and ``drivebench paper`` (:mod:`orchestrator.report.paper`), share one reading of an episode.
+Pure functions of :class:`~orchestrator.matrix.results.EpisodeResult` and plain values, kept apart from the report's
+tables and plots so that both, and ``drivebench paper`` (:mod:`orchestrator.report.paper`), read an episode alike.
 """
 
 from __future__ import annotations

@@ -81,8 +81,7 @@ def _roles_from_graph() -> dict[str, tuple[Grant, ...]]:
 
 
 # The access-control roles: one per row of the process graph (``protocol.deploy.graph``), each group role ("service":
-# one
-# certificate for a machine running several services) and "observer".
+# one certificate for a machine running several services) and "observer".
 ROLES: dict[str, tuple[Grant, ...]] = _roles_from_graph()
 
 

@@ -5,8 +5,7 @@ They make a recording useful in Foxglove's 3D panel (the car moving on the track
 They are views only: replay and datasets read the bus channels and skip these
 (``protocol.mapping.recording.is_bus_channel``).
 Their topics are stable (``protocol.mapping.topics``: ``/car/pose``, ``/tf``, ``/circuit``, ``/episode/log``); the run
-id is
-in :attr:`ViewMessage.run_id` (channel metadata, for the writer and the live view).
+id is in :attr:`ViewMessage.run_id` (channel metadata, for the writer and the live view).
 """
 
 from __future__ import annotations

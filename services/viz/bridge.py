@@ -15,9 +15,8 @@ stable topics
   Schema.
 
 Log times are simulated time: the first episode seen starts at 0 and each later one one second after the previous
-one's last message (``protocol.mapping.recording.EpisodeClock``, as in recordings), so a viewer's clock never runs
-back. The
-geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
+one's last message (``protocol.mapping.recording.EpisodeClock``, as in recordings), so a viewer's clock never runs back.
+The geometry messages carry that same time in their ``timestamp`` (a viewer looks transforms up at its clock).
 
 A slow viewer costs bounded memory and nothing else: ``log()`` only queues, into a queue of ``backlog`` messages per
 client that drops its oldest, and the simulator never waits for this process (see ``services.viz.service``). With
