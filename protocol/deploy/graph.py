@@ -5,9 +5,8 @@ queries, the liveliness token it declares when ready, the identity it has in a s
 service(s) that run it. Everything that used to spell the graph out by hand reads this table instead:
 
 * ``orchestrator.stack.launcher`` starts a local stack's services from it;
-* ``protocol.deploy.security`` derives the router's access rules from it (a role may put only what it publishes, serve
-only
-  what it serves, query only what it queries, declare only its own token);
+* ``protocol.deploy.security`` derives the router's access rules from it (a role may put only what it publishes,
+  serve only what it serves, query only what it queries, declare only its own token);
 * ``orchestrator.compose_files`` generates ``compose.yaml``, ``compose.secure.yaml`` and ``deploy/secure/router.yaml``
   from it, and the process table of docs/architecture.md (tests fail when the committed files differ);
 * ``drivebench health ROLE`` takes its roles from it.
