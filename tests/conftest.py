@@ -5,9 +5,11 @@ from __future__ import annotations
 import signal
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
+from support.behavior_metrics import fake_bm_checkout
 
 from orchestrator.stack.launcher import BrainLaunch, LocalStack
 
@@ -54,3 +56,9 @@ def make_stack(tmp_path) -> Iterator:
         stack.close()
         for child in stack.children:
             assert child.process.poll() is not None, f"{child.role} {child.name} still running after close()"
+
+
+@pytest.fixture
+def bm_checkout(tmp_path) -> Path:
+    """A fake Behavior Metrics checkout in a temporary folder (tests/support/behavior_metrics.py)."""
+    return fake_bm_checkout(tmp_path)

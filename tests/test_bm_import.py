@@ -4,7 +4,6 @@ behavior_metrics), never copied from BM."""
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,16 +24,6 @@ def drivebench(*args: str, timeout_s: float = 120) -> subprocess.CompletedProces
     return subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout_s
     )
-
-
-@pytest.fixture
-def checkout(tmp_path):
-    """A fake BehaviorMetrics checkout in a temporary folder, with the test brains in its brains/gazebo/f1."""
-    root = tmp_path / "BehaviorMetrics"
-    shutil.copytree(FIXTURES / "fake_checkout", root)
-    for brain in FIXTURES.glob("brain_f1_*.py"):
-        shutil.copy(brain, root / "behavior_metrics" / "brains" / "gazebo" / "f1")
-    return root
 
 
 def test_every_bm_world_name_maps_to_a_circuit_and_variation():
@@ -61,20 +50,20 @@ def test_every_bm_world_name_maps_to_a_circuit_and_variation():
         world_of("many_curves_white_line.launch")  # the docs claim it; BM ships none
 
 
-def test_a_multi_brain_multi_world_config_converts_to_a_matrix_that_loads(checkout, tmp_path):
+def test_a_multi_brain_multi_world_config_converts_to_a_matrix_that_loads(bm_checkout, tmp_path):
     out = tmp_path / "bm.yaml"
     conversion = convert_bm_config(
         yaml.safe_load(CONFIG.read_text()),
         config_path=CONFIG,
         out_path=out,
-        bm_root=checkout / "behavior_metrics",
-        bm_root_option=str(checkout),
+        bm_root=bm_checkout / "behavior_metrics",
+        bm_root_option=str(bm_checkout),
     )
     out.write_text(conversion.text(source=str(CONFIG)))
     matrix = load_matrix(out)
     assert [brain.label for brain in matrix.brains] == ["brain_f1_fake_net", "brain_f1_keywords", "brain_f1_fails"]
     fake_net = dict(matrix.brains[0].options)
-    assert fake_net["model"] == "gains.json" and fake_net["bm_root"] == str(checkout)
+    assert fake_net["model"] == "gains.json" and fake_net["bm_root"] == str(bm_checkout)
     assert fake_net["config"] == {"ImageCropped": True, "GPU": False, "ImageTranform": ""}  # moved to the matrix
     assert "model" not in dict(matrix.brains[1].options)  # Model '' is no model, as in BM
     episodes = {(e.brain.label, e.spec.circuit, e.spec.world.walls, e.spec.max_sim_seconds) for e in matrix.episodes}
@@ -110,26 +99,28 @@ def test_a_multi_brain_multi_world_config_converts_to_a_matrix_that_loads(checko
         ),
     ],
 )
-def test_a_config_drivebench_cannot_convert_is_one_line_naming_the_key(checkout, tmp_path, edit, message):
+def test_a_config_drivebench_cannot_convert_is_one_line_naming_the_key(bm_checkout, tmp_path, edit, message):
     data = yaml.safe_load(CONFIG.read_text())
     edit(data["Behaviors"])
     with pytest.raises(BMConfigError, match=message):
-        convert_bm_config(data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=checkout / "behavior_metrics")
+        convert_bm_config(
+            data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=bm_checkout / "behavior_metrics"
+        )
 
 
-def test_without_a_timeout_each_world_gets_bm_s_default_reference_lap_times_1_1(checkout, tmp_path):
+def test_without_a_timeout_each_world_gets_bm_s_default_reference_lap_times_1_1(bm_checkout, tmp_path):
     data = yaml.safe_load(CONFIG.read_text())
     del data["Behaviors"]["Experiment"]["Timeout"]
     parts = convert_bm_config(
-        data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=checkout / "behavior_metrics"
+        data, config_path=CONFIG, out_path=tmp_path / "m.yaml", bm_root=bm_checkout / "behavior_metrics"
     ).matrix["parts"]
     assert [part["limits"]["max_sim_seconds"] for part in parts.values()] == [82.5, 166.1]  # 75 s and 151 s x 1.1
 
 
-def test_bad_input_is_one_line_and_exit_2_before_anything_starts(checkout, tmp_path):
+def test_bad_input_is_one_line_and_exit_2_before_anything_starts(bm_checkout, tmp_path):
     bad = tmp_path / "bad.yml"
     bad.write_text(CONFIG.read_text().replace("many_curves_no_wall.launch", "many_curves_night.launch"))
-    run = drivebench("bm", "import", str(bad), "-o", str(tmp_path / "m.yaml"), "--bm-root", str(checkout))
+    run = drivebench("bm", "import", str(bad), "-o", str(tmp_path / "m.yaml"), "--bm-root", str(bm_checkout))
     assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
     assert "unknown Behavior Metrics world" in run.stderr and "simple_circuit_white_line" in run.stderr
     assert not (tmp_path / "m.yaml").exists()
@@ -141,7 +132,7 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_starts(checkout, tmp_p
     run = drivebench("run", "--brain", str(raising), "--out", str(tmp_path / "run"))
     assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
     assert str(raising) in run.stderr and "brain_f1_raises.py:3): RuntimeError: no camera calibration" in run.stderr
-    fake_net = checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
+    fake_net = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
     run = drivebench(
         "run", "--brain", str(fake_net), "--brain-option", "model=gains.json", "--out", str(tmp_path / "r")
     )
@@ -152,9 +143,9 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_starts(checkout, tmp_p
 @pytest.mark.slow
 @pytest.mark.integration
 @pytest.mark.timeout(900)  # six episodes at 160x120, each on its own stack: about 3.5 min on a loaded 2-core box
-def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(checkout, tmp_path):
+def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(bm_checkout, tmp_path):
     out = tmp_path / "bm.yaml"
-    converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(checkout))
+    converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(bm_checkout))
     assert converted.returncode == 0, converted.stderr
     assert converted.stderr.count("not converted: Behaviors.Layout") == 1
     run = drivebench("matrix", str(out), "--smoke", "-o", str(tmp_path / "runs"), "--workers", "1", timeout_s=600)

@@ -6,7 +6,6 @@ import base64
 import json
 import math
 import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -97,16 +96,6 @@ def bm_file(tmp_path):
     return path
 
 
-@pytest.fixture
-def checkout(tmp_path):
-    """A fake Behavior Metrics checkout in a temporary folder, with the test brains in its brains/gazebo/f1."""
-    root = tmp_path / "BehaviorMetrics"
-    shutil.copytree(FIXTURES / "fake_checkout", root)
-    for brain in FIXTURES.glob("brain_f1_*.py"):
-        shutil.copy(brain, root / "behavior_metrics" / "brains" / "gazebo" / "f1")
-    return root
-
-
 def observation(rgb: tuple[int, int, int], seq: int = 0, truth: GroundTruth | None = None) -> Observation:
     image = np.zeros((4, 6, 3), np.uint8)
     image[...] = rgb
@@ -162,8 +151,8 @@ def test_transform_image_is_bm_perturbation_seeded_by_the_episode(bm_file):
         brain.handler.transform_image(image, "hail")
 
 
-def test_the_pose_is_the_frames_ground_truth_in_bm_conventions_and_there_is_no_laser(checkout):
-    brain = BehaviorMetricsBrain(file=str(checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_keywords.py"))
+def test_the_pose_is_the_frames_ground_truth_in_bm_conventions_and_there_is_no_laser(bm_checkout):
+    brain = BehaviorMetricsBrain(file=str(bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_keywords.py"))
     assert brain.needs_ground_truth  # it reads get_pose3d: its host hands it the pose of every frame
     brain.act(observation((0, 0, 0), truth=GroundTruth(x_m=3.0, y_m=-4.0, yaw_rad=math.pi / 2, circuit="simple")))
     pose = brain.pose3d.getPose3d()
@@ -180,16 +169,16 @@ def test_the_pose_is_the_frames_ground_truth_in_bm_conventions_and_there_is_no_l
             brain.act(observation((0, 0, 0), seq=seq))
 
 
-def test_a_file_importing_bm_modules_needs_the_checkout_and_then_imports_them(checkout, monkeypatch):
+def test_a_file_importing_bm_modules_needs_the_checkout_and_then_imports_them(bm_checkout, monkeypatch):
     monkeypatch.delenv("DRIVEBENCH_BM_ROOT", raising=False)
-    file = checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
+    file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_fake_net.py"
     with pytest.raises(BrainOptionsError) as refused:
         preflight(str(file), {"model": "gains.json"})
     assert str(file) in str(refused.value) and "from utils.constants import" in str(refused.value)
     assert "bm_root=PATH" in str(refused.value) and "DRIVEBENCH_BM_ROOT" in str(refused.value)
-    monkeypatch.setenv("DRIVEBENCH_BM_ROOT", str(checkout))  # the repository's root: its behavior_metrics is found
+    monkeypatch.setenv("DRIVEBENCH_BM_ROOT", str(bm_checkout))  # the repository's root: its behavior_metrics is found
     preflight(str(file), {"model": "gains.json"})
-    brain = make_brain(str(file), model="gains.json", bm_root=str(checkout / "behavior_metrics"))
+    brain = make_brain(str(file), model="gains.json", bm_root=str(bm_checkout / "behavior_metrics"))
     image = np.zeros((40, 60, 3), np.uint8)
     image[20:, 10:14] = (255, 0, 0)  # the red line left of the centre: turn left
     action = brain.act(Observation(image_rgb=image, stamp_ns=0, seq=0))
@@ -198,7 +187,7 @@ def test_a_file_importing_bm_modules_needs_the_checkout_and_then_imports_them(ch
 
     assert Path(brains.base.__file__).parent == ROOT / "brains"  # drivebench's own modules are untouched
     with pytest.raises(BrainOptionsError, match="not a Behavior Metrics checkout"):
-        make_brain(str(file), model="gains.json", bm_root=str(checkout / "nowhere"))
+        make_brain(str(file), model="gains.json", bm_root=str(bm_checkout / "nowhere"))
 
 
 def test_behavior_metrics_brain_file_mistakes_are_one_line(tmp_path, bm_file):
