@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from tests.needs import require
+from needs import require
 
 gym = require("gymnasium")
 import drivebench  # noqa: E402,F401 - registers the environment
@@ -183,7 +182,7 @@ def test_router_attaches_to_a_running_stack_and_leaves_it_running(tmp_path):
         assert info["seq"] == 0 and reward > 0
         env.close()
         assert stack.dead_child_reason() is None  # attached: nothing of the stack was stopped
-        with pytest.raises(ConnectionError, match="run 'nobody' has no .*simulator"):
+        with pytest.raises(ConnectionError, match="run 'nobody' on .*: not alive after 2 s: .*simulator"):
             gym.make(ENV_ID, router=stack.endpoint, run_id="nobody", startup_timeout_s=2).reset()
     finally:
         stack.close()

@@ -13,9 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from orchestrator.stack.launcher import AttachedStack, LocalStack, StackError, StackFailure
-from protocol import keys
-from protocol.bus import Bus, BusConfig, BusError, probe_router
-from protocol.deploy import graph
+from protocol.bus import BusError, probe_router
 from protocol.messages import ControlRequest, EpisodeSpec
 
 log = logging.getLogger("drivebench.rl")
@@ -59,18 +57,7 @@ class EnvAttachedStack(EnvStackMixin, AttachedStack):
             probe_router(first, timeout_s=min(5.0, self.startup_timeout_s))
         except BusError as error:
             raise StackError(f"router={self.endpoint!r}: {error}") from None
-        self.bus = Bus(
-            BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
-            name=f"gym-{self.run_id}",
-        )
-        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
-        self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
-        missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
-        if missing:
-            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
-            raise StackError(
-                f"router={self.endpoint!r}: run {self.run_id!r} has no {names} after {self.startup_timeout_s:.0f} s"
-            )
+        self._join_run(client=f"gym-{self.run_id}")
         log.info("attached to run %s on %s", self.run_id, self.endpoint)
 
 

@@ -621,10 +621,14 @@ class AttachedStack(LocalStack):
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if not self.endpoint:
             raise StackError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
-        self.bus = Bus(
-            BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]),
-            name=f"driver-{self.run_id}",
-        )
+        watch = self._join_run(client=f"driver-{self.run_id}")
+        self.brain_name = self._wait_for_brain(watch)
+        log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
+
+    def _join_run(self, *, client: str):
+        """Join the router as ``client`` and wait until the run's simulator, noise injector and scorer are alive;
+        the alive watch it returns keeps following the run's tokens."""
+        self.bus = Bus(BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]), name=client)
         watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
         missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
@@ -633,8 +637,7 @@ class AttachedStack(LocalStack):
             raise StackError(
                 f"run {self.run_id!r} on {self.endpoint}: not alive after {self.startup_timeout_s:.0f} s: {names}"
             )
-        self.brain_name = self._wait_for_brain(watch)
-        log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
+        return watch
 
     def _wait_for_brain(self, watch) -> str:
         deadline = time.monotonic() + self.startup_timeout_s
