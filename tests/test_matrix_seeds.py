@@ -12,6 +12,7 @@ import pytest
 
 from brains.neural.checkpoint import read_checkpoint, write_checkpoint
 from orchestrator.matrix.load import MatrixError, load_matrix
+from orchestrator.report.statistics import ONE_RUN
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ROOT / "brains" / "weights" / "deepest_lstm_tiny_pilotnet.ckpt"
@@ -126,3 +127,30 @@ def test_results_keep_the_training_seed_as_a_column(tmp_path):
     assert "| tiny | 2 (seeds 0, 1) | 1 |" in comparison, comparison
     assert "| explicit | 1 (one training run) | 1 |" in comparison and "one training run: no interval" in comparison
     assert "P(X > Y)" in comparison and (tmp_path / "out" / "plots" / "performance_profile.png").is_file()
+
+
+@pytest.mark.slow  # nine episodes: about a minute under load
+def test_a_matrix_with_parts_gets_each_brains_interval_per_part(tmp_path):
+    """A study's parts are its question's axes (the flat and the gazebo look, say): the comparison gives each brain's
+    figures per part too, over that part's own conditions."""
+    for seed in (0, 1):
+        training_run(tmp_path / "runs", seed=seed)
+    path = tmp_path / "parts.yaml"
+    path.write_text(
+        "name: parts\nbrains:\n  - explicit\n  - {name: deepest_lstm_tiny_pilotnet, label: tiny, weights: "
+        "runs/seed-*/model.ckpt}\nlimits: {laps: 1, max_sim_seconds: 2}\nparts:\n  red:\n    circuits: [simple]\n"
+        "  white:\n    circuits: [simple]\n    worlds: [{line: white}]\n    repetitions: 2\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = (tmp_path / "out" / "report.md").read_text()
+    comparison = report.split("## Comparison with intervals", 1)[1].split("\n## ", 1)[0]
+    assert "| Part | Brain | Conditions |" in comparison, comparison
+    for part, conditions in (("red", 1), ("white", 2)):
+        assert f"| {part} | tiny | {conditions} |" in comparison, comparison
+        assert f"| {part} | explicit | {conditions} |" in comparison and ONE_RUN in comparison, comparison

@@ -99,6 +99,9 @@ def comparison_section(results: list[EpisodeResult], *, plots_dir: Path, seed: i
         "normalised progress: laps driven / lap target, capped at 1."
     )
     section.blocks.append(_brain_table(brains, seed=seed))
+    by_part = _part_table(results, seed=seed)
+    if by_part is not None:
+        section.blocks.append(by_part)
     if len(brains) > 1:
         section.blocks.append(_improvement_table(brains, seed=seed))
     plot = _profile_plot(brains, plots_dir=plots_dir, seed=seed)
@@ -131,6 +134,41 @@ def _brain_table(brains: list[BrainScores], *, seed: int) -> Table:
         rows,
         numeric=[False, False, True, True, True, True],
         caption="Per brain: estimate [95 % CI]",
+    )
+
+
+def part_of(result: EpisodeResult) -> str:
+    """The matrix part an episode belongs to ("" outside parts): its key's ``part:`` prefix."""
+    head = result.key.split("/", 1)[0]
+    return head.split(":", 1)[0] if ":" in head else ""
+
+
+def _part_table(results: list[EpisodeResult], *, seed: int) -> Table | None:
+    """Per part and brain, over the part's own shared conditions: where a brain's overall figure comes from (a
+    study's parts are its question's axes, e.g. the flat and the gazebo look). None for a matrix without parts."""
+    parts: dict[str, list[EpisodeResult]] = {}
+    for r in results:
+        parts.setdefault(part_of(r), []).append(r)
+    if len(parts) < 2:
+        return None
+    rows = []
+    for part, part_results in parts.items():
+        brains, _, shared = brain_scores(part_results)
+        for b in brains:
+            rows.append(
+                [
+                    part or "(top level)",
+                    b.brain,
+                    str(shared),
+                    _with_interval(b.success, mean, seed=seed),
+                    _with_interval(b.progress, mean, seed=seed),
+                ]
+            )
+    return Table(
+        ["Part", "Brain", "Conditions", "Lap success rate", "Progress (mean)"],
+        rows,
+        numeric=[False, False, True, True, True],
+        caption="Per part: estimate [95 % CI] over the training runs x the part's shared conditions",
     )
 
 
