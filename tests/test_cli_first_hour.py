@@ -103,6 +103,24 @@ def test_every_schema_mistake_of_a_matrix_file_is_reported_at_once(tmp_path):
     assert lines[3].startswith(f"{path}:6: unknown key 'heigth_px' in camera") and "'height_px'?" in lines[3]
 
 
+def test_every_mistake_in_a_matrix_files_values_is_reported_at_once_before_anything_starts(tmp_path):
+    path = tmp_path / "m.yaml"
+    path.write_text(
+        "name: m\nbrains: [explicit, pilotnett]\ncamera: 320by240\nparts:\n  generalisation:\n"
+        "    circuits: [simple, montmelo, montmelp]\n  noise:\n    circuits: [simple]\n"
+    )
+    result = drivebench("matrix", str(path), "--out", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0].startswith(f"drivebench: error: {path}:2: unknown brain 'pilotnett'")
+    assert lines[1].startswith(f"{path}:3: camera must look like 320x240")
+    assert lines[2].startswith(f"{path}:6: unknown circuit 'montmelp'")
+    for line, suggestion in ((lines[0], "'pilotnet'"), (lines[2], "'montmelo'")):
+        assert line.endswith(f"did you mean {suggestion}?"), line
+    assert [child.name for child in tmp_path.iterdir()] == ["m.yaml"]  # no output folder: nothing started
+
+
 def test_list_and_inspect_commands_print_json():
     circuits = json.loads(drivebench("circuits", "list", "--json").stdout)
     simple = next(c for c in circuits if c["name"] == "simple")

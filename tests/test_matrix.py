@@ -414,6 +414,67 @@ def test_matrix_error_is_a_value_error():
     assert issubclass(MatrixError, ValueError)
 
 
+SEVERAL_MISTAKES = """\
+brains: [explicit, warpdrive]
+camera: 320by240
+parts:
+  generalisation:
+    circuits: [simple, montmelo, montmelp]
+    variations: {line: [red, blue]}
+  noise:
+    circuits: [simple]
+    perturbations: [none, {hail: 0.1}]
+"""
+
+
+def test_every_independent_mistake_is_reported_at_once_in_line_order():
+    with pytest.raises(MatrixError) as caught:
+        parse_matrix(SEVERAL_MISTAKES, source="m.yaml")
+    lines = str(caught.value).splitlines()
+    # (line, words): camera is read for each part and reported once
+    expected = [
+        (1, ["unknown brain 'warpdrive'"]),
+        (2, ["camera must look like 320x240", "'320by240'"]),
+        (5, ["unknown circuit 'montmelp'", "did you mean 'montmelo'?"]),
+        (6, ["bad line value 'blue'"]),
+        (9, ["unknown perturbation 'hail'"]),
+    ]
+    assert len(lines) == len(expected), lines
+    for text, (line, words) in zip(lines, expected):
+        assert text.startswith(f"m.yaml:{line}: "), text
+        assert all(word in text for word in words), text
+    assert (caught.value.line, caught.value.message) == (1, lines[0].removeprefix("m.yaml:1: "))
+
+
+FOLLOW_ONS = [
+    # (matrix text, the lines of its mistakes): each wrong value could also fail a check that depends on it
+    (MINIMAL + "exclude: [{brain: explicit}]\nvariations: {colour: [red]}\n", [4]),  # not "no episodes left"
+    ("brains: [explicit]\ncircuits: [simple, nowhere]\nexclude: [{circuit: nowhere}]\nrepetitions: 2\n", [2]),
+    ("brains: [explicit, nobody]\ncircuits: [simple, nowhere]\nexclude: [{brain: nobody}]\n", [1, 2]),
+    (MINIMAL + "worlds:\n  - {line: red, walls: maybe}\n  - {line: red}\n  - {fog: 1}\n", [4, 6]),
+    (MINIMAL + "variations: {colour: [red, red], line: [blue]}\n", [3, 3]),  # not "red listed twice"
+    (MINIMAL + "perturbations: [{hail: 1}, none, {hail: 1}]\n", [3]),
+    ("brains: [explicit]\ndraw: {count: 3, circuits: [nowhere, simple]}\nparts: {a: {}, b: {}}\n", [2]),
+]
+
+
+@pytest.mark.parametrize(("text", "lines"), FOLLOW_ONS, ids=[f"{i}" for i in range(len(FOLLOW_ONS))])
+def test_a_wrong_value_is_reported_without_the_mistakes_that_follow_from_it(text, lines):
+    with pytest.raises(MatrixError) as caught:
+        parse_matrix(text, source="m.yaml")
+    reported = str(caught.value).splitlines()
+    assert [int(line.split(":")[1]) for line in reported] == lines, reported
+
+
+def test_past_ten_mistakes_the_rest_are_counted():
+    text = "brains: [explicit]\ncircuits:\n" + "".join(f"  - nowhere{index}\n" for index in range(14))
+    with pytest.raises(MatrixError) as caught:
+        parse_matrix(text, source="m.yaml")
+    lines = str(caught.value).splitlines()
+    assert [line.split(":")[1] for line in lines[:10]] == [str(line) for line in range(3, 13)]
+    assert lines[10:] == ["m.yaml: ... and 4 more mistakes"]
+
+
 # -- resume against stored results -----------------------------------------------------------------------------------
 
 

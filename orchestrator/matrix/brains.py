@@ -28,13 +28,15 @@ GLOB_CHARACTERS = frozenset("*?[")
 
 def read_brain_entries(document: Document, value: Any, path: At, *, base_dir: Path) -> list[tuple[BrainEntry, At]]:
     """(entry, where it was written) of each item of a ``brains`` or ``shadows`` value (typed by the schema); an
-    item whose weights are a glob gives one entry per matching checkpoint."""
+    item whose weights are a glob gives one entry per matching checkpoint. An item with a mistake is noted and left
+    out."""
     entries = []
     for item, item_path in items(value, path):
         if isinstance(item, BrainFields) and isinstance(item.weights, str) and GLOB_CHARACTERS & set(item.weights):
-            entries += [(entry, item_path) for entry in _training_runs(document, item, item_path, base_dir=base_dir)]
-        else:
-            entries.append((_brain_entry(document, item, item_path, base_dir=base_dir), item_path))
+            runs = document.attempt(_training_runs, document, item, item_path, base_dir=base_dir) or []
+            entries += [(entry, item_path) for entry in runs]
+        elif (entry := document.attempt(_brain_entry, document, item, item_path, base_dir=base_dir)) is not None:
+            entries.append((entry, item_path))
     return entries
 
 
@@ -48,6 +50,8 @@ def _training_runs(document: Document, fields: BrainFields, path: At, *, base_di
     if not paths:
         raise document.error(where, f"weights pattern {pattern!r} matches no file (looked for {full})")
     options = _options(document, fields.options, (*path, "options"))
+    if options is None:  # noted
+        return []
     group = _label(document, fields.label if isinstance(fields.label, str) else None, path, name=name, weights=None)
     seeds: dict[int, Path] = {}
     network = ""
@@ -104,13 +108,19 @@ def _brain_name(document: Document, written: str, where: At, *, base_dir: Path) 
     return name
 
 
-def _brain_entry(document: Document, item: str | BrainFields, path: At, *, base_dir: Path) -> BrainEntry:
+def _brain_entry(document: Document, item: str | BrainFields, path: At, *, base_dir: Path) -> BrainEntry | None:
+    """The entry written at ``path``, or None once its mistakes are noted: its name, weights and options are each
+    checked, a mistake in one says nothing of the others."""
     fields = BrainFields(name=item) if isinstance(item, str) else item
-    name = _brain_name(document, fields.name, path if isinstance(item, str) else (*path, "name"), base_dir=base_dir)
+    before = document.noted
+    where = path if isinstance(item, str) else (*path, "name")
+    name = document.attempt(_brain_name, document, fields.name, where, base_dir=base_dir)
     weights = None
     if isinstance(fields.weights, str):
-        weights = _weights(document, fields.weights, (*path, "weights"), base_dir=base_dir)
+        weights = document.attempt(_weights, document, fields.weights, (*path, "weights"), base_dir=base_dir)
     options = _options(document, fields.options, (*path, "options"))
+    if name is None or options is None or document.noted > before:
+        return None
     label = _label(document, fields.label if isinstance(fields.label, str) else None, path, name=name, weights=weights)
     # A network named without weights serves its shipped checkpoint: say which, for the reports (tables 1 and 2).
     return BrainEntry(label=label, brain=name, weights=weights or shipped_weights(name), options=options)
@@ -134,24 +144,25 @@ def _weights(document: Document, written: str, path: At, *, base_dir: Path) -> P
     return weights
 
 
-def _options(document: Document, options: dict[str, Any], path: At) -> tuple[tuple[str, Any], ...]:
+def _options(document: Document, options: dict[str, Any], path: At) -> tuple[tuple[str, Any], ...] | None:
+    """The options in written order, or None once the mistake of each option that has one is noted."""
+    before = document.noted
     for key, value in options.items():
-        if key == "weights":
-            raise document.error(
-                (*path, key), "give weights as the entry's own `weights`, not as an option", at_key=True
-            )
-        if not _OPTION_KEY.fullmatch(key):
-            raise document.error(
-                (*path, key), f"option name {key!r} must be an identifier (letters, digits, '_')", at_key=True
-            )
-        try:
-            json.dumps(value, allow_nan=False)
-        except (TypeError, ValueError):
-            raise document.error(
-                (*path, key),
-                f"option {key!r} must be a JSON value (text, number, boolean, list, mapping), got {value!r}",
-            ) from None
-    return tuple(options.items())
+        document.attempt(_check_option, document, key, value, (*path, key))
+    return tuple(options.items()) if document.noted == before else None
+
+
+def _check_option(document: Document, key: str, value: Any, path: At) -> None:
+    if key == "weights":
+        raise document.error(path, "give weights as the entry's own `weights`, not as an option", at_key=True)
+    if not _OPTION_KEY.fullmatch(key):
+        raise document.error(path, f"option name {key!r} must be an identifier (letters, digits, '_')", at_key=True)
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError):
+        raise document.error(
+            path, f"option {key!r} must be a JSON value (text, number, boolean, list, mapping), got {value!r}"
+        ) from None
 
 
 def _label(document: Document, written: str | None, path: At, *, name: str, weights: Path | None) -> str:
@@ -170,12 +181,16 @@ def _label(document: Document, written: str | None, path: At, *, name: str, weig
 
 
 def check_unique_labels(document: Document, entries: list[tuple[BrainEntry, At]]) -> None:
+    """Note each entry whose label an earlier entry has."""
     first: dict[str, int] = {}
     for entry, path in entries:
         if entry.label in first:
-            raise document.error(
-                path,
-                f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
-                f"labels of brains and shadows must differ: give one a `label`)",
+            document.note(
+                document.error(
+                    path,
+                    f"duplicate brain label {entry.label!r} (also on line {first[entry.label]}; "
+                    f"labels of brains and shadows must differ: give one a `label`)",
+                )
             )
+            continue
         first[entry.label] = document.line(path)

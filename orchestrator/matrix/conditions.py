@@ -85,26 +85,36 @@ def read_variation_value(document: Document, value: Any, path: At, *, key: str) 
     return value
 
 
-def _check_variation_key(document: Document, path: At, key: str) -> None:
+def _is_variation_key(document: Document, path: At, key: str) -> bool:
+    """Whether ``key`` is a variation key; the mistake is noted when it is not."""
     if key not in VARIATION_KEYS:
         hint = did_you_mean(key, VARIATION_KEYS)
-        raise document.error(
-            path, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)}){hint}", at_key=True
+        document.note(
+            document.error(
+                path, f"unknown variation key {key!r} (allowed: {', '.join(VARIATION_KEYS)}){hint}", at_key=True
+            )
         )
+        return False
+    return True
 
 
 def read_axes(document: Document, variations: dict[str, Any] | None, path: At) -> list[Axis]:
+    """The axes of ``variations``, each value checked; a key or a value with a mistake is noted and left out."""
     axes = []
     for key, written in (variations or {}).items():
-        _check_variation_key(document, (*path, key), key)
+        if not _is_variation_key(document, (*path, key), key):
+            continue  # its values cannot be checked against an unknown key
         values: dict[str, tuple[str, Any, int]] = {}
         for item, item_path in items(written, (*path, key)):
-            value = read_variation_value(document, item, item_path, key=key)
+            value = document.attempt(read_variation_value, document, item, item_path, key=key)
+            if value is None:  # noted (the schema lets no null through here)
+                continue
             text = label_text(value)
             if text in values:
-                raise document.error(
-                    item_path, f"{key} value {text!r} is listed twice (also on line {values[text][2]})"
+                document.note(
+                    document.error(item_path, f"{key} value {text!r} is listed twice (also on line {values[text][2]})")
                 )
+                continue
             values[text] = (text, value, document.line(item_path))
         axes.append(Axis(key=key, values=tuple(values.values())))
     return axes
@@ -121,24 +131,34 @@ def read_worlds(axes: list[Axis]) -> list[World]:
 
 def read_listed_worlds(document: Document, worlds_value: Any, path: At) -> tuple[list[World], list[Axis]]:
     """``worlds:``, a list of variation mappings: the worlds in written order, and per key the values they use
-    (the axes exclude entries may name)."""
+    (the axes exclude entries may name). A world with a mistake in a key or a value is noted and left out."""
     worlds: dict[str, tuple[World, int]] = {}
     values: dict[str, dict[str, tuple[str, Any, int]]] = {}
     for item, item_path in items(worlds_value, path):
-        pairs = []
-        for key, value in item.items():
-            _check_variation_key(document, (*item_path, key), key)
-            value = read_variation_value(document, value, (*item_path, key), key=key)
-            pairs.append((key, value))
+        pairs = _world_pairs(document, item, item_path)
+        if pairs is None:
+            continue  # without its faulty value it could look like another world: no "listed twice" from that
+        for key, value in pairs:
             line = document.line((*item_path, key))
             values.setdefault(key, {}).setdefault(label_text(value), (label_text(value), value, line))
         world = read_world(pairs)
         if world.label in worlds:
             first = worlds[world.label][1]
-            raise document.error(item_path, f"world {world.label!r} is listed twice (also on line {first})")
+            document.note(document.error(item_path, f"world {world.label!r} is listed twice (also on line {first})"))
+            continue
         worlds[world.label] = (world, document.line(item_path))
     axes = [Axis(key=key, values=tuple(texts.values())) for key, texts in values.items()]
     return [world for world, _ in worlds.values()], axes
+
+
+def _world_pairs(document: Document, item: dict[str, Any], path: At) -> list[tuple[str, Any]] | None:
+    """(key, value) of one listed world, or None once the mistake of each key or value that has one is noted."""
+    before = document.noted
+    pairs = []
+    for key, value in item.items():
+        if _is_variation_key(document, (*path, key), key):
+            pairs.append((key, document.attempt(read_variation_value, document, value, (*path, key), key=key)))
+    return pairs if document.noted == before else None
 
 
 def read_world(items: list[tuple[str, Any]]) -> World:
@@ -260,16 +280,20 @@ def _item_label(key: str, params: Any) -> str:
 
 
 def read_perturbations(document: Document, value: Any, path: At) -> list[Perturbation]:
-    """The perturbations written at ``path`` (``[none]`` when ``value`` is None: not written)."""
+    """The perturbations written at ``path`` (``[none]`` when ``value`` is None: not written); one with a mistake
+    is noted and left out."""
     if value is None:
         return [Perturbation(label=NO_PERTURBATION, line=1)]
     perturbations: dict[str, Perturbation] = {}
     for item, item_path in items(value, path):
-        perturbation = read_perturbation(document, item, item_path)
+        perturbation = document.attempt(read_perturbation, document, item, item_path)
+        if perturbation is None:  # noted
+            continue
         if perturbation.label in perturbations:
             first = perturbations[perturbation.label].line
-            raise document.error(
-                item_path, f"perturbation {perturbation.label!r} is listed twice (also on line {first})"
+            document.note(
+                document.error(item_path, f"perturbation {perturbation.label!r} is listed twice (also on line {first})")
             )
+            continue
         perturbations[perturbation.label] = perturbation
     return list(perturbations.values())

@@ -53,12 +53,16 @@ class DrawnConditions:
 
 def draw_conditions(
     document: Document, draw: Draw, path: At, *, brains: tuple[BrainEntry, ...], check_circuit
-) -> DrawnConditions:
+) -> DrawnConditions | None:
     """Draw ``draw.count`` distinct conditions; ``check_circuit(document, value, path)`` reads a circuit name.
-    Raises the document's error (one line, at the key) for an overlap with training data or too few conditions."""
+    Notes each mistake in the circuits (an overlap with training data among them) and the variations, and then
+    returns None; raises the document's error (one line, at the key) when they give too few conditions."""
     trained = _training_circuits(brains)
+    before = document.noted
     entries = _circuit_entries(document, draw, (*path, "circuits"), trained=trained, check_circuit=check_circuit)
     axes = read_axes(document, draw.variations, (*path, "variations"))
+    if document.noted > before:
+        return None  # "too few conditions" would follow from what was left out
     rng = random.Random(draw.seed)
     drawn: dict[tuple[str, str], tuple[str, World]] = {}
     for _ in range(draw.count * _TRIES_PER_CONDITION):
@@ -76,19 +80,29 @@ def draw_conditions(
 
 
 def _circuit_entries(document: Document, draw: Draw, path: At, *, trained: dict[str, str], check_circuit) -> list[str]:
+    """The draw's circuit entries; one with a mistake is noted and left out."""
     entries = []
     for value, item_path in items(draw.circuits, path):
-        text = text_at(document, value, item_path)
-        if text not in FAMILIES:
-            text = check_circuit(document, text, item_path)
-            if text in trained:
-                raise document.error(
-                    item_path,
-                    f"held-out circuit {text!r} is in the training data of {trained[text]} (draw circuits the "
-                    "training never drove)",
-                )
-        entries.append(text)
+        text = document.attempt(
+            _circuit_entry, document, value, item_path, trained=trained, check_circuit=check_circuit
+        )
+        if text is not None:
+            entries.append(text)
     return entries
+
+
+def _circuit_entry(document: Document, value: Any, path: At, *, trained: dict[str, str], check_circuit) -> str:
+    text = text_at(document, value, path)
+    if text in FAMILIES:
+        return text
+    text = check_circuit(document, text, path)
+    if text in trained:
+        raise document.error(
+            path,
+            f"held-out circuit {text!r} is in the training data of {trained[text]} (draw circuits the training "
+            "never drove)",
+        )
+    return text
 
 
 def _draw_circuit(rng: random.Random, entry: str, *, trained: dict[str, str]) -> str:

@@ -45,7 +45,11 @@ Labels (as stored in results and used in episode keys):
     episode key  ``"<brain label>/<circuit>/<variation label>/<perturbation label>/r<repetition>"``, in a part
                  ``"<part>:<brain label>/..."`` (stable across re-parses of the same text: what ``--resume`` compares)
 
-Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong (what is allowed)``.
+Every mistake raises :class:`MatrixError`, one line: ``FILE:LINE: what is wrong (what is allowed)``. A file with
+several gets them all in one error, one line each in line order (``protocol.deploy.typed_yaml.MAX_FAULTS`` at
+most): the schema's mistakes first, if any; else every mistake in the values that does not follow from another (a
+value with a mistake is left out, and what depends on it is not checked: an unknown circuit in a part means no
+check of that part's exclude entries).
 """
 
 from __future__ import annotations
@@ -89,7 +93,7 @@ from orchestrator.matrix.plan import (
     smoke_form,
     with_renderer,
 )
-from orchestrator.matrix.schema import MatrixFile, items, read_matrix_file, text_at, written
+from orchestrator.matrix.schema import MatrixFile, Part, items, read_matrix_file, text_at, written
 from protocol import environment
 from protocol.deploy.typed_yaml import Document, compose, convert
 from protocol.deploy.typed_yaml import Path as At
@@ -128,24 +132,30 @@ def parse_matrix(text: str, *, source: str = "<matrix>", base_dir: Path = Path("
     """Expand the matrix in ``text``. ``source`` names it in errors (and gives the default name: its stem);
     relative weights paths are resolved from ``base_dir``. Raises :class:`MatrixError` for every mistake."""
     document = compose(text, source=source, error_type=MatrixError)
-    matrix = read_matrix_file(document)
+    matrix = read_matrix_file(document)  # the schema's mistakes, all at once; what follows reads typed values
+    name = document.attempt(_name, document, matrix.name)
+    brains = _brains(document, matrix, base_dir=Path(base_dir))
     parts = _parts(document, matrix)
     episodes: list[PlannedEpisode] = []
     variation_keys: dict[str, None] = {}
     for part, entries in parts:
-        plan = _Plan.read(document, entries, base_dir=Path(base_dir), part=part)
-        episodes += plan.expand(document, entries, first_index=len(episodes))
+        plan = _Plan.read(document, entries, brains=brains[0] if brains else (), part=part)
+        if plan is None or brains is None:  # exclude and include entries name brains and values: left unchecked
+            continue
+        episodes += document.attempt(plan.expand, document, entries, first_index=len(episodes)) or []
         variation_keys.update(dict.fromkeys(axis.key for axis in plan.axes))
+    document.raise_noted()
+    assert brains is not None  # a mistake in them was noted, and raised just above
     if len(episodes) > MAX_EPISODES:
         raise document.error(
             ("parts",), f"the matrix expands to {len(episodes)} episodes (at most {MAX_EPISODES})", at_key=True
         )
     return Matrix(
-        name=_name(document, matrix.name) or ("matrix" if source.startswith("<") else Path(source).stem),
+        name=name or ("matrix" if source.startswith("<") else Path(source).stem),
         source=source,
         text=text,
-        brains=plan.brains,
-        shadows=plan.shadows,
+        brains=brains[0],
+        shadows=brains[1],
         episodes=tuple(episodes),
         variation_keys=tuple(variation_keys),
         parts=tuple(part for part, _ in parts if part),
@@ -164,51 +174,86 @@ def _name(document: Document, value: str | UnsetType) -> str | None:
         raise document.error(("name",), str(error)) from None
 
 
-def _check_one_world_form(document: Document, entries: Entries) -> None:
+Brains = tuple[tuple[BrainEntry, ...], tuple[BrainEntry, ...]]  # the brains, the shadows
+
+
+def _brains(document: Document, matrix: MatrixFile, *, base_dir: Path) -> Brains | None:
+    """The brains and the shadows of the matrix, or None once a mistake in them is noted."""
+    before = document.noted
+    brains = read_brain_entries(document, matrix.brains, ("brains",), base_dir=base_dir)
+    shadows = []
+    if not isinstance(matrix.shadows, UnsetType):
+        shadows = read_brain_entries(document, matrix.shadows, ("shadows",), base_dir=base_dir)
+    check_unique_labels(document, brains + shadows)
+    if document.noted > before:
+        return None
+    return tuple(entry for entry, _ in brains), tuple(entry for entry, _ in shadows)
+
+
+def _world_form_mistake(document: Document, entries: Entries) -> MatrixError | None:
+    """The mistake of giving two ways to pick worlds (variations, worlds, draw), if there is one."""
     if "variations" in entries and "worlds" in entries:
-        raise document.error(
+        return document.error(
             entries["worlds"][1], "give variations (a product) or worlds (a list), not both", at_key=True
         )
     for key in ("circuits", "variations", "worlds"):
         if "draw" in entries and key in entries:
-            raise document.error(
+            return document.error(
                 entries[key][1], f"give draw or {key}, not both (a draw picks its circuits and worlds)", at_key=True
             )
+    return None
 
 
 def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
-    """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``."""
+    """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``. A part
+    whose keys do not fit together is left out, its mistake noted."""
     top = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
-    _check_one_world_form(document, top)
+    if (mistake := _world_form_mistake(document, top)) is not None:
+        document.note(mistake)
+        return []
     if not isinstance(matrix.parts, dict):
         if "circuits" not in top and "draw" not in top:
-            raise document.error((), "missing 'circuits' (a matrix needs brains and circuits)")
+            document.note(document.error((), "missing 'circuits' (a matrix needs brains and circuits)"))
+            return []
         return [("", top)]
     parts = []
     for name, part in matrix.parts.items():
-        where = ("parts", name)
-        try:
-            check_name(name, what="part name")
-        except ValueError as error:
-            raise document.error(where, str(error), at_key=True) from None
-        entries = {key: (value, (*where, key)) for key, value in written(part).items()}
-        _check_one_world_form(document, entries)
-        merged = dict(top)
-        if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
-            merged.pop("variations", None)
-            merged.pop("worlds", None)
-        if "draw" in entries:  # a draw replaces the top level's circuits and worlds; they replace its draw
-            for key in ("circuits", "variations", "worlds"):
-                merged.pop(key, None)
-        elif {"circuits", "variations", "worlds"} & entries.keys():
-            merged.pop("draw", None)
-        merged.update(entries)
-        if "circuits" not in merged and "draw" not in merged:
-            raise document.error(
+        entries = _part(document, top, name, part)
+        if entries is not None:
+            parts.append((name, entries))
+    return parts
+
+
+def _part(document: Document, top: Entries, name: str, part: Part) -> Entries | None:
+    """The keys part ``name`` expands with: its own, and the top level's it does not replace (None once a mistake
+    is noted)."""
+    where = ("parts", name)
+    try:
+        check_name(name, what="part name")
+    except ValueError as error:
+        document.note(document.error(where, str(error), at_key=True))  # its keys are still worth checking
+    entries = {key: (value, (*where, key)) for key, value in written(part).items()}
+    if (mistake := _world_form_mistake(document, entries)) is not None:
+        document.note(mistake)
+        return None
+    merged = dict(top)
+    if "variations" in entries or "worlds" in entries:  # a part's worlds replace the top level's, either form
+        merged.pop("variations", None)
+        merged.pop("worlds", None)
+    if "draw" in entries:  # a draw replaces the top level's circuits and worlds; they replace its draw
+        for key in ("circuits", "variations", "worlds"):
+            merged.pop(key, None)
+    elif {"circuits", "variations", "worlds"} & entries.keys():
+        merged.pop("draw", None)
+    merged.update(entries)
+    if "circuits" not in merged and "draw" not in merged:
+        document.note(
+            document.error(
                 where, f"part {name!r} has no circuits (give them in the part or at the top level)", at_key=True
             )
-        parts.append((name, merged))
-    return parts
+        )
+        return None
+    return merged
 
 
 # -- circuits, settings ------------------------------------------------------------------------------------------
@@ -226,13 +271,38 @@ def _circuit(document: Document, value: Any, path: At) -> str:
 
 
 def _circuits(document: Document, value: Any, path: At) -> list[str]:
+    """The circuits written at ``path``; one with a mistake is noted and left out."""
     circuits: dict[str, int] = {}
     for item, item_path in items(value, path):
-        name = _circuit(document, item, item_path)
+        name = document.attempt(_circuit, document, item, item_path)
+        if name is None:
+            continue
         if name in circuits:
-            raise document.error(item_path, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
+            document.note(
+                document.error(item_path, f"circuit {name!r} is listed twice (also on line {circuits[name]})")
+            )
+            continue
         circuits[name] = document.line(item_path)
     return list(circuits)
+
+
+# The circuits, the variation axes, the worlds and, for a draw, the drawn (circuit, world) pairs.
+Conditions = tuple[list[str], list[Axis], list[World], tuple[tuple[str, World], ...] | None]
+
+
+def _conditions(document: Document, entries: Entries, *, brains: tuple[BrainEntry, ...]) -> Conditions | None:
+    """Where and in which worlds the episodes drive: drawn, or circuits and variations or worlds. Mistakes are noted
+    (what is returned then leaves out what had one); None when a draw had one."""
+    if "draw" in entries:
+        drawn = document.attempt(draw_conditions, document, *entries["draw"], brains=brains, check_circuit=_circuit)
+        return None if drawn is None else (drawn.circuits, list(drawn.axes), drawn.worlds, drawn.conditions)
+    circuits = _circuits(document, *entries["circuits"])
+    if "worlds" in entries:
+        worlds, axes = read_listed_worlds(document, *entries["worlds"])
+    else:
+        axes = read_axes(document, *entries.get("variations", (None, ())))
+        worlds = read_worlds(axes)
+    return circuits, axes, worlds, None
 
 
 def _base_spec(document: Document, entries: Entries) -> EpisodeSpec:
@@ -250,8 +320,10 @@ def _base_spec(document: Document, entries: Entries) -> EpisodeSpec:
             fields["renderer"] = default_renderer(MATRIX_RENDERER)
         except ValueError as error:
             raise MatrixError(str(error), source=document.source, line=None) from None
-    if "camera" in entries:
-        fields["camera"] = _camera(document, *entries["camera"])
+    if "camera" in entries:  # a mistake in it is noted; the limits are checked all the same
+        camera = document.attempt(_camera, document, *entries["camera"])
+        if camera is not None:
+            fields["camera"] = camera
     return convert(fields, EpisodeSpec, document=document, path=entries.get("limits", (None, ()))[1])
 
 
@@ -300,7 +372,6 @@ class _Plan:
     """Everything read from the file (or one part of it), before expansion."""
 
     brains: tuple[BrainEntry, ...]
-    shadows: tuple[BrainEntry, ...]
     circuits: list[str]
     axes: list[Axis]
     worlds: list[World]
@@ -312,48 +383,48 @@ class _Plan:
     conditions: tuple[tuple[str, World], ...] | None = None  # drawn (circuit, world) pairs instead of the product
 
     @classmethod
-    def read(cls, document: Document, entries: Entries, *, base_dir: Path, part: str = "") -> _Plan:
-        brains = read_brain_entries(document, *entries["brains"], base_dir=base_dir)
-        shadows = read_brain_entries(document, *entries["shadows"], base_dir=base_dir) if "shadows" in entries else []
-        check_unique_labels(document, brains + shadows)
-        conditions = None
-        if "draw" in entries:
-            drawn = draw_conditions(
-                document, *entries["draw"], brains=tuple(entry for entry, _ in brains), check_circuit=_circuit
-            )
-            circuits, axes, worlds, conditions = drawn.circuits, list(drawn.axes), drawn.worlds, drawn.conditions
-        elif "worlds" in entries:
-            circuits = _circuits(document, *entries["circuits"])
-            worlds, axes = read_listed_worlds(document, *entries["worlds"])
-        else:
-            circuits = _circuits(document, *entries["circuits"])
-            axes = read_axes(document, *entries.get("variations", (None, ())))
-            worlds = read_worlds(axes)
+    def read(
+        cls, document: Document, entries: Entries, *, brains: tuple[BrainEntry, ...], part: str = ""
+    ) -> _Plan | None:
+        """The plan of ``entries``, or None once a mistake in them is noted (each value is still checked, so that
+        one reading notes them all)."""
+        before = document.noted
+        conditions = _conditions(document, entries, brains=brains)
+        perturbations = read_perturbations(document, *entries.get("perturbations", (None, ())))
+        base = document.attempt(_base_spec, document, entries)
+        if conditions is None or base is None or document.noted > before:
+            return None
+        circuits, axes, worlds, drawn = conditions
         return cls(
-            brains=tuple(entry for entry, _ in brains),
-            shadows=tuple(entry for entry, _ in shadows),
+            brains=brains,
             circuits=circuits,
             axes=axes,
             worlds=worlds,
-            conditions=conditions,
-            perturbations=read_perturbations(document, *entries.get("perturbations", (None, ()))),
+            conditions=drawn,
+            perturbations=perturbations,
             repetitions=entries.get("repetitions", (1, ()))[0],
             seed=entries.get("seed", (0, ()))[0],
-            base=_base_spec(document, entries),
+            base=base,
             part=part,
         )
 
     def expand(self, document: Document, entries: Entries, *, first_index: int = 0) -> list[PlannedEpisode]:
+        """The planned episodes. A mistake in the size or in an episode raises; one in exclude or include entries is
+        noted (each entry's), and then nothing expands: "no episodes left" would only follow from them."""
         self._check_size(document, entries)
-        excludes = [self._exclude(document, *item) for item in _list_of(entries, "exclude")]
+        before = document.noted
+        read_excludes = [self._exclude(document, *item) for item in _list_of(entries, "exclude")]
+        read_includes = [self._include(document, *item) for item in _list_of(entries, "include")]
+        if document.noted > before:
+            return []
+        excludes = [exclude for exclude in read_excludes if exclude is not None]
         planned: dict[str, tuple[_Combination, int]] = {}
         for combination in self._product():
             for repetition in range(self.repetitions):
                 coordinates = combination.coordinates(repetition)
                 if not any(_matches(exclude, coordinates) for exclude in excludes):
                     planned[combination.key(repetition, part=self.part)] = (combination, repetition)
-        for item in _list_of(entries, "include"):
-            combination = self._include(document, *item)
+        for combination in (include for include in read_includes if include is not None):
             for repetition in range(self.repetitions):
                 planned.setdefault(combination.key(repetition, part=self.part), (combination, repetition))
         if not planned:
@@ -384,25 +455,25 @@ class _Plan:
         for brain, (circuit, world), perturbation in itertools.product(self.brains, conditions, self.perturbations):
             yield _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
 
-    def _exclude(self, document: Document, entry: dict[str, Any], path: At) -> dict[str, str]:
-        """An exclude entry as axis -> label text; every value must be one the matrix has (typos fail here)."""
+    def _exclude(self, document: Document, entry: dict[str, Any], path: At) -> dict[str, str] | None:
+        """An exclude entry as axis -> label text; every value must be one the matrix has (typos fail here). None
+        once its mistakes (each key's and each value's) are noted."""
         allowed = ("brain", "circuit", "repetition", "perturbation", *(axis.key for axis in self.axes))
-        for key in entry:
-            if key in VARIATION_KEYS and key not in allowed:
-                raise document.error(
-                    (*path, key),
-                    f"exclude key {key!r} is not a variation axis of this matrix (allowed: {', '.join(allowed)})",
-                    at_key=True,
-                )
-            if key not in allowed:
-                raise document.error(
-                    (*path, key),
-                    f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})",
-                    at_key=True,
-                )
         if not entry:
-            raise document.error(path, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
-        return {key: self._exclude_value(document, key, value, (*path, key)) for key, value in entry.items()}
+            document.note(
+                document.error(path, f"an empty exclude entry would drop everything (keys: {', '.join(allowed)})")
+            )
+            return None
+        before = document.noted
+        texts = {}
+        for key, value in entry.items():
+            if key not in allowed:
+                document.note(document.error((*path, key), _unknown_exclude_key(key, allowed), at_key=True))
+                continue
+            texts[key] = document.attempt(self._exclude_value, document, key, value, (*path, key))
+        if document.noted > before:
+            return None
+        return {key: text for key, text in texts.items() if text is not None}
 
     def _exclude_value(self, document: Document, key: str, value: Any, path: At) -> str:
         if key == "perturbation":
@@ -427,44 +498,56 @@ class _Plan:
             return list(self.circuits)
         return [text for axis in self.axes if axis.key == key for text, _, _ in axis.values]
 
-    def _include(self, document: Document, entry: dict[str, Any], path: At) -> _Combination:
+    def _include(self, document: Document, entry: dict[str, Any], path: At) -> _Combination | None:
+        """An include entry as a combination, or None once its mistakes (each key's and each value's) are noted."""
         allowed = ("brain", "circuit", "perturbation", *VARIATION_KEYS)
+        before = document.noted
         for key in entry:
             if key not in allowed:
-                raise document.error(
-                    (*path, key),
-                    f"unknown key {key!r} in an include entry (allowed: {', '.join(allowed)})",
-                    at_key=True,
+                document.note(
+                    document.error(
+                        (*path, key),
+                        f"unknown key {key!r} in an include entry (allowed: {', '.join(allowed)})",
+                        at_key=True,
+                    )
                 )
         if "brain" not in entry or "circuit" not in entry:
-            raise document.error(
-                path, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
+            document.note(
+                document.error(
+                    path, "an include entry needs brain and circuit (other keys: perturbation, variation keys)"
+                )
             )
-        label = text_at(document, entry["brain"], (*path, "brain"))
-        brains = {brain.label: brain for brain in self.brains}
-        if label not in brains:
-            raise document.error(
-                (*path, "brain"),
-                f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})",
-            )
+            return None
+        brain = document.attempt(self._include_brain, document, entry["brain"], (*path, "brain"))
         perturbation = (
-            read_perturbation(document, entry["perturbation"], (*path, "perturbation"))
+            document.attempt(read_perturbation, document, entry["perturbation"], (*path, "perturbation"))
             if "perturbation" in entry
             else Perturbation(label=NO_PERTURBATION, line=document.line(path))
         )
-        return _Combination(
-            brain=brains[label],
-            circuit=_circuit(document, entry["circuit"], (*path, "circuit")),
-            world=self._include_world(document, entry, path),
-            perturbation=perturbation,
-        )
+        circuit = document.attempt(_circuit, document, entry["circuit"], (*path, "circuit"))
+        world = self._include_world(document, entry, path)
+        if brain is None or perturbation is None or circuit is None or document.noted > before:
+            return None
+        return _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
+
+    def _include_brain(self, document: Document, value: Any, path: At) -> BrainEntry:
+        label = text_at(document, value, path)
+        brains = {brain.label: brain for brain in self.brains}
+        if label not in brains:
+            raise document.error(
+                path, f"include brain {label!r} is not a brain label of this matrix (labels: {', '.join(brains)})"
+            )
+        return brains[label]
 
     def _include_world(self, document: Document, entry: dict[str, Any], path: At) -> World:
+        """The include entry's world; a mistake in a value is noted (the world then holds None for it)."""
         # Matrix axes first, in their order, so an include of an existing combination has the same label.
         axis_keys = [axis.key for axis in self.axes]
         keys = [key for key in axis_keys if key in entry]
         keys += [key for key in entry if key in VARIATION_KEYS and key not in axis_keys]
-        return read_world([(key, read_variation_value(document, entry[key], (*path, key), key=key)) for key in keys])
+        return read_world(
+            [(key, document.attempt(read_variation_value, document, entry[key], (*path, key), key=key)) for key in keys]
+        )
 
     def _episode(
         self, document: Document, key: str, index: int, combination: _Combination, repetition: int
@@ -496,6 +579,12 @@ class _Plan:
             spec=spec,
             part=self.part,
         )
+
+
+def _unknown_exclude_key(key: str, allowed: tuple[str, ...]) -> str:
+    if key in VARIATION_KEYS:
+        return f"exclude key {key!r} is not a variation axis of this matrix (allowed: {', '.join(allowed)})"
+    return f"unknown key {key!r} in an exclude entry (allowed: {', '.join(allowed)})"
 
 
 def _list_of(entries: Entries, key: str) -> list[tuple[Any, At]]:

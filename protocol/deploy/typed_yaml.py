@@ -5,16 +5,18 @@
 :func:`convert` turns the data into a type (``msgspec.Struct`` with ``forbid_unknown_fields=True`` and
 ``Annotated[..., msgspec.Meta(...)]`` constraints) and rewords msgspec's ``... - at `$.x.y``` into that line:
 ``m.yaml:4: limits.laps must be an integer >= 1, got 0``. :func:`explain` gives the path and message alone, for
-callers that decide the source themselves (a config's command-line overrides). No Zenoh here.
+callers that decide the source themselves (a config's command-line overrides). A reader that checks more than
+the types (a matrix's circuits, brains, values) notes each mistake on the document (:meth:`Document.attempt`) and
+goes on, so that one error reports them all. No Zenoh here.
 """
 
 from __future__ import annotations
 
 import re
 import types
-from collections.abc import Hashable
-from dataclasses import dataclass
-from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal, ParamSpec, TypeVar, Union, get_args, get_origin
 
 import msgspec
 import yaml
@@ -23,6 +25,7 @@ from yaml.constructor import SafeConstructor
 from protocol.suggest import did_you_mean
 
 T = TypeVar("T")
+P = ParamSpec("P")
 Path = tuple[Hashable, ...]  # keys of mappings and indexes of lists, from the top
 
 _MAP_TAG = "tag:yaml.org,2002:map"
@@ -45,14 +48,61 @@ _SEGMENT = re.compile(r"\.([^.\[]+)|\[(\d+|\.\.\.)\]")
 class FileError(ValueError):
     """A mistake in a file. ``str(error)`` is one line: ``FILE:LINE: what is wrong (what is allowed)``
     (``FILE: ...`` when the file itself cannot be read). ``source``, ``line`` (1-based, or None) and ``message``
-    are kept as attributes."""
+    are kept as attributes.
 
-    def __init__(self, message: str, *, source: str, line: int | None) -> None:
+    Several mistakes of one file travel as one error: the first, then ``more`` (one line each) and, past the cap,
+    a last line counting the ``left_out`` ones."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        source: str,
+        line: int | None,
+        more: Sequence[FileError] = (),
+        left_out: int = 0,
+    ) -> None:
         self.message = re.sub(r"\s*\n\s*", " ", message).strip()
         self.source = source
         self.line = line
+        self.more = tuple(more)
+        self.left_out = left_out
         where = source if line is None else f"{source}:{line}"
-        super().__init__(f"{where}: {self.message}")
+        lines = [f"{where}: {self.message}", *(str(error) for error in self.more)]
+        if left_out:
+            lines.append(f"{source}: ... and {left_out} more mistakes")
+        super().__init__("\n".join(lines))
+
+
+MAX_FAULTS = 10  # mistakes reported at once: enough for a file typed by hand, short enough to read
+
+
+class Mistakes:
+    """The mistakes of one file noted so far. A reader that meets a mistake notes it and goes on with what does not
+    depend on the faulty value, so that one reading reports every independent mistake (:meth:`Document.attempt`)."""
+
+    def __init__(self) -> None:
+        self.found: list[FileError] = []
+        # Every note, repeats included: whether a step went wrong, even where its mistake was already found (a
+        # top-level key read again for each part of a matrix).
+        self.noted = 0
+
+    def note(self, error: FileError) -> None:
+        self.noted += 1
+        seen = {(found.source, found.line, found.message) for found in self.found}
+        for one in (error, *error.more):
+            if (one.source, one.line, one.message) not in seen:
+                seen.add((one.source, one.line, one.message))
+                self.found.append(one)
+
+    def raise_all(self, error_type: type[FileError]) -> None:
+        """Raise the mistakes found, in line order (up to :data:`MAX_FAULTS`, then how many more), as one error."""
+        if not self.found:
+            return
+        ordered = sorted(self.found, key=lambda error: error.line or 0)  # stable: reading order within a line
+        first, *more = ordered[:MAX_FAULTS]
+        left_out = max(0, len(ordered) - MAX_FAULTS)
+        raise error_type(first.message, source=first.source, line=first.line, more=more, left_out=left_out)
 
 
 @dataclass(frozen=True)
@@ -65,6 +115,7 @@ class Document:
     value_lines: dict[Path, int]
     key_lines: dict[Path, int]
     error_type: type[FileError] = FileError
+    mistakes: Mistakes = field(default_factory=Mistakes, compare=False, repr=False)
 
     def line(self, path: Path) -> int:
         """The line of the value at ``path``, else of the nearest value above it that the file holds."""
@@ -79,6 +130,29 @@ class Document:
     def error(self, path: Path, message: str, *, at_key: bool = False) -> FileError:
         line = self.key_line(path) if at_key else self.line(path)
         return self.error_type(message, source=self.source, line=line)
+
+    def attempt(self, read: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T | None:
+        """``read(*args, **kwargs)``, or None once the mistake it raised is noted (:meth:`raise_noted` raises
+        every noted mistake). The caller goes on without the value, checking only what does not depend on it."""
+        try:
+            return read(*args, **kwargs)
+        except FileError as error:
+            self.mistakes.note(error)
+            return None
+
+    def note(self, error: FileError) -> None:
+        """Note a mistake and go on (:meth:`raise_noted` raises it with the others)."""
+        self.mistakes.note(error)
+
+    @property
+    def noted(self) -> int:
+        """How many mistakes were noted so far (repeats included): compare before and after a step to learn whether
+        it went wrong."""
+        return self.mistakes.noted
+
+    def raise_noted(self) -> None:
+        """Raise every mistake noted so far as one error (``error_type``), one line each in line order."""
+        self.mistakes.raise_all(self.error_type)
 
 
 @dataclass(frozen=True)
@@ -194,12 +268,8 @@ def convert(
     except msgspec.ValidationError as error:
         faults = _every_fault(explain(error, type_, data, path=path, what=what), data, type_, path=path, what=what)
     first, *more = [document.error(fault.path, fault.message, at_key=fault.at_key) for fault in faults]
-    if more:  # one line per mistake, the first as before; the CLI prints them all
-        first.args = ("\n".join(str(found) for found in (first, *more)),)
-    raise first
-
-
-MAX_FAULTS = 10  # mistakes reported at once: enough for a file typed by hand, short enough to read
+    # One line per mistake, the first as before; the CLI prints them all.
+    raise document.error_type(first.message, source=first.source, line=first.line, more=more)
 
 
 def _every_fault(fault: Fault, data: Any, type_: Any, *, path: Path, what: str) -> list[Fault]:
