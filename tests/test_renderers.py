@@ -166,6 +166,31 @@ def test_each_renderer_is_bitwise_deterministic(renderer):
     assert child.stdout.split() == digests
 
 
+def test_a_scene_cache_draws_each_direction_of_a_circuit_from_its_own_scene(renderer):
+    """A warm simulator's scene cache: a circuit driven forward after it was driven in reverse (and the other way
+    round) is drawn, pixel for pixel, as a fresh simulator draws it. Both directions are the same road, but built
+    from the centreline in opposite orders their triangles round differently at the edges: a few pixels a frame,
+    enough to change a network's commands (two episodes of `drivebench paper` on warm stacks, issue 29)."""
+    forward, reverse = load_circuit("simple"), load_circuit("simple", direction="reverse")
+    warm = SceneCache()
+    try:
+        for name, circuit, after in (("forward", forward, reverse), ("reverse", reverse, forward)):
+            poses = parity_poses(circuit, count=8, seed=5)
+            fresh = make_scene(circuit, WorldVariation(), renderer=renderer)
+            try:
+                expected = [_digest(fresh.render(pose, CAMERA)) for pose in poses]
+            finally:
+                fresh.close()
+            warm.get(after, renderer=renderer)  # the other direction's scene, as the previous episode left it
+            scene = warm.get(circuit, renderer=renderer)
+            assert [_digest(scene.render(pose, CAMERA)) for pose in poses] == expected, name
+        # Each direction's scene is cached: an episode in either direction builds nothing.
+        assert warm.get(forward, renderer=renderer) is warm.get(forward, renderer=renderer)
+        assert warm.get(reverse, renderer=renderer) is not warm.get(forward, renderer=renderer)
+    finally:
+        warm.close()
+
+
 # Measured by benchmarks/renderer_parity.py over every built-in circuit, world variation and camera preset
 # (docs/guides/renderers.md):
 # MAD <= 0.3 grey levels, SSIM >= 0.997, at most 0.05 % of pixels off by more than 8 levels (edge pixels where the two

@@ -7,6 +7,7 @@ car has at the start of step n.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,12 +26,16 @@ class SceneCache:
     """Scenes by circuit, world variation and renderer: building one costs far more than a step, and episodes reuse
     them.
 
+    A circuit is known by its name *and* its geometry (:func:`geometry_key`): a circuit driven in reverse keeps its
+    name, but its scene is built from the centreline in the other order, and the two rasterise differently by a few
+    edge pixels a frame. One scene for both made an episode on a warm simulator see other frames than on a fresh one.
+
     Keeps at most ``capacity`` scenes (each holds a PyBullet client or GL buffers, and the circuit's meshes); the
     least recently used goes first.
     """
 
     def __init__(self, *, capacity: int = 4) -> None:
-        self._scenes: dict[tuple[str, WorldVariation, str], Renderer] = {}
+        self._scenes: dict[tuple[str, str, WorldVariation, str], Renderer] = {}
         self._capacity = capacity
 
     def get(
@@ -38,7 +43,7 @@ class SceneCache:
     ) -> Renderer:
         """The scene, drawn by ``renderer`` ("pybullet" or "gl"; "auto" is resolved here, in the rendering thread)."""
         renderer = resolve_renderer(renderer).name
-        key = (circuit.name, world, renderer)
+        key = (circuit.name, geometry_key(circuit), world, renderer)
         scene = self._scenes.pop(key, None)
         if scene is None:
             while len(self._scenes) >= self._capacity:
@@ -51,6 +56,16 @@ class SceneCache:
         for scene in self._scenes.values():
             scene.close()
         self._scenes.clear()
+
+
+def geometry_key(circuit: Circuit) -> str:
+    """A digest of everything of ``circuit`` a scene is built from: the centreline's points in driving order (a
+    reversed circuit has the same points in the other order), the road and line widths and the wall height."""
+    digest = hashlib.sha256(np.ascontiguousarray(circuit.centreline.points_m, dtype=np.float64).tobytes())
+    digest.update(
+        np.array([circuit.road_half_width_m, circuit.line_width_m, circuit.wall_height_m], dtype=np.float64).tobytes()
+    )
+    return digest.hexdigest()
 
 
 @dataclass(frozen=True)
