@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -136,6 +137,7 @@ def run_traced(stack: LocalStack, spec, folder: Path, name: str) -> tuple[Episod
     trace.attach(stack)
     try:
         score = stack.run_episode(spec)
+        trace.settle(last_seq=score.metrics.steps, episode=stack.last_episode)
     finally:
         trace.detach()
     return score, trajectory(trace.save(folder / f"{name}.npz", episode=stack.last_episode))
@@ -207,7 +209,7 @@ def test_a_process_that_dies_between_episodes_is_replaced_before_the_next_one(tm
                     if " -m services.noise " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
                         os.kill(pid, signal.SIGKILL)
                         killed.append(pid)
-                wait_for(lambda: all(map(zombie, killed)), timeout_s=10, what="the killed noise injector gone")
+                wait_for(lambda: all(map(waitable, killed)), timeout_s=10, what="the killed noise injector gone")
 
     progress = KillsBetweenEpisodes(matrix, tmp_path / "out", RunOptions(workers=1)).run()
     assert len(killed) == 1
@@ -217,11 +219,13 @@ def test_a_process_that_dies_between_episodes_is_replaced_before_the_next_one(tm
     assert second.score.header.episode == 0 and second.reason == "time_limit"
 
 
-def zombie(pid: int) -> bool:
+def waitable(pid: int) -> bool:
+    """A child of this process that has exited and can be reaped (left unreaped: the stack's poll must see it). A
+    SIGKILLed process with threads shows "Z" while its threads still exit, and is not waitable until they have."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1][0] == "Z"
-    except OSError:
-        return True
+        return os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+    except ChildProcessError:
+        return True  # already reaped
 
 
 def test_a_trajectory_keeps_each_frames_first_pose_not_a_resends_zeroed_one(tmp_path):
@@ -244,6 +248,10 @@ def test_a_trajectory_keeps_each_frames_first_pose_not_a_resends_zeroed_one(tmp_
         pose(episode=4, seq=2, speed_mps=2.5),
     ):
         trace._poses.put(item)
+    # The last pose (seq 3) comes after the score: settle waits for it, and nothing received before is lost.
+    late = threading.Timer(0.3, lambda: trace._poses.put(pose(episode=4, seq=3, speed_mps=3.0)))
+    late.start()
+    trace.settle(last_seq=3, episode=4, timeout_s=60)
     saved = trajectory(trace.save(tmp_path / "t.npz", episode=4))
-    assert saved["x_m"].tolist() == [0.0, 1.0, 2.0]
-    assert saved["speed_mps"].tolist() == [0.0, 2.0, 2.5]
+    assert saved["x_m"].tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert saved["speed_mps"].tolist() == [0.0, 2.0, 2.5, 3.0]

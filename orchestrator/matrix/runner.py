@@ -55,6 +55,7 @@ log = logging.getLogger("drivebench.matrix")
 # A brain whose episode ended brain_lost: how long to wait for its process to exit, so the failure names its last
 # log line (a raising brain's traceback is written after its bus session, and so its token, is gone).
 BRAIN_EXIT_WAIT_S = 5.0
+SETTLE_S = 2.0  # the longest a trajectory waits for its last pose after the score came
 
 
 @dataclass(frozen=True)
@@ -347,6 +348,7 @@ class MatrixRunner:
                 on_live=lambda live: self._on_live(state, trace, live),
                 abort=self._stopping.is_set,  # the wall-clock guard is the launcher's one rule (wall_guard_s)
             )
+            trace.settle(last_seq=outcome["score"].metrics.steps, episode=stack.last_episode)
             if outcome["score"].reason == EndReason.BRAIN_LOST:  # scored, but the stack failed it
                 detail = (
                     stack.dead_child_reason(wait_s=BRAIN_EXIT_WAIT_S) or "the active brain lost its liveliness token"
@@ -457,6 +459,7 @@ class Trace:
 
     def __init__(self) -> None:
         self._poses = Inbox()
+        self._received: list[Pose] = []
         self._live: list[tuple[float, float, float]] = []
         self._subscription = None
 
@@ -470,13 +473,28 @@ class Trace:
             self._subscription.close()
             self._subscription = None
 
+    def settle(self, *, last_seq: int, episode: int | None, timeout_s: float = SETTLE_S) -> None:
+        """Wait (at most ``timeout_s``) for the episode's last pose, ``last_seq``: the score can overtake the last
+        poses on a loaded machine, and a trajectory must not lose its end to that (seen: 3 of 61 poses)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._received.extend(p.message for p in self._poses.drain())
+            if any(p.header.seq >= last_seq and episode in (None, p.header.episode) for p in self._received):
+                return
+            remaining_s = deadline - time.monotonic()
+            if remaining_s <= 0:
+                return
+            arrived = self._poses.recv(timeout_s=min(remaining_s, 0.05))
+            if arrived is not None:
+                self._received.append(arrived.message)
+
     def add_live(self, live: LiveMetrics) -> None:
         self._live.append((live.sim_time_s, live.progress_laps, live.cross_track_m))
 
     def save(self, path: Path, *, episode: int | None = None) -> Path:
         """Write the trajectory; ``episode``: keep only that episode's poses (on a warm stack, a pose of the episode
         before may still trail in after this one's subscription began)."""
-        received = [p.message for p in self._poses.drain()]
+        received = self._received + [p.message for p in self._poses.drain()]
         if episode is not None:
             received = [pose for pose in received if pose.header.episode == episode]
         # The first pose of each frame: a lock-step resend of a frame nobody answered yet publishes its pose again
