@@ -256,7 +256,8 @@ camera: 96x72
     assert second.run_id != first.run_id and second.node == first.node  # the same slot, on a new stack
 
 
-def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path):
+@pytest.mark.parametrize("fresh_stacks", [False, True], ids=["warm_slots", "fresh_tasks"])
+def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path, fresh_stacks):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
     matrix = load_matrix(
@@ -283,7 +284,7 @@ camera: 96x72
     progress = RayMatrixRunner(
         matrix,
         tmp_path / "out",
-        RunOptions(),
+        RunOptions(fresh_stacks=fresh_stacks),
         ray_options=RayOptions(address=cluster.address),
         on_change=remove_the_second_node_once_both_drive,
     ).run()
