@@ -720,4 +720,4 @@ def _small_files(folder: Path) -> dict[str, bytes]:
     return files
 
 
-__all__ = ["RayMatrixRunner", "capacity", "connect", "run_episode_task", "slots_of", "task_resources"]
+__all__ = ["EpisodeSlot", "RayMatrixRunner", "capacity", "connect", "run_episode_task", "slots_of", "task_resources"]
