@@ -13,9 +13,10 @@ workers than cores buys nothing.
 
 ``--ray`` (needs ``drivebench[cluster]``) compares instead: 1 local worker, then a Ray cluster on this machine (a
 head that runs no episode plus 1, then 2 worker nodes of one episode_slot each, every raylet on 127.0.0.1) running
-the same matrix, and the time Ray adds per episode (task dispatch, a worker process, the episode's own router, the
-result's trip) against the local worker, as a share of one episode. The local case runs fresh stacks, as every Ray
-task does, with the idle cluster beside it, so that both share the cores with Ray's own processes.
+the same matrix, and the time Ray adds per episode against the local worker, as a share of one episode: with fresh
+stacks (a task per episode: dispatch, a worker process, the episode's own router, the result's trip) and with warm
+ones (an episode slot actor per node, as a local warm worker). The local cases run with the idle cluster beside them,
+so that both share the cores with Ray's own processes.
 """
 
 from __future__ import annotations
@@ -49,8 +50,9 @@ def run_case(text: str, workers: int, *, fresh: bool = True, ray_address: str | 
             from orchestrator.matrix.ray_options import RayOptions
             from orchestrator.matrix.ray_runner import RayMatrixRunner
 
+            options = RunOptions(fresh_stacks=fresh)
             runner = RayMatrixRunner(
-                parse_matrix(text), Path(folder), RunOptions(), ray_options=RayOptions(address=ray_address)
+                parse_matrix(text), Path(folder), options, ray_options=RayOptions(address=ray_address)
             )
         progress = runner.run()
         wall_s = time.monotonic() - started
@@ -127,35 +129,40 @@ def ray_main(args: argparse.Namespace, text: str) -> int:
         cluster.add_node(num_cpus=1, resources={"episode_slot": 1}, node_ip_address="127.0.0.1")
         cluster.wait_for_nodes()
         ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
-        # The local run with the idle cluster beside it: both cases then share the cores with Ray's own processes,
-        # and the difference is what Ray's dispatch costs per episode.
-        local = run_case(text, 1)
-        rows = [("local, 1 worker", local), ("Ray, 1 worker node", run_case(text, 1, ray_address=cluster.address))]
+        # The local runs with the idle cluster beside them: both cases then share the cores with Ray's own
+        # processes, and the difference is what Ray's dispatch costs per episode.
+        rows = []
+        for fresh in (True, False):
+            stacks = "fresh" if fresh else "warm"
+            rows.append((f"local, 1 worker, {stacks}", run_case(text, 1, fresh=fresh)))
+            rows.append((f"Ray, 1 worker node, {stacks}", run_case(text, 1, fresh=fresh, ray_address=cluster.address)))
         cluster.add_node(num_cpus=1, resources={"episode_slot": 1}, node_ip_address="127.0.0.1")
         cluster.wait_for_nodes()
-        rows.append(("Ray, 2 worker nodes", run_case(text, 2, ray_address=cluster.address)))
+        rows.append(("Ray, 2 worker nodes, warm", run_case(text, 2, fresh=False, ray_address=cluster.address)))
     finally:
         ray.shutdown()
         cluster.shutdown()
-    base = local["episodes_per_hour"]
     print(
         f"{args.episodes} episodes of {args.sim_seconds:.0f} s sim (explicit, simple, {args.camera}); "
         f"{os.cpu_count()} cores\n"
     )
-    print("| runs on | wall | episodes/hour | vs local | per episode (driver) | of which in the task |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| runs on | stacks started | wall | episodes/hour | vs local | per episode (driver) | of which in the task |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for name, row in rows:
+        base = rows[0][1] if row["stacks"] == "fresh" else rows[2][1]  # the local worker with the same stacks
         print(
-            f"| {name} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
-            f"{row['episodes_per_hour'] / base:.2f}x | {row['wall_s'] / args.episodes:.1f} s | "
+            f"| {name} | {row['stacks_started']} | {row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
+            f"{row['episodes_per_hour'] / base['episodes_per_hour']:.2f}x | {row['wall_s'] / args.episodes:.1f} s | "
             f"{row['task_s']:.1f} s |"
         )
-    one_node = rows[1][1]
-    added_s = (one_node["wall_s"] - local["wall_s"]) / args.episodes
-    print(
-        f"\nRay adds {added_s:+.2f} s per episode against a local worker "
-        f"({100 * added_s / (local['wall_s'] / args.episodes):+.1f} % of a {args.sim_seconds:.0f} s-sim episode)"
-    )
+    for local, one_node in ((rows[0][1], rows[1][1]), (rows[2][1], rows[3][1])):
+        added_s = (one_node["wall_s"] - local["wall_s"]) / args.episodes
+        print(
+            f"\nRay ({local['stacks']} stacks) adds {added_s:+.2f} s per episode against a local worker "
+            f"({100 * added_s / (local['wall_s'] / args.episodes):+.1f} % of a {args.sim_seconds:.0f} s-sim episode)"
+        )
     failed = sum(row["failed"] for _, row in rows)
     if failed:
         print(f"\n{failed} episode(s) failed", file=sys.stderr)

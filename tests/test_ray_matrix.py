@@ -31,7 +31,16 @@ ray = needs.require("ray")
 
 from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
-from support.matrices import finished_rows, processes_with, write_matrix  # noqa: E402
+from support.matrices import (  # noqa: E402
+    assert_same_trajectory,
+    finished_rows,
+    processes_with,
+    results_by_key,
+    simulated,
+    trajectory,
+    write_matrix,
+)
+from support.waits import wait_for  # noqa: E402
 
 from orchestrator.matrix.load import load_matrix  # noqa: E402
 from orchestrator.matrix.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
@@ -163,7 +172,92 @@ camera: 96x72
     assert all(r.node and r.lost_attempts == () for r in local_results.values())
 
 
-def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path):
+def test_warm_episode_slots_give_the_results_of_a_fresh_stack_per_episode(cluster, tmp_path):
+    """Warm (the default on Ray): a long-lived actor per episode slot keeps its stack across episodes; the same matrix
+    with --fresh-stacks (a task and a new stack per episode) gives the same trajectories and simulated metrics."""
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
+name: slots
+brains: [explicit, {name: noisy, options: {burst_probability: 0.2, steering_noise_radps: 0.8}}]
+circuits: [simple, many_curves]
+limits: {laps: 1, max_sim_seconds: 3}
+camera: 96x72
+""",
+        )
+    )
+    ray_options = RayOptions(address=cluster.address)
+    fresh = RayMatrixRunner(matrix, tmp_path / "fresh", RunOptions(fresh_stacks=True), ray_options=ray_options).run()
+    warm = RayMatrixRunner(matrix, tmp_path / "warm", RunOptions(), ray_options=ray_options).run()
+    assert (fresh.done, fresh.failed, warm.done, warm.failed) == (4, 0, 4, 0)
+    fresh_results, warm_results = results_by_key(tmp_path / "fresh"), results_by_key(tmp_path / "warm")
+    assert fresh_results.keys() == warm_results.keys()
+    # Fresh: a stack per episode. Warm: the one slot (one node, one episode_slot) ran all four on one stack, both
+    # episodes of a brain one after the other, so its brain host changed once.
+    assert len({result.run_id for result in fresh_results.values()}) == 4
+    (run_id,) = {result.run_id for result in warm_results.values()}
+    in_order = sorted(warm_results.values(), key=lambda result: result.started_at)
+    assert [result.score.header.episode for result in in_order] == [0, 1, 2, 3]
+    assert in_order[0].brain == in_order[1].brain != in_order[2].brain == in_order[3].brain
+    for key, result in warm_results.items():
+        other = fresh_results[key]
+        assert simulated(result.score) == simulated(other.score), key
+        warm_path, fresh_path = tmp_path / "warm" / result.trajectory, tmp_path / "fresh" / other.trajectory
+        assert_same_trajectory(trajectory(warm_path), trajectory(fresh_path), what=key)
+        assert len(trajectory(warm_path)["x_m"]) == result.score.metrics.steps + 1  # its own poses only
+        assert (tmp_path / "warm" / result.logs / "simulator.log").stat().st_size > 0
+    # The noisy brain's bursts did change the driving, so the equality above is not a trivial one.
+    assert len({round(r.score.metrics.completed_distance_m, 6) for r in warm_results.values()}) == 4
+    # The matrix closed its slot: no process of the stack is left, and the slot's resources are free again.
+    assert not processes_with(f"--run-id {run_id}")
+    wait_for(lambda: ray.available_resources().get(EPISODE_SLOT) == 1.0, timeout_s=30, what="the episode slot freed")
+
+
+def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_is_not_retried(cluster, tmp_path):
+    matrix = load_matrix(
+        write_matrix(
+            tmp_path,
+            """
+name: killing
+brains: [{name: constant, options: {speed_mps: 0.5}}]
+circuits: [simple]
+repetitions: 2
+limits: {laps: 1, max_sim_seconds: 30}
+camera: 96x72
+""",
+        )
+    )
+    killed: list[int] = []
+
+    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
+        live = progress.workers[0].live
+        if killed or progress.finished or live is None or live.sim_time_s < 2.0:  # the first episode only
+            return
+        for pid in processes_with(f"--run-id {live.header.run_id}"):
+            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+    progress = RayMatrixRunner(
+        matrix,
+        tmp_path / "out",
+        RunOptions(),
+        ray_options=RayOptions(address=cluster.address),
+        on_change=kill_the_first_brain_2_s_into_its_episode,
+    ).run()
+    assert killed, "the brain process of the first episode was never found"
+    assert (progress.done, progress.failed) == (1, 1)
+    with ResultStore(tmp_path / "out", create=False) as store:
+        first, second = store.results()
+    assert first.status == "failed" and first.failure_kind == "brain_died", first.failure
+    assert first.lost_attempts == () == second.lost_attempts  # the episode's own failure: a result, not retried
+    assert second.status == "done" and second.reason == "time_limit"
+    assert second.run_id != first.run_id and second.node == first.node  # the same slot, on a new stack
+
+
+@pytest.mark.parametrize("fresh_stacks", [False, True], ids=["warm_slots", "fresh_tasks"])
+def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path, fresh_stacks):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
     matrix = load_matrix(
@@ -190,7 +284,7 @@ camera: 96x72
     progress = RayMatrixRunner(
         matrix,
         tmp_path / "out",
-        RunOptions(),
+        RunOptions(fresh_stacks=fresh_stacks),
         ray_options=RayOptions(address=cluster.address),
         on_change=remove_the_second_node_once_both_drive,
     ).run()
@@ -204,7 +298,9 @@ camera: 96x72
     second_label = f"{LOOPBACK}/{second.node_id[:8]}"
     assert lost[0].node != second_label  # it ran again on the node that lives
     assert lost[0].lost_attempts[0]["node"] == second_label
-    assert lost[0].lost_attempts[0]["error"].startswith(("NodeDiedError", "WorkerCrashedError"))
+    # An episode slot's stream says so first (ActorUnavailableError); a task's (--fresh-stacks) names the node.
+    lost_errors = ("ActorUnavailableError", "ActorDiedError", "NodeDiedError", "WorkerCrashedError")
+    assert lost[0].lost_attempts[0]["error"].startswith(lost_errors)
     assert {r.node for r in results} == {lost[0].node}
     # The report's episode table says where each ran and what was lost on the way.
     from orchestrator.report.matrix import write_report
@@ -318,6 +414,36 @@ camera: 96x72
     assert [row for row in after if row[0] in {b[0] for b in before}] == before  # finished ones untouched
     assert f"{3 - len(before)} episode(s) run" in stderr and f"{len(before)} already in the results" in stderr
     assert "Ray cluster" in stderr
+
+
+def test_ctrl_c_on_the_driver_kills_the_slots_and_their_stacks(cluster, tmp_path):
+    path = write_matrix(
+        tmp_path,
+        "name: interrupted\nbrains: [explicit]\ncircuits: [simple]\nrepetitions: 3\n"
+        "limits: {laps: 2, max_sim_seconds: 600}\ncamera: 96x72\n",
+    )
+    out = tmp_path / "out"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(out), "--ray", cluster.address]
+        + ["--artifacts", str(out), "--no-report"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal sends it
+    )
+    run_ids = wait_for(
+        lambda: [run_id for run_id in running_episodes(out) if len(processes_with(f"--run-id {run_id}")) >= 4],
+        timeout_s=120,
+        what="an episode driving on a slot's stack",
+        alive=lambda: None if run.poll() is None else run.communicate()[1],
+    )
+    run.send_signal(signal.SIGINT)
+    _, stderr = run.communicate(timeout=120)
+    assert run.returncode == 130, stderr
+    assert "Traceback" not in stderr, stderr
+    # The slot stopped its episode and killed its stack's process group, then the actor went: nothing is left.
+    wait_for(lambda: not processes_with(f"--run-id {run_ids[0]}"), timeout_s=20, what="the slot's stack gone")
+    wait_for(lambda: ray.available_resources().get(EPISODE_SLOT) == 1.0, timeout_s=30, what="the episode slot freed")
 
 
 def test_a_resource_no_node_has_fails_at_once_in_one_line(cluster, tmp_path):

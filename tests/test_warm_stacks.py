@@ -11,11 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.matrices import processes_with
+from support.matrices import assert_same_trajectory, processes_with, results_by_key, simulated, trajectory
 from support.waits import wait_for
 
 from orchestrator.matrix.load import parse_matrix
-from orchestrator.matrix.results import ResultStore
 from orchestrator.matrix.runner import MatrixRunner, RunOptions, Trace, brain_launch
 from orchestrator.stack.launcher import LocalStack
 from protocol.bus import Received
@@ -36,47 +35,6 @@ exclude: [{circuit: simple, line: white}, {circuit: many_curves, line: red}]
 limits: {laps: 1, max_sim_seconds: 3}
 camera: 96x72
 """
-# What the simulation alone decides (the rest of EpisodeMetrics measures wall time: latency, inference, rates).
-SIMULATED = (
-    "sim_time_s",
-    "steps",
-    "completed_distance_m",
-    "average_speed_mps",
-    "percentage_completed",
-    "bm_lap_seconds",
-    "position_deviation_mae",
-    "position_deviation_total_err",
-    "suddenness_distance",
-    "progress_m",
-    "progress_laps",
-    "completed_laps",
-    "lap_times_s",
-    "cross_track_mean_m",
-    "cross_track_rms_m",
-    "cross_track_max_m",
-    "cross_track_p95_m",
-    "off_track_events",
-)
-TRAJECTORY = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
-
-
-def simulated(score: EpisodeScore) -> dict:
-    return {"reason": score.reason, "spec": score.spec, **{f: getattr(score.metrics, f) for f in SIMULATED}}
-
-
-def trajectory(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path) as data:
-        return {name: data[name] for name in TRAJECTORY}
-
-
-def assert_same_trajectory(one: dict[str, np.ndarray], other: dict[str, np.ndarray], *, what: str) -> None:
-    for name in TRAJECTORY:
-        assert one[name].shape == other[name].shape and np.array_equal(one[name], other[name]), f"{what}: {name}"
-
-
-def results_by_key(out: Path) -> dict:
-    with ResultStore(out, create=False) as store:
-        return {result.key: result for result in store.results()}
 
 
 @pytest.mark.slow

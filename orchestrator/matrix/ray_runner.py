@@ -2,7 +2,15 @@
 
 The driver (this process) plans the matrix, keeps ``results.sqlite``, the resume semantics, the progress display and
 the report exactly as a local run (:class:`orchestrator.matrix.runner.MatrixRunner`); only the dispatch differs.
-Every pending episode becomes one Ray task (:func:`run_episode_task`) that, on whichever node Ray places it:
+
+Warm stacks (the default): each episode slot of the cluster is one long-lived Ray actor (:class:`EpisodeSlot`) that
+keeps a stack alive across the episodes the driver gives it, one at a time, as a local worker's warm lane does
+(:mod:`orchestrator.matrix.warm`: brain hosts replaced only when an episode names other brains, a stack that failed an
+episode replaced). The driver gives a slot, when one is waiting, an episode with the brains its stack runs. Each
+episode is a streaming call on the actor (:meth:`EpisodeSlot.drive`) that yields what a task does (below).
+
+``--fresh-stacks``: every pending episode becomes one Ray task (:func:`run_episode_task`) that, on whichever node Ray
+places it:
 
 - starts the episode's own stack: a Zenoh router on a free loopback port of that node, simulator, noise injector,
   brain(s), scorer and, with ``--record``, a recorder, every process in one new process group;
@@ -12,17 +20,19 @@ Every pending episode becomes one Ray task (:func:`run_episode_task`) that, on w
   logs). Recordings are written straight to ``--artifacts DIR``, a folder every node mounts: never through Ray's
   object store.
 
-Placement: each task asks for one ``episode_slot`` (a custom resource every worker node declares:
+Placement: each task or slot asks for one ``episode_slot`` (a custom resource every worker node declares:
 ``ray start --resources '{"episode_slot": 2}'``) plus any ``--ray-resource NAME=AMOUNT`` (a GPU share for a neural
 brain). Before anything is submitted, a demand that no node can meet fails at once with one line (Ray itself would
 wait forever). At most as many tasks as the cluster has slots are in flight, so the progress lanes are episodes that
 run, not a queue.
 
-Failures are typed. A task lost with its node or its worker process (``NodeDiedError``, ``WorkerCrashedError``, ...)
-is submitted again, elsewhere if Ray can, at most ``--node-retries`` times; each lost attempt is recorded in the
-episode's row (``lost_attempts``), and only the attempt that finishes is a result, so nothing is counted twice. An
-episode that failed on its own (a brain died, off track, the time limit, the wall-clock guard) comes back as a
-result like on a local run and is never retried.
+Failures are typed. A task or slot lost with its node or its worker process (``NodeDiedError``,
+``WorkerCrashedError``, ``ActorDiedError``, ...) has its episode submitted again, elsewhere if Ray can, at most
+``--node-retries`` times; each lost attempt is recorded in the episode's row (``lost_attempts``), and only the attempt
+that finishes is a result, so nothing is counted twice. A lost slot is dropped and a new one started when the cluster
+has room. An episode that failed on its own (a brain died, off track, the time limit, the wall-clock guard) comes back
+as a result like on a local run and is never retried; on a slot, its stack is replaced before the next episode.
+Ctrl-C stops every slot's episode, kills its stack's process group and then the actor.
 """
 
 from __future__ import annotations
@@ -38,8 +48,9 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from orchestrator.matrix.load import Matrix, PlannedEpisode
 from orchestrator.matrix.ray_options import EPISODE_SLOT, ClusterError, RayOptions, import_ray
@@ -48,7 +59,9 @@ from orchestrator.matrix.runner import (
     MatrixProgress,
     MatrixRunner,
     RunOptions,
+    WorkerState,
 )
+from orchestrator.matrix.warm import WarmLane
 
 log = logging.getLogger("drivebench.ray")
 
@@ -57,6 +70,8 @@ SMALL_FILE_BYTES = 4 * 1024 * 1024  # a log longer than this comes back as its l
 WATCHDOG_SLACK_S = 60.0  # above the stack's own guards: start-up, the episode, the recorder's stop grace
 POLL_S = 0.25
 LIVE_PERIOD_S = 0.5  # how often a running episode sends its live metrics to the driver
+SLOT_CLOSE_S = 30.0  # how long the driver waits for episode slots to close their stacks
+SLOT_START_FAILURES = 5  # slots that die starting, in a row, before the matrix ends with the reason
 
 
 # -- the cluster --
@@ -151,6 +166,7 @@ class RayMatrixRunner(MatrixRunner):
         super().__init__(matrix, out_dir, options, on_change=on_change)
         self.ray_options = ray_options
         self._capacity = 1
+        self._slot_failures = 0  # slots that died starting, in a row
 
     def run(self) -> MatrixProgress:
         connect(self.ray_options.address)
@@ -161,6 +177,130 @@ class RayMatrixRunner(MatrixRunner):
         return self._capacity
 
     def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
+        if self.options.fresh_stacks:
+            self._dispatch_tasks(todo, store, progress)
+        else:
+            self._dispatch_slots(todo, store, progress)
+
+    def _dispatch_slots(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
+        """Warm stacks: episodes go to long-lived :class:`EpisodeSlot` actors, one at a time each, an episode with
+        the brains a slot's stack runs first. A slot lost with its node is dropped (its episode retried as a task's
+        is) and another started when the cluster has room."""
+        ray = import_ray()
+        # stop() runs in its own group, beside a running drive() (Ray takes the groups here, not in options()).
+        make = ray.remote(concurrency_groups={"control": 1})(EpisodeSlot).options(
+            **task_resources(self.ray_options.resources),
+            max_restarts=0,  # node deaths: its episode is retried here, recorded; a new slot replaces it
+            max_task_retries=0,
+        )
+        shared = dataclasses.replace(self.matrix, text="", episodes=())
+        waiting = collections.deque((episode, ()) for episode in todo)
+        slots: list[_Slot] = []
+        running: dict = {}  # ObjectRefGenerator -> (episode, lost attempts so far, lane, slot)
+        free_lanes = list(range(len(progress.workers)))
+        try:
+            while waiting or running:
+                if waiting and free_lanes and len(waiting) > sum(1 for slot in slots if not slot.busy):
+                    self._add_slots(slots, make=make, shared=shared, wanted=len(waiting) + len(running))
+                for slot in slots:
+                    if not (waiting and free_lanes):
+                        break
+                    if slot.node is None or slot.busy:
+                        continue
+                    episode, lost = self._take(waiting, prefer=slot.brains)
+                    lane = free_lanes.pop(0)
+                    slot.busy = True
+                    running[slot.actor.drive.remote(episode=episode)] = (episode, lost, lane, slot)
+                    with progress.lock:
+                        progress.workers[lane].episode, progress.workers[lane].live = episode, None
+                starting = {slot.ready: slot for slot in slots if slot.node is None}
+                ready, _ = ray.wait([*running, *starting], num_returns=1, timeout=POLL_S)
+                for ref in ready:
+                    if ref in starting:
+                        self._slot_up(starting[ref], slots)
+                        continue
+                    episode, lost, lane, slot = running[ref]
+                    item = self._next_item(ref)
+                    if "live" in item:
+                        with progress.lock:
+                            progress.workers[lane].live = item["live"]
+                        continue
+                    del running[ref]
+                    with progress.lock:
+                        progress.workers[lane].episode, progress.workers[lane].live = None, None
+                    free_lanes.append(lane)
+                    slot.busy = False
+                    if "error" in item:  # its node, its process or the actor itself failed: never used again
+                        self._drop_slot(slot, slots, why=f"{type(item['error']).__name__}")
+                    result = self._collect(item, episode, lost, waiting, node=slot.node)
+                    if result is not None:
+                        slot.brains = self._launches(episode) if result.status == "done" else None
+                        self._finish(result, store, progress)
+                self._on_change(progress)
+        except BaseException:
+            self.stop()
+            self._stop_slots(slots)  # Ctrl-C, SIGTERM: kill each slot's stack, then the actors
+            raise
+        self._close_slots(slots)
+
+    def _add_slots(self, slots: list[_Slot], *, make, shared: Matrix, wanted: int) -> None:
+        """Start slots up to the cluster's slots now (nodes come and go), no more than ``wanted`` episodes."""
+        target = min(self._window(), wanted)
+        while len(slots) < target:
+            actor = make.remote(matrix=shared, options=self.options, artifacts=self._artifacts_text())
+            slots.append(_Slot(actor=actor, ready=actor.where.remote()))
+
+    def _slot_up(self, slot: _Slot, slots: list[_Slot]) -> None:
+        """A slot answered: it takes episodes from now on; one that died starting is dropped (a few in a row: the
+        slots cannot start at all, which ends the matrix with the reason)."""
+        ray = import_ray()
+        try:
+            slot.node = ray.get(slot.ready)
+            self._slot_failures = 0
+        except ray.exceptions.RayError as error:
+            self._slot_failures += 1
+            self._drop_slot(slot, slots, why=f"it did not start: {type(error).__name__}: {_first_line(error)}")
+            if self._slot_failures > SLOT_START_FAILURES:
+                raise ClusterError(f"episode slots do not start on the Ray cluster: {_first_line(error)}") from None
+
+    def _take(self, waiting: collections.deque, *, prefer: list | None) -> tuple[PlannedEpisode, tuple]:
+        """The next waiting episode for a slot whose stack runs ``prefer``: one with the same launches first (as
+        :meth:`JobQueue.take`); results do not depend on the order."""
+        index = 0
+        if prefer is not None:
+            index = next((i for i, (episode, _) in enumerate(waiting) if self._launches(episode) == prefer), 0)
+        item = waiting[index]
+        del waiting[index]
+        return item
+
+    @staticmethod
+    def _drop_slot(slot: _Slot, slots: list[_Slot], *, why: str) -> None:
+        log.warning("episode slot on %s dropped (%s)", slot.node or "a node", why)
+        slots.remove(slot)
+        _kill(slot.actor)
+
+    @staticmethod
+    def _stop_slots(slots: list[_Slot]) -> None:
+        """Stop every slot's episode and kill its stack's process group, then the actors themselves."""
+        ray = import_ray()
+        stops = [slot.actor.stop.options(concurrency_group="control").remote() for slot in slots if slot.node]
+        if stops:
+            ray.wait(stops, num_returns=len(stops), timeout=SLOT_CLOSE_S)
+        for slot in slots:
+            _kill(slot.actor)
+
+    @staticmethod
+    def _close_slots(slots: list[_Slot]) -> None:
+        """The matrix is done: each slot closes its stack, then the actors go (their resources free at once)."""
+        ray = import_ray()
+        closes = [slot.actor.close.remote() for slot in slots if slot.node]
+        if closes:
+            ray.wait(closes, num_returns=len(closes), timeout=SLOT_CLOSE_S)
+        for slot in slots:
+            _kill(slot.actor)
+
+    def _dispatch_tasks(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
+        """``--fresh-stacks``: one Ray task, on a fresh stack, per episode."""
         ray = import_ray()
         task = ray.remote(run_episode_task).options(
             **task_resources(self.ray_options.resources),
@@ -233,16 +373,17 @@ class RayMatrixRunner(MatrixRunner):
         return value
 
     def _collect(
-        self, item: dict, episode: PlannedEpisode, lost: tuple, waiting: collections.deque
+        self, item: dict, episode: PlannedEpisode, lost: tuple, waiting: collections.deque, *, node: str | None = None
     ) -> EpisodeResult | None:
-        """The result of a finished task; None when its node was lost and it is submitted again."""
+        """The result of a finished task; None when its node (``node`` when known) was lost and it is submitted
+        again."""
         ray = import_ray()
         try:
             if "error" in item:
                 raise item["error"]
             outcome = item
         except _lost_errors() as error:
-            attempt = {"node": _node_in(error), "error": f"{type(error).__name__}: {_first_line(error)}"}
+            attempt = {"node": node or _node_in(error), "error": f"{type(error).__name__}: {_first_line(error)}"}
             lost = (*lost, attempt)
             log.warning("episode %s: attempt %d lost (%s)", episode.key, len(lost), attempt["error"])
             if len(lost) <= self.ray_options.node_retries:
@@ -302,8 +443,19 @@ def _lost_errors() -> tuple[type, ...]:
         "OutOfMemoryError",
         "TaskUnschedulableError",
         "RaySystemError",
+        "ActorDiedError",  # an episode slot's actor, with its node or its process
+        "ActorUnavailableError",  # what a slot's stream raises first when its node goes (before the node is dead)
     )
     return tuple(getattr(exceptions, name) for name in names if hasattr(exceptions, name))
+
+
+def _kill(actor) -> None:
+    """End an episode slot's actor now (its stack's processes watch their parent and go with it)."""
+    ray = import_ray()
+    try:
+        ray.kill(actor, no_restart=True)
+    except (ray.exceptions.RayError, ValueError) as error:  # already gone with its node
+        log.debug("killing an episode slot: %s", error)
 
 
 def _first_line(error: BaseException) -> str:
@@ -323,6 +475,17 @@ def _node_in(error: BaseException) -> str | None:
 
 def _same_folder(artifacts: Path | None, out_dir: Path) -> bool:
     return artifacts is not None and artifacts.resolve() == out_dir.resolve()
+
+
+@dataclasses.dataclass
+class _Slot:
+    """The driver's view of one :class:`EpisodeSlot` actor."""
+
+    actor: Any
+    ready: Any  # the ObjectRef of its where(): resolved once the actor is up
+    node: str | None = None  # its node, once up
+    brains: list | None = None  # its stack's brain launches after its last episode (None: no stack, or unknown)
+    busy: bool = False
 
 
 # -- one episode, on a node --
@@ -346,6 +509,10 @@ class _NodeRunner(MatrixRunner):
     def _node_name(self) -> str:
         return self.node
 
+    def go_on(self) -> None:
+        """Run episodes again after a stop (a slot's watchdog stopped the episode before; the slot itself goes on)."""
+        self._stopping.clear()
+
     def kill_group(self) -> None:
         """SIGKILL whatever of the stack's process group is left (grandchildren included)."""
         group = None if self.stack is None else self.stack.process_group
@@ -354,6 +521,69 @@ class _NodeRunner(MatrixRunner):
                 os.killpg(group, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass  # every member already gone
+
+
+class EpisodeSlot:
+    """One episode slot of a node as a long-lived Ray actor: it keeps a warm stack (:class:`WarmLane`, as a local
+    matrix worker does) across the episodes the driver gives it, one at a time. Its router, its stacks' logs
+    (``<work>/stacks/``) and, without artifacts, its scratch folder live as long as the actor."""
+
+    def __init__(self, *, matrix: Matrix, options: RunOptions, artifacts: str | None):
+        import ray
+
+        from orchestrator.stack.launcher import free_loopback_port
+        from protocol.bus import Bus, BusConfig
+
+        context = ray.get_runtime_context()
+        self.node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
+        self._scratch = None if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-slot-"))
+        work = Path(artifacts or self._scratch)
+        self._runner = _NodeRunner(matrix, work, options, node=self.node)
+        self._router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="slot")
+        settings = {"router_endpoint": self._router.config.listen[0], "startup_timeout_s": options.startup_timeout_s}
+        self._lane = WarmLane(
+            lane=0, stacks_dir=work / "stacks", make_stack=self._runner._make_stack, settings=settings
+        )
+        self._stopped = False
+
+    def where(self) -> str:
+        """This slot's node (:func:`node_label`); the driver gives episodes only to a slot that answered."""
+        return self.node
+
+    def drive(self, *, episode: PlannedEpisode) -> Iterator[dict]:
+        """One episode on the warm stack (a streaming method): the items :func:`run_episode_task` yields."""
+        if self._stopped:
+            raise RuntimeError("the episode slot was stopped")
+        self._runner.go_on()  # a watchdog that stopped the episode before stopped that episode only
+
+        def cleanup(*, abandoned: bool) -> None:
+            if abandoned:  # its processes were killed: the next episode starts a new stack
+                self._lane.retire("its episode was abandoned")
+
+        items = _watched(
+            runner=self._runner,
+            episode=episode,
+            node=self.node,
+            run=lambda state: self._runner._run_warm(episode, self._lane, state),
+            cleanup=cleanup,
+        )
+        for item in items:
+            if "result" in item and self._scratch is not None:  # its files travel in the item
+                shutil.rmtree(self._scratch / "episodes" / f"{episode.index:04d}", ignore_errors=True)
+            yield item
+
+    def stop(self) -> None:
+        """Ctrl-C on the driver (called beside a running ``drive``): abandon the episode, kill the stack's group."""
+        self._stopped = True
+        self._runner.stop()
+        self._runner.kill_group()
+
+    def close(self) -> None:
+        """The matrix is done: close the stack (after any running episode), the router and the scratch folder."""
+        self._lane.close()
+        self._router.close()
+        if self._scratch is not None:
+            shutil.rmtree(self._scratch, ignore_errors=True)
 
 
 def run_episode_task(
@@ -378,14 +608,42 @@ def run_episode_task(
 
 
 def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path) -> Iterator[dict]:
-    """:func:`run_episode_task` in the folder ``work``: the stack in one process group, under a watchdog."""
-    from orchestrator.matrix.runner import WorkerState
-    from orchestrator.stack.launcher import free_loopback_port, wall_guard_s
-    from protocol import codec
+    """:func:`run_episode_task` in the folder ``work``: a fresh stack in one process group, under a watchdog."""
+    from orchestrator.stack.launcher import free_loopback_port
     from protocol.bus import Bus, BusConfig
 
     runner = _NodeRunner(matrix, work, options, node=node)
-    guard_s = options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds) + WATCHDOG_SLACK_S
+    router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="episode-router")
+
+    def cleanup(*, abandoned: bool) -> None:  # the stack is closed or abandoned: kill whatever of its group is left
+        runner.kill_group()
+        router.close()
+
+    yield from _watched(
+        runner=runner,
+        episode=episode,
+        node=node,
+        run=lambda state: runner._run_one(episode, router.config.listen[0], state),
+        cleanup=cleanup,
+    )
+
+
+def _watched(
+    *,
+    runner: _NodeRunner,
+    episode: PlannedEpisode,
+    node: str,
+    run: Callable[[WorkerState], EpisodeResult | None],
+    cleanup: Callable[..., None],
+) -> Iterator[dict]:
+    """Drive one episode with ``run`` in a thread under a watchdog: its live metrics twice a second, then the result
+    and the episode folder's small files. ``cleanup(abandoned=...)`` runs before the result is sent (abandoned: the
+    watchdog fired or the stream was closed, so the stack was stopped and its process group killed)."""
+    from orchestrator.stack.launcher import wall_guard_s
+    from protocol import codec
+
+    guard_s = runner.options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds)
+    guard_s += WATCHDOG_SLACK_S
     fired = threading.Event()
 
     def watchdog() -> None:  # the stack's own guards failed to end it: abandon it and kill its processes
@@ -395,14 +653,13 @@ def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node
 
     timer = threading.Timer(guard_s, watchdog)
     timer.daemon = True
-    router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="episode-router")
     started_at = time.time()
     state = WorkerState()
     outcome: dict = {}
 
     def drive() -> None:
         try:
-            outcome["result"] = runner._run_one(episode, router.config.listen[0], state)
+            outcome["result"] = run(state)
         except BaseException as error:  # noqa: BLE001 - raised again in the task, where Ray reports it
             outcome["error"] = error
 
@@ -418,17 +675,18 @@ def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node
                 yield {"live": codec.encode(sent)}
     finally:
         timer.cancel()
-        if thread.is_alive():  # the task itself was cancelled: abandon the episode
+        abandoned = thread.is_alive() or fired.is_set()
+        if thread.is_alive():  # the stream was closed (the task cancelled): abandon the episode
             runner.stop()
-        runner.kill_group()
+            runner.kill_group()
         thread.join(timeout=10.0)
-        router.close()
+        cleanup(abandoned=abandoned)
     if "error" in outcome:
         raise outcome["error"]
     result = outcome.get("result")
     if result is None or fired.is_set():
         result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
-    yield {"result": result, "files": _small_files(work / "episodes" / f"{episode.index:04d}")}
+    yield {"result": result, "files": _small_files(runner.out_dir / "episodes" / f"{episode.index:04d}")}
 
 
 def _timed_out(
@@ -462,4 +720,4 @@ def _small_files(folder: Path) -> dict[str, bytes]:
     return files
 
 
-__all__ = ["RayMatrixRunner", "capacity", "connect", "run_episode_task", "slots_of", "task_resources"]
+__all__ = ["EpisodeSlot", "RayMatrixRunner", "capacity", "connect", "run_episode_task", "slots_of", "task_resources"]

@@ -1,10 +1,16 @@
-"""Matrix files written for a test, the finished rows of a results database, and processes found by command line."""
+"""Matrix files written for a test, the finished rows of a results database, processes found by command line, and
+what two runs of a matrix must have in common (the simulated metrics, the trajectories)."""
 
 from __future__ import annotations
 
 import os
 import sqlite3
 from pathlib import Path
+
+import numpy as np
+
+from orchestrator.matrix.results import ResultStore
+from protocol.messages import EpisodeScore
 
 
 def write_matrix(folder: Path, body: str) -> Path:
@@ -37,3 +43,46 @@ def finished_rows(database: Path) -> list[tuple]:
             return db.execute("SELECT key, run_id, started_at, status FROM episodes ORDER BY idx").fetchall()
     except sqlite3.OperationalError:  # created but no table yet
         return []
+
+
+def results_by_key(out: Path) -> dict:
+    with ResultStore(out, create=False) as store:
+        return {result.key: result for result in store.results()}
+
+
+# What the simulation alone decides (the rest of EpisodeMetrics measures wall time: latency, inference, rates).
+SIMULATED = (
+    "sim_time_s",
+    "steps",
+    "completed_distance_m",
+    "average_speed_mps",
+    "percentage_completed",
+    "bm_lap_seconds",
+    "position_deviation_mae",
+    "position_deviation_total_err",
+    "suddenness_distance",
+    "progress_m",
+    "progress_laps",
+    "completed_laps",
+    "lap_times_s",
+    "cross_track_mean_m",
+    "cross_track_rms_m",
+    "cross_track_max_m",
+    "cross_track_p95_m",
+    "off_track_events",
+)
+TRAJECTORY = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
+
+
+def simulated(score: EpisodeScore) -> dict:
+    return {"reason": score.reason, "spec": score.spec, **{f: getattr(score.metrics, f) for f in SIMULATED}}
+
+
+def trajectory(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        return {name: data[name] for name in TRAJECTORY}
+
+
+def assert_same_trajectory(one: dict[str, np.ndarray], other: dict[str, np.ndarray], *, what: str) -> None:
+    for name in TRAJECTORY:
+        assert one[name].shape == other[name].shape and np.array_equal(one[name], other[name]), f"{what}: {name}"
