@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -10,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from support.matrices import finished_rows, processes_with, write_matrix
+from support.matrices import KILLING, brain_killer, finished_rows, write_matrix
 from support.waits import wait_for
 
 from orchestrator.matrix.load import load_matrix
@@ -151,33 +150,10 @@ repetitions: 4
 
 
 def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path):
-    matrix = load_matrix(
-        write_matrix(
-            tmp_path,
-            """
-name: killing
-brains: [{name: constant, options: {speed_mps: 0.5}}]
-circuits: [simple]
-repetitions: 2
-limits: {laps: 1, max_sim_seconds: 30}
-camera: 96x72
-""",
-        )
-    )
+    matrix = load_matrix(write_matrix(tmp_path, KILLING))
     killed: list[int] = []
 
-    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
-        live = progress.workers[0].live
-        if killed or progress.finished or live is None or live.sim_time_s < 2.0:  # the first episode only
-            return
-        for pid in processes_with(f"--run-id {live.header.run_id}"):
-            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
-
-    runner = MatrixRunner(
-        matrix, tmp_path / "out", RunOptions(workers=1), on_change=kill_the_first_brain_2_s_into_its_episode
-    )
+    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_change=brain_killer(killed))
     progress = runner.run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)

@@ -32,7 +32,9 @@ ray = needs.require("ray")
 from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
 from support.matrices import (  # noqa: E402
+    KILLING,
     assert_same_trajectory,
+    brain_killer,
     finished_rows,
     processes_with,
     results_by_key,
@@ -215,36 +217,15 @@ camera: 96x72
 
 
 def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_is_not_retried(cluster, tmp_path):
-    matrix = load_matrix(
-        write_matrix(
-            tmp_path,
-            """
-name: killing
-brains: [{name: constant, options: {speed_mps: 0.5}}]
-circuits: [simple]
-repetitions: 2
-limits: {laps: 1, max_sim_seconds: 30}
-camera: 96x72
-""",
-        )
-    )
+    matrix = load_matrix(write_matrix(tmp_path, KILLING))
     killed: list[int] = []
-
-    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
-        live = progress.workers[0].live
-        if killed or progress.finished or live is None or live.sim_time_s < 2.0:  # the first episode only
-            return
-        for pid in processes_with(f"--run-id {live.header.run_id}"):
-            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
 
     progress = RayMatrixRunner(
         matrix,
         tmp_path / "out",
         RunOptions(),
         ray_options=RayOptions(address=cluster.address),
-        on_change=kill_the_first_brain_2_s_into_its_episode,
+        on_change=brain_killer(killed),
     ).run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)

@@ -4,6 +4,7 @@ what two runs of a matrix must have in common (the simulated metrics, the trajec
 from __future__ import annotations
 
 import os
+import signal
 import sqlite3
 from pathlib import Path
 
@@ -86,3 +87,30 @@ def trajectory(path: Path) -> dict[str, np.ndarray]:
 def assert_same_trajectory(one: dict[str, np.ndarray], other: dict[str, np.ndarray], *, what: str) -> None:
     for name in TRAJECTORY:
         assert one[name].shape == other[name].shape and np.array_equal(one[name], other[name]), f"{what}: {name}"
+
+
+# One brain that drives slowly for up to 30 s, twice: long enough to be killed mid-episode.
+KILLING = """
+name: killing
+brains: [{name: constant, options: {speed_mps: 0.5}}]
+circuits: [simple]
+repetitions: 2
+limits: {laps: 1, max_sim_seconds: 30}
+camera: 96x72
+"""
+
+
+def brain_killer(killed: list[int]):
+    """A matrix ``on_change`` callback that SIGKILLs the brain host of the first episode 2 s (sim) into it, once,
+    appending the pid to ``killed``."""
+
+    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
+        live = progress.workers[0].live
+        if killed or progress.finished or live is None or live.sim_time_s < 2.0:  # the first episode only
+            return
+        for pid in processes_with(f"--run-id {live.header.run_id}"):
+            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+    return kill_the_first_brain_2_s_into_its_episode
