@@ -107,13 +107,7 @@ def test_results_keep_the_training_seed_as_a_column(tmp_path):
         "  - explicit\n  - {name: deepest_lstm_tiny_pilotnet, label: tiny, weights: runs/seed-*/model.ckpt}\n",
         circuits="[simple]",
     )
-    result = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(tmp_path / "out")],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    run_matrix(path, out=tmp_path / "out")
     with open(tmp_path / "out" / "episodes.csv", newline="") as file:
         rows = list(csv.DictReader(file))
     assert [(r["brain"], r["brain_group"], r["training_seed"], r["status"]) for r in rows] == [
@@ -141,16 +135,21 @@ def test_a_matrix_with_parts_gets_each_brains_interval_per_part(tmp_path):
         "runs/seed-*/model.ckpt}\nlimits: {laps: 1, max_sim_seconds: 2}\nparts:\n  red:\n    circuits: [simple]\n"
         "  white:\n    circuits: [simple]\n    worlds: [{line: white}]\n    repetitions: 2\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(tmp_path / "out")],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    run_matrix(path, out=tmp_path / "out")
     report = (tmp_path / "out" / "report.md").read_text()
     comparison = report.split("## Comparison with intervals", 1)[1].split("\n## ", 1)[0]
     assert "| Part | Brain | Conditions |" in comparison, comparison
     for part, conditions in (("red", 1), ("white", 2)):
         assert f"| {part} | tiny | {conditions} |" in comparison, comparison
         assert f"| {part} | explicit | {conditions} |" in comparison and ONE_RUN in comparison, comparison
+
+
+def run_matrix(path: Path, *, out: Path) -> None:
+    """``drivebench matrix PATH -o OUT`` as a user runs it, which must succeed."""
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "matrix", str(path), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
