@@ -25,7 +25,9 @@ from protocol.messages import (
     Command,
     ControlRequest,
     EndReason,
+    EpisodeEvent,
     EpisodeSpec,
+    EventKind,
     Header,
     Pose,
 )
@@ -267,6 +269,41 @@ def test_a_stop_while_the_recorder_lags_behind_still_writes_every_message_intact
     seqs = [r.message.header.seq for r in read_messages(output)]
     assert seqs == sent  # the regression itself, checked first: the validator below skips where Node is missing
     assert_valid_mcap(output)
+
+
+@pytest.mark.integration
+def test_a_stop_waits_for_the_last_frames_of_an_ended_lock_step_episode_still_on_their_way(tmp_path, router):
+    """The episode's END (last pose seq 20) is in, and the recorder is told to stop, while half its frames and poses
+    are still on their way (a loaded machine; a collection once lost the last 42 of 80 frames so): more than the
+    quiet pause later, they come, and every one is in the file."""
+    endpoint, bus = router
+    run = "late"
+    output = tmp_path / "rec" / "late.mcap"
+    recorder = start_recorder(endpoint, bus, run, output)
+    events = bus.publisher(keys.events(run), EpisodeEvent, Traffic.EVENTS)
+    frames = bus.publisher(keys.camera_raw(run), CameraFrame, Traffic.FRAMES_LOSSLESS)
+    poses = bus.publisher(keys.pose(run), Pose, Traffic.EVENTS)
+
+    def step(seq: int) -> None:
+        frames.publish(frame(seq, run_id=run))
+        poses.publish(Pose(header=header(seq, run_id=run), x_m=float(seq), y_m=0.0, yaw_rad=0.0))
+
+    events.publish(EpisodeEvent(header=header(0, run_id=run), kind=EventKind.START, spec=EpisodeSpec()))
+    for seq in range(10):
+        step(seq)
+    end = EpisodeEvent(header=header(20, run_id=run), kind=EventKind.END, reason=EndReason.TIME_LIMIT, last_pose_seq=20)
+    events.publish(end)
+    time.sleep(0.5)  # the recorder has END and frames 0-9
+    recorder.send_signal(signal.SIGTERM)
+    time.sleep(1.0)  # five quiet pauses: before, the recorder had finished the file by now
+    for seq in range(10, 20):
+        step(seq)
+    poses.publish(Pose(header=header(20, run_id=run), x_m=20.0, y_m=0.0, yaw_rad=0.0))
+    assert recorder.wait(timeout=30) == 128 + signal.SIGTERM, recorder.stdout.read()
+    seqs = defaultdict(set)
+    for r in read_messages(output):
+        seqs[r.key].add(r.message.header.seq)
+    assert seqs[keys.camera_raw(run)] == set(range(20)) and seqs[keys.pose(run)] == set(range(21)), dict(seqs)
 
 
 @pytest.mark.integration
