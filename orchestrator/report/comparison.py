@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orchestrator.matrix.plan import part_of
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.report.document import Plot, Section, Table
 from orchestrator.report.statistics import (
@@ -137,18 +138,12 @@ def _brain_table(brains: list[BrainScores], *, seed: int) -> Table:
     )
 
 
-def part_of(result: EpisodeResult) -> str:
-    """The matrix part an episode belongs to ("" outside parts): its key's ``part:`` prefix."""
-    head = result.key.split("/", 1)[0]
-    return head.split(":", 1)[0] if ":" in head else ""
-
-
 def _part_table(results: list[EpisodeResult], *, seed: int) -> Table | None:
     """Per part and brain, over the part's own shared conditions: where a brain's overall figure comes from (a
     study's parts are its question's axes, e.g. the flat and the gazebo look). None for a matrix without parts."""
     parts: dict[str, list[EpisodeResult]] = {}
     for r in results:
-        parts.setdefault(part_of(r), []).append(r)
+        parts.setdefault(part_of(r.key), []).append(r)
     if len(parts) < 2:
         return None
     rows = []
