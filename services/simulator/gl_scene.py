@@ -143,7 +143,6 @@ class GLScene:
             vertices, self._first, self._count = _triangle_soup(description)
             self._vbo = self._ctx.buffer(vertices.tobytes())
             self._vao = self._ctx.vertex_array(self._program, [(self._vbo, "3f 3f", "in_position", "in_colour")])
-        self._is_wall = np.array([mesh.kind == "wall" for mesh in description.meshes])
         self._centres = np.stack([mesh.centre_m for mesh in description.meshes])
         self._radii = np.array([mesh.radius_m for mesh in description.meshes])
         self._framebuffers: dict[tuple[int, int], object] = {}
@@ -190,18 +189,7 @@ class GLScene:
 
     def _visible_runs(self, eye: np.ndarray, far_m: float) -> list[tuple[int, int]]:
         """(first vertex, vertex count) of each run of consecutive chunks to draw."""
-        return self._runs(self._visible(eye, far_m))
-
-    def _runs(self, draw: np.ndarray) -> list[tuple[int, int]]:
-        """(first vertex, vertex count) of each run of consecutive chunks where ``draw`` is set."""
-        if not draw.any():
-            return []
-        # Runs of consecutive drawn chunks: one draw call each.
-        edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
-        starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-        firsts = self._first[starts]
-        lasts = self._first[ends - 1] + self._count[ends - 1]
-        return list(zip(firsts.tolist(), (lasts - firsts).tolist()))
+        return chunk_runs(self._visible(eye, far_m), first=self._first, count=self._count)
 
     def render(self, car: CarState, camera: CameraSpec) -> np.ndarray:
         """The camera image for the car at ``car``: height_px x width_px x 3 uint8 RGB, row 0 at the top."""
@@ -211,7 +199,6 @@ class GLScene:
         width, height = camera.width_px, camera.height_px
         framebuffer = self._framebuffer(width, height)
         if self._gazebo is not None:
-            draw = self._visible(eye, camera.far_m)
             self._gazebo.draw(
                 framebuffer=framebuffer,
                 clip_from_world=clip_from_world,
@@ -219,8 +206,7 @@ class GLScene:
                 camera_axes=(forward, up),
                 camera=camera,
                 projection=projection,
-                runs=self._runs(draw),
-                wall_runs=self._runs(draw & self._is_wall) if self._gazebo.shadows else [],
+                visible=self._visible(eye, camera.far_m),
             )
         else:
             self._program["clip_from_world"].write(clip_from_world.T.astype("f4").tobytes())  # GL: column-major
@@ -255,6 +241,19 @@ class GLScene:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def chunk_runs(draw: np.ndarray, *, first: np.ndarray, count: np.ndarray) -> list[tuple[int, int]]:
+    """(first vertex, vertex count) of each run of consecutive chunks where ``draw`` is set: one draw call each.
+
+    first, count: each chunk's first vertex and vertex count in the vertex buffer (chunks stored consecutively)."""
+    if not draw.any():
+        return []
+    edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    firsts = first[starts]
+    lasts = first[ends - 1] + count[ends - 1]
+    return list(zip(firsts.tolist(), (lasts - firsts).tolist()))
 
 
 def _tinyrenderer_sampling(camera: CameraSpec) -> np.ndarray:
