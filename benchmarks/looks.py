@@ -6,7 +6,9 @@ can be drawn is measured side by side, interleaved so that all see the same mach
   * frame: the median time of one ``render`` over poses spread round the circuit (``parity_poses``);
   * in-process: EpisodeSim.render -> ExplicitBrain.act -> EpisodeSim.step in one Python loop (real-time factor);
   * pipeline: ``drivebench run``'s stack (router, simulator, noise injector, brain host, scorer processes),
-    lock-step over Zenoh (real-time factor).
+    lock-step over Zenoh (real-time factor), twice: the simulator rendering with one llvmpipe thread (as each stack
+    of a matrix with as many workers as cores does), and with this machine's cores (as ``drivebench run`` does:
+    in lock-step the other processes wait for the frame).
 
 The pybullet renderer cannot draw the gazebo look: its row says so (the line a user gets). The last columns are the
 frame cost over the flat look's on the same renderer (gl), in wall time and in CPU time (this process's, which a
@@ -26,6 +28,7 @@ import sys
 import tempfile
 import time
 import uuid
+from contextlib import ExitStack
 from pathlib import Path
 
 import msgspec
@@ -33,7 +36,7 @@ from closed_loop import in_process_steps_per_s, pipeline_steps_per_s
 from tqdm import tqdm
 
 from circuits import load_circuit
-from orchestrator.stack.launcher import BrainLaunch, LocalStack
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, render_threads_for
 from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.variations import VariationError, apply_variation, check_look
 from services.simulator.episode import SceneCache
@@ -76,20 +79,22 @@ def specs_for(args, size: tuple[int, int], circuit: str) -> tuple[dict[tuple[str
     return specs, refused
 
 
-def measure(args, scenes: SceneCache, stack: LocalStack, specs: dict, progress) -> dict:
-    """(renderer, look) -> median frame seconds, in-process and pipeline steps per second."""
-    results: dict = {key: {"frame": [], "frame cpu": [], "in-process": [], "pipeline": []} for key in specs}
+def measure(args, scenes: SceneCache, stacks: dict[str, LocalStack], specs: dict, progress) -> dict:
+    """(renderer, look) -> median frame seconds, in-process and pipeline steps per second (one per stack)."""
+    results: dict = {key: {"frame": [], "frame cpu": [], "in-process": [], **{n: [] for n in stacks}} for key in specs}
     for spec in specs.values():  # warm: scene build, GL context, textures
         warm = msgspec.structs.replace(spec, max_sim_seconds=0.5)
         in_process_steps_per_s(warm, scenes)
-        pipeline_steps_per_s(warm, stack)
+        for stack in stacks.values():
+            pipeline_steps_per_s(warm, stack)
     for _ in range(args.repeats):
         for key, spec in specs.items():  # interleaved
             wall_s, cpu_s = frame_s(spec, scenes)
             results[key]["frame"].append(wall_s)
             results[key]["frame cpu"].append(cpu_s)
             results[key]["in-process"].append(in_process_steps_per_s(spec, scenes))
-            results[key]["pipeline"].append(pipeline_steps_per_s(spec, stack))
+            for name, stack in stacks.items():
+                results[key][name].append(pipeline_steps_per_s(spec, stack))
             progress.update()
     return {key: {name: statistics.median(values) for name, values in row.items()} for key, row in results.items()}
 
@@ -103,10 +108,11 @@ def print_rows(size: tuple[int, int], circuit: str, measured: dict, refused: lis
         print(
             f"| {size[0]}x{size[1]} | {circuit} | {renderer} | {look} | {1e3 * row['frame']:.2f} | "
             f"{1e3 * row['frame cpu']:.2f} | {row['in-process'] * step_s:.2f}x | {row['pipeline'] * step_s:.2f}x | "
+            f"{row['pipeline, run'] * step_s:.2f}x | "
             f"{ratios} |"
         )
     for cells in refused:
-        print(f"| {size[0]}x{size[1]} | {circuit} {cells}")
+        print(f"| {size[0]}x{size[1]} | {circuit} {cells} |")
 
 
 def main() -> int:
@@ -122,23 +128,35 @@ def main() -> int:
     plan = [(size, circuit, *specs_for(args, size, circuit)) for size in sizes for circuit in circuits]
     total = sum(len(specs) for _, _, specs, _ in plan) * args.repeats
     results = []
-    with tempfile.TemporaryDirectory() as tmp:
-        stack = LocalStack(run_id=f"looks{uuid.uuid4().hex[:6]}", run_dir=Path(tmp), brains=[BrainLaunch("explicit")])
-        with stack, tqdm(total=total, desc="looks", file=sys.stderr, unit="run") as progress:
+    threads = render_threads_for(stacks=1)
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as closing:
+        stacks = {
+            name: closing.enter_context(
+                LocalStack(
+                    run_id=f"looks{uuid.uuid4().hex[:6]}",
+                    run_dir=Path(tmp) / name.replace(", ", "-"),
+                    brains=[BrainLaunch("explicit")],
+                    render_threads=render_threads,
+                )
+            )
+            for name, render_threads in (("pipeline", 1), ("pipeline, run", threads))
+        }
+        with tqdm(total=total, desc="looks", file=sys.stderr, unit="run") as progress:
             for size, circuit, specs, refused in plan:
-                results.append((size, circuit, measure(args, scenes, stack, specs, progress), refused))
+                results.append((size, circuit, measure(args, scenes, stacks, specs, progress), refused))
     scenes.close()
     step_s = EpisodeSpec().step_s
     print(
         f"looks, explicit brain, {args.sim_seconds:g} s sim per closed-loop run, median of {args.repeats}; frame: "
-        f"median render over {FRAME_POSES} poses; lock-step at {1 / step_s:.0f} Hz"
+        f"median render over {FRAME_POSES} poses, one llvmpipe thread; lock-step at {1 / step_s:.0f} Hz; pipeline: "
+        f"1 llvmpipe thread, pipeline (run): {threads}, as drivebench run here"
     )
     print()
     print(
         "| camera | circuit | renderer | look | frame ms | frame CPU ms | in-process RTF | pipeline RTF "
-        "| frame / gl flat | frame CPU / gl flat |"
+        "| pipeline (run) RTF | frame / gl flat | frame CPU / gl flat |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for size, circuit, measured, refused in results:
         print_rows(size, circuit, measured, refused, step_s)
     return 0

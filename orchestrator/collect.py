@@ -19,7 +19,7 @@ import msgspec
 import numpy as np
 
 from circuits import CircuitError, load_circuit
-from orchestrator.stack.launcher import BrainLaunch, LocalStack
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, render_threads_for
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import environment
 from protocol.messages import CameraSpec, EpisodeSpec
@@ -173,7 +173,11 @@ def collect(args: argparse.Namespace, options) -> int:
         progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
             with LocalStack(
-                run_id=run_id, run_dir=work / "runs" / run_id, brains=collection_brains(args), record=recording
+                run_id=run_id,
+                run_dir=work / "runs" / run_id,
+                brains=collection_brains(args),
+                record=recording,
+                render_threads=render_threads_for(stacks=1),
             ) as stack:
                 score = stack.run_episode(spec, on_live=progress.update)
         finally:

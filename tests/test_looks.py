@@ -14,6 +14,7 @@ import math
 import os
 import subprocess
 import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -139,6 +140,38 @@ def test_two_renders_of_a_pose_are_identical(circuit_name):
         assert np.array_equal(frame, second.render(car, camera))
     with make_scene(circuit, WorldVariation(), renderer="gl") as flat:
         assert not np.array_equal(frame, flat.render(car, camera))  # the look changes the picture
+
+
+def test_more_llvmpipe_threads_draw_the_same_pixels(tmp_path):
+    """drivebench run's simulator renders with every core (orchestrator.stack.launcher.render_threads_for), a matrix
+    worker's with its share: the frames must not depend on it (shadowed Montreal, 640x480: 80 tiles, all threads)."""
+    require_gl()
+    code = """
+        import sys
+        import numpy as np
+        from circuits import load_circuit
+        from protocol.messages import CameraSpec, WorldVariation
+        from services.simulator.parity import parity_poses
+        from services.simulator.renderers import make_scene
+        circuit = load_circuit("montreal")
+        with make_scene(circuit, WorldVariation(look="gazebo"), renderer="gl") as scene:
+            camera = CameraSpec(width_px=640, height_px=480)
+            np.save(sys.argv[1], np.stack([scene.render(car, camera) for car in parity_poses(circuit, count=4)]))
+    """
+    frames = {}
+    for threads in ("1", "2"):
+        path = tmp_path / f"threads-{threads}.npy"
+        child = subprocess.run(
+            [sys.executable, "-c", textwrap.dedent(code), str(path)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "LP_NUM_THREADS": threads},
+        )
+        assert child.returncode == 0, child.stderr
+        frames[threads] = np.load(path)
+    assert frames["1"].shape == (4, 480, 640, 3) and frames["1"].std() > 10  # a picture, not a blank
+    assert np.array_equal(frames["1"], frames["2"])
 
 
 def test_unknown_look_and_renderers_that_cannot_draw_it_are_named():

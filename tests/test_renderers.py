@@ -23,6 +23,8 @@ from mcap.reader import make_reader
 
 from circuits import load_circuit
 from orchestrator.matrix.load import MatrixError, parse_matrix, with_renderer
+from orchestrator.matrix.runner import MatrixRunner, RunOptions
+from orchestrator.stack.launcher import render_threads_for
 from protocol.messages import CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.episode import EpisodeSim, SceneCache
@@ -305,6 +307,35 @@ def test_llvmpipe_gets_one_thread_unless_the_user_chose():
     )
     assert child.stdout.strip() == "1", child.stderr
     assert _child(code, {"LP_NUM_THREADS": "2"}).stdout.strip() == "2"
+
+
+def test_stacks_side_by_side_share_the_cores_for_rendering(tmp_path):
+    cores = len(os.sched_getaffinity(0))
+    assert render_threads_for(stacks=1) == min(8, cores)
+    assert render_threads_for(stacks=cores) == 1
+    assert render_threads_for(stacks=4 * cores) == 1  # never none
+    matrix = parse_matrix("brains: [explicit]\ncircuits: [simple]\n")
+    for workers in (1, 2, 3):
+        runner = MatrixRunner(matrix, tmp_path, RunOptions(workers=workers))
+        stack = runner._make_stack(run_id="threads", run_dir=tmp_path / "threads")  # not started
+        assert stack.render_threads == render_threads_for(stacks=workers)
+
+
+def _environment_of(pid: int) -> dict[str, str]:
+    raw = open(f"/proc/{pid}/environ", "rb").read().decode()
+    return dict(item.split("=", 1) for item in raw.split("\0") if "=" in item)
+
+
+@pytest.mark.integration
+def test_a_stack_simulator_renders_with_its_threads_unless_the_user_chose(make_stack, monkeypatch):
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    stack = make_stack(render_threads=2)
+    assert _environment_of(stack.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "2"
+    brain = next(child for child in stack.children if child.role == "brain")
+    assert "LP_NUM_THREADS" not in _environment_of(brain.process.pid)  # only the simulator renders
+    monkeypatch.setenv("LP_NUM_THREADS", "3")
+    chosen = make_stack(render_threads=2)
+    assert _environment_of(chosen.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "3"
 
 
 def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it(monkeypatch):

@@ -28,7 +28,14 @@ from brains.registry import UnknownBrainError, bus_name, require_brain
 from circuits import CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.report.episode import metrics_table
-from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError, StackFailure, preflight_launches
+from orchestrator.stack.launcher import (
+    BrainLaunch,
+    LocalStack,
+    StackError,
+    StackFailure,
+    preflight_launches,
+    render_threads_for,
+)
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
@@ -348,6 +355,7 @@ def command_run(args: argparse.Namespace) -> int:
             brains=brains,
             record=args.record,
             record_options=(f"image_format={args.record_images}",),
+            render_threads=render_threads_for(stacks=1),
         ) as stack:
             stack.write_stack_file()  # drivebench swap finds the running stack through it
             with recorded_failure(run_dir, run_id=run_id, as_json=args.json):

@@ -46,6 +46,7 @@ from orchestrator.stack.launcher import (
     StackError,
     StackFailure,
     free_loopback_port,
+    render_threads_for,
 )
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox
@@ -407,8 +408,9 @@ class MatrixRunner:
         )
 
     def _make_stack(self, **settings) -> LocalStack:
-        """The stack of one episode (a hook: a Ray task puts its processes in one process group)."""
-        return LocalStack(**settings)
+        """The stack of one episode (a hook: a Ray task puts its processes in one process group); the workers'
+        stacks share this machine's cores for rendering."""
+        return LocalStack(render_threads=render_threads_for(stacks=self._lanes()), **settings)
 
     def _node_name(self) -> str:
         """Where episodes run, for the results (a hook: Ray tasks name their cluster node)."""

@@ -151,6 +151,17 @@ class Child:
 OWN_SIMULATOR_BUSY_WAIT_S = 5.0
 
 
+LLVMPIPE_THREADS = "LP_NUM_THREADS"  # Mesa's: how many threads llvmpipe (the CPU OpenGL) rasterises with
+
+
+def render_threads_for(*, stacks: int) -> int:
+    """The llvmpipe threads each of ``stacks`` stacks running side by side on this machine gets: its share of the
+    cores this process may use, at least 1. 8 at most: a 640x480 frame is 80 of llvmpipe's 64x64-pixel tiles, and
+    only 1 and 2 threads were measured (benchmarks/looks.py)."""
+    cores = len(os.sched_getaffinity(0))
+    return max(1, min(8, cores // max(1, stacks)))
+
+
 @dataclass
 class LocalStack:
     """A stack on this machine. Use as a context manager; ``run_episode`` as often as needed inside."""
@@ -166,6 +177,10 @@ class LocalStack:
     # True: every child joins one new process group (``process_group``, the first child's pid) instead of a session
     # each, so that its owner can kill the whole stack, grandchildren included, with one killpg (a Ray task does).
     one_group: bool = False
+    # llvmpipe's rendering threads in the simulator (Mesa's LP_NUM_THREADS; a value the user exported wins). One
+    # by default; a stack alone on the machine gets its cores (render_threads_for): in lock-step the other
+    # processes wait for the frame, so the frame may use every core.
+    render_threads: int = 1
     children: list[Child] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -357,6 +372,8 @@ class LocalStack:
         log_path = self.run_dir / "logs" / (f"{role}-{name}.log" if role == "brain" else f"{role}.log")
         env = {k: v for k, v in os.environ.items() if k not in BUS_ENV and k != environment.RUN_ID.name}
         env[environment.PARENT_PID.name] = str(os.getpid())  # children stop by themselves when this process dies
+        if role == "simulator":
+            env.setdefault(LLVMPIPE_THREADS, str(self.render_threads))
         joins = ["--router", self.endpoint, "--run-id", self.run_id] if connect else []
         # Ctrl-C reaches only us (we stop the children in order): a session each, or one process group of their own.
         group = (self.process_group or 0) if self.one_group else None

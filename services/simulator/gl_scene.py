@@ -17,7 +17,9 @@ the same camera matrices and the same lighting model, so that a frame agrees wit
 * Chunks beyond the far plane (plus a margin) are skipped as in the PyBullet scene (same pixels, less vertex work).
 
 llvmpipe starts one rendering thread per core unless ``LP_NUM_THREADS`` is set; several rendering processes on a
-small machine then oversubscribe it, so this module sets it to 1 before the first context unless the user set it.
+small machine then oversubscribe it, so this module sets it to 1 before the first context unless it is set. A
+stack's simulator gets its share of the cores instead (:func:`orchestrator.stack.launcher.render_threads_for`): all of
+them for ``drivebench run``, whose other processes wait for the frame in lock-step. The pixels do not depend on it.
 The context is one per process, shared by every :class:`GLScene` in it. Set ``GLCONTEXT_LINUX_LIBEGL`` to choose
 the EGL library (glcontext's own variable; a path that does not load makes context creation fail, which is how the
 tests simulate a machine without EGL).
