@@ -192,7 +192,23 @@ def test_a_bad_config_file_is_one_line(tmp_path):
     path = tmp_path / "config.yaml"
     path.write_text("episode: {circuit: simple}\n")
     line = one_error_line(drivebench("run", "--config", str(path)))
-    assert line.startswith(f"drivebench: error: --config {path}: not a run's config.yaml")
+    assert line == f"drivebench: error: --config {path}:1: the run config is missing 'brains'"
+
+
+def test_a_config_file_reports_every_mistake_at_once_with_its_line(tmp_path):
+    path = tmp_path / "config.yaml"
+    path.write_text("run_id: abc\nepisode:\n  circuit: nowhere\n  laps: 2\nbrains:\n  - {brain: explict}\n")
+    result = drivebench("run", "--config", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 2, result.stderr
+    assert lines[0].startswith(f"drivebench: error: --config {path}:3: unknown circuit 'nowhere'")
+    assert lines[1].startswith(f"--config {path}:6: ") and "explict" in lines[1]
+    path.write_text("episode: {circuit: simple}\nbrains:\n  - {brain: explicit, colour: red}\n")
+    line = one_error_line(drivebench("run", "--config", str(path)))
+    assert line == (
+        f"drivebench: error: --config {path}:3: unknown key 'colour' in brains[0] (allowed: brain, name, options, host)"
+    )
 
 
 RUNNABLE = re.compile(r"<!-- runnable -->\n```bash\n(.*?)```", re.S)

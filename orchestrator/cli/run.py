@@ -19,7 +19,6 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any
 
 import msgspec
 import yaml
@@ -39,6 +38,7 @@ from orchestrator.stack.launcher import (
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
+from protocol.deploy import typed_yaml
 from protocol.messages import RENDERERS, CameraSpec, EndReason, EpisodeScore, EpisodeSpec
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
@@ -392,35 +392,56 @@ def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainL
     return spec, brains
 
 
+class BrainEntry(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """One brain launched by a run, as its config.yaml lists it."""
+
+    brain: str
+    name: str = ""
+    options: list[str] = []
+    host: list[str] = []
+
+
 class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=False):
-    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched."""
+    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched (its other
+    keys, the run id, are for reading)."""
 
     episode: EpisodeSpec
-    brains: list[dict[str, Any]]
+    brains: list[BrainEntry]
 
 
 def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
-    """The episode and brains of an earlier run (``--config RUN/config.yaml``), checked as the options would be."""
+    """The episode and brains of an earlier run (``--config RUN/config.yaml``), checked as the options would be:
+    every mistake of the file at once, one line each with its line number."""
     if not path.is_file():
         raise UsageError(f"--config {path}: no such file")
     try:
-        config = msgspec.convert(yaml.safe_load(path.read_text()), RunConfig)
-        brains = [
-            BrainLaunch(
-                str(entry["brain"]),
-                name=str(entry.get("name", "")),
-                options=tuple(entry.get("options", ())),
-                host=tuple(entry.get("host", ())),
-            )
-            for entry in config.brains
-        ]
-    except (yaml.YAMLError, msgspec.ValidationError, KeyError, TypeError) as error:
-        raise UsageError(f"--config {path}: not a run's config.yaml ({error})") from None
-    if not brains:
-        raise UsageError(f"--config {path}: names no brain")
-    with flag(f"--config {path}"):
-        load_circuit(config.episode.circuit)
+        document = typed_yaml.compose(path.read_text(), source=f"--config {path}")
+        config = typed_yaml.convert(document.data, RunConfig, document=document, what="the run config")
+        _check_run_config(config, document)
+    except typed_yaml.FileError as error:
+        raise UsageError(str(error)) from None
+    brains = [
+        BrainLaunch(entry.brain, name=entry.name, options=tuple(entry.options), host=tuple(entry.host))
+        for entry in config.brains
+    ]
     return config.episode, brains
+
+
+def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:
+    """What the types do not say, every mistake noted before one error: the circuit exists, a brain is named, and
+    each brain is one drivebench can load."""
+    try:
+        load_circuit(config.episode.circuit)
+    except CircuitError as error:
+        document.note(document.error(("episode", "circuit"), str(error)))
+    if not config.brains:
+        document.note(document.error(("brains",), "the run config names no brain"))
+    for index, entry in enumerate(config.brains):
+        try:
+            require_brain(entry.brain)
+        except UnknownBrainError as error:
+            document.note(document.error(("brains", index, "brain"), str(error)))
+    document.raise_noted()
 
 
 @contextlib.contextmanager
