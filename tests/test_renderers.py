@@ -47,13 +47,7 @@ CAMERA = CameraSpec(width_px=320, height_px=240)
 NO_EGL = {"GLCONTEXT_LINUX_LIBEGL": "/nonexistent/libEGL.so.1"}  # glcontext's own variable: the library won't load
 
 
-def require_gl() -> None:
-    """Skip (developer's machine) or fail (CI) unless the gl renderer can run here."""
-    needs.require("moderngl")
-    from services.simulator.gl_scene import egl_unavailable_reason
-
-    if (reason := egl_unavailable_reason()) is not None:
-        needs.missing(f"no EGL context for the gl renderer: {reason}")
+require_gl = needs.require_gl
 
 
 @pytest.fixture(params=["pybullet", "gl"])
