@@ -70,7 +70,8 @@ class Circuit:
     """A closed road around a centreline, in driving order.
 
     road_half_width_m: centre line to road edge (the wall stands on the edge when walls are on).
-    The start pose is the first centreline point, heading along the track.
+    The start line is the first centreline point; an episode may start any distance along the track from it
+    (:meth:`start_pose`).
     """
 
     name: str
@@ -85,9 +86,21 @@ class Circuit:
     def length_m(self) -> float:
         return self.centreline.length_m
 
-    def start_pose(self) -> tuple[float, float, float]:
-        """(x_m, y_m, yaw_rad) of the start, on the centre line facing the driving direction."""
-        return self.centreline.pose_at(0.0)
+    def start_pose(self, *, start_m: float = 0.0) -> tuple[float, float, float]:
+        """(x_m, y_m, yaw_rad) of the start, on the centre line facing the driving direction: ``start_m`` metres
+        along the track in driving order from the start line (``EpisodeSpec.start_m``). :class:`CircuitError` when
+        ``start_m`` is not on the circuit (:meth:`check_start_m`)."""
+        self.check_start_m(start_m)
+        return self.centreline.pose_at(start_m)
+
+    def check_start_m(self, start_m: float) -> None:
+        """:class:`CircuitError` (one line naming the circuit's length) unless 0 <= ``start_m`` < the length: a start
+        one length or more along would be a start line that :meth:`Centreline.pose_at` silently wraps round."""
+        if not 0.0 <= start_m < self.length_m:  # also refuses NaN
+            raise CircuitError(
+                f"start_m must be >= 0 and below {self.length_m:g} m, the length of circuit {self.name!r}, "
+                f"got {start_m:g}"
+            )
 
     def reversed(self) -> Circuit:
         """The same road driven the other way round: same start point, centreline in the opposite order (so

@@ -79,6 +79,9 @@ SPEC_BOUNDS: dict[str, msgspec.Meta] = {
     "max_sim_seconds": msgspec.Meta(gt=0),
     "step_s": msgspec.Meta(ge=0.001, le=1.0),
     "brain_timeout_s": msgspec.Meta(gt=0),
+    # Only the lower bound here: the upper one is the circuit's length, checked where the circuit is loaded
+    # (``Circuit.check_start_m``).
+    "start_m": msgspec.Meta(ge=0),
 }
 
 
@@ -347,6 +350,10 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
     renderer: "pybullet" (TinyRenderer, the reference), "gl" (OpenGL on headless EGL, same scene, ~10x faster) or
         "auto" (gl where an EGL context can be made, else pybullet); the simulator replaces "auto" by its choice in
         the spec it publishes, so scores and recordings name the renderer that drew the frames.
+    start_m: where the car starts, in metres along the circuit in driving order (so from the start line the other
+        way round when ``direction`` is "reverse"), on the centre line facing the driving direction; 0 = the start
+        line. Within [0, the circuit's length). Progress, laps and lap times are measured from there: a lap is the
+        circuit's length driven back to that point. The rendered world is the same wherever the car starts.
     """
 
     circuit: str = "simple"
@@ -362,6 +369,7 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
     noise: list[NoiseStage] = []
     direction: str = "forward"
     renderer: str = "pybullet"
+    start_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.renderer not in RENDERERS:
@@ -631,7 +639,7 @@ class ReplyCode(enum.StrEnum):
     NOT_ALIVE = "not_alive"  # start, switch: the named brain has no liveliness token (yet: it may be on its way)
     NOT_RUNNING = "not_running"  # switch: no episode is running
     ALREADY_ACTIVE = "already_active"  # switch: the named brain already drives
-    BAD_CIRCUIT = "bad_circuit"  # start: the spec's circuit is unknown or cannot be loaded
+    BAD_CIRCUIT = "bad_circuit"  # start: the spec's circuit is unknown or cannot be loaded, or start_m is not on it
     RENDERER_UNAVAILABLE = "renderer_unavailable"  # start: the spec's renderer cannot run on this simulator
     BAD_REQUEST = "bad_request"  # the request lacks what its action needs (start without spec, switch without brain)
     UNKNOWN_ACTION = "unknown_action"  # the server does not know the action

@@ -1,6 +1,8 @@
 """Short forms of world variations, camera presets and noise stages, for command lines and matrix files.
 
     apply_variation(spec, "line=white,road=white,walls=off,camera=left,lighting=no_sun,direction=reverse")
+    apply_variation(spec, "start_m=120")  ->  the car starts 120 m along the circuit (checked against its length
+        where the circuit is loaded: ``Circuit.check_start_m``)
     apply_variation(spec, "look=gazebo")  ->  then check_look(spec) once the renderer is known
     noise_stage("salt_pepper=0.2")  ->  SaltPepper(probability=0.2)
     noise_stage("rain")  ->  Rain()   (Behavior Metrics' perturbations take no parameters)
@@ -11,6 +13,7 @@ Every mistake raises :class:`VariationError` naming the key or model and what is
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgspec
@@ -45,7 +48,8 @@ _CAMERA_KEYS = {
 _WORLD_KEYS = ("line", "road", "walls", "lighting", "look")
 WORLD_KEYS: tuple[str, ...] = _WORLD_KEYS  # variation keys that change the world
 CAMERA_KEYS: tuple[str, ...] = ("camera", *_CAMERA_KEYS)  # variation keys that move the camera
-ROUTE_KEYS: tuple[str, ...] = ("direction",)  # variation keys that change the route driven, not the pictures
+# Variation keys that change the route driven, not the pictures: which way round, and where along it the car starts.
+ROUTE_KEYS: tuple[str, ...] = ("direction", "start_m")
 _BOOLEAN = {"on": True, "off": False, "true": True, "false": False, "yes": True, "no": False}
 
 # The parameter a bare ``model=value`` sets.
@@ -81,12 +85,14 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
     pairs = parse_pairs(text) if isinstance(text, str) else [(str(k), v) for k, v in text.items()]
     world = msgspec.structs.asdict(spec.world)
     camera = msgspec.structs.asdict(spec.camera)
-    direction = spec.direction
+    direction, start_m = spec.direction, spec.start_m
     for key, value in pairs:
         if key == "direction":
             if value not in DIRECTIONS:
                 raise VariationError(f"direction must be one of {', '.join(DIRECTIONS)}, got {value!r}")
             direction = value
+        elif key == "start_m":
+            start_m = _start_m(value)
         elif key == "walls":
             walls = _BOOLEAN.get(str(value).lower()) if not isinstance(value, bool) else value
             if walls is None:
@@ -114,6 +120,7 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
         return msgspec.structs.replace(
             spec,
             direction=direction,
+            start_m=start_m,
             world=msgspec.convert(world, WorldVariation),
             camera=msgspec.convert(camera, type(spec.camera)),
         )
@@ -160,6 +167,15 @@ def noise_stage(item: str | dict[str, Any]) -> NoiseStage:
         return msgspec.convert(params, _MODELS[model])
     except msgspec.ValidationError as error:
         raise VariationError(f"noise model {model}: {error}") from None
+
+
+def _start_m(value: Any) -> float:
+    """A start along the circuit, metres: a number >= 0 (its upper bound, the circuit's length, is checked where the
+    circuit is known)."""
+    start_m = _number("start_m", value) if not isinstance(value, bool) else math.nan  # YAML's yes/no is no distance
+    if not start_m >= 0:  # also refuses NaN
+        raise VariationError(f"start_m must be a number of metres >= 0, got {value!r}")
+    return start_m
 
 
 def _number(key: str, value: Any) -> float:

@@ -33,3 +33,12 @@ def require(name: str):
         if in_ci():
             pytest.fail(f"CI needs this test to run, but: {reason}", pytrace=False)
         pytest.skip(reason, allow_module_level=True)
+
+
+def require_gl() -> None:
+    """Skip (developer's machine) or fail (CI) unless the gl renderer can run here: moderngl and an EGL context."""
+    require("moderngl")
+    from services.simulator.gl_scene import egl_unavailable_reason
+
+    if (reason := egl_unavailable_reason()) is not None:
+        missing(f"no EGL context for the gl renderer: {reason}")

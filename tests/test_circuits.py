@@ -360,3 +360,25 @@ def test_every_builtin_circuit_runs_clockwise_forward():
 def test_a_bad_direction_is_refused():
     with pytest.raises(CircuitError, match="direction must be forward or reverse"):
         load_circuit("simple", direction="backwards")
+
+
+@pytest.mark.parametrize("direction", ["forward", "reverse"])
+def test_a_start_along_the_circuit_is_on_the_centre_line_in_driving_order(direction):
+    circuit = load_circuit("simple", direction=direction)
+    assert circuit.start_pose() == circuit.centreline.pose_at(0.0)
+    assert circuit.start_pose(start_m=40.0) == circuit.centreline.pose_at(40.0)
+    # In driving order: 40 m along in reverse is where driving forward reaches 40 m before the start line, facing back.
+    other = load_circuit("simple", direction="reverse" if direction == "forward" else "forward")
+    x_m, y_m, yaw_rad = circuit.start_pose(start_m=40.0)
+    x_other, y_other, yaw_other = other.centreline.pose_at(other.length_m - 40.0)
+    assert (x_m, y_m) == pytest.approx((x_other, y_other), abs=1e-9)
+    assert abs(np.angle(np.exp(1j * (yaw_rad - yaw_other)))) == pytest.approx(np.pi, abs=0.05)
+
+
+@pytest.mark.parametrize("start_m", [-1.0, 442.9, 1e9, math.nan, math.inf])
+def test_a_start_off_the_circuit_is_one_line_naming_its_length(start_m):
+    circuit = load_circuit("simple", direction="reverse")
+    with pytest.raises(
+        CircuitError, match=r"^start_m must be >= 0 and below 442\.836 m, the length of circuit 'simple', got "
+    ):
+        circuit.start_pose(start_m=start_m)

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from needs import require
+from needs import require, require_gl
 from support.waits import wait_for_file
 
 pytestmark = pytest.mark.integration
@@ -78,6 +78,53 @@ def test_user_mistakes_give_one_line_and_exit_2(tmp_path, args, message):
     assert message in result.stderr
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_a_run_started_along_the_circuit_laps_it_from_there_and_its_config_runs_it_again(tmp_path):
+    from circuits import load_circuit
+    from protocol.messages import Pose
+    from recorder.reading import read_messages
+
+    require_gl()  # ~5 s a lap of simple (TinyRenderer: ~30 s)
+    recording = tmp_path / "first.mcap"
+    argv = ["--renderer", "gl", "--start-m", "40", "--laps", "1", "--json", "--out", str(tmp_path / "first")]
+    first = drivebench("run", *argv, "--record", str(recording), "--record-images", "jpeg")
+    assert first.returncode == 0, first.stderr
+    score = json.loads(first.stdout)
+    assert score["spec"]["start_m"] == 40.0 and score["reason"] == "laps_completed"
+    circuit = load_circuit("simple")
+    start = next(r.message for r in read_messages(recording) if isinstance(r.message, Pose))
+    assert (start.header.seq, start.x_m, start.y_m, start.yaw_rad) == (0, *circuit.centreline.pose_at(40.0))
+    m = score["metrics"]
+    assert m["completed_laps"] == 1 and len(m["lap_times_s"]) == 1
+    # A lap is the circuit's length from where the car started: the run ends just past it.
+    assert circuit.length_m <= m["progress_m"] < circuit.length_m + 1.0 and m["percentage_completed"] > 100.0
+    config = tmp_path / "first" / "config.yaml"
+    again = drivebench("run", "--config", str(config), "--json", "--out", str(tmp_path / "again"))
+    assert again.returncode == 0, again.stderr
+    rerun = json.loads(again.stdout)
+    assert rerun["spec"]["start_m"] == 40.0 and rerun["metrics"]["progress_m"] == m["progress_m"]
+    config.write_text(config.read_text().replace("start_m: 40.0", "start_m: 500.0"))
+    refused = drivebench("run", "--config", str(config), "--out", str(tmp_path / "refused"), timeout=30)
+    assert refused.returncode == 2 and refused.stderr == (
+        f"drivebench: error: --config {config}: start_m must be >= 0 and below 442.836 m, the length of circuit "
+        "'simple', got 500\n"
+    )
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--start-m", "-1"], "--start-m -1.0: start_m must be >= 0, got -1.0"),
+        (["--start-m", "442.9"], "--start-m 442.9: start_m must be >= 0 and below 442.836 m, the length of circuit"),
+        (["--direction", "reverse", "--variation", "start_m=500"], "--variation start_m: start_m must be >= 0 and"),
+    ],
+    ids=["negative", "past-the-length", "variation"],
+)
+def test_a_start_off_the_circuit_is_one_line_and_exit_2_before_anything_starts(tmp_path, args, message):
+    result = drivebench("run", "--out", str(tmp_path / "r"), *args, timeout=30)
+    assert result.returncode == 2 and result.stderr.startswith(f"drivebench: error: {message}"), result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "r").exists()
 
 
 def test_bad_camera_size_is_a_usage_error(tmp_path):

@@ -275,6 +275,26 @@ def test_worlds_list_the_worlds_one_by_one_and_exclude_names_their_values():
     assert [episode.spec.direction for episode in matrix.episodes] == ["forward", "reverse"]
 
 
+def test_start_m_is_a_route_variation_like_direction():
+    matrix = parse(
+        textwrap.dedent("""\
+        brains: [explicit]
+        circuits: [simple, montreal]
+        variations: {start_m: [0, 120.5], direction: [forward, reverse]}
+        include: [{brain: explicit, circuit: montreal, start_m: 1000}]
+    """)
+    )
+    assert matrix.variation_keys == ("start_m", "direction")
+    starts = [(episode.circuit, episode.spec.start_m, episode.spec.direction) for episode in matrix.episodes]
+    assert starts == [
+        (circuit, start_m, direction)
+        for circuit in ("simple", "montreal")
+        for start_m in (0.0, 120.5)
+        for direction in ("forward", "reverse")
+    ] + [("montreal", 1000.0, "forward")]  # montreal is 1433 m long
+    assert matrix.episodes[2].key == "explicit/simple/start_m=120.5,direction=forward/none/r0"
+
+
 def test_parts_expand_in_order_over_the_same_brains_with_their_own_axes():
     matrix = parse("""\
         brains: [explicit, {name: constant, label: slow}]
@@ -376,6 +396,18 @@ ERRORS = [
     (MINIMAL + "worlds:\n  - {line: red}\n  - {fog: 1}\n", 5, ["'fog'", "allowed"]),
     (MINIMAL + "worlds:\n  - {line: red}\n  - {line: red}\n", 5, ["'line=red'", "twice", "line 4"]),
     (MINIMAL + "worlds:\n  - {direction: backwards}\n", 4, ["'backwards'", "forward, reverse"]),
+    (MINIMAL + "variations:\n  start_m: [0, -5]\n", 4, ["bad start_m value -5", ">= 0"]),
+    (MINIMAL + "worlds:\n  - {start_m: far}\n", 4, ["start_m must be a number, got 'far'"]),
+    (
+        "brains: [explicit]\ncircuits: [montreal, simple]\nvariations:\n  start_m:\n    - 100\n    - 500\n",
+        6,
+        ["start_m must be >= 0 and below 442.836 m, the length of circuit 'simple', got 500"],
+    ),
+    (
+        MINIMAL + "include:\n  - {brain: explicit, circuit: simple, start_m: 443}\n",
+        4,
+        ["below 442.836 m, the length of circuit 'simple', got 443"],
+    ),
     ("brains: [explicit]\nparts:\n  a: {repetitions: 2}\n", 3, ["part 'a' has no circuits"]),
     (MINIMAL + "parts:\n  a: {seed: 2}\n", 4, ["'seed'", "allowed", "circuits"]),
     (MINIMAL + "parts:\n  a b: {circuits: [simple]}\n", 4, ["'a b'", "letters, digits"]),

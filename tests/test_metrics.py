@@ -424,6 +424,35 @@ def test_tracking_matches_brute_force_and_counts_a_lap_off_centre():
     assert metrics.progress_m == pytest.approx(centreline.length_m + 20.0, abs=0.5)
 
 
+def centreline_drive(circuit: Circuit, *, start_m: float, distance_m: float, speed_mps: float) -> np.ndarray:
+    """Positions one step apart of a car on the centre line from ``start_m`` for ``distance_m``, in driving order."""
+    steps = int(round(distance_m / speed_mps / STEP_S))
+    return np.array([circuit.centreline.pose_at(start_m + k * speed_mps * STEP_S)[:2] for k in range(steps + 1)])
+
+
+@pytest.mark.parametrize("direction", ["forward", "reverse"])
+def test_a_loop_from_a_start_along_the_circuit_is_a_lap_measured_from_there(direction):
+    circuit = load_circuit("simple", direction=direction)
+    length_m, speed_mps = circuit.length_m, 8.0
+    scores = {}
+    for start_m in (0.0, 300.0):
+        scorer = EpisodeScorer(circuit=circuit, laps_target=1, step_s=STEP_S)
+        drive(scorer, centreline_drive(circuit, start_m=start_m, distance_m=length_m + 10.0, speed_mps=speed_mps))
+        scores[start_m] = scorer.finish(wall_time_s=1.0)
+    along = scores[300.0]
+    # The start line lies 143 m ahead of the car: crossing it is no lap, one length back to 300 m is.
+    assert along.completed_laps == 1 and along.progress_m == pytest.approx(length_m + 10.0, abs=0.05)
+    assert along.lap_times_s == pytest.approx([length_m / speed_mps], abs=0.01)
+    assert along.percentage_completed > 100.0 and along.bm_lap_seconds is not None
+    assert along.bm_lap_seconds == pytest.approx(length_m / speed_mps, abs=1.5)  # BM: ~5 m before the start point
+    assert along.position_deviation_mae == pytest.approx(1.0, abs=0.01)
+    # The same loop from the start line scores the same (the centre line's vertices fall elsewhere along each loop).
+    line = scores[0.0]
+    assert line.completed_laps == 1 and line.lap_times_s == pytest.approx(along.lap_times_s, abs=0.01)
+    assert line.progress_m == pytest.approx(along.progress_m, abs=0.05)
+    assert line.percentage_completed == pytest.approx(along.percentage_completed, abs=1.0)
+
+
 def test_tracking_stays_on_its_branch_where_the_track_passes_close():
     # Two straights 2.5 m apart, joined by tight semicircles: a car 1.4 m left of the bottom straight is nearer
     # the top straight's centreline (1.1 m) than its own. Global nearest-point projection would jump branch.

@@ -126,6 +126,18 @@ def test_invalid_values_are_rejected():
         codec.decode(msgpack.packb(raw), ControlRequest)
 
 
+def test_a_start_before_the_start_line_is_refused_and_a_spec_without_a_start_decodes_to_the_line():
+    with pytest.raises(ValueError, match=r"^start_m must be >= 0, got -1$"):
+        EpisodeSpec(start_m=-1)
+    raw = msgpack.unpackb(codec.encode(SAMPLES[ControlRequest]))
+    raw["spec"]["start_m"] = -0.5
+    with pytest.raises(codec.DecodeError, match="start_m must be >= 0, got -0.5"):
+        codec.decode(msgpack.packb(raw), ControlRequest)
+    del raw["spec"]["start_m"]  # as every spec recorded before the field existed
+    assert codec.decode(msgpack.packb(raw), ControlRequest).spec.start_m == 0.0
+    assert codec.decode(codec.encode(EpisodeSpec(start_m=120.5)), EpisodeSpec).start_m == 120.5
+
+
 def test_keys_are_run_scoped_and_separate_ground_truth_from_perturbed():
     assert keys.camera_raw("a") != keys.camera_perturbed("a")
     assert keys.camera_raw("a").startswith(keys.run_prefix("a") + "/")

@@ -47,13 +47,7 @@ CAMERA = CameraSpec(width_px=320, height_px=240)
 NO_EGL = {"GLCONTEXT_LINUX_LIBEGL": "/nonexistent/libEGL.so.1"}  # glcontext's own variable: the library won't load
 
 
-def require_gl() -> None:
-    """Skip (developer's machine) or fail (CI) unless the gl renderer can run here."""
-    needs.require("moderngl")
-    from services.simulator.gl_scene import egl_unavailable_reason
-
-    if (reason := egl_unavailable_reason()) is not None:
-        needs.missing(f"no EGL context for the gl renderer: {reason}")
+require_gl = needs.require_gl
 
 
 @pytest.fixture(params=["pybullet", "gl"])
@@ -191,6 +185,26 @@ def test_a_scene_cache_draws_each_direction_of_a_circuit_from_its_own_scene(rend
         assert warm.get(reverse, renderer=renderer) is not warm.get(forward, renderer=renderer)
     finally:
         warm.close()
+
+
+@pytest.mark.parametrize("direction", ["forward", "reverse"])
+def test_an_episode_started_along_the_circuit_moves_the_car_not_the_scene(renderer, direction):
+    """start_m moves only the car's first pose: the episode draws from the scene a start at the line uses (the
+    cache's entry, not a circuit rebuilt to begin elsewhere), so its first frame is that scene's frame there."""
+    scenes = SceneCache()
+    try:
+        at_line = EpisodeSim(EpisodeSpec(renderer=renderer, direction=direction), scenes=scenes)
+        along = EpisodeSim(EpisodeSpec(renderer=renderer, direction=direction, start_m=300.0), scenes=scenes)
+        assert (along.car.x_m, along.car.y_m, along.car.yaw_rad) == along.circuit.centreline.pose_at(300.0)
+        assert along.circuit.centreline.points_m.tobytes() == at_line.circuit.centreline.points_m.tobytes()
+        assert along._scene is at_line._scene
+        assert _digest(along.render()) == _digest(at_line._scene.render(along.car, EpisodeSpec().camera))
+        assert along.progress_m == 0.0 and along.laps_completed == 0
+        # One step straight ahead from 300 m: progress counts from there, not from the start line.
+        step = along.step(speed_mps=5.0, yaw_rate_radps=0.0)
+        assert along.progress_m == pytest.approx(0.25, abs=0.01) and step.lap == 0 and step.end is None
+    finally:
+        scenes.close()
 
 
 # Measured by benchmarks/renderer_parity.py over every built-in circuit, world variation and camera preset

@@ -79,6 +79,34 @@ def test_a_generated_circuit_is_drawn_from_the_seed():
     assert info["circuit"] in ("simple", names[0])
 
 
+def test_an_episode_starts_where_reset_says_or_where_the_seed_draws_it():
+    from circuits import load_circuit
+
+    circuit = load_circuit("simple")
+    env = gym.make(ENV_ID, start="random", **SMALL).unwrapped
+    try:
+        _, chosen = env.reset(seed=5, options={"start_m": 300.0})
+        _, reward, *_ = env.step(np.array([0.5, 0.0], np.float32))
+        starts = [env.reset(seed=seed)[1] for seed in (5, 6, 5)]
+        with pytest.raises(ValueError) as too_far:
+            env.reset(options={"start_m": 500})
+        with pytest.raises(ValueError, match=r"^reset options: start_m must be a number of metres, got '40'$"):
+            env.reset(options={"start_m": "40"})
+        _, _, terminated, truncated, info = env.step(np.array([0.5, 0.0], np.float32))
+        assert info["seq"] == 1 and not terminated and not truncated  # the episode went on where it was
+    finally:
+        env.close()
+    assert chosen["start_m"] == 300.0 and chosen["progress_m"] == 0.0
+    assert (chosen["x_m"], chosen["y_m"], chosen["yaw_rad"]) == circuit.centreline.pose_at(300.0)
+    assert 0.0 < reward < 1.0  # a step's progress from 300 m, not the start line's 300 m behind
+    assert starts[0]["start_m"] == starts[2]["start_m"] != starts[1]["start_m"]  # the seed draws the start
+    assert all(0.0 <= info["start_m"] < circuit.length_m for info in starts)
+    assert all((i["x_m"], i["y_m"]) == circuit.centreline.pose_at(i["start_m"])[:2] for i in starts)
+    assert str(too_far.value) == (
+        "reset options: start_m must be >= 0 and below 442.836 m, the length of circuit 'simple', got 500"
+    )
+
+
 def test_a_scripted_sequence_drives_as_the_same_commands_through_drivebench_run(tmp_path):
     """The environment's trajectory equals that of ``drivebench run`` with a brain that answers the same commands."""
     from brains.lane_policy.features import scaled
@@ -120,6 +148,8 @@ def test_bad_input_is_one_clear_error_and_the_env_goes_on():
         (dict(observation="pixels"), "observation must be"),
         (dict(speed_range_mps=(3, 1)), "speed_range_mps"),
         (dict(noise="sparkles=1"), "noise="),
+        (dict(start="anywhere"), "start must be one of line, random, got 'anywhere'"),
+        (dict(variation=["", "start_m=443"]), "variation='start_m=443': start_m must be >= 0 and below 442.836 m"),
     ]:
         with pytest.raises(ValueError, match=words.replace("(", r"\(").replace("[", r"\[")):
             gym.make(ENV_ID, **kwargs)

@@ -286,6 +286,9 @@ def test_the_simulator_refuses_bad_run_control(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     reply = stack._control(ControlRequest(action="start", spec=EpisodeSpec(circuit="nowhere")))
     assert (reply.ok, reply.code) == (False, ReplyCode.BAD_CIRCUIT) and "unknown circuit 'nowhere'" in reply.detail
+    # A driver that did not check (the CLI does) still gets no episode whose car starts off the circuit.
+    reply = stack._control(ControlRequest(action="start", spec=EpisodeSpec(direction="reverse", start_m=443.0)))
+    assert (reply.ok, reply.code) == (False, ReplyCode.BAD_CIRCUIT) and "the length of circuit 'simple'" in reply.detail
     reply = stack._control(ControlRequest(action="start", spec=EpisodeSpec(active_brain="ghost")))
     assert (reply.ok, reply.code) == (False, ReplyCode.NOT_ALIVE) and "'ghost' is not alive" in reply.detail
     reply = stack._control(ControlRequest(action="dance"))

@@ -107,6 +107,8 @@ def test_variation_parsing():
     assert apply_variation(EpisodeSpec(), {"walls": False, "line": "none"}).world.walls is False
     reverse = apply_variation(EpisodeSpec(), "direction=reverse,line=white")
     assert reverse.direction == "reverse" and reverse.world.line == "white"
+    assert apply_variation(reverse, "start_m=120.5").start_m == 120.5
+    assert apply_variation(reverse, {"start_m": 7}).start_m == 7.0
     with pytest.raises(ValueError, match="direction must be one of forward, reverse"):
         EpisodeSpec(direction="sideways")
     for bad, message in [
@@ -117,6 +119,8 @@ def test_variation_parsing():
         ("line", "must look like key=value"),
         ("camera_hfov_rad=9", "hfov_rad must be within"),
         ("direction=backwards", "direction must be one of forward, reverse"),
+        ("start_m=-1", "start_m must be a number of metres >= 0, got '-1'"),
+        ("start_m=far", "start_m must be a number, got 'far'"),
     ]:
         with pytest.raises(VariationError, match=message):
             apply_variation(EpisodeSpec(), bad)

@@ -21,9 +21,9 @@ import numpy as np
 from gymnasium import spaces
 
 from brains.lane_policy.features import FEATURES, line_features, scaled
-from circuits import Circuit, load_circuit
+from circuits import Circuit, CircuitError, load_circuit
 from drivebench.rl.link import BrainLink, Transition, ending
-from drivebench.rl.options import GENERATED, env_options
+from drivebench.rl.options import GENERATED, env_options, start_m_option
 from drivebench.rl.reward import ProgressReward
 from drivebench.rl.stack import StackError, open_stack
 from protocol.bus_config import BusError, probe_router
@@ -34,6 +34,7 @@ STEP_TIMEOUT_S = 60.0
 SCORE_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 30.0
 CIRCUITS_KEPT = 16
+RESET_OPTIONS = ("circuit", "variation_index", "start_m")
 
 
 class LaneFollowEnv(gym.Env):
@@ -53,14 +54,18 @@ class LaneFollowEnv(gym.Env):
 
     ``terminated``: crash, off track, or the lap target (``laps``) reached. ``truncated``: ``max_episode_s`` of
     simulated time passed (or the stack cut the episode short). ``info``: progress, lateral offset, simulated time
-    and the command every step; with ``live_metrics`` the scorer's newest live metrics (these arrive on wall-clock
-    time, so they are the one part of a step that is not reproducible); at the end ``end_reason`` and ``score``, the
-    scorer's metrics of the episode (the same as ``drivebench run``'s).
+    and the command every step, and where the episode started (``start_m``); with ``live_metrics`` the scorer's
+    newest live metrics (these arrive on wall-clock time, so they are the one part of a step that is not
+    reproducible); at the end ``end_reason`` and ``score``, the scorer's metrics of the episode (the same as
+    ``drivebench run``'s).
 
     ``reset(seed=...)`` draws the circuit (from the ``circuit`` list; ``"random:*"`` or ``"twisty:*"`` in it is a
     new generated circuit each time it is drawn), the variation (from the ``variation`` list) and the episode seed
     (which seeds the noise) from ``seed``; ``options={"circuit": ..., "variation_index": ...}``
-    choose them instead. The car starts at the circuit's start pose.
+    choose them instead. Where the car starts (``EpisodeSpec.start_m``, metres along the circuit in driving order):
+    ``start="line"``, the start line (or a variation's ``start_m``); ``start="random"``, drawn uniformly over the
+    circuit's length from ``seed`` too; ``options={"start_m": ...}`` chooses it (a ValueError naming the circuit's
+    length when it is not on the circuit). The reward's progress, and the lap target, count from there.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
@@ -74,6 +79,7 @@ class LaneFollowEnv(gym.Env):
         camera: Any = (320, 240),
         renderer: str = "pybullet",
         observation: str = "image",
+        start: str = "line",
         speed_range_mps: tuple[float, float] = (0.0, 10.0),
         yaw_rate_range_radps: tuple[float, float] = (-2.0, 2.0),
         laps: int = 1,
@@ -95,6 +101,7 @@ class LaneFollowEnv(gym.Env):
             camera=camera,
             renderer=renderer,
             observation=observation,
+            start=start,
             speed_range_mps=speed_range_mps,
             yaw_rate_range_radps=yaw_rate_range_radps,
             laps=laps,
@@ -181,21 +188,26 @@ class LaneFollowEnv(gym.Env):
         link.follow(self._episode)
         self._spec = spec
         first = link.wait(0, timeout_s=FIRST_FRAME_TIMEOUT_S)
-        self._reward = ProgressReward(self._circuit(spec), smoothness=self.smoothness, crash_penalty=self.crash_penalty)
+        self._reward = ProgressReward(
+            self._circuit(spec), smoothness=self.smoothness, crash_penalty=self.crash_penalty, start_m=spec.start_m
+        )
         self._previous_action = np.zeros(2, np.float32)
         self._speed_mps = 0.0
         self._last = first
         return self._observation(first), self._step_info(first, None)
 
     def _episode_spec(self, options: dict[str, Any]) -> EpisodeSpec:
-        unknown = set(options) - {"circuit", "variation_index"}
+        unknown = set(options) - set(RESET_OPTIONS)
         if unknown:
-            raise ValueError(f"reset options: unknown {sorted(unknown)} (known: circuit, variation_index)")
+            raise ValueError(f"reset options: unknown {sorted(unknown)} (known: {', '.join(RESET_OPTIONS)})")
         circuits, specs = self.options.circuits, self.options.specs
         circuit = circuits[int(self.np_random.integers(len(circuits)))]
         index = int(self.np_random.integers(len(specs)))
         seed = int(self.np_random.integers(2**31 - 1))
         generated_seed = int(self.np_random.integers(1_000_000))
+        # Drawn whatever the options say, so that they change no other draw; only with start="random", so that the
+        # draws of an environment that starts at the line are the ones they always were.
+        start_fraction = float(self.np_random.random()) if self.options.start == "random" else None
         circuit = options.get("circuit", circuit)
         if not any(circuit == name or fnmatch.fnmatchcase(circuit, name) for name in circuits):
             raise ValueError(f"reset options: circuit {circuit!r} is not one of this environment's {list(circuits)}")
@@ -204,7 +216,21 @@ class LaneFollowEnv(gym.Env):
         index = options.get("variation_index", index)
         if not isinstance(index, int) or not 0 <= index < len(specs):
             raise ValueError(f"reset options: variation_index must be an int within 0..{len(specs) - 1}, got {index!r}")
-        return msgspec.structs.replace(specs[index], circuit=circuit, seed=seed, active_brain=self.name)
+        spec = msgspec.structs.replace(specs[index], circuit=circuit, seed=seed, active_brain=self.name)
+        return msgspec.structs.replace(spec, start_m=self._start_m(spec, options, start_fraction))
+
+    def _start_m(self, spec: EpisodeSpec, options: dict[str, Any], start_fraction: float | None) -> float:
+        """Where the episode's car starts: the option, else the draw, else the spec's own (a variation's)."""
+        circuit = self._circuit(spec)
+        if "start_m" in options:
+            return start_m_option(options["start_m"], circuit)
+        if start_fraction is not None:
+            return (start_fraction * circuit.length_m) % circuit.length_m  # % : a product rounded up to the length
+        try:
+            circuit.check_start_m(spec.start_m)
+        except CircuitError as error:  # a variation's start_m beyond this circuit's length
+            raise ValueError(f"variation start_m: {error}") from None
+        return spec.start_m
 
     def _end_running(self, link: BrainLink) -> None:
         """Stop the episode still running (a reset before its end) and wait for its END."""
@@ -274,6 +300,7 @@ class LaneFollowEnv(gym.Env):
         info: dict[str, Any] = {
             "run_id": self.run_id,
             "circuit": self._spec.circuit,
+            "start_m": self._spec.start_m,
             "seq": outcome.seq,
             "sim_time_s": outcome.pose.header.stamp_ns / 1e9,
             "x_m": outcome.pose.x_m,

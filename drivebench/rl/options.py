@@ -9,12 +9,17 @@ from dataclasses import dataclass
 from typing import Any
 
 import msgspec
+import numpy as np
 
-from circuits import CircuitError, load_circuit
+from circuits import Circuit, CircuitError, load_circuit
 from protocol.messages import CameraSpec, EpisodeSpec, NoiseStage
 from protocol.variations import VariationError, apply_variation, noise_stage
 
 OBSERVATIONS = ("image", "image+state", "features")
+# Where each episode's car starts: "line", the spec's start_m (0, the start line, unless a variation sets it); or
+# "random", anywhere along the circuit, drawn from reset's seed (random starts keep a policy from fitting the first
+# corner).
+STARTS = ("line", "random")
 
 
 @dataclass(frozen=True)
@@ -27,6 +32,7 @@ class EnvOptions:
     observation: str
     speed_range_mps: tuple[float, float]
     yaw_rate_range_radps: tuple[float, float]
+    start: str = "line"
 
 
 def as_names(value: Any, *, what: str) -> tuple[str, ...]:
@@ -61,12 +67,33 @@ def value_range(value: Any, *, what: str) -> tuple[float, float]:
 GENERATED = ("random:*", "twisty:*")  # a fresh generated circuit per episode, its seed drawn from reset's seed
 
 
+def start_m_option(value: Any, circuit: Circuit) -> float:
+    """``reset(options={"start_m": ...})``: metres along ``circuit`` from its start line, in driving order."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"reset options: start_m must be a number of metres, got {value!r}")
+    try:
+        circuit.check_start_m(float(value))
+    except CircuitError as error:
+        raise ValueError(f"reset options: {error}") from None
+    return float(value)
+
+
 def check_circuits(names: tuple[str, ...]) -> None:
     for name in names:
         try:
             load_circuit(name.replace(":*", ":0") if name in GENERATED else name)
         except CircuitError as error:
             raise ValueError(f"circuit={name!r}: {error}") from None
+
+
+def check_starts(circuits: tuple[str, ...], *, variations: tuple[str, ...], specs: tuple[EpisodeSpec, ...]) -> None:
+    """A variation's start_m must lie on every named circuit (a generated one is checked when it is drawn)."""
+    for text, spec in zip(variations, specs):
+        for name in (name for name in circuits if spec.start_m and name not in GENERATED):
+            try:
+                load_circuit(name).check_start_m(spec.start_m)
+            except CircuitError as error:
+                raise ValueError(f"variation={text!r}: {error}") from None
 
 
 def base_specs(*, variations: tuple[str, ...], camera: Any, renderer: str, noise: Any, **spec_fields) -> tuple:
@@ -98,6 +125,7 @@ def env_options(
     observation: str,
     speed_range_mps: Any,
     yaw_rate_range_radps: Any,
+    start: str = "line",
     **spec_fields,
 ) -> EnvOptions:
     """Check every keyword argument of the environment; ValueError (one line, naming it) on the first bad one."""
@@ -105,12 +133,16 @@ def env_options(
     check_circuits(circuits)
     if observation not in OBSERVATIONS:
         raise ValueError(f"observation must be one of {', '.join(OBSERVATIONS)}, got {observation!r}")
+    if start not in STARTS:
+        raise ValueError(f"start must be one of {', '.join(STARTS)}, got {start!r}")
     variations = as_names(variation, what="variation")
     specs = base_specs(variations=variations, camera=camera, renderer=renderer, noise=noise, **spec_fields)
+    check_starts(circuits, variations=variations, specs=specs)
     return EnvOptions(
         circuits=circuits,
         specs=specs,
         observation=observation,
         speed_range_mps=value_range(speed_range_mps, what="speed_range_mps"),
         yaw_rate_range_radps=value_range(yaw_rate_range_radps, what="yaw_rate_range_radps"),
+        start=start,
     )

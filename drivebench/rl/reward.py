@@ -37,14 +37,15 @@ class RewardTerms:
 class ProgressReward:
     """Tracks the car along ``circuit``'s centreline and scores each step (see the module docstring)."""
 
-    def __init__(self, circuit: Circuit, *, smoothness: float, crash_penalty: float):
+    def __init__(self, circuit: Circuit, *, smoothness: float, crash_penalty: float, start_m: float = 0.0):
         self.circuit = circuit
         self.smoothness = smoothness
         self.crash_penalty = crash_penalty
-        self.reset()
+        self.reset(start_m=start_m)
 
-    def reset(self) -> None:
-        self._s_m = 0.0  # the start pose is the centreline's origin, as the simulator counts it
+    def reset(self, *, start_m: float = 0.0) -> None:
+        """A new episode whose car starts ``start_m`` along the circuit (``EpisodeSpec.start_m``)."""
+        self._s_m = start_m  # where the first projection searches from, as the simulator counts it
         self.progress_m = 0.0
 
     def step(self, *, x_m: float, y_m: float, action: np.ndarray, previous_action: np.ndarray, crashed: bool):

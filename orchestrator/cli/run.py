@@ -24,7 +24,7 @@ import msgspec
 import yaml
 
 from brains.registry import UnknownBrainError, bus_name, require_brain
-from circuits import CircuitError, load_circuit
+from circuits import Circuit, CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.report.episode import metrics_table
 from orchestrator.stack.launcher import (
@@ -80,14 +80,15 @@ def add_scene_options(
             metavar="KEY=VALUE,...",
             help="world and camera variation, applied in order (repeatable), e.g. line=white,road=white,walls=off,"
             "lighting=no_sun,camera=left (presets: left, right, rotate_down, rotate_up), camera_yaw_rad=0.1, "
-            "direction=reverse or look=gazebo (textured, shaded, shadowed, as Behavior Metrics' Gazebo worlds; "
-            "gl renderer only, and run's default renderer becomes auto)",
+            "direction=reverse, start_m=120 or look=gazebo (textured, shaded, shadowed, as Behavior Metrics' Gazebo "
+            "worlds; gl renderer only, and run's default renderer becomes auto)",
         )
 
 
 RUN_EXAMPLES = """examples:
   drivebench run                                              the explicit brain, one lap of simple
   drivebench run --circuit montmelo --camera 640x480 --laps 2
+  drivebench run --start-m 150 --direction reverse            one lap of simple from 150 m along, driven in reverse
   drivebench run --brain my_module:MyBrain --brain-option speed_mps=4
   drivebench run --brain deepest_lstm_tiny_pilotnet --variation line=white --noise salt_pepper=0.2
   drivebench run --record runs/simple.mcap --json              record everything; the score as JSON on stdout
@@ -115,6 +116,15 @@ def add(commands: argparse._SubParsersAction) -> None:
         default="forward",
         help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
         "way round (default: forward; also --variation direction=reverse)",
+    )
+    world.add_argument(
+        "--start-m",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="start the car this far along the circuit from its start line, in the driving direction, on the "
+        "centre line facing along it; progress, laps and lap times count from there (default: 0, the start line; "
+        "below the circuit's length, drivebench circuits list; also --variation start_m=120)",
     )
     add_scene_options(world, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
     _add_noise_option(world)
@@ -250,7 +260,12 @@ def flag(text: str):
         raise UsageError(f"{text}: {error}") from None
 
 
-SPEC_FLAGS = {"laps": "laps", "max_sim_seconds": "max_sim_seconds", "brain_timeout_s": "brain_timeout"}
+SPEC_FLAGS = {
+    "laps": "laps",
+    "max_sim_seconds": "max_sim_seconds",
+    "brain_timeout_s": "brain_timeout",
+    "start_m": "start_m",
+}
 
 
 @contextlib.contextmanager
@@ -289,10 +304,14 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
             brain_timeout_s=args.brain_timeout,
             noise=noise,
             direction=args.direction,
+            start_m=args.start_m,
         )
     for variation in args.variation:
         with flag(f"--variation {variation}"):
             spec = apply_variation(spec, variation)
+    # After the variations: they may turn the circuit round or move the start.
+    with flag(f"--start-m {args.start_m:g}" if spec.start_m == args.start_m else "--variation start_m"):
+        load_circuit(spec.circuit, direction=spec.direction).check_start_m(spec.start_m)
     # Only gl draws the gazebo look: there the default is auto (gl where EGL works), not run's pybullet.
     fallback = "auto" if spec.world.look != "flat" else environment.RENDERER_BY_COMMAND["run"]
     try:
@@ -428,12 +447,14 @@ def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
 
 
 def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:
-    """What the types do not say, every mistake noted before one error: the circuit exists, a brain is named, and
-    each brain is one drivebench can load."""
-    try:
-        load_circuit(config.episode.circuit)
-    except CircuitError as error:
-        document.note(document.error(("episode", "circuit"), str(error)))
+    """What the types do not say, every mistake noted before one error: the circuit exists and the start is on it,
+    a brain is named, and each brain is one drivebench can load."""
+    circuit = document.attempt(_config_circuit, config.episode, document)
+    if circuit is not None:
+        try:
+            circuit.check_start_m(config.episode.start_m)
+        except CircuitError as error:
+            document.note(document.error(("episode", "start_m"), str(error)))
     if not config.brains:
         document.note(document.error(("brains",), "the run config names no brain"))
     for index, entry in enumerate(config.brains):
@@ -442,6 +463,13 @@ def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:
         except UnknownBrainError as error:
             document.note(document.error(("brains", index, "brain"), str(error)))
     document.raise_noted()
+
+
+def _config_circuit(episode: EpisodeSpec, document: typed_yaml.Document) -> Circuit:
+    try:
+        return load_circuit(episode.circuit)
+    except CircuitError as error:
+        raise document.error(("episode", "circuit"), str(error)) from None
 
 
 @contextlib.contextmanager

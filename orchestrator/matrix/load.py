@@ -7,6 +7,7 @@ A matrix file::
     brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
     circuits: [simple, montmelo, montreal]    # built-in, user, random:SEED or twisty:SEED circuits
     variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
+    #   also the route: direction: [forward, reverse], start_m: [0, 150] (metres along, below each circuit's length)
     # or, instead of the product, the worlds one by one:
     #   worlds: [{line: red}, {line: none, walls: off}, {line: red, direction: reverse}]
     perturbations: [none, {salt_pepper: 0.2}, {camera: left}, "gaussian=10"]         # default: [none]
@@ -54,6 +55,7 @@ check of that part's exclude entries).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import re
 from collections.abc import Iterator
@@ -64,7 +66,7 @@ from typing import Any
 import msgspec
 from msgspec import UnsetType
 
-from circuits import circuit_names
+from circuits import Circuit, CircuitError, circuit_names, load_circuit
 from circuits.library import GENERATED_NAMES, is_circuit_name
 from orchestrator.matrix.brains import check_unique_labels, read_brain_entries
 from orchestrator.matrix.conditions import (
@@ -284,6 +286,24 @@ def _circuits(document: Document, value: Any, path: At) -> list[str]:
             continue
         circuits[name] = document.line(item_path)
     return list(circuits)
+
+
+def start_problem(circuit: str, start_m: float) -> str | None:
+    """Why an episode on ``circuit`` cannot start ``start_m`` along it (beyond its length), or None. A start at the
+    line loads nothing: a matrix of generated circuits reads as fast as before."""
+    if start_m == 0.0:
+        return None
+    try:
+        _circuit_at_line(circuit).check_start_m(start_m)
+    except CircuitError as error:
+        return str(error)
+    return None
+
+
+@functools.lru_cache(maxsize=64)
+def _circuit_at_line(name: str) -> Circuit:
+    # Either direction: a circuit and its reverse have the same length.
+    return load_circuit(name)
 
 
 # The circuits, the variation axes, the worlds and, for a draw, the drawn (circuit, world) pairs.
@@ -526,9 +546,18 @@ class _Plan:
         )
         circuit = document.attempt(_circuit, document, entry["circuit"], (*path, "circuit"))
         world = self._include_world(document, entry, path)
+        start_m = dict(world.items).get("start_m")
+        if circuit is not None and start_m is not None and (problem := start_problem(circuit, float(start_m))):
+            document.note(document.error((*path, "start_m"), problem))
         if brain is None or perturbation is None or circuit is None or document.noted > before:
             return None
         return _Combination(brain=brain, circuit=circuit, world=world, perturbation=perturbation)
+
+    def _start_line(self, start_m: float) -> int | None:
+        """The line of the ``start_m`` value an episode took from an axis (an include's own is checked at its
+        entry)."""
+        lines = {float(value): line for axis in self.axes if axis.key == "start_m" for _, value, line in axis.values}
+        return lines.get(start_m)
 
     def _include_brain(self, document: Document, value: Any, path: At) -> BrainEntry:
         label = text_at(document, value, path)
@@ -568,6 +597,8 @@ class _Plan:
             raise MatrixError(
                 f"episode {key}: {error}", source=document.source, line=combination.perturbation.line
             ) from None
+        if (problem := start_problem(combination.circuit, spec.start_m)) is not None:
+            raise MatrixError(problem, source=document.source, line=self._start_line(spec.start_m))
         return PlannedEpisode(
             key=key,
             index=index,

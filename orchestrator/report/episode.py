@@ -23,8 +23,8 @@ def metrics_table(score: EpisodeScore) -> str:
     rows = [
         (
             "episode",
-            f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}, "
-            f"{spec.laps} lap(s), seed {spec.seed}",
+            f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}"
+            f"{f' from {spec.start_m:g} m along' if spec.start_m else ''}, {spec.laps} lap(s), seed {spec.seed}",
         ),
         ("ended by", f"{score.reason} ({score.detail})" if score.detail else str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),

@@ -95,7 +95,7 @@ def bm_percentage_completed(
     decreasing from j0 − 1. The percentage is max(forward, backward) / N × 100; a lap is completed iff it is
     **strictly** above 100. Consequences worth knowing: checkpoints up to ``radius`` ahead are taken at once, so the
     percentage runs ahead of the car by about radius / lap length, and the "lap" is complete about ``radius`` before
-    the start line.
+    the point where the car started (j0: the start line, or ``EpisodeSpec.start_m`` along the circuit).
 
     Returns ``(percentage, lap_checkpoint)``: the lap checkpoint (a sample index into P) comes from the pass that
     gave the maximum (forward on ties), None when that pass never reached N. Fewer than 2 samples or no checkpoints
@@ -309,6 +309,10 @@ class EpisodeScorer:
     above the previous one is a duplicate or late and is dropped) and the active brain's commands with
     :meth:`add_command`. Each pose costs one windowed projection onto the centreline (tens of µs), so the scorer
     keeps up live; :meth:`finish` computes everything else.
+
+    Everything is measured from the first pose, wherever on the circuit the car started (``EpisodeSpec.start_m``):
+    progress is arc length driven from it, a lap is one circuit length driven back to it, and BM's checkpoints start
+    at the one nearest it. So the scorer needs no start point, and a start at the start line scores as it always did.
     """
 
     def __init__(self, *, circuit: Circuit, laps_target: int, step_s: float):

@@ -81,16 +81,21 @@ class StepResult:
 
 
 class EpisodeSim:
-    """One episode: the car starts at the circuit's start pose; ``step`` applies a command for one period."""
+    """One episode: the car starts ``spec.start_m`` along the circuit (0: its start line); ``step`` applies a command
+    for one period. Progress and laps count from where it started.
+
+    The scene is the circuit's own whatever ``start_m`` is: only the car's first pose moves. (A circuit re-ordered to
+    begin at ``start_m`` would be another key of the scene cache, rebuilt, and rasterised a few pixels apart.)
+    """
 
     def __init__(self, spec: EpisodeSpec, *, scenes: SceneCache, circuit: Circuit | None = None):
         self.spec = spec
         self.circuit = circuit or load_circuit(spec.circuit, direction=spec.direction)
+        x_m, y_m, yaw_rad = self.circuit.start_pose(start_m=spec.start_m)  # first: a bad start_m builds no scene
         self._scene = scenes.get(self.circuit, spec.world, renderer=spec.renderer)
-        x_m, y_m, yaw_rad = self.circuit.start_pose()
         self.car = CarState(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad)
         self.seq = 0
-        self._s_m = 0.0
+        self._s_m = float(spec.start_m)  # the first projection searches near where the car is
         self.progress_m = 0.0
         self.laps_completed = 0
         self._max_steps = int(np.ceil(spec.max_sim_seconds / spec.step_s - 1e-9))

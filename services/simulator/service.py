@@ -231,8 +231,9 @@ class SimulatorService:
         if spec.renderer == "gl" and self._gl_unavailable:
             return self._refuse(ReplyCode.RENDERER_UNAVAILABLE, f"renderer gl: {self._gl_unavailable}")
         try:
-            # Loaded here, so that a bad name is refused rather than run.
+            # Loaded here, so that a bad name, or a start beyond the circuit's length, is refused rather than run.
             circuit = load_circuit(spec.circuit, direction=spec.direction)
+            circuit.check_start_m(spec.start_m)
         except CircuitError as error:
             return self._refuse(ReplyCode.BAD_CIRCUIT, str(error))
         if not self._brain_alive(spec.active_brain):
