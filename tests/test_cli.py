@@ -105,10 +105,11 @@ def test_a_run_started_along_the_circuit_laps_it_from_there_and_its_config_runs_
     rerun = json.loads(again.stdout)
     assert rerun["spec"]["start_m"] == 40.0 and rerun["metrics"]["progress_m"] == m["progress_m"]
     config.write_text(config.read_text().replace("start_m: 40.0", "start_m: 500.0"))
+    line = config.read_text().splitlines().index("  start_m: 500.0") + 1  # the mistake's own line
     refused = drivebench("run", "--config", str(config), "--out", str(tmp_path / "refused"), timeout=30)
     assert refused.returncode == 2 and refused.stderr == (
-        f"drivebench: error: --config {config}: start_m must be >= 0 and below 442.836 m, the length of circuit "
-        "'simple', got 500\n"
+        f"drivebench: error: --config {config}:{line}: start_m must be >= 0 and below 442.836 m, the length of "
+        "circuit 'simple', got 500\n"
     )
 
 
