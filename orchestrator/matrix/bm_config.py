@@ -99,9 +99,10 @@ _WHY_DROPPED = {
     "Behaviors.Robot.Actuators": "ROS topics and MaxV/MaxW (BM never enforces them either)",
     "Behaviors.Robot.Environment": "the simulator is drivebench's",
     "Behaviors.Simulation.RealTimeUpdateRate": "lock-step: simulated time does not depend on wall-clock time",
-    "Behaviors.Simulation.RandomSpawnPoint": "BM's unseeded random spawn (drivebench starts every lap at the "
-    "circuit's start line)",
-    "Behaviors.Simulation.SpawnPoints": "BM's spawn points",
+    "Behaviors.Simulation.RandomSpawnPoint": "BM's unseeded random spawn (variations: {start_m: "
+    "[0, 150, 300]} drives every brain from chosen points along the circuit)",
+    "Behaviors.Simulation.SpawnPoints": "BM's spawn points, Gazebo poses (a variation start_m=METRES starts an "
+    "episode that far along the circuit)",
     "Behaviors.Experiment.UseWorldTimeouts": "a second timeout list (Timeout is what BM's headless loop uses)",
     "Behaviors.Robot.AsyncMode": "lock-step is always in step with the simulator",
 }
