@@ -73,7 +73,6 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
     for index, circuit in enumerate(circuits):
         for direction in directions:
             try:
-                load_circuit(circuit)
                 # seed = circuit index (reverse: + the circuit count) keeps forward-only collections as they were
                 seed = index + (len(circuits) if direction == "reverse" else 0)
                 spec = EpisodeSpec(
@@ -91,6 +90,7 @@ def collection_specs(args: argparse.Namespace) -> list[EpisodeSpec]:
                 for variation in args.variation:  # after the draw: what is pinned stays pinned
                     spec = apply_variation(spec, variation)
                 check_look(spec)
+                load_circuit(circuit).check_start_m(spec.start_m)  # --variation start_m=...: on this circuit
             except (CircuitError, ValueError) as error:
                 raise CollectError(str(error)) from None
             specs.append(spec)

@@ -11,7 +11,7 @@ import pytest
 from brains.base import GroundTruth, Observation
 from brains.registry import make_brain
 from circuits import load_circuit
-from orchestrator.collect import collection_specs
+from orchestrator.collect import CollectError, collection_specs
 from orchestrator.stack.launcher import BrainLaunch
 from protocol.messages import CameraSpec, EndReason, EpisodeSpec
 from protocol.variations import apply_variation
@@ -90,6 +90,12 @@ def test_randomised_collection_draws_every_world_from_the_seed():
     pinned = collection_specs(argparse.Namespace(**{**vars(args), "variation": ["line=none,walls=off"]}))
     assert {(s.world.line, s.world.walls) for s in pinned} == {("none", False)}
     assert [(s.camera, s.noise, s.world.road) for s in pinned] == [(s.camera, s.noise, s.world.road) for s in specs]
+    # A start along the circuit is checked against each circuit's length before anything is collected.
+    simple = argparse.Namespace(**{**vars(args), "circuits": "simple", "variation": ["start_m=100"]})
+    assert {s.start_m for s in collection_specs(simple)} == {100.0}
+    off = argparse.Namespace(**{**vars(simple), "variation": ["start_m=500"]})
+    with pytest.raises(CollectError, match=r"start_m must be >= 0 and below 442.836 m, the length of circuit 'simple'"):
+        collection_specs(off)
 
 
 @pytest.mark.slow
