@@ -394,3 +394,24 @@ def test_the_cross_track_colour_scale_is_the_datas_not_the_roads():
     data = {"a": (np.zeros(200), np.zeros(200), np.ones(200), xte_m)}
     norm, _, label = _colour_scale("xte", data=data)
     assert norm.vmax == pytest.approx(np.percentile(xte_m, 99)) and "99th" in label
+
+
+def test_an_episode_started_along_the_circuit_is_marked_where_it_started(report):
+    import dataclasses
+
+    import msgspec
+    from matplotlib.figure import Figure
+
+    from orchestrator.report.plots import _draw_episode
+
+    folder, _, _ = report
+    with ResultStore(folder, create=False) as store:
+        result = next(r for r in store.results() if r.status == "done")
+    path = (np.array([3.0, 4.0, 5.0]), np.array([7.0, 7.5, 8.0]), np.ones(3), np.zeros(3))
+    markers = {}
+    for start_m in (0.0, 120.0):
+        moved = dataclasses.replace(result, spec=msgspec.structs.replace(result.spec, start_m=start_m))
+        ax = Figure().add_subplot()
+        _draw_episode(ax, moved, path, colour_by="speed", cmap="viridis", norm=None)
+        markers[start_m] = [(line.get_xdata()[0], line.get_ydata()[0]) for line in ax.lines if line.get_marker() == "o"]
+    assert markers == {0.0: [], 120.0: [(3.0, 7.0)]}  # the start line has its own mark (the track's arrow)

@@ -55,8 +55,9 @@ class ReportPlots:
         trajectories = Section(
             "Trajectories",
             [
-                "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start and "
-                "driving direction), one panel per brain and condition with the repetitions overlaid; ✕ where an "
+                "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start line "
+                "and driving direction, small ○: where an episode started along the circuit), one panel per brain "
+                "and condition with the repetitions overlaid; ✕ where an "
                 "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
                 "target. Colours: "
                 "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."
@@ -460,7 +461,8 @@ def _draw_track(ax, track, *, layout: _MapLayout) -> None:
 
 
 def _draw_episode(ax, r: EpisodeResult, episode_data: tuple, *, colour_by: str, cmap: str, norm) -> None:
-    """One episode's path coloured segment by segment, with ✕ where it ended short of its lap target."""
+    """One episode's path coloured segment by segment, with ✕ where it ended short of its lap target and a small ○
+    where it started when that was not the start line (``EpisodeSpec.start_m``)."""
     from matplotlib.collections import LineCollection
 
     x, y, speed, xte = episode_data
@@ -470,6 +472,8 @@ def _draw_episode(ax, r: EpisodeResult, episode_data: tuple, *, colour_by: str, 
     lines = LineCollection(segments, cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
     lines.set_array(colours[1:])
     ax.add_collection(lines)
+    if r.spec.start_m > 0 and len(x):  # started along the circuit, not at the track's start (the arrow)
+        ax.plot([x[0]], [y[0]], marker="o", ms=4, mfc="white", mec="0.3", zorder=4)
     if not reached_target(r):
         ax.plot([x[-1]], [y[-1]], marker="X", ms=8, color="crimson", mec="white", mew=0.8, zorder=5)
 
