@@ -7,6 +7,7 @@ import functools
 import json
 import subprocess
 import sys
+import time
 import uuid
 from pathlib import Path
 
@@ -150,6 +151,8 @@ def test_bad_input_is_one_clear_error_and_the_env_goes_on():
         (dict(noise="sparkles=1"), "noise="),
         (dict(start="anywhere"), "start must be one of line, random, got 'anywhere'"),
         (dict(variation=["", "start_m=443"]), "variation='start_m=443': start_m must be >= 0 and below 442.836 m"),
+        (dict(render_threads=0), "render_threads must be an integer >= 1, got 0"),
+        (dict(render_threads=2, router="tcp/127.0.0.1:7447"), "render_threads=2 needs the environment's own stack"),
     ]:
         with pytest.raises(ValueError, match=words.replace("(", r"\(").replace("[", r"\[")):
             gym.make(ENV_ID, **kwargs)
@@ -197,6 +200,54 @@ def test_close_twice_is_safe_and_nothing_outlives_the_env():
     assert not run_dir.exists()
     with pytest.raises(RuntimeError, match="closed"):
         env.reset()
+
+
+def test_the_environments_simulator_renders_on_the_threads_it_is_given(monkeypatch):
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    env = gym.make(ENV_ID, render_threads=2, **SMALL)  # any renderer: the variable is set, gl reads it
+    try:
+        env.reset(seed=0)
+        stack = env.unwrapped._parts["stack"]
+        (simulator,) = (child for child in stack.children if child.role == "simulator")
+        environ = Path(f"/proc/{simulator.process.pid}/environ").read_bytes().split(b"\0")
+        assert b"LP_NUM_THREADS=2" in environ
+    finally:
+        env.close()
+
+
+NEVER_CLOSED = """
+import sys
+import numpy as np
+import gymnasium as gym
+import drivebench
+env = gym.make("drivebench/LaneFollow-v0", camera=(64, 48), max_episode_s=20.0)
+env.reset(seed=0)
+env.step(np.zeros(2, np.float32))
+print(" ".join(str(child.process.pid) for child in env.unwrapped._parts["stack"].children), flush=True)
+if sys.argv[1] == "raise":
+    raise RuntimeError("the script failed")
+"""
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] == "Z"  # exited, not reaped
+    except (FileNotFoundError, IndexError):
+        return True
+
+
+@pytest.mark.parametrize("ending", ["end", "raise"])
+def test_a_script_that_never_closes_its_env_exits_and_leaves_no_process(ending):
+    # Zenoh's callback threads kept such a script waiting for ever at exit (until the env's stack was closed).
+    child = subprocess.run([sys.executable, "-c", NEVER_CLOSED, ending], capture_output=True, text=True, timeout=60)
+    assert child.returncode == (0 if ending == "end" else 1), child.stderr
+    assert ending == "end" or "RuntimeError: the script failed" in child.stderr
+    pids = [int(pid) for pid in child.stdout.split()]
+    assert len(pids) == 3  # simulator, noise injector, scorer
+    deadline = time.monotonic() + 10.0
+    while not all(_gone(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert all(_gone(pid) for pid in pids)
 
 
 def test_router_attaches_to_a_running_stack_and_leaves_it_running(tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import fnmatch
 import shutil
 import tempfile
+import threading
 import uuid
 import weakref
 from pathlib import Path
@@ -23,7 +24,7 @@ from gymnasium import spaces
 from brains.lane_policy.features import FEATURES, line_features, scaled
 from circuits import Circuit, CircuitError, load_circuit
 from drivebench.rl.link import BrainLink, Transition, ending
-from drivebench.rl.options import GENERATED, env_options, start_m_option
+from drivebench.rl.options import GENERATED, check_render_threads, env_options, start_m_option
 from drivebench.rl.reward import ProgressReward
 from drivebench.rl.stack import StackError, open_stack
 from protocol.bus_config import BusError, probe_router
@@ -66,6 +67,9 @@ class LaneFollowEnv(gym.Env):
     ``start="line"``, the start line (or a variation's ``start_m``); ``start="random"``, drawn uniformly over the
     circuit's length from ``seed`` too; ``options={"start_m": ...}`` chooses it (a ValueError naming the circuit's
     length when it is not on the circuit). The reward's progress, and the lap target, count from there.
+
+    ``render_threads``: llvmpipe threads of the environment's own simulator (renderer "gl"): 1, since a vector env
+    runs a stack per environment; one environment alone on a machine may take its cores (same frames, faster).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
@@ -93,6 +97,7 @@ class LaneFollowEnv(gym.Env):
         step_timeout_s: float = 600.0,
         startup_timeout_s: float = 60.0,
         render_mode: str | None = None,
+        render_threads: int = 1,
     ):
         self.options = env_options(
             circuit=circuit,
@@ -109,6 +114,8 @@ class LaneFollowEnv(gym.Env):
             step_s=step_s,
             brain_timeout_s=step_timeout_s,
         )
+        check_render_threads(render_threads, router=router)
+        self.render_threads = render_threads
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if router is not None:
@@ -125,6 +132,7 @@ class LaneFollowEnv(gym.Env):
         self.observation_space = self._observation_space()
         self._parts: dict[str, Any] = {}  # stack, link, run_dir: made at the first reset, ended by close()
         self._finalizer = weakref.finalize(self, _close_parts, self._parts)
+        _UNCLOSED.add(self._finalizer)
         self._circuits: dict[tuple[str, str], Circuit] = {}
         self._episode: int | None = None
         self._running = False
@@ -156,7 +164,11 @@ class LaneFollowEnv(gym.Env):
         self._parts["run_dir"] = run_dir
         try:
             stack = open_stack(
-                router=self.router, run_id=self.run_id, run_dir=run_dir, startup_timeout_s=self.startup_timeout_s
+                router=self.router,
+                run_id=self.run_id,
+                run_dir=run_dir,
+                startup_timeout_s=self.startup_timeout_s,
+                render_threads=self.render_threads,
             )
         except (StackError, BusError) as error:
             raise ConnectionError(str(error)) from None
@@ -324,6 +336,23 @@ class LaneFollowEnv(gym.Env):
         """Stop the stack's processes (a local stack) or leave the run (``router=``); safe to call again."""
         self._running = False
         self._finalizer()
+        _UNCLOSED.discard(self._finalizer)
+
+
+# The finalizers of environments not closed yet. weakref.finalize would close them at exit, but too late: Python
+# first waits for every non-daemon thread, and Zenoh's callback threads of an open session (non-daemon, as the thread
+# that made the session was) end only when the session closes, so a script that ends, or dies of an exception, without
+# env.close() hung for ever. Closed here instead, before that wait (the hook concurrent.futures uses too).
+_UNCLOSED: set[weakref.finalize] = set()
+
+
+def _close_unclosed_environments() -> None:
+    for finalizer in list(_UNCLOSED):
+        finalizer()
+    _UNCLOSED.clear()
+
+
+threading._register_atexit(_close_unclosed_environments)  # type: ignore[attr-defined]
 
 
 def _close_parts(parts: dict[str, Any]) -> None:

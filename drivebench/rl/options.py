@@ -146,3 +146,15 @@ def env_options(
         yaw_rate_range_radps=value_range(yaw_rate_range_radps, what="yaw_rate_range_radps"),
         start=start,
     )
+
+
+def check_render_threads(render_threads: Any, *, router: str | None) -> None:
+    """ValueError (one line) unless ``render_threads`` is an integer >= 1 that this environment can apply: only to a
+    stack of its own (with ``router`` the running stack's simulator renders as it was started)."""
+    if isinstance(render_threads, bool) or not isinstance(render_threads, int) or render_threads < 1:
+        raise ValueError(f"render_threads must be an integer >= 1, got {render_threads!r}")
+    if router is not None and render_threads != 1:
+        raise ValueError(
+            f"render_threads={render_threads} needs the environment's own stack: with router= the running stack's "
+            "simulator renders as it was started"
+        )

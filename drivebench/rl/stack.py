@@ -62,13 +62,20 @@ class EnvAttachedStack(EnvStackMixin, AttachedStack):
 
 
 def open_stack(
-    *, router: str | None, run_id: str, run_dir: Path, startup_timeout_s: float
+    *, router: str | None, run_id: str, run_dir: Path, startup_timeout_s: float, render_threads: int = 1
 ) -> EnvLocalStack | EnvAttachedStack:
-    """A started stack: a new local one (``router`` None) or the run ``run_id`` behind ``router``. On any failure
-    whatever was started is stopped again before StackError is raised."""
+    """A started stack: a new local one (``router`` None; its simulator renders on ``render_threads`` llvmpipe
+    threads) or the run ``run_id`` behind ``router``. On any failure whatever was started is stopped again before
+    StackError is raised."""
     stack: EnvLocalStack | EnvAttachedStack
     if router is None:
-        stack = EnvLocalStack(run_id=run_id, run_dir=run_dir, brains=[], startup_timeout_s=startup_timeout_s)
+        stack = EnvLocalStack(
+            run_id=run_id,
+            run_dir=run_dir,
+            brains=[],
+            startup_timeout_s=startup_timeout_s,
+            render_threads=render_threads,
+        )
     else:
         stack = EnvAttachedStack(
             run_id=run_id, run_dir=run_dir, router_endpoint=router, startup_timeout_s=startup_timeout_s
