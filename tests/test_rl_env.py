@@ -209,8 +209,8 @@ def test_the_environments_simulator_renders_on_the_threads_it_is_given(monkeypat
         env.reset(seed=0)
         stack = env.unwrapped._parts["stack"]
         (simulator,) = (child for child in stack.children if child.role == "simulator")
-        environ = Path(f"/proc/{simulator.process.pid}/environ").read_bytes().split(b"\0")
-        assert b"LP_NUM_THREADS=2" in environ
+        variables = Path(f"/proc/{simulator.process.pid}/environ").read_bytes().split(b"\0")
+        assert b"LP_NUM_THREADS=2" in variables
     finally:
         env.close()
 
