@@ -223,7 +223,7 @@ class GazeboPasses:
             self._programs[material] = program
             self._vaos[material] = ctx.vertex_array(
                 program,
-                [(self._vbo, "3f 3f 2f 3f 4x", "in_position", "in_normal", "in_uv", "in_colour")],
+                [(self._vbo, "3f 3f 2f 3f", "in_position", "in_normal", "in_uv", "in_colour")],
                 skip_errors=True,  # attributes a material's program does not read
             )
         self._textures = [
@@ -251,7 +251,7 @@ class GazeboPasses:
             self._shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)  # bilinear comparison: 2x2 samples a tap
             self._shadow_framebuffer = ctx.framebuffer(depth_attachment=self._shadow_map)
             self._shadow_program = ctx.program(vertex_shader=_SHADOW_VERTEX, fragment_shader=_SHADOW_FRAGMENT)
-            self._shadow_vao = ctx.vertex_array(self._shadow_program, [(self._vbo, "3f 36x", "in_position")])
+            self._shadow_vao = ctx.vertex_array(self._shadow_program, [(self._vbo, "3f 32x", "in_position")])
         self._light_towards = np.asarray(light.light_towards)
 
     def _texture(self, texels: np.ndarray, components: int):
@@ -376,7 +376,7 @@ class GazeboPasses:
 
 def gazebo_soup(description: SceneDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every mesh as consecutive triangles of float32 vertices (position 3, normal 3, texture coordinates in tiles 2,
-    colour 0..1 3, material id 1), in description order, with the first vertex and vertex count of each mesh.
+    colour 0..1 3), in description order, with the first vertex and vertex count of each mesh.
 
     Normals: a mesh's smooth normals turned to the side each triangle faces (walls carry both windings), or the
     triangles' own normals."""
@@ -394,7 +394,7 @@ def gazebo_soup(description: SceneDescription) -> tuple[np.ndarray, np.ndarray, 
             smooth = mesh.normals[mesh.indices].reshape(-1, 3, 3)
             sides = np.sign(np.einsum("ij,ij->i", faces, smooth[:, 0]))
             normals = (smooth * sides[:, None, None]).reshape(-1, 3)
-        part = np.zeros((len(corners), 12), dtype=np.float32)
+        part = np.zeros((len(corners), 11), dtype=np.float32)
         part[:, :3] = corners
         part[:, 3:6] = normals
         if mesh.texcoords_m is not None:
@@ -402,7 +402,6 @@ def gazebo_soup(description: SceneDescription) -> tuple[np.ndarray, np.ndarray, 
             # Whole tiles off a chunk's coordinates change no texel and keep float32 precise kilometres down a track.
             part[:, 6:8] = uv - np.floor(uv.min(axis=0))
         part[:, 8:11] = mesh.rgba[:3]
-        part[:, 11] = MATERIAL_IDS[mesh.material]
         parts.append(part)
         firsts.append(first)
         counts.append(len(corners))
