@@ -20,6 +20,7 @@ import numpy as np
 import pybullet
 import pytest
 from mcap.reader import make_reader
+from support.processes import environment_of
 
 from circuits import load_circuit
 from orchestrator.matrix.load import MatrixError, parse_matrix, with_renderer
@@ -335,21 +336,16 @@ def test_stacks_side_by_side_share_the_cores_for_rendering(tmp_path):
         assert stack.render_threads == render_threads_for(stacks=workers)
 
 
-def _environment_of(pid: int) -> dict[str, str]:
-    raw = open(f"/proc/{pid}/environ", "rb").read().decode()
-    return dict(item.split("=", 1) for item in raw.split("\0") if "=" in item)
-
-
 @pytest.mark.integration
 def test_a_stack_simulator_renders_with_its_threads_unless_the_user_chose(make_stack, monkeypatch):
     monkeypatch.delenv("LP_NUM_THREADS", raising=False)
     stack = make_stack(render_threads=2)
-    assert _environment_of(stack.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "2"
+    assert environment_of(stack.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "2"
     brain = next(child for child in stack.children if child.role == "brain")
-    assert "LP_NUM_THREADS" not in _environment_of(brain.process.pid)  # only the simulator renders
+    assert "LP_NUM_THREADS" not in environment_of(brain.process.pid)  # only the simulator renders
     monkeypatch.setenv("LP_NUM_THREADS", "3")
     chosen = make_stack(render_threads=2)
-    assert _environment_of(chosen.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "3"
+    assert environment_of(chosen.child("simulator", "sim").process.pid)["LP_NUM_THREADS"] == "3"
 
 
 def test_a_matrix_file_names_its_renderer_and_the_command_line_overrides_it(monkeypatch):

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from needs import require
+from support.processes import environment_of
 
 gym = require("gymnasium")
 import drivebench  # noqa: E402,F401 - registers the environment
@@ -209,8 +210,7 @@ def test_the_environments_simulator_renders_on_the_threads_it_is_given(monkeypat
         env.reset(seed=0)
         stack = env.unwrapped._parts["stack"]
         (simulator,) = (child for child in stack.children if child.role == "simulator")
-        variables = Path(f"/proc/{simulator.process.pid}/environ").read_bytes().split(b"\0")
-        assert b"LP_NUM_THREADS=2" in variables
+        assert environment_of(simulator.process.pid)["LP_NUM_THREADS"] == "2"
     finally:
         env.close()
 

@@ -151,7 +151,9 @@ class Child:
 OWN_SIMULATOR_BUSY_WAIT_S = 5.0
 
 
-LLVMPIPE_THREADS = "LP_NUM_THREADS"  # Mesa's: how many threads llvmpipe (the CPU OpenGL) rasterises with
+# Mesa's: how many threads llvmpipe (the CPU OpenGL) rasterises with. Named here, not imported from
+# services.simulator.gl_scene (which sets 1 where nobody chose): that import costs every command 0.4 s (circuits).
+LLVMPIPE_THREADS = "LP_NUM_THREADS"
 
 
 def render_threads_for(*, stacks: int) -> int:

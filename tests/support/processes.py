@@ -62,3 +62,9 @@ class Processes:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+
+
+def environment_of(pid: int) -> dict[str, str]:
+    """The environment a running process was started with (Linux: /proc/PID/environ)."""
+    raw = Path(f"/proc/{pid}/environ").read_bytes().decode()
+    return dict(item.split("=", 1) for item in raw.split("\0") if "=" in item)
