@@ -208,3 +208,47 @@ def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_rea
     assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, run.stderr  # no frame raised
     assert score["spec"]["noise"] == [{"model": "rain"}]
     assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
+
+
+def test_bm_s_default_brain_s_imports_load_with_albumentations_1_names_for_bm_files_only(bm_checkout):
+    """BM's default brain imports RandomBrightness, which albumentations 2 removed: a BM file gets 1.0.3's names,
+    built from 2.x's transforms; the albumentations everyone else imports is left as it is."""
+    import albumentations
+    import numpy as np
+
+    from brains.base import Observation
+    from brains.behavior_metrics.adapter import BehaviorMetricsBrain
+
+    file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_opencv_imports.py"
+    brain = BehaviorMetricsBrain(file=str(file), bm_root=str(bm_checkout))
+    frame = np.full((480, 640, 3), 90, np.uint8)
+    action = brain.act(Observation(image_rgb=frame, stamp_ns=0, seq=0))
+    assert action.speed_mps == 3.0 and np.array_equal(brain.debug_images["frame_0"], frame)
+    brightness = brain._brain.same.transforms[0]
+    assert type(brightness).__name__ == "RandomBrightnessContrast" and brightness.contrast_limit == (0.0, 0.0)
+    assert not hasattr(albumentations, "RandomBrightness")  # only the BM file's import sees 1.x's names
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_brain_with_bm_s_default_brain_s_imports_drives_through_the_cli(bm_checkout, tmp_path):
+    import json
+
+    file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_opencv_imports.py"
+    run = drivebench(
+        "run",
+        "--brain",
+        str(file),
+        "--brain-option",
+        f"bm_root={bm_checkout}",
+        "--max-sim-seconds",
+        "2",
+        "--camera",
+        "160x120",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+        timeout_s=170,
+    )
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s, 2 s
