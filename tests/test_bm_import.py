@@ -210,7 +210,24 @@ def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_rea
     assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
 
 
-def test_bm_s_default_brain_s_imports_load_with_albumentations_1_names_for_bm_files_only(bm_checkout):
+@pytest.fixture
+def bm_imports_undone(monkeypatch):
+    """Undo what importing a BM file with a checkout does to this process (a brain host has one for life): the
+    checkout on sys.path and on drivebench's brains package path, BM's modules imported from it."""
+    import brains
+
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(brains, "__path__", list(brains.__path__))
+    before = set(sys.modules)
+    yield
+    for name in set(sys.modules) - before:
+        if name.split(".")[0] in ("utils", "robot") or name.startswith(("brains.gazebo", "behavior_metrics_brain_")):
+            del sys.modules[name]
+
+
+def test_bm_s_default_brain_s_imports_load_with_albumentations_1_names_for_bm_files_only(
+    bm_checkout, bm_imports_undone
+):
     """BM's default brain imports RandomBrightness, which albumentations 2 removed: a BM file gets 1.0.3's names,
     built from 2.x's transforms; the albumentations everyone else imports is left as it is."""
     import albumentations
@@ -252,3 +269,31 @@ def test_a_brain_with_bm_s_default_brain_s_imports_drives_through_the_cli(bm_che
     )
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s, 2 s
+
+
+@pytest.mark.parametrize(("transform", "hint"), [("rainy", "; did you mean 'rain'?"), ("Rain", "'rain'"), ("xyz", "")])
+def test_bm_import_refuses_an_image_transform_bm_does_not_have_with_bm_s_list(bm_checkout, tmp_path, transform, hint):
+    config = tmp_path / "bad.yml"
+    config.write_text(CONFIG.read_text().replace("ImageTranform: 'night'", f"ImageTranform: '{transform}'"))
+    out = tmp_path / "m.yaml"
+    run = drivebench("bm", "import", str(config), "-o", str(out), "--bm-root", str(bm_checkout))
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert f"Parameters.ImageTranform {transform!r} is not one of Behavior Metrics' options" in run.stderr
+    assert "'night', 'shadow', 'snow', 'fog', 'sunflare', 'daytime', 'affine'" in run.stderr and hint in run.stderr
+    assert not out.exists()
+
+
+def test_bm_import_keeps_an_absolute_brain_path_absolute(bm_checkout, tmp_path):
+    absolute = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_keywords.py"
+    config = tmp_path / "abs.yml"
+    data = yaml.safe_load(CONFIG.read_text())
+    data["Behaviors"]["Robot"]["BrainPath"] = [str(absolute)]
+    data["Behaviors"]["Robot"]["Parameters"]["Model"] = ""
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "elsewhere" / "m.yaml"
+    run = drivebench("bm", "import", str(config), "-o", str(out), "--bm-root", str(bm_checkout))
+    assert run.returncode == 0, run.stderr
+    assert [brain["name"] for brain in yaml.safe_load(out.read_text())["brains"]] == [str(absolute)]
+    moved = tmp_path / "moved.yaml"
+    out.rename(moved)  # an absolute path still names the file wherever the matrix goes
+    assert [brain.label for brain in load_matrix(moved).brains] == ["brain_f1_keywords"]
