@@ -297,3 +297,41 @@ def test_bm_import_keeps_an_absolute_brain_path_absolute(bm_checkout, tmp_path):
     moved = tmp_path / "moved.yaml"
     out.rename(moved)  # an absolute path still names the file wherever the matrix goes
     assert [brain.label for brain in load_matrix(moved).brains] == ["brain_f1_keywords"]
+
+
+# A BM-style brain (written for these tests) that crops fixed rows of BM's 640x480 frame inside its own `try`, as BM's
+# brains do: at a smaller camera its crop is empty, it swallows the error and never sends a speed.
+CROPPING_BRAIN = '''
+class Brain:
+    def __init__(self, sensors, actuators, handler=None, config=None):
+        self.camera = sensors.get_camera("camera_0")
+        self.motors = actuators.get_motor("motors_0")
+
+    def execute(self):
+        try:
+            crop = self.camera.getImage().data[240:480, 0:640]
+            if crop.shape[0] == 0:
+                raise ValueError("empty crop")
+            self.motors.sendV(3.0)
+        except Exception as err:
+            print(err)
+'''
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_bm_brain_file_runs_on_bm_s_640x480_camera_unless_told_and_says_so(tmp_path):
+    import json
+
+    brain = tmp_path / "brain_f1_crops.py"
+    brain.write_text(CROPPING_BRAIN)
+    common = ("run", "--brain", str(brain), "--max-sim-seconds", "1", "--json")
+    run = drivebench(*common, "--out", str(tmp_path / "bm"), timeout_s=170)
+    assert run.returncode == 0, run.stderr
+    score = json.loads(run.stdout)
+    assert (score["spec"]["camera"]["width_px"], score["spec"]["camera"]["height_px"]) == (640, 480)
+    assert score["metrics"]["completed_distance_m"] == pytest.approx(3.0, abs=0.2)  # its crop saw rows: it drove
+    assert run.stderr.count("camera 640x480, Behavior Metrics' F1 camera, for a Behavior Metrics brain file") == 1
+    run = drivebench(*common, "--camera", "160x120", "--out", str(tmp_path / "small"), timeout_s=170)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.count("Behavior Metrics drives it at 640x480") == 1  # the user chose: said once why it differs
