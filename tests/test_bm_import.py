@@ -142,7 +142,7 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_starts(bm_checkout, tm
 
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.timeout(900)  # six episodes at 160x120, each on its own stack: about 3.5 min on a loaded 2-core box
+@pytest.mark.timeout(900)  # six episodes at 640x480 (smoke keeps a BM brain file's camera): 56 s here, 2 cores
 def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(bm_checkout, tmp_path):
     out = tmp_path / "bm.yaml"
     converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(bm_checkout))
@@ -301,7 +301,7 @@ def test_bm_import_keeps_an_absolute_brain_path_absolute(bm_checkout, tmp_path):
 
 # A BM-style brain (written for these tests) that crops fixed rows of BM's 640x480 frame inside its own `try`, as BM's
 # brains do: at a smaller camera its crop is empty, it swallows the error and never sends a speed.
-CROPPING_BRAIN = '''
+CROPPING_BRAIN = """
 class Brain:
     def __init__(self, sensors, actuators, handler=None, config=None):
         self.camera = sensors.get_camera("camera_0")
@@ -315,7 +315,7 @@ class Brain:
             self.motors.sendV(3.0)
         except Exception as err:
             print(err)
-'''
+"""
 
 
 @pytest.mark.slow
@@ -335,3 +335,24 @@ def test_a_bm_brain_file_runs_on_bm_s_640x480_camera_unless_told_and_says_so(tmp
     run = drivebench(*common, "--camera", "160x120", "--out", str(tmp_path / "small"), timeout_s=170)
     assert run.returncode == 0, run.stderr
     assert run.stderr.count("Behavior Metrics drives it at 640x480") == 1  # the user chose: said once why it differs
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_smoke_keeps_a_bm_brain_s_camera_and_names_a_brain_that_never_moved(tmp_path):
+    """At smoke's 160x120 the cropping brain's crop was empty, it swallowed the error, and smoke said "done"."""
+    (tmp_path / "brain_f1_crops.py").write_text(CROPPING_BRAIN)
+    (tmp_path / "brain_f1_still.py").write_text(CROPPING_BRAIN.replace("sendV(3.0)", "sendV(0.0)"))
+    matrix = tmp_path / "bm.yaml"
+    matrix.write_text(
+        "name: bm\nbrains: [brain_f1_crops.py, brain_f1_still.py]\ncircuits: [simple]\ncamera: 640x480\n"
+        "limits: {max_sim_seconds: 60}\n"
+    )
+    run = drivebench("matrix", str(matrix), "--smoke", "-o", str(tmp_path / "runs"), "--workers", "1", timeout_s=500)
+    assert run.returncode == 0, run.stderr
+    with ResultStore(tmp_path / "runs", create=False) as store:
+        results = {result.brain: result for result in store.results()}
+    crops = results["brain_f1_crops"]
+    assert crops.score.spec.camera.width_px == 640 and crops.score.metrics.completed_distance_m > 10.0
+    assert "smoke: brain_f1_still never moved" in run.stderr and "smoke: brain_f1_crops" not in run.stderr
