@@ -300,24 +300,22 @@ def is_bm_brain(brain: str | None) -> bool:
 
 
 def camera_of(args: argparse.Namespace) -> tuple[int, int]:
-    """``--camera``, else BM's 640x480 for a BM brain file, else 320x240. A BM brain file at another size is
-    said once: its fixed crops see another part of the image, and it drives differently (issue 40: explicit 367.7 m
-    at 320x240 against 165.6 m at 640x480)."""
+    """``--camera``, else BM's 640x480 for a BM brain file, else 320x240. Which camera a BM brain file gets is said
+    once, under the run's first line (``args.camera_note``): its fixed crops see another part of a smaller image and
+    it drives differently (issue 40: explicit 367.7 m at 320x240 against 165.6 m at 640x480)."""
     bm = not getattr(args, "attach", False) and is_bm_brain(args.brain)
     if args.camera is None:
         if bm:
-            print(
+            args.camera_note = (
                 "drivebench run: camera 640x480, Behavior Metrics' F1 camera, for a Behavior Metrics brain file "
-                "(--camera WxH to choose another)",
-                file=sys.stderr,
+                "(--camera WxH to choose another)"
             )
             return BM_CAMERA_WH
         return DEFAULT_CAMERA_WH
     if bm and tuple(args.camera) != BM_CAMERA_WH:
-        print(
+        args.camera_note = (
             f"drivebench run: camera {args.camera[0]}x{args.camera[1]} (--camera) for a Behavior Metrics brain file: "
-            "Behavior Metrics drives it at 640x480, and a brain that crops fixed rows drives differently",
-            file=sys.stderr,
+            "Behavior Metrics drives it at 640x480, and a brain that crops fixed rows drives differently"
         )
     return tuple(args.camera)
 
@@ -406,6 +404,8 @@ def command_run(args: argparse.Namespace) -> int:
         f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}",
         file=sys.stderr,
     )
+    if note := getattr(args, "camera_note", ""):
+        print(note, file=sys.stderr)
     if args.record is not None and args.record.suffix != ".mcap":
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
