@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from needs import require
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -322,3 +323,27 @@ def test_a_command_that_needs_a_missing_extra_names_what_to_install():
         "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
         "(or bash scripts/setup.sh, which installs every extra)"
     )
+
+
+def test_every_page_in_the_site_nav_shows_in_the_nav():
+    """With the theme's navigation.indexes, a README.md or index.md listed inside a section becomes that section's
+    own page and drops out of its list (the Foxglove layouts page did); only the home page may be one."""
+    nav = yaml.safe_load((ROOT / "mkdocs.yml").read_text())["nav"]
+
+    def pages(items: list) -> list[str]:
+        found = []
+        for item in items:
+            for value in item.values():
+                found += pages(value) if isinstance(value, list) else [value]
+        return found
+
+    hidden = [page for page in pages(nav) if Path(page).name in ("README.md", "index.md") and page != "index.md"]
+    assert hidden == []
+
+
+def test_the_guides_output_folders_are_ignored_by_git():
+    """The training guide writes its dataset under data/: a user following it should not see it as untracked."""
+    ignored = subprocess.run(
+        ["git", "check-ignore", "-q", "data/tiny/episode_0.mcap"], cwd=ROOT, capture_output=True, check=False
+    )
+    assert ignored.returncode == 0
