@@ -148,9 +148,12 @@ def load_factory(source: BrainSource):
     except ImportError as error:
         raise UnknownBrainError(f"brain {source.name!r}: cannot import module {module_name!r} ({error})") from None
     for part in attribute.split("."):
-        factory = getattr(factory, part, None)
+        owner, factory = factory, getattr(factory, part, None)
         if factory is None:
-            raise UnknownBrainError(f"brain {source.name!r}: module {module_name!r} has no {attribute!r}")
+            names = [name for name in dir(owner) if not name.startswith("_")]
+            raise UnknownBrainError(
+                f"brain {source.name!r}: module {module_name!r} has no {attribute!r}" + did_you_mean(part, names)
+            )
     if not callable(factory):
         raise UnknownBrainError(f"brain {source.name!r}: {source.target} is not a class or a callable")
     return factory

@@ -18,6 +18,8 @@ import math
 
 import msgspec
 
+from protocol.suggest import did_you_mean
+
 TAG_FIELD = "type"
 
 
@@ -130,8 +132,11 @@ class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
             ("lighting", ("sun", "no_sun")),
             ("look", LOOKS),
         ):
-            if getattr(self, field_name) not in allowed:
-                raise ValueError(f"{field_name} must be one of {', '.join(allowed)}, got {getattr(self, field_name)!r}")
+            value = getattr(self, field_name)
+            if value not in allowed:
+                raise ValueError(
+                    f"{field_name} must be one of {', '.join(allowed)}, got {value!r}" + did_you_mean(value, allowed)
+                )
 
 
 # -- camera perturbations applied by the noise injector, in order (``EpisodeSpec.noise``) --

@@ -89,7 +89,9 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
     for key, value in pairs:
         if key == "direction":
             if value not in DIRECTIONS:
-                raise VariationError(f"direction must be one of {', '.join(DIRECTIONS)}, got {value!r}")
+                raise VariationError(
+                    f"direction must be one of {', '.join(DIRECTIONS)}, got {value!r}" + did_you_mean(value, DIRECTIONS)
+                )
             direction = value
         elif key == "start_m":
             start_m = _start_m(value)
@@ -99,7 +101,7 @@ def apply_variation(spec: EpisodeSpec, text: str | dict[str, Any]) -> EpisodeSpe
                 raise VariationError(f"walls must be on or off, got {value!r}")
             world["walls"] = walls
         elif key == "look" and value not in LOOKS:
-            raise VariationError(f"unknown look {value!r} (looks: {', '.join(LOOKS)})")
+            raise VariationError(f"unknown look {value!r} (looks: {', '.join(LOOKS)})" + did_you_mean(value, LOOKS))
         elif key in _WORLD_KEYS:
             world[key] = str(value)
         elif key == "camera":

@@ -142,7 +142,7 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_starts(bm_checkout, tm
 
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.timeout(900)  # six episodes at 160x120, each on its own stack: about 3.5 min on a loaded 2-core box
+@pytest.mark.timeout(900)  # six episodes at 640x480 (smoke keeps a BM brain file's camera): 56 s here, 2 cores
 def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_says(bm_checkout, tmp_path):
     out = tmp_path / "bm.yaml"
     converted = drivebench("bm", "import", str(CONFIG), "-o", str(out), "--bm-root", str(bm_checkout))
@@ -208,3 +208,151 @@ def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_rea
     assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, run.stderr  # no frame raised
     assert score["spec"]["noise"] == [{"model": "rain"}]
     assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
+
+
+@pytest.fixture
+def bm_imports_undone(monkeypatch):
+    """Undo what importing a BM file with a checkout does to this process (a brain host has one for life): the
+    checkout on sys.path and on drivebench's brains package path, BM's modules imported from it."""
+    import brains
+
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(brains, "__path__", list(brains.__path__))
+    before = set(sys.modules)
+    yield
+    for name in set(sys.modules) - before:
+        if name.split(".")[0] in ("utils", "robot") or name.startswith(("brains.gazebo", "behavior_metrics_brain_")):
+            del sys.modules[name]
+
+
+def test_bm_s_default_brain_s_imports_load_with_albumentations_1_names_for_bm_files_only(
+    bm_checkout, bm_imports_undone
+):
+    """BM's default brain imports RandomBrightness, which albumentations 2 removed: a BM file gets 1.0.3's names,
+    built from 2.x's transforms; the albumentations everyone else imports is left as it is."""
+    import albumentations
+    import numpy as np
+
+    from brains.base import Observation
+    from brains.behavior_metrics.adapter import BehaviorMetricsBrain
+
+    file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_opencv_imports.py"
+    brain = BehaviorMetricsBrain(file=str(file), bm_root=str(bm_checkout))
+    frame = np.full((480, 640, 3), 90, np.uint8)
+    action = brain.act(Observation(image_rgb=frame, stamp_ns=0, seq=0))
+    assert action.speed_mps == 3.0 and np.array_equal(brain.debug_images["frame_0"], frame)
+    brightness = brain._brain.same.transforms[0]
+    assert type(brightness).__name__ == "RandomBrightnessContrast" and brightness.contrast_limit == (0.0, 0.0)
+    assert not hasattr(albumentations, "RandomBrightness")  # only the BM file's import sees 1.x's names
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_brain_with_bm_s_default_brain_s_imports_drives_through_the_cli(bm_checkout, tmp_path):
+    import json
+
+    file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_opencv_imports.py"
+    run = drivebench(
+        "run",
+        "--brain",
+        str(file),
+        "--brain-option",
+        f"bm_root={bm_checkout}",
+        "--max-sim-seconds",
+        "2",
+        "--camera",
+        "160x120",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+        timeout_s=170,
+    )
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s, 2 s
+
+
+@pytest.mark.parametrize(("transform", "hint"), [("rainy", "; did you mean 'rain'?"), ("Rain", "'rain'"), ("xyz", "")])
+def test_bm_import_refuses_an_image_transform_bm_does_not_have_with_bm_s_list(bm_checkout, tmp_path, transform, hint):
+    config = tmp_path / "bad.yml"
+    config.write_text(CONFIG.read_text().replace("ImageTranform: 'night'", f"ImageTranform: '{transform}'"))
+    out = tmp_path / "m.yaml"
+    run = drivebench("bm", "import", str(config), "-o", str(out), "--bm-root", str(bm_checkout))
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert f"Parameters.ImageTranform {transform!r} is not one of Behavior Metrics' options" in run.stderr
+    assert "'night', 'shadow', 'snow', 'fog', 'sunflare', 'daytime', 'affine'" in run.stderr and hint in run.stderr
+    assert not out.exists()
+
+
+def test_bm_import_keeps_an_absolute_brain_path_absolute(bm_checkout, tmp_path):
+    absolute = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_keywords.py"
+    config = tmp_path / "abs.yml"
+    data = yaml.safe_load(CONFIG.read_text())
+    data["Behaviors"]["Robot"]["BrainPath"] = [str(absolute)]
+    data["Behaviors"]["Robot"]["Parameters"]["Model"] = ""
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "elsewhere" / "m.yaml"
+    run = drivebench("bm", "import", str(config), "-o", str(out), "--bm-root", str(bm_checkout))
+    assert run.returncode == 0, run.stderr
+    assert [brain["name"] for brain in yaml.safe_load(out.read_text())["brains"]] == [str(absolute)]
+    moved = tmp_path / "moved.yaml"
+    out.rename(moved)  # an absolute path still names the file wherever the matrix goes
+    assert [brain.label for brain in load_matrix(moved).brains] == ["brain_f1_keywords"]
+
+
+# A BM-style brain (written for these tests) that crops fixed rows of BM's 640x480 frame inside its own `try`, as BM's
+# brains do: at a smaller camera its crop is empty, it swallows the error and never sends a speed.
+CROPPING_BRAIN = """
+class Brain:
+    def __init__(self, sensors, actuators, handler=None, config=None):
+        self.camera = sensors.get_camera("camera_0")
+        self.motors = actuators.get_motor("motors_0")
+
+    def execute(self):
+        try:
+            crop = self.camera.getImage().data[240:480, 0:640]
+            if crop.shape[0] == 0:
+                raise ValueError("empty crop")
+            self.motors.sendV(3.0)
+        except Exception as err:
+            print(err)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_bm_brain_file_runs_on_bm_s_640x480_camera_unless_told_and_says_so(tmp_path):
+    import json
+
+    brain = tmp_path / "brain_f1_crops.py"
+    brain.write_text(CROPPING_BRAIN)
+    common = ("run", "--brain", str(brain), "--max-sim-seconds", "1", "--json")
+    run = drivebench(*common, "--out", str(tmp_path / "bm"), timeout_s=170)
+    assert run.returncode == 0, run.stderr
+    score = json.loads(run.stdout)
+    assert (score["spec"]["camera"]["width_px"], score["spec"]["camera"]["height_px"]) == (640, 480)
+    assert score["metrics"]["completed_distance_m"] == pytest.approx(3.0, abs=0.2)  # its crop saw rows: it drove
+    assert run.stderr.count("camera 640x480, Behavior Metrics' F1 camera, for a Behavior Metrics brain file") == 1
+    run = drivebench(*common, "--camera", "160x120", "--out", str(tmp_path / "small"), timeout_s=170)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.count("Behavior Metrics drives it at 640x480") == 1  # the user chose: said once why it differs
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_smoke_keeps_a_bm_brain_s_camera_and_names_a_brain_that_never_moved(tmp_path):
+    """At smoke's 160x120 the cropping brain's crop was empty, it swallowed the error, and smoke said "done"."""
+    (tmp_path / "brain_f1_crops.py").write_text(CROPPING_BRAIN)
+    (tmp_path / "brain_f1_still.py").write_text(CROPPING_BRAIN.replace("sendV(3.0)", "sendV(0.0)"))
+    matrix = tmp_path / "bm.yaml"
+    matrix.write_text(
+        "name: bm\nbrains: [brain_f1_crops.py, brain_f1_still.py]\ncircuits: [simple]\ncamera: 640x480\n"
+        "limits: {max_sim_seconds: 60}\n"
+    )
+    run = drivebench("matrix", str(matrix), "--smoke", "-o", str(tmp_path / "runs"), "--workers", "1", timeout_s=500)
+    assert run.returncode == 0, run.stderr
+    with ResultStore(tmp_path / "runs", create=False) as store:
+        results = {result.brain: result for result in store.results()}
+    crops = results["brain_f1_crops"]
+    assert crops.score.spec.camera.width_px == 640 and crops.score.metrics.completed_distance_m > 10.0
+    assert "smoke: brain_f1_still never moved" in run.stderr and "smoke: brain_f1_crops" not in run.stderr

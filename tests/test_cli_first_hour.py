@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from needs import require
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,6 +68,23 @@ def test_bash_completion_is_valid_bash_that_knows_the_commands_and_options():
         (["run", "--noise", "salt_peper=0.2"], "--noise salt_peper=0.2: unknown noise model", "'salt_pepper'?"),
         (["run", "--variation", "lien=red"], "--variation lien=red: unknown variation 'lien'", "'line'?"),
         (["run", "--variation", "camera=lefft"], "--variation camera=lefft: unknown camera preset", "'left'?"),
+        (["run", "--variation", "line=whte"], "--variation line=whte: line must be one of", "'white'?"),
+        (["run", "--variation", "look=gazbo"], "--variation look=gazbo: unknown look 'gazbo'", "'gazebo'?"),
+        (["run", "--variation", "direction=revers"], "--variation direction=revers: direction must be", "'reverse'?"),
+        (
+            [
+                "run",
+                "--brain",
+                "behavior_metrics",
+                "--brain-option",
+                "file=examples/behavior_metrics/brain_f1_follow_line.py",
+                "--brain-option",
+                "config={ImageTranform: rainy}",
+            ],
+            "Behavior Metrics brain 'examples/behavior_metrics/brain_f1_follow_line.py': ",
+            "unknown ImageTranform 'rainy' (Behavior Metrics knows '', 'rain', 'night', 'shadow', 'snow', 'fog', "
+            "'sunflare', 'daytime', 'affine'); did you mean 'rain'?",
+        ),
         (["run", "--camera", "0x0"], "--camera 0x0: width_px must be within 8..4096, got 0", ""),
         (["run", "--laps", "0"], "--laps 0: laps must be >= 1, got 0", ""),
     ],
@@ -75,6 +93,28 @@ def test_a_bad_option_is_one_line_that_names_it_as_typed_and_suggests_the_closes
     line = one_error_line(drivebench(*args))
     assert line.startswith(f"drivebench: error: {starts}"), line
     assert line.endswith(suggests), line
+
+
+@pytest.mark.parametrize(
+    ("args", "error", "suggests"),
+    [
+        (["rnu"], "argument COMMAND: invalid choice: 'rnu'", "; did you mean 'run'?"),
+        (["brains", "chek", "explicit"], "invalid choice: 'chek'", "; did you mean 'check'?"),
+        (["run", "--circut", "simple"], "unrecognized arguments: --circut simple", "; did you mean '--circuit'?"),
+        (["matrix", "m.yaml", "--smkoe"], "unrecognized arguments: --smkoe", "; did you mean '--smoke'?"),
+    ],
+)
+def test_a_misspelled_command_or_option_gets_the_closest_name(args, error, suggests):
+    result = drivebench(*args)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    last = result.stderr.strip().splitlines()[-1]  # argparse's usage, then its one error line
+    assert error in last and last.endswith(suggests), last
+
+
+def test_a_misspelled_class_of_a_module_path_brain_gets_the_closest_name(tmp_path):
+    (tmp_path / "my_driver.py").write_text("class MyDriver:\n    pass\n")
+    line = one_error_line(drivebench("run", "--brain", "my_driver:MyDrivr", cwd=tmp_path))
+    assert "module 'my_driver' has no 'MyDrivr'; did you mean 'MyDriver'?" in line, line
 
 
 def test_no_suggestion_when_nothing_is_close():
@@ -283,3 +323,27 @@ def test_a_command_that_needs_a_missing_extra_names_what_to_install():
         "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
         "(or bash scripts/setup.sh, which installs every extra)"
     )
+
+
+def test_every_page_in_the_site_nav_shows_in_the_nav():
+    """With the theme's navigation.indexes, a README.md or index.md listed inside a section becomes that section's
+    own page and drops out of its list (the Foxglove layouts page did); only the home page may be one."""
+    nav = yaml.safe_load((ROOT / "mkdocs.yml").read_text())["nav"]
+
+    def pages(items: list) -> list[str]:
+        found = []
+        for item in items:
+            for value in item.values():
+                found += pages(value) if isinstance(value, list) else [value]
+        return found
+
+    hidden = [page for page in pages(nav) if Path(page).name in ("README.md", "index.md") and page != "index.md"]
+    assert hidden == []
+
+
+def test_the_guides_output_folders_are_ignored_by_git():
+    """The training guide writes its dataset under data/: a user following it should not see it as untracked."""
+    ignored = subprocess.run(
+        ["git", "check-ignore", "-q", "data/tiny/episode_0.mcap"], cwd=ROOT, capture_output=True, check=False
+    )
+    assert ignored.returncode == 0

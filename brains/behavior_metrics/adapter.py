@@ -48,6 +48,7 @@ from brains.behavior_metrics.interfaces import (
     Sensors,
 )
 from brains.registry import BrainOptionsError
+from protocol.suggest import did_you_mean
 
 # The Parameters Behavior Metrics' shipped F1 configs set, with their usual values: what a brain indexes without a
 # default (``config['GPU']``) is there. GPU True as in BM's configs: brains fall back to the CPU without CUDA.
@@ -97,7 +98,10 @@ def brain_config(*, config: dict[str, Any] | None, config_file: str | None) -> t
     option = merged.get("ImageTranform")
     if option not in TRANSFORM_OPTIONS:
         known = ", ".join(repr(name) for name in TRANSFORM_OPTIONS)
-        raise BrainOptionsError(f"unknown ImageTranform {option!r} (Behavior Metrics knows {known})")
+        raise BrainOptionsError(
+            f"unknown ImageTranform {option!r} (Behavior Metrics knows {known})"
+            + did_you_mean(option.lower() if isinstance(option, str) else option, TRANSFORM_OPTIONS[1:])
+        )
     return merged, model
 
 

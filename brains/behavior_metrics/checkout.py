@@ -8,6 +8,9 @@ Neural BM brains import helpers from BM's package (``from brains.gazebo.f1.torch
 (``brains.base``, ``brains.registry``, ...) stay first and unchanged. The checkout's folder goes first on
 ``sys.path`` for BM's other top-level modules (``utils``, ``robot``); it holds none of drivebench's package names.
 
+A BM file's own ``import albumentations`` gets the 1.x names BM's files import and 2.x removed
+(``brains.behavior_metrics.albumentations_1``).
+
 Without a checkout, a file that imports BM's modules fails at once with one line naming the import, its line and
 the option.
 """
@@ -21,6 +24,7 @@ import sys
 from pathlib import Path
 from types import ModuleType, TracebackType
 
+from brains.behavior_metrics.albumentations_1 import bm_file_builtins
 from brains.registry import BrainOptionsError
 from protocol import environment
 
@@ -114,6 +118,8 @@ def load_brain_file(path: str | Path, *, bm_root: str | None = None) -> ModuleTy
     if spec is None or spec.loader is None:
         raise BrainOptionsError(f"Behavior Metrics brain file {str(path)!r} is not a Python file")
     module = importlib.util.module_from_spec(spec)
+    # BM's files import albumentations 1.x names (its default brain: RandomBrightness) that 2.x removed.
+    module.__dict__["__builtins__"] = bm_file_builtins()
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 
 from orchestrator.cli import (
@@ -68,8 +69,40 @@ EXAMPLES = """examples:
 Documentation: docs/ (bash scripts/docs.sh serve)."""
 
 
+class SuggestingParser(argparse.ArgumentParser):
+    """argparse with "did you mean" for a misspelled command (``drivebench rnu``) or option (``run --circut``).
+
+    Subparsers are made of the same class (argparse's default), and the deepest one to parse is the command the
+    user typed: its options are the ones a misspelled option is compared with."""
+
+    parsing: SuggestingParser | None = None  # the deepest parser of the current parse (one parse per process)
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def, override]
+        SuggestingParser.parsing = self
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str):  # type: ignore[no-untyped-def, override]
+        super().error(message + _suggestion(message, SuggestingParser.parsing or self))
+
+
+def _suggestion(message: str, parser: argparse.ArgumentParser) -> str:
+    """The did-you-mean for argparse's message: an invalid choice against its choices, an unrecognized option
+    against the options of the command that was parsing."""
+    from protocol.suggest import did_you_mean
+
+    choice = re.search(r"invalid choice: '(.*?)' \(choose from (.*)\)$", message)
+    if choice:
+        return did_you_mean(choice.group(1), re.findall(r"'(.*?)'", choice.group(2)))
+    if message.startswith("unrecognized arguments: "):
+        options = [option for action in parser._actions for option in action.option_strings]
+        for word in message.removeprefix("unrecognized arguments: ").split():
+            if word.startswith("-") and (hint := did_you_mean(word.partition("=")[0], options)):
+                return hint
+    return ""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = SuggestingParser(
         prog="drivebench",
         description="Closed-loop evaluation of end-to-end driving brains: run episodes, record "
         "them, build datasets, train and serve networks.",

@@ -44,7 +44,8 @@ def add(commands: argparse._SubParsersAction) -> None:
         "--smoke",
         action="store_true",
         help="a seconds-long form: every brain, the first 2 conditions of every part, repetition 0, "
-        "4 s of simulated time each on a 160x120 camera (what CI runs)",
+        "4 s of simulated time each on a 160x120 camera (Behavior Metrics brain files keep theirs: BM's brains crop "
+        "fixed rows); brains that never moved are named (what CI runs)",
     )
     add_ray_options(matrix)
     matrix.set_defaults(func=run_matrix_command)
@@ -193,6 +194,7 @@ def run_matrix_args(
         MatrixRunner,
         ProgressDisplay,
         RunOptions,
+        never_moved,
         plan_json,
         plan_table,
         summary_line,
@@ -234,6 +236,9 @@ def run_matrix_args(
     if progress is None:
         return EXIT_INTERRUPTED
     print(summary_line(progress, out_dir), file=sys.stderr)
+    if getattr(args, "smoke", False):
+        for line in never_moved(progress):
+            print(f"drivebench: smoke: {line}", file=sys.stderr)
     if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else EXIT_OK

@@ -23,7 +23,7 @@ from pathlib import Path
 import msgspec
 import yaml
 
-from brains.registry import UnknownBrainError, bus_name, require_brain
+from brains.registry import BEHAVIOR_METRICS, UnknownBrainError, bus_name, is_brain_file, require_brain
 from circuits import Circuit, CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError
 from orchestrator.report.episode import metrics_table
@@ -52,7 +52,12 @@ def parse_camera(text: str) -> tuple[int, int]:
 
 
 def add_scene_options(
-    parser: argparse._ActionsContainer, *, renderer_default: str, camera: bool = True, variation: bool = True
+    parser: argparse._ActionsContainer,
+    *,
+    renderer_default: str,
+    camera: bool = True,
+    variation: bool = True,
+    camera_default: str = "320x240; Behavior Metrics uses 640x480",
 ) -> None:
     """``--camera``, ``--renderer`` and ``--variation`` with one help text for every command that takes them (run,
     dataset collect, matrix), so they cannot drift apart; only the default, which differs by command, is stated per
@@ -63,7 +68,7 @@ def add_scene_options(
             type=parse_camera,
             default=(320, 240),
             metavar="WxH",
-            help="simulator camera resolution in pixels (default: 320x240; Behavior Metrics uses 640x480)",
+            help=f"simulator camera resolution in pixels (default: {camera_default})",
         )
     parser.add_argument(
         "--renderer",
@@ -126,7 +131,12 @@ def add(commands: argparse._SubParsersAction) -> None:
         "centre line facing along it; progress, laps and lap times count from there (default: 0, the start line; "
         "below the circuit's length, drivebench circuits list; also --variation start_m=120)",
     )
-    add_scene_options(world, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
+    add_scene_options(
+        world,
+        renderer_default="$DRIVEBENCH_RENDERER, else pybullet",
+        camera_default="320x240; 640x480, Behavior Metrics' camera, for a Behavior Metrics brain file",
+    )
+    run.set_defaults(camera=None)  # None: camera_of chooses, by the brain
     _add_noise_option(world)
     _add_brain_options(run.add_argument_group("brain", "who drives, and who watches"))
     _add_episode_options(run.add_argument_group("episode", "limits, seed and pacing"))
@@ -280,10 +290,40 @@ def spec_flags(args: argparse.Namespace):
         raise UsageError(f"{where}: {error}") from None
 
 
+DEFAULT_CAMERA_WH = (320, 240)
+BM_CAMERA_WH = (640, 480)  # Behavior Metrics' F1 camera: its brains crop fixed rows of a 480-row image
+
+
+def is_bm_brain(brain: str | None) -> bool:
+    """A Behavior Metrics brain file, given as its path or as ``behavior_metrics`` with ``file=``."""
+    return bool(brain) and (is_brain_file(str(brain)) or brain == BEHAVIOR_METRICS)
+
+
+def camera_of(args: argparse.Namespace) -> tuple[int, int]:
+    """``--camera``, else BM's 640x480 for a BM brain file, else 320x240. Which camera a BM brain file gets is said
+    once, under the run's first line (``args.camera_note``): its fixed crops see another part of a smaller image and
+    it drives differently (issue 40: explicit 367.7 m at 320x240 against 165.6 m at 640x480)."""
+    bm = not getattr(args, "attach", False) and is_bm_brain(args.brain)
+    if args.camera is None:
+        if bm:
+            args.camera_note = (
+                "drivebench run: camera 640x480, Behavior Metrics' F1 camera, for a Behavior Metrics brain file "
+                "(--camera WxH to choose another)"
+            )
+            return BM_CAMERA_WH
+        return DEFAULT_CAMERA_WH
+    if bm and tuple(args.camera) != BM_CAMERA_WH:
+        args.camera_note = (
+            f"drivebench run: camera {args.camera[0]}x{args.camera[1]} (--camera) for a Behavior Metrics brain file: "
+            "Behavior Metrics drives it at 640x480, and a brain that crops fixed rows drives differently"
+        )
+    return tuple(args.camera)
+
+
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     with flag(f"--circuit {args.circuit}"):
         load_circuit(args.circuit)
-    width, height = args.camera
+    width, height = camera_of(args)
     with flag(f"--camera {width}x{height}"):
         camera = CameraSpec(width_px=width, height_px=height)
     noise = []
@@ -364,6 +404,8 @@ def command_run(args: argparse.Namespace) -> int:
         f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}",
         file=sys.stderr,
     )
+    if note := getattr(args, "camera_note", ""):
+        print(note, file=sys.stderr)
     if args.record is not None and args.record.suffix != ".mcap":
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())

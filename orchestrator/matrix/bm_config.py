@@ -28,6 +28,8 @@ from typing import Any
 
 import yaml
 
+from protocol.suggest import did_you_mean
+
 # Behavior Metrics' F1 world launch files (the name without folder and .launch) -> (circuit, world variation).
 _BASE: dict[str, str] = {
     "simple_circuit": "simple",
@@ -206,9 +208,13 @@ def _per_item(value: Any, count: int, *, key: str, of: str) -> list[Any]:
 
 
 def _brain_path(written: Any, *, bm_root: Path | None, config_dir: Path) -> Path:
+    """The brain file a BrainPath names: an absolute path as written (so it names the file wherever the matrix
+    goes), a relative one found under the checkout or the config's folder, resolved."""
     if not isinstance(written, str) or not written.endswith(".py"):
         raise BMConfigError(f"Robot.BrainPath: {written!r} is not a brain file (path/to/brain.py)")
     path = Path(written).expanduser()
+    if path.is_absolute() and path.is_file():
+        return path
     tried = [path] if path.is_absolute() else [base / path for base in (bm_root, config_dir) if base is not None]
     for candidate in tried:
         if candidate.is_file():
@@ -218,13 +224,28 @@ def _brain_path(written: Any, *, bm_root: Path | None, config_dir: Path) -> Path
     raise BMConfigError(f"Robot.BrainPath: brain file {written!r} not found (looked for {looked}){hint}")
 
 
+def _image_transform(option: Any) -> str:
+    """BM's ImageTranform option, checked here: one BM does not have would only fail when the matrix plans."""
+    from brains.behavior_metrics.interfaces import TRANSFORM_OPTIONS
+
+    if option not in TRANSFORM_OPTIONS:
+        known = ", ".join(repr(name) for name in TRANSFORM_OPTIONS)
+        raise BMConfigError(
+            f"Parameters.ImageTranform {option!r} is not one of Behavior Metrics' options ({known})"
+            + did_you_mean(option if not isinstance(option, str) else option.lower(), TRANSFORM_OPTIONS[1:])
+        )
+    return str(option)
+
+
 def _brains(
     robot: dict[str, Any], *, bm_root: Path | None, config_dir: Path, out_dir: Path, bm_root_option: str | None
 ) -> tuple[list[dict[str, Any]], str, list[str]]:
     """(the brains entries, the ImageTranform taken out of their config, notes)."""
     if "BrainPath" not in robot:
         raise BMConfigError("Behaviors.Robot.BrainPath is missing: which brain files to run")
-    paths = [_brain_path(p, bm_root=bm_root, config_dir=config_dir) for p in _listed(robot["BrainPath"])]
+    written = _listed(robot["BrainPath"])
+    paths = [_brain_path(p, bm_root=bm_root, config_dir=config_dir) for p in written]
+    absolute = {path for path, given in zip(paths, written, strict=True) if Path(str(given)).expanduser().is_absolute()}
     parameters = robot.get("Parameters") or {}
     if not isinstance(parameters, dict):
         raise BMConfigError(f"Robot.Parameters must be a mapping, got {parameters!r}")
@@ -234,7 +255,7 @@ def _brains(
         else [None] * len(paths)
     )
     config = {key: value for key, value in parameters.items() if key != "Model"}
-    transform = config.get("ImageTranform", "") or ""
+    transform = _image_transform(config.get("ImageTranform", "") or "")
     notes = []
     if transform:
         config["ImageTranform"] = ""
@@ -254,7 +275,9 @@ def _brains(
             options["model"] = str(model)
         if bm_root_option:
             options["bm_root"] = bm_root_option
-        brains.append({"name": os.path.relpath(path, out_dir), "label": label, "options": options})
+        # An absolute BrainPath stays absolute; a relative one is written relative to the matrix file.
+        name = str(path) if path in absolute else os.path.relpath(path, out_dir)
+        brains.append({"name": name, "label": label, "options": options})
     return brains, str(transform), notes
 
 

@@ -148,8 +148,9 @@ def smoke_form(
 ) -> Matrix:
     """``matrix`` cut to seconds (``--smoke``, what CI runs): the brains labelled in ``brains`` (default: all), the
     first ``cells_per_part`` conditions (world x perturbation) on the first ``cells_per_part`` circuits of every part,
-    repetition 0, ``sim_seconds`` of simulated time on a small camera. Keys stay the full matrix's, so every kept
-    episode still lands in its report cell."""
+    repetition 0, ``sim_seconds`` of simulated time on a small camera (``camera_wh``; a Behavior Metrics brain file
+    keeps its episode's camera, as BM's brains crop fixed rows of BM's 640x480 frame). Keys stay the full matrix's, so
+    every kept episode still lands in its report cell."""
     wanted = None if brains is None else set(brains)
     kept: list[PlannedEpisode] = []
     conditions_by_part: dict[str, list] = {}
@@ -162,7 +163,9 @@ def smoke_form(
         conditions = conditions_by_part.setdefault(episode.part, [])
         if not _kept(conditions, (episode.variation, episode.perturbation), cells_per_part):
             continue
-        camera = msgspec.structs.replace(episode.spec.camera, width_px=camera_wh[0], height_px=camera_wh[1])
+        camera = episode.spec.camera
+        if not _is_bm_brain(episode.brain):  # BM's brains crop fixed rows of BM's frame: a small one crops nothing
+            camera = msgspec.structs.replace(camera, width_px=camera_wh[0], height_px=camera_wh[1])
         spec = msgspec.structs.replace(episode.spec, max_sim_seconds=sim_seconds, camera=camera)
         kept.append(dataclasses.replace(episode, index=len(kept), spec=spec))
     return dataclasses.replace(
@@ -171,6 +174,13 @@ def smoke_form(
         episodes=tuple(kept),
         brains=tuple(b for b in matrix.brains if wanted is None or b.label in wanted),
     )
+
+
+def _is_bm_brain(entry: BrainEntry) -> bool:
+    """A Behavior Metrics brain file (its path, or ``behavior_metrics`` with ``file=``)."""
+    from brains.registry import BEHAVIOR_METRICS, is_brain_file
+
+    return is_brain_file(entry.brain) or entry.brain == BEHAVIOR_METRICS
 
 
 def _kept(seen: list, item: Any, limit: int) -> bool:

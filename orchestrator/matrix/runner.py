@@ -632,6 +632,24 @@ def summary_line(progress: MatrixProgress, out_dir: Path) -> str:
     )
 
 
+NEVER_MOVED_M = 1.0  # a smoke episode is seconds of driving at metres per second: under a metre is standing still
+
+
+def never_moved(progress: MatrixProgress) -> list[str]:
+    """One line per brain whose every finished episode of this session drove less than :data:`NEVER_MOVED_M`:
+    "done" says the stack ran, not that the brain drives (a brain that swallows its own errors sends nothing)."""
+    distances: dict[str, list[float]] = {}
+    for result in progress.finished:
+        if result.status == "done" and result.score is not None:
+            distances.setdefault(result.brain, []).append(result.score.metrics.completed_distance_m)
+    return [
+        f"{brain} never moved: at most {max(metres):.2f} m in each of its {len(metres)} episode(s); read its log "
+        "(a brain that catches its own errors drives nothing)"
+        for brain, metres in distances.items()
+        if max(metres) < NEVER_MOVED_M
+    ]
+
+
 def plan_table(matrix: Matrix) -> str:
     """The planned episodes, one per line (``drivebench matrix FILE --plan``)."""
     lines = [f"{matrix.name}: {len(matrix.episodes)} episode(s)"]
@@ -654,6 +672,7 @@ __all__ = [
     "MatrixProgress",
     "ProgressDisplay",
     "summary_line",
+    "never_moved",
     "plan_table",
     "plan_json",
 ]
