@@ -331,9 +331,7 @@ def unknown_keys(data: Any, type_: Any, *, path: Path = (), what: str = "the fil
     if get_origin(chosen) is dict:
         item_type = _dict_types(chosen)[1]
         return [
-            fault
-            for key, item in data.items()
-            for fault in unknown_keys(item, item_type, path=(*path, key), what=what)
+            fault for key, item in data.items() for fault in unknown_keys(item, item_type, path=(*path, key), what=what)
         ]
     if not _is_struct(chosen) or sum(map(_is_struct, _members(type_))) > 1:
         return []  # a tagged union: msgspec picks the member by its tag and reports that member's keys itself
