@@ -267,6 +267,23 @@ def test_config_with_the_options_it_replaces_is_refused_in_one_line(tmp_path, fl
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    ("flags", "words"),
+    [
+        (["--start-m", "100", "--variation", "start_m=200"], "--start-m 100 and --variation start_m=200 disagree"),
+        (
+            ["--direction", "reverse", "--variation", "line=white,direction=forward"],
+            "--direction reverse and --variation line=white,direction=forward disagree",
+        ),
+    ],
+)
+def test_an_option_and_a_variation_that_disagree_are_one_line(tmp_path, flags, words):
+    """Two ways of saying the start or the direction that say different things: refused, not the last one winning."""
+    line = one_error_line(drivebench("run", *flags, "--out", str(tmp_path / "run")))
+    assert line.startswith(f"drivebench: error: {words}"), line
+    assert not (tmp_path / "run").exists()
+
+
 RUNNABLE = re.compile(r"<!-- runnable -->\n```bash\n(.*?)```", re.S)
 
 

@@ -152,6 +152,10 @@ def test_bad_input_is_one_clear_error_and_the_env_goes_on():
         (dict(noise="sparkles=1"), "noise="),
         (dict(start="anywhere"), "start must be one of line, random, got 'anywhere'"),
         (dict(variation=["", "start_m=443"]), "variation='start_m=443': start_m must be >= 0 and below 442.836 m"),
+        (
+            dict(start="random", variation=["", "start_m=100"]),
+            "start='random' draws each episode's start, and variation='start_m=100' sets one: give one of them",
+        ),
         (dict(render_threads=0), "render_threads must be an integer >= 1, got 0"),
         (dict(render_threads=2, router="tcp/127.0.0.1:7447"), "render_threads=2 needs the environment's own stack"),
     ]:

@@ -126,7 +126,7 @@ def add(commands: argparse._SubParsersAction) -> None:
         choices=("forward", "reverse"),
         default="forward",
         help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
-        "way round (default: forward; also --variation direction=reverse)",
+        "way round (default: forward; or --variation direction=reverse, not both with other values)",
     )
     world.add_argument(
         "--start-m",
@@ -135,7 +135,7 @@ def add(commands: argparse._SubParsersAction) -> None:
         metavar="METRES",
         help="start the car this far along the circuit from its start line, in the driving direction, on the "
         "centre line facing along it; progress, laps and lap times count from there (default: 0, the start line; "
-        "below the circuit's length, drivebench circuits list; also --variation start_m=120)",
+        "below the circuit's length, drivebench circuits list; or --variation start_m=120, not both with other values)",
     )
     add_scene_options(world, renderer_default="$DRIVEBENCH_RENDERER, else pybullet")
     _add_noise_option(world)
@@ -321,6 +321,21 @@ def spec_flags(args: argparse.Namespace):
         raise UsageError(f"{where}: {error}") from None
 
 
+def refuse_disagreement(args: argparse.Namespace, spec: EpisodeSpec, *, variation: str) -> None:
+    """A typed ``--start-m`` or ``--direction`` that ``variation`` overrode with another value: two answers to one
+    question, refused (the variation used to win without a word)."""
+    typed = getattr(args, "config_replaced", [])
+    for option, typed_value, value in (
+        ("--start-m", args.start_m, spec.start_m),
+        ("--direction", args.direction, spec.direction),
+    ):
+        if option in typed and value != typed_value:
+            shown = f"{typed_value:g}" if isinstance(typed_value, float) else typed_value
+            raise UsageError(
+                f"{option} {shown} and --variation {variation} disagree: say the {option.removeprefix('--')} once"
+            )
+
+
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     with flag(f"--circuit {args.circuit}"):
         load_circuit(args.circuit)
@@ -350,6 +365,7 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     for variation in args.variation:
         with flag(f"--variation {variation}"):
             spec = apply_variation(spec, variation)
+        refuse_disagreement(args, spec, variation=variation)
     # After the variations: they may turn the circuit round or move the start.
     with flag(f"--start-m {args.start_m:g}" if spec.start_m == args.start_m else "--variation start_m"):
         load_circuit(spec.circuit, direction=spec.direction).check_start_m(spec.start_m)
