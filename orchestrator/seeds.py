@@ -3,8 +3,10 @@
 ``drivebench train --model M --data D -o OUT --seeds 0-4 [--workers 2]`` runs ``drivebench train ... --seed S -o
 OUT/seed-S`` for every seed, side by side on ``--workers`` processes, and keeps ``OUT/training.json``: the recipe (the
 command's options), the dataset's manifest hash, and per seed its folder, checkpoint, best epoch and wall time. Run
-it again and finished seeds are kept, interrupted ones resume from their ``last.ckpt``, and the rest start. A matrix
-then names every run with one glob: ``weights: OUT/seed-*/model.ckpt``.
+it again and finished seeds are kept, interrupted ones resume from their ``last.ckpt``, and the rest start; with
+another recipe (or another dataset) it refuses, naming the difference (:func:`check_recipe`), as ``matrix --resume``
+does, so every seed of a folder is one recipe's. A matrix then names every run with one glob:
+``weights: OUT/seed-*/model.ckpt``.
 """
 
 from __future__ import annotations
@@ -14,7 +16,6 @@ import json
 import subprocess
 import sys
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,10 @@ MAX_SEEDS = 1000
 
 class SeedsError(ValueError):
     """A seed list that cannot be trained (``--seeds 4-0``): one line."""
+
+
+class RecipeChangedError(ValueError):
+    """``--seeds`` over a folder whose seeds were trained with another recipe or dataset: one line."""
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
@@ -131,16 +136,21 @@ def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
     log(f"seed {seed}: {'resuming' if resume else 'training'} -> {folder} (log: {log_path})")
     command = [sys.executable, "-P", "-m", "orchestrator.cli", "train", *recipe, "--seed", str(seed)]
     command += ["-o", str(folder), *resume]
-    started = time.monotonic()
     with open(log_path, "ab") as out:
         code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     if code.returncode == 0 and finished(folder):
         run = done_run(seed, folder)
-        log(f"seed {seed}: done in {time.monotonic() - started:.0f} s, best epoch {run.best_epoch}")
+        log(f"seed {seed}: done in {_wall_text(run)}, best epoch {run.best_epoch}")
         return run
     status = "interrupted" if code.returncode in (130, -2) else "failed"
     log(f"seed {seed}: {status} (exit {code.returncode}); see {log_path}")
     return SeedRun(seed=seed, folder=folder, status=status, log=log_path)
+
+
+def _wall_text(run: SeedRun) -> str:
+    """The training's own wall time (every session of it, as ``training.json``'s ``wall_s``): one definition, so the
+    console and the manifest agree; the process's start-up (imports, loading the dataset) is not in it."""
+    return "?" if run.wall_s is None else f"{run.wall_s:.1f} s"
 
 
 def finished(folder: Path) -> bool:
@@ -162,6 +172,70 @@ def done_run(seed: int, folder: Path) -> SeedRun:
         best_epoch=checkpoint.metrics.get("best_epoch"),
         wall_s=float(wall) if isinstance(wall, (int, float)) else None,
     )
+
+
+def check_recipe(output: Path, *, recipe: list[str], data: Path) -> None:
+    """Refuse (:class:`RecipeChangedError`, one line naming each difference) to train into ``output`` with another
+    recipe or dataset than its ``training.json`` records: kept seeds and new ones would differ in more than the seed,
+    and the manifest would describe runs it did not make. An unchanged recipe, with seeds added or not, passes."""
+    path = output / MANIFEST_FILE
+    if not path.is_file():
+        return
+    try:
+        before = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise RecipeChangedError(f"{path}: not a training manifest ({error}); train into another -o folder") from None
+    differences = recipe_differences(before.get("recipe") or [], recipe, same_data=_same_data(before, data))
+    stored_hash, hash_now = before.get("data_manifest_sha256"), _manifest_hash(data)
+    if stored_hash and hash_now and stored_hash != hash_now:
+        differences.append(f"the dataset's manifest.json changed (sha256 {stored_hash[:12]}, now {hash_now[:12]})")
+    if differences:
+        raise RecipeChangedError(
+            f"{path}: these seeds were trained with another recipe ({'; '.join(differences)}); train with the "
+            "recipe as it was, or into another -o folder"
+        )
+
+
+def recipe_differences(before: list[str], now: list[str], *, same_data: bool = False) -> list[str]:
+    """Each option that differs between two recipes, as ``--epochs was 1, now 3`` / ``--no-augment was absent, now
+    given``; ``--data`` is left out when ``same_data`` (the same folder written another way)."""
+    old, new = _options(before), _options(now)
+    differences = []
+    for flag in dict.fromkeys([*old, *new]):
+        if old.get(flag) == new.get(flag) or (flag == "--data" and same_data):
+            continue
+        differences.append(f"{flag} was {_shown(old.get(flag))}, now {_shown(new.get(flag))}")
+    return differences
+
+
+def _options(recipe: list[str]) -> dict[str, tuple[str, ...]]:
+    """``["--epochs", "3", "--hyper=a=1", "--no-augment"]`` -> {"--epochs": ("3",), "--hyper": ("a=1",),
+    "--no-augment": ()}: repeated options keep every value, in order."""
+    options: dict[str, tuple[str, ...]] = {}
+    index = 0
+    while index < len(recipe):
+        flag, equals, value = recipe[index].partition("=")
+        if equals:
+            options[flag] = (*options.get(flag, ()), value)
+        elif index + 1 < len(recipe) and not recipe[index + 1].startswith("--"):
+            options[flag] = (*options.get(flag, ()), recipe[index + 1])
+            index += 1
+        else:
+            options[flag] = ()
+        index += 1
+    return options
+
+
+def _shown(values: tuple[str, ...] | None) -> str:
+    if values is None:
+        return "absent"
+    return " ".join(values) if values else "given"
+
+
+def _same_data(before: dict[str, Any], data: Path) -> bool:
+    """The recorded ``--data`` is this folder: the same path, resolved (a Ray run records it absolute)."""
+    recorded = before.get("data")
+    return isinstance(recorded, str) and Path(recorded).resolve() == data.resolve()
 
 
 def _manifest_hash(data: Path) -> str | None:

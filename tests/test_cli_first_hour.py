@@ -251,6 +251,79 @@ def test_a_config_file_reports_every_mistake_at_once_with_its_line(tmp_path):
     )
 
 
+def test_a_config_file_refuses_every_unknown_key_and_range_at_its_own_line_all_at_once(tmp_path):
+    """A misspelt key is a mistake at every level (msgspec ignores unknown keys of an episode spec), and a value out
+    of range is reported at its line, not at the episode's; every mistake of the file in one answer."""
+    path = tmp_path / "config.yaml"
+    path.write_text(
+        "run_id: abc\n"  # 1
+        "episode:\n"  # 2
+        "  circuit: simple\n"  # 3
+        "  lpas: 5\n"  # 4
+        "  sead: 7\n"  # 5
+        "  laps: -3\n"  # 6
+        "  camera:\n"  # 7
+        "    widht_px: 640\n"  # 8
+        "    height_px: 2\n"  # 9
+        "  realtme: true\n"  # 10
+        "brians: []\n"  # 11
+        "brains:\n"  # 12
+        "  - {brain: explicit}\n"  # 13
+    )
+    result = drivebench("run", "--config", str(path), timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    lines = result.stderr.strip().removeprefix("drivebench: error: ").splitlines()
+    expected = [
+        (4, "unknown key 'lpas' in episode"),
+        (5, "unknown key 'sead' in episode"),
+        (6, "episode.laps must be >= 1, got -3"),
+        (8, "unknown key 'widht_px' in episode.camera"),
+        (9, "episode.camera.height_px must be within 8..4096, got 2"),
+        (10, "unknown key 'realtme' in episode"),
+        (11, "unknown key 'brians' in the run config"),
+    ]
+    assert len(lines) == len(expected), result.stderr
+    for line, (number, message) in zip(lines, expected, strict=True):
+        assert line.startswith(f"--config {path}:{number}: {message}"), (line, number, message)
+    assert "did you mean 'laps'" in lines[0] and "did you mean 'brains'" in lines[-1]
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--max-sim-seconds", "3", "--seed", "5", "--circuit", "montmelo", "--brain", "constant"],
+        ["--seed", "0"],  # the default's value, typed: the file may say another
+        ["--variation", "line=white"],
+    ],
+)
+def test_config_with_the_options_it_replaces_is_refused_in_one_line(tmp_path, flags):
+    """``run --config X`` drives the file's episode and brains: an option of the world, brain or episode groups beside
+    it would be ignored, so it is refused, naming each option typed, before anything starts."""
+    path = tmp_path / "config.yaml"
+    path.write_text("episode: {circuit: simple, seed: 7}\nbrains:\n  - {brain: explicit}\n")
+    line = one_error_line(drivebench("run", "--config", str(path), *flags, "--out", str(tmp_path / "run")))
+    typed = [flag for flag in flags if flag.startswith("--")]
+    assert line.startswith(f"drivebench: error: --config {path} runs the file as it is: {', '.join(typed)}"), line
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "words"),
+    [
+        (["--start-m", "100", "--variation", "start_m=200"], "--start-m 100 and --variation start_m=200 disagree"),
+        (
+            ["--direction", "reverse", "--variation", "line=white,direction=forward"],
+            "--direction reverse and --variation line=white,direction=forward disagree",
+        ),
+    ],
+)
+def test_an_option_and_a_variation_that_disagree_are_one_line(tmp_path, flags, words):
+    """Two ways of saying the start or the direction that say different things: refused, not the last one winning."""
+    line = one_error_line(drivebench("run", *flags, "--out", str(tmp_path / "run")))
+    assert line.startswith(f"drivebench: error: {words}"), line
+    assert not (tmp_path / "run").exists()
+
+
 RUNNABLE = re.compile(r"<!-- runnable -->\n```bash\n(.*?)```", re.S)
 
 

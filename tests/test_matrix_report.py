@@ -415,3 +415,23 @@ def test_an_episode_started_along_the_circuit_is_marked_where_it_started(report)
         _draw_episode(ax, moved, path, colour_by="speed", cmap="viridis", norm=None)
         markers[start_m] = [(line.get_xdata()[0], line.get_ydata()[0]) for line in ax.lines if line.get_marker() == "o"]
     assert markers == {0.0: [], 120.0: [(3.0, 7.0)]}  # the start line has its own mark (the track's arrow)
+
+
+@pytest.mark.parametrize("direction", ["forward", "reverse"])
+def test_a_maps_start_arrow_points_the_way_its_episodes_drove(direction):
+    """The legend says the arrow is the driving direction: on a panel of reverse episodes it points the other way
+    round from the start line, as the reverse circuit's own start pose faces."""
+    from matplotlib.figure import Figure
+
+    from orchestrator.report.plots import _draw_track, _map_layout
+    from orchestrator.report.trajectories import _Track
+
+    track = _Track(load_circuit("simple"))
+    data = {"a": (track.points[:, 0], track.points[:, 1], np.ones(len(track.points)), np.zeros(len(track.points)))}
+    ax = Figure().add_subplot()
+    _draw_track(ax, track, layout=_map_layout(data, track, panels=1), directions=(direction,))
+    (arrow,) = [text for text in ax.texts if getattr(text, "arrow_patch", None) is not None]
+    (head_x, head_y), (tail_x, tail_y) = arrow.xy, arrow.xyann
+    x_m, y_m, heading_rad = load_circuit("simple", direction=direction).centreline.pose_at(0.0)
+    assert (tail_x, tail_y) == pytest.approx((x_m, y_m))
+    assert math.atan2(head_y - tail_y, head_x - tail_x) == pytest.approx(heading_rad)

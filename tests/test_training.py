@@ -453,6 +453,30 @@ def test_seeds_train_one_run_each_with_a_manifest_and_a_rerun_keeps_them(dataset
     assert_same_tensors(state_dict(out / "seed-1" / "model.ckpt"), weights[1])  # the same seed trains the same
 
 
+@pytest.mark.slow
+def test_seeds_refuse_a_changed_recipe_and_say_the_wall_time_the_manifest_keeps(datasets, tmp_path):
+    """A folder's seeds all share one recipe: another --epochs or --model over it is one line naming the difference
+    (exit 2), training.json stays as it was, and no seed starts; the console's time is training.json's wall_s."""
+    out = tmp_path / "R"
+    first = train_seeds(datasets["crop"], out, "--seeds", "0")
+    assert first.returncode == 0, first.stderr[-2000:]
+    manifest = (out / "training.json").read_text()
+    wall_s = json.loads(manifest)["runs"][0]["wall_s"]
+    assert f"seed 0: done in {wall_s:.1f} s" in first.stderr, first.stderr  # one definition, both places
+    for extra, difference in (
+        (["--epochs", "3"], "--epochs was 1, now 3"),
+        (["--model", "pilotnet"], f"--model was {TINY}, now pilotnet"),
+        (["--no-augment"], "--no-augment was absent, now given"),
+    ):
+        changed = train_seeds(datasets["crop"], out, "--seeds", "0-1", *extra)
+        assert changed.returncode == 2 and difference in changed.stderr, changed.stderr
+        assert len(changed.stderr.strip().splitlines()) == 1 and "another -o folder" in changed.stderr
+        assert (out / "training.json").read_text() == manifest and not (out / "seed-1").exists()
+    added = train_seeds(datasets["crop"], out, "--seeds", "0-1")  # the same recipe, one seed more: kept + trained
+    assert added.returncode == 0 and "seed 0: already trained" in added.stderr, added.stderr[-2000:]
+    assert [run["seed"] for run in json.loads((out / "training.json").read_text())["runs"]] == [0, 1]
+
+
 @pytest.mark.parametrize(
     ("seeds", "message"),
     [

@@ -55,9 +55,10 @@ class LaneFollowEnv(gym.Env):
 
     ``terminated``: crash, off track, or the lap target (``laps``) reached. ``truncated``: ``max_episode_s`` of
     simulated time passed (or the stack cut the episode short). ``info``: progress, lateral offset, simulated time
-    and the command every step, and where the episode started (``start_m``); with ``live_metrics`` the scorer's
-    newest live metrics (these arrive on wall-clock time, so they are the one part of a step that is not
-    reproducible); at the end ``end_reason`` and ``score``, the scorer's metrics of the episode (the same as
+    and the command every step, and where the episode started (``start_m``); with ``live_metrics=True`` (off by
+    default) the scorer's newest live metrics of this episode (they arrive on wall-clock time, one or more steps
+    late, so with them the same seed and actions no longer give the same info: Gymnasium's ``check_env`` fails);
+    at the end ``end_reason`` and ``score``, the scorer's metrics of the episode (the same as
     ``drivebench run``'s).
 
     ``reset(seed=...)`` draws the circuit (from the ``circuit`` list; ``"random:*"`` or ``"twisty:*"`` in it is a
@@ -91,7 +92,7 @@ class LaneFollowEnv(gym.Env):
         step_s: float = 0.05,
         smoothness: float = 0.1,
         crash_penalty: float = 10.0,
-        live_metrics: bool = True,
+        live_metrics: bool = False,
         router: str | None = None,
         run_id: str | None = None,
         step_timeout_s: float = 600.0,

@@ -96,6 +96,18 @@ def check_starts(circuits: tuple[str, ...], *, variations: tuple[str, ...], spec
                 raise ValueError(f"variation={text!r}: {error}") from None
 
 
+def check_one_start(start: str, *, variations: tuple[str, ...], specs: tuple[EpisodeSpec, ...]) -> None:
+    """``start="random"`` and a variation's ``start_m`` are two answers to where the car starts (the random draw
+    used to win without a word): ValueError naming both."""
+    if start != "random":
+        return
+    for text, spec in zip(variations, specs):
+        if spec.start_m:
+            raise ValueError(
+                f"start='random' draws each episode's start, and variation={text!r} sets one: give one of them"
+            )
+
+
 def base_specs(*, variations: tuple[str, ...], camera: Any, renderer: str, noise: Any, **spec_fields) -> tuple:
     """One base spec per variation; ValueError naming the argument on any bad value."""
     try:
@@ -138,6 +150,7 @@ def env_options(
     variations = as_names(variation, what="variation")
     specs = base_specs(variations=variations, camera=camera, renderer=renderer, noise=noise, **spec_fields)
     check_starts(circuits, variations=variations, specs=specs)
+    check_one_start(start, variations=variations, specs=specs)
     return EnvOptions(
         circuits=circuits,
         specs=specs,

@@ -19,6 +19,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import yaml
@@ -39,7 +40,17 @@ from orchestrator.stack.progress import EpisodeProgress
 from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.deploy import typed_yaml
-from protocol.messages import RENDERERS, CameraSpec, EndReason, EpisodeScore, EpisodeSpec
+from protocol.messages import (
+    CAMERA_BOUNDS,
+    DIRECTIONS,
+    RENDERERS,
+    SPEC_BOUNDS,
+    CameraSpec,
+    EndReason,
+    EpisodeScore,
+    EpisodeSpec,
+)
+from protocol.suggest import did_you_mean
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
@@ -120,7 +131,7 @@ def add(commands: argparse._SubParsersAction) -> None:
         choices=("forward", "reverse"),
         default="forward",
         help="forward: the circuit's own direction (clockwise for the built-ins); reverse: the other "
-        "way round (default: forward; also --variation direction=reverse)",
+        "way round (default: forward; or --variation direction=reverse, not both with other values)",
     )
     world.add_argument(
         "--start-m",
@@ -129,7 +140,7 @@ def add(commands: argparse._SubParsersAction) -> None:
         metavar="METRES",
         help="start the car this far along the circuit from its start line, in the driving direction, on the "
         "centre line facing along it; progress, laps and lap times count from there (default: 0, the start line; "
-        "below the circuit's length, drivebench circuits list; also --variation start_m=120)",
+        "below the circuit's length, drivebench circuits list; or --variation start_m=120, not both with other values)",
     )
     add_scene_options(
         world,
@@ -138,13 +149,43 @@ def add(commands: argparse._SubParsersAction) -> None:
     )
     run.set_defaults(camera=None)  # None: camera_of chooses, by the brain
     _add_noise_option(world)
-    _add_brain_options(run.add_argument_group("brain", "who drives, and who watches"))
-    _add_episode_options(run.add_argument_group("episode", "limits, seed and pacing"))
+    brain = run.add_argument_group("brain", "who drives, and who watches")
+    _add_brain_options(brain)
+    episode = run.add_argument_group("episode", "limits, seed and pacing")
+    _add_episode_options(episode)
+    record_given(action for group in (world, brain, episode) for action in group._group_actions)
     output = run.add_argument_group("output", "the run folder, what is printed and recorded")
     _add_run_folder_options(output)
     _add_output_options(output)
     _add_attach_options(run.add_argument_group("attach", "drive on a stack that is already running"))
     run.set_defaults(func=command_run)
+
+
+class _Given:
+    """An action that also notes the option as typed in ``args.config_replaced``: ``--config`` replaces these, and
+    one typed with its default's value (``--seed 0``) would be ignored as silently as another."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        namespace.config_replaced = [*getattr(namespace, "config_replaced", []), option_string]
+        super().__call__(parser, namespace, values, option_string)  # type: ignore[misc]
+
+
+def record_given(actions) -> None:
+    """Make each of ``actions`` (but ``--config``'s) note itself when typed (:class:`_Given`)."""
+    for action in actions:
+        if action.dest != "config":
+            action.__class__ = type(f"Given{type(action).__name__}", (_Given, type(action)), {})
+
+
+def refuse_replaced_options(args: argparse.Namespace) -> None:
+    """``--config`` drives the file's episode and brains as they are: an option it replaces is refused, not
+    dropped (``--seed 5`` beside it once drove seed 0 without a word)."""
+    typed = list(dict.fromkeys(getattr(args, "config_replaced", [])))
+    if args.config is not None and typed:
+        raise UsageError(
+            f"--config {args.config} runs the file as it is: {', '.join(typed)} would be ignored; edit the file "
+            "(its episode and brains), or run without --config"
+        )
 
 
 def _add_brain_options(run: argparse._ActionsContainer) -> None:
@@ -184,7 +225,7 @@ def _add_episode_options(run: argparse._ActionsContainer) -> None:
         type=Path,
         metavar="RUN/config.yaml",
         help="run the episode and brains of an earlier run again, exactly (its config.yaml); the options of the "
-        "world, brain and episode groups are then not taken",
+        "world, brain and episode groups are refused beside it (edit the file instead)",
     )
     run.add_argument("--laps", type=int, default=1, help="lap target (default: 1)")
     run.add_argument("--max-sim-seconds", type=float, default=300.0, help="simulated-time limit (default: 300)")
@@ -320,6 +361,21 @@ def camera_of(args: argparse.Namespace) -> tuple[int, int]:
     return tuple(args.camera)
 
 
+def refuse_disagreement(args: argparse.Namespace, spec: EpisodeSpec, *, variation: str) -> None:
+    """A typed ``--start-m`` or ``--direction`` that ``variation`` overrode with another value: two answers to one
+    question, refused (the variation used to win without a word)."""
+    typed = getattr(args, "config_replaced", [])
+    for option, typed_value, value in (
+        ("--start-m", args.start_m, spec.start_m),
+        ("--direction", args.direction, spec.direction),
+    ):
+        if option in typed and value != typed_value:
+            shown = f"{typed_value:g}" if isinstance(typed_value, float) else typed_value
+            raise UsageError(
+                f"{option} {shown} and --variation {variation} disagree: say the {option.removeprefix('--')} once"
+            )
+
+
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     with flag(f"--circuit {args.circuit}"):
         load_circuit(args.circuit)
@@ -349,6 +405,7 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     for variation in args.variation:
         with flag(f"--variation {variation}"):
             spec = apply_variation(spec, variation)
+        refuse_disagreement(args, spec, variation=variation)
     # After the variations: they may turn the circuit round or move the start.
     with flag(f"--start-m {args.start_m:g}" if spec.start_m == args.start_m else "--variation start_m"):
         load_circuit(spec.circuit, direction=spec.direction).check_start_m(spec.start_m)
@@ -374,6 +431,7 @@ def command_run(args: argparse.Namespace) -> int:
         return command_run_attached(args)
     if args.router is not None:
         raise UsageError("--router needs --attach (without it, drivebench run starts its own router)")
+    refuse_replaced_options(args)
     spec, brains = run_from_config(args.config) if args.config else run_from_options(args)
     try:
         preflight_launches(brains)  # bad weights or options: one line now, not a dead brain after start-up
@@ -462,10 +520,11 @@ class BrainEntry(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     host: list[str] = []
 
 
-class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=False):
-    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched (its other
-    keys, the run id, are for reading)."""
+class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched (the run
+    id is for reading: a run of the file gets its own)."""
 
+    run_id: Any = None
     episode: EpisodeSpec
     brains: list[BrainEntry]
 
@@ -477,15 +536,39 @@ def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
         raise UsageError(f"--config {path}: no such file")
     try:
         document = typed_yaml.compose(path.read_text(), source=f"--config {path}")
-        config = typed_yaml.convert(document.data, RunConfig, document=document, what="the run config")
-        _check_run_config(config, document)
+        data = _note_value_mistakes(document)
+        config = document.attempt(typed_yaml.convert, data, RunConfig, document=document, what="the run config")
+        if config is not None:
+            _check_run_config(config, document)
+        document.raise_noted()
     except typed_yaml.FileError as error:
         raise UsageError(str(error)) from None
+    assert config is not None  # a config that did not convert noted why, and raise_noted raised it
     brains = [
         BrainLaunch(entry.brain, name=entry.name, options=tuple(entry.options), host=tuple(entry.host))
         for entry in config.brains
     ]
     return config.episode, brains
+
+
+def _note_value_mistakes(document: typed_yaml.Document) -> Any:
+    """Note what the types would not say at its own line: every unknown key, however deep (an episode spec reads
+    newer senders, so msgspec ignores its unknown keys: ``lpas: 5`` would run one lap), and each value out of its
+    range or choices (the spec checks them after decoding, the first only, at the episode's line). Returns the
+    data without them, for the type check to find the rest."""
+    faults = typed_yaml.unknown_keys(document.data, RunConfig, what="the run config")
+    episode = document.data.get("episode") if isinstance(document.data, dict) else None
+    faults += typed_yaml.bound_faults(episode, SPEC_BOUNDS, path=("episode",))
+    camera = episode.get("camera") if isinstance(episode, dict) else None
+    faults += typed_yaml.bound_faults(camera, CAMERA_BOUNDS, path=("episode", "camera"))
+    for name, choices in (("direction", DIRECTIONS), ("renderer", RENDERERS)):
+        value = episode.get(name, choices[0]) if isinstance(episode, dict) else choices[0]
+        if isinstance(value, str) and value not in choices:
+            message = f"episode.{name} must be one of {', '.join(choices)}, got {value!r}"
+            faults.append(typed_yaml.Fault(("episode", name), message + did_you_mean(value, choices)))
+    for fault in faults:
+        document.note(document.error(fault.path, fault.message, at_key=fault.at_key))
+    return typed_yaml.without(document.data, [fault.path for fault in faults])
 
 
 def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:

@@ -172,7 +172,7 @@ def recipe_options(args: argparse.Namespace) -> list[str]:
 
 def run_seeds(args: argparse.Namespace) -> int:
     """``train --seeds``: one run per seed (orchestrator.seeds), each its own ``drivebench train`` process."""
-    from orchestrator.seeds import SeedsError, parse_seeds, train_seeds
+    from orchestrator.seeds import RecipeChangedError, SeedsError, check_recipe, parse_seeds, train_seeds
 
     try:
         seeds = parse_seeds(args.seeds)
@@ -187,10 +187,15 @@ def run_seeds(args: argparse.Namespace) -> int:
     resources = _ray_resources(args)
     if args.ray is not None:
         args.data = args.data.resolve()  # the nodes read it at the same path, whatever their working folder
+    recipe = recipe_options(args)
+    try:
+        check_recipe(args.output, recipe=recipe, data=args.data)
+    except RecipeChangedError as error:
+        raise UsageError(str(error)) from None
     runs = train_seeds(
         seeds=seeds,
         output=args.output,
-        recipe=recipe_options(args),
+        recipe=recipe,
         data=args.data,
         workers=args.workers,
         ray_address=args.ray,

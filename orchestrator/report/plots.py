@@ -172,7 +172,8 @@ class ReportPlots:
         axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
         for ax, key in zip(axes.flat, panels.keys):
             if track is not None:
-                _draw_track(ax, track, layout=layout)
+                directions = sorted({r.spec.direction for r, _ in panels.groups[key]})
+                _draw_track(ax, track, layout=layout, directions=directions or ["forward"])
             for r, _ in panels.groups[key]:
                 _draw_episode(ax, r, data[r.key], colour_by=colour_by, cmap=cmap, norm=norm)
             condition = " · ".join(key[1:]) or "all conditions"
@@ -441,22 +442,26 @@ def _colour_scale(colour_by: str, *, data: dict):
     return Normalize(0.0, max(top_value, 1e-3)), "viridis", "speed (m/s)"
 
 
-def _draw_track(ax, track, *, layout: _MapLayout) -> None:
-    """Road edges, the dashed centre line, and the start with an arrow in the driving direction."""
+def _draw_track(ax, track, *, layout: _MapLayout, directions: Sequence[str] = ("forward",)) -> None:
+    """Road edges, the dashed centre line, and the start with an arrow in each driving direction of the panel's
+    episodes (``EpisodeSpec.direction``: a reverse episode leaves the same start line the other way round)."""
     for edge in (track.left_edge, track.right_edge):
         closed = np.vstack([edge, edge[:1]])
         ax.plot(closed[:, 0], closed[:, 1], color="0.55", lw=0.8, zorder=1)
     centre = np.vstack([track.points, track.points[:1]])
     ax.plot(centre[:, 0], centre[:, 1], color="0.75", lw=0.6, ls=(0, (4, 3)), zorder=1)
-    sx, sy, heading = track.circuit.centreline.pose_at(0.0)
-    arrow = 0.06 * max(layout.x1 - layout.x0, layout.y1 - layout.y0)  # the driving direction at the start
-    ax.annotate(
-        "",
-        xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
-        xytext=(sx, sy),
-        zorder=4,
-        arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
-    )
+    arrow = 0.06 * max(layout.x1 - layout.x0, layout.y1 - layout.y0)
+    for direction in dict.fromkeys(directions):
+        circuit = track.circuit.reversed() if direction == "reverse" else track.circuit
+        sx, sy, heading = circuit.centreline.pose_at(0.0)  # the reverse circuit's own start pose faces its way
+        ax.annotate(
+            "",
+            xy=(sx + arrow * math.cos(heading), sy + arrow * math.sin(heading)),
+            xytext=(sx, sy),
+            zorder=4,
+            arrowprops={"arrowstyle": "-|>", "color": "0.3", "lw": 1.0, "shrinkA": 0, "shrinkB": 0},
+        )
+    sx, sy, _ = track.circuit.centreline.pose_at(0.0)
     ax.plot([sx], [sy], marker="o", ms=5, mfc="white", mec="0.3", zorder=4)
 
 

@@ -22,6 +22,7 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
+from protocol.messages import bound_text
 from protocol.suggest import did_you_mean
 
 T = TypeVar("T")
@@ -312,6 +313,68 @@ def _without(data: Any, relative: Path) -> Any:
         child = _without(data[head], rest)
         return None if child is None else [*data[:head], child, *data[head + 1 :]]
     return None
+
+
+def unknown_keys(data: Any, type_: Any, *, path: Path = (), what: str = "the file") -> list[Fault]:
+    """Every key of ``data`` (at ``path``) that ``type_`` has no field for, however deep: msgspec ignores unknown
+    keys of a struct that does not forbid them (a wire type that must read newer senders), and stops at the first
+    of one that does; a file typed by hand wants each misspelt key named at its line."""
+    chosen = _choose(type_, data)
+    if isinstance(data, list):
+        return [
+            fault
+            for index, item in enumerate(data)
+            for fault in unknown_keys(item, _item_type(chosen), path=(*path, index), what=what)
+        ]
+    if not isinstance(data, dict):
+        return []
+    if get_origin(chosen) is dict:
+        item_type = _dict_types(chosen)[1]
+        return [
+            fault for key, item in data.items() for fault in unknown_keys(item, item_type, path=(*path, key), what=what)
+        ]
+    if not _is_struct(chosen) or sum(map(_is_struct, _members(type_))) > 1:
+        return []  # a tagged union: msgspec picks the member by its tag and reports that member's keys itself
+    names = _field_names(chosen, data)
+    faults = []
+    for key, item in data.items():
+        if key in names:
+            faults += unknown_keys(item, _field_type(chosen, key), path=(*path, key), what=what)
+            continue
+        subject = display(path) or what
+        message = f"unknown key {key!r} in {subject} (allowed: {', '.join(names)}){did_you_mean(key, names)}"
+        faults.append(Fault((*path, key), message, at_key=True))
+    return faults
+
+
+def bound_faults(data: Any, bounds: dict[str, msgspec.Meta], *, path: Path) -> list[Fault]:
+    """Each number of the mapping ``data`` (at ``path``) outside its bound in ``bounds``, at its own line: a struct
+    that checks its bounds in ``__post_init__`` fails as a whole, at the line of the mapping, and at the first only."""
+    if not isinstance(data, dict):
+        return []
+    faults = []
+    for name, bound in bounds.items():
+        value = data.get(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue  # a value of the wrong type is msgspec's to report
+        inside = (
+            (bound.ge is None or value >= bound.ge)
+            and (bound.gt is None or value > bound.gt)
+            and (bound.le is None or value <= bound.le)
+            and (bound.lt is None or value < bound.lt)
+        )
+        if not inside:
+            faults.append(Fault((*path, name), f"{display((*path, name))} must be {bound_text(bound)}, got {value}"))
+    return faults
+
+
+def without(data: Any, paths: Sequence[Path]) -> Any:
+    """A copy of ``data`` without the values at ``paths`` (each relative to ``data``), where they can be left out
+    (not a list's item itself: that would shift the others)."""
+    for relative in paths:
+        left = _without(data, relative)
+        data = data if left is None else left
+    return data
 
 
 def explain(error: msgspec.ValidationError, type_: Any, data: Any, *, path: Path = (), what: str = "the file") -> Fault:
