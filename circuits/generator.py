@@ -1,5 +1,5 @@
-"""Procedural circuits: ``random_circuit(seed)`` and ``twisty_circuit(seed)``, loaded by name as ``random:SEED`` and
-``twisty:SEED``.
+"""Procedural circuits: ``random_circuit(seed)``, ``twisty_circuit(seed)`` and ``grandprix_circuit(seed)``, loaded
+by name as ``random:SEED``, ``twisty:SEED`` and ``grandprix:SEED``.
 
 **random:SEED.**
 A candidate is a periodic cubic spline through 7-14 control points scattered around a circle: the points are
@@ -22,6 +22,18 @@ polygon of 7-11 corners scattered around a circle (deeper bays than the spline's
 radius 8.5-12 m tangent to both sides (rejected when two arcs do not fit on one side with a 4 m straight between).
 A typical one turns tighter than 15 m over a sixth of its lap (Montmelo: a fifth). The same checks and start
 rule as random:SEED apply.
+
+**grandprix:SEED.** Neither family has a real circuit's layout: over seeds 0-29 no random or twisty lap has two
+straights of 120 m (twisty's longest straight is 127 m, random's 50 m) nor a hairpin that turns more than 150
+degrees (``tests/test_circuits.py``). A grand prix circuit is drawn as a real one is, straights and corners: a
+long main straight (120-300 m) braking into a hairpin (radius 8.25-9.75 m, turning 160-180 degrees), then medium
+corners (4-9 of them over seeds 0-199; radius 14-40 m, one or two of them left-handers) with a chicane among them
+(a left-right or right-left pair of 30-60 degree bends of radius 8.5-12 m, 3-10 m of straight between), a short
+straight (12-70 m) into each corner, and a second long straight: the one heading most nearly back along the main
+straight. The corners turn one round clockwise; the straights are then stretched, each in proportion to its
+length, just enough to close the lap, and the candidate is kept when the long straights stay 120-300 m and none
+is under 6 m. The lap is 600-1500 m; the same checks (:data:`MIN_RADIUS_M`, :data:`MIN_GAP_M`, ``check_track``),
+start rule and resampling of candidates as random:SEED apply.
 """
 
 from __future__ import annotations
