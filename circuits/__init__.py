@@ -2,8 +2,9 @@
 
 from circuits.centreline import Centreline, Projection
 
-# Importing the generator registers random:SEED and twisty:SEED with the library (which must not import it).
-from circuits.generator import random_circuit, twisty_circuit
+# Importing the generator registers random:SEED, twisty:SEED and grandprix:SEED with the library (which must not
+# import it).
+from circuits.generator import grandprix_circuit, random_circuit, twisty_circuit
 from circuits.library import Circuit, CircuitError, circuit_names, load_circuit
 
 __all__ = [
@@ -11,6 +12,7 @@ __all__ = [
     "Circuit",
     "CircuitError",
     "Projection",
+    "grandprix_circuit",
     "circuit_names",
     "load_circuit",
     "random_circuit",

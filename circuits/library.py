@@ -9,6 +9,8 @@ Three kinds of names:
 * ``random:SEED``: a procedural circuit from :func:`circuits.generator.random_circuit`.
 * ``twisty:SEED``: a procedural circuit of straights and hairpins from
   :func:`circuits.generator.twisty_circuit`.
+* ``grandprix:SEED``: a procedural circuit laid out like a Grand Prix track (long straights, a hairpin, a chicane)
+  from :func:`circuits.generator.grandprix_circuit`.
 """
 
 from __future__ import annotations
@@ -34,7 +36,9 @@ from protocol.environment import CIRCUITS_DIR  # stdlib only: the one table of e
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
 TWISTY_PREFIX = "twisty:"
-GENERATED_NAMES = "random:SEED or twisty:SEED"
+GRANDPRIX_PREFIX = "grandprix:"
+GENERATED_PREFIXES = (RANDOM_PREFIX, TWISTY_PREFIX, GRANDPRIX_PREFIX)
+GENERATED_NAMES = "random:SEED, twisty:SEED or grandprix:SEED"
 # The generated families by name prefix, filled in by circuits.generator when the package is imported: the generator
 # builds on this module's geometry, so this module must not import it (no import cycle).
 GENERATORS: dict[str, Callable[[int], Circuit]] = {}
@@ -142,19 +146,19 @@ def user_circuit_names() -> list[str]:
 
 
 def circuit_names() -> list[str]:
-    """Every loadable circuit name but the generated ones (``random:SEED``, ``twisty:SEED``): built-ins and user
-    circuits, sorted."""
+    """Every loadable circuit name but the generated ones (``random:SEED``, ``twisty:SEED``, ``grandprix:SEED``):
+    built-ins and user circuits, sorted."""
     return sorted(set(builtin_circuit_names()) | set(user_circuit_names()))
 
 
 def is_circuit_name(name: str) -> bool:
-    """Whether :func:`load_circuit` knows ``name`` (without loading it): a built-in, a user circuit, random:SEED or
-    twisty:SEED."""
+    """Whether :func:`load_circuit` knows ``name`` (without loading it): a built-in, a user circuit, random:SEED,
+    twisty:SEED or grandprix:SEED."""
     return _generated_seed(name) is not None or name in circuit_names()
 
 
 def _generated_prefix(name: str) -> str | None:
-    return next((prefix for prefix in (RANDOM_PREFIX, TWISTY_PREFIX) if name.startswith(prefix)), None)
+    return next((prefix for prefix in GENERATED_PREFIXES if name.startswith(prefix)), None)
 
 
 def _generated_seed(name: str) -> int | None:
@@ -168,9 +172,9 @@ def _generated_seed(name: str) -> int | None:
 
 
 def load_circuit(name: str, *, direction: str = "forward") -> Circuit:
-    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED`` or ``twisty:SEED``;
-    ``direction="reverse"`` gives it
-    driven the other way round (:meth:`Circuit.reversed`), as an episode spec's ``direction`` asks.
+    """The circuit ``name``: a built-in, else a user circuit, else ``random:SEED``, ``twisty:SEED`` or
+    ``grandprix:SEED``; ``direction="reverse"`` gives it driven the other way round (:meth:`Circuit.reversed`), as
+    an episode spec's ``direction`` asks.
 
     :class:`CircuitError` names the known ones when it does not exist, and says what is wrong with a bad file.
     """

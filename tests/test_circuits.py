@@ -4,17 +4,20 @@ passes; user circuits are found by name; pictures; projection is exact and keeps
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import pytest
 
 from circuits import Centreline, Circuit, CircuitError, circuit_names, load_circuit
-from circuits.generator import random_circuit, twisty_circuit
+from circuits.generator import grandprix_circuit, random_circuit, twisty_circuit
 from circuits.library import (
+    GENERATORS,
     builtin_circuit_names,
     check_track,
     min_turn_radius_m,
+    resample_closed_polyline,
     signed_area_m2,
     turn_radii_m,
     user_circuits_dir,
@@ -228,12 +231,16 @@ def test_check_track_rejects_malformed_points():
 
 # -- random circuits --------------------------------------------------------------------------------------------------
 
-GENERATED_SEEDS = [("random:", seed) for seed in range(20)] + [("twisty:", seed) for seed in range(10)]
+GENERATED_SEEDS = (
+    [("random:", seed) for seed in range(20)]
+    + [("twisty:", seed) for seed in range(10)]
+    + [("grandprix:", seed) for seed in range(30)]  # every one of 30 seeds builds (MAX_ATTEMPTS candidates at most)
+)
 
 
 @pytest.mark.parametrize("prefix, seed", GENERATED_SEEDS)
 def test_generated_circuits_are_valid_and_deterministic(prefix, seed):
-    circuit = (random_circuit if prefix == "random:" else twisty_circuit)(seed)
+    circuit = GENERATORS[prefix](seed)
     again = load_circuit(f"{prefix}{seed}")
     assert circuit.name == again.name == f"{prefix}{seed}"
     np.testing.assert_array_equal(circuit.centreline.points_m, again.centreline.points_m)
@@ -250,6 +257,7 @@ def test_generated_circuits_are_valid_and_deterministic(prefix, seed):
 def test_random_circuits_differ_by_seed():
     assert random_circuit(1).length_m != random_circuit(2).length_m
     assert twisty_circuit(1).length_m != twisty_circuit(2).length_m
+    assert grandprix_circuit(1).length_m != grandprix_circuit(2).length_m
 
 
 def _tight_fraction(circuit) -> float:
@@ -265,13 +273,100 @@ def test_twisty_circuits_turn_tight_as_montmelo_does():
     assert twisty > 5 * spline
 
 
-@pytest.mark.parametrize("name", ["random:", "random:-1", "random:x", "random:1.5", "twisty:", "twisty:x"])
+@dataclass(frozen=True)
+class Bend:
+    """A stretch of a lap tighter than BEND_RADIUS_M: where it starts and ends (indices, end exclusive, may pass the
+    lap's end), its signed turn (> 0 left) and its smallest radius."""
+
+    start: int
+    end: int
+    turn_rad: float
+    min_radius_m: float
+
+
+STRAIGHT_RADIUS_M = 1000.0  # a stretch that bends less than this is a straight (arcs here are 40 m at most)
+BEND_RADIUS_M = 15.0
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, end) of each maximal run of True in a cyclic mask; end is exclusive and may exceed len(mask)."""
+    if mask.all():
+        return [(0, len(mask))]
+    shift = int(np.argmin(mask))  # a False: no run wraps past it
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.roll(mask, -shift).astype(int), [0]])))
+    return [(int(a) + shift, int(b) + shift) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _layout(circuit) -> tuple[list[float], list[Bend], float]:
+    """The lap's straights (m), its bends, and the spacing (m) of the points they index."""
+    points = resample_closed_polyline(circuit.centreline.points_m, step_m=0.5)
+    step_m = circuit.length_m / len(points)
+    radii = turn_radii_m(points)
+    sides = np.roll(points, -1, axis=0) - points
+    headings = np.arctan2(sides[:, 1], sides[:, 0])
+    turns = np.remainder(headings - np.roll(headings, 1) + np.pi, 2 * np.pi) - np.pi  # the turn at each point
+    straights = [(end - start) * step_m for start, end in _runs(radii > STRAIGHT_RADIUS_M)]
+    bends = []
+    for start, end in _runs(radii < BEND_RADIUS_M):
+        at = np.arange(start, end) % len(points)
+        bends.append(Bend(start, end, float(turns[at].sum()), float(radii[at].min())))
+    return straights, bends, step_m
+
+
+def _long_straights(circuit) -> int:
+    return sum(length >= 120.0 for length in _layout(circuit)[0])
+
+
+def _hairpins(circuit) -> list[Bend]:
+    """Bends tighter than 10 m that turn more than 150 degrees."""
+    return [b for b in _layout(circuit)[1] if b.min_radius_m < 10.0 and abs(b.turn_rad) > math.radians(150)]
+
+
+def _chicanes(circuit) -> int:
+    """Pairs of consecutive bends that turn opposite ways, each more than 20 degrees, at most 15 m apart."""
+    _, bends, step_m = _layout(circuit)
+    count = 0
+    for first, second in zip(bends, bends[1:] + bends[:1]):
+        gap_m = ((second.start - first.end) % round(circuit.length_m / step_m)) * step_m
+        turns_rad = (first.turn_rad, second.turn_rad)
+        if turns_rad[0] * turns_rad[1] < 0 and min(map(abs, turns_rad)) > math.radians(20) and gap_m <= 15.0:
+            count += 1
+    return count
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_grandprix_circuits_have_long_straights_a_hairpin_and_a_chicane(seed):
+    """What grandprix:SEED is for: a real circuit's layout at Behavior Metrics' scale."""
+    circuit = grandprix_circuit(seed)
+    assert 600.0 <= circuit.length_m <= 1500.0
+    assert _long_straights(circuit) >= 2
+    hairpins = _hairpins(circuit)
+    assert hairpins and all(hairpin.min_radius_m >= 8.0 - 1e-6 for hairpin in hairpins)
+    assert _chicanes(circuit) >= 1
+    # The start rule put the start on a straight: nothing within 15 m of it bends.
+    s = circuit.centreline.s_m
+    near_start = (s < 15.0) | (s > circuit.length_m - 15.0)
+    assert turn_radii_m(circuit.centreline.points_m)[near_start].min() > STRAIGHT_RADIUS_M
+
+
+@pytest.mark.parametrize("generator", [random_circuit, twisty_circuit])
+def test_the_other_families_lack_the_grandprix_layout(generator):
+    """Over seeds 0-29 no random or twisty lap has two straights of 120 m or a hairpin of over 150 degrees, which
+    every grandprix lap has: the family is a layout the training recipes (random: and twisty:) never drove."""
+    circuits = [generator(seed) for seed in range(30)]
+    assert [c.name for c in circuits if _long_straights(c) >= 2] == []
+    assert [c.name for c in circuits if _hairpins(c)] == []
+
+
+@pytest.mark.parametrize(
+    "name", ["random:", "random:-1", "random:x", "random:1.5", "twisty:", "twisty:x", "grandprix:", "grandprix:-3"]
+)
 def test_bad_generated_names_are_refused(name):
     with pytest.raises(CircuitError, match=f"{name.split(':')[0]}:SEED"):
         load_circuit(name)
 
 
-@pytest.mark.parametrize("generator", [random_circuit, twisty_circuit])
+@pytest.mark.parametrize("generator", [random_circuit, twisty_circuit, grandprix_circuit])
 def test_generated_circuit_wants_a_non_negative_integer(generator):
     with pytest.raises(CircuitError, match="non-negative integer"):
         generator(-1)

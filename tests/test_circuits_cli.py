@@ -75,6 +75,16 @@ def test_show_writes_a_picture(tmp_path, circuits_env):
     assert picture is not None and picture.shape[1] == 800
 
 
+def test_list_names_every_generated_family_and_show_draws_one(tmp_path, circuits_env):
+    listed = json.loads(drivebench("circuits", "list", "--json", env=circuits_env, timeout=60).stdout)
+    generated = {item["name"] for item in listed if item["length_m"] is None}
+    assert generated == {"random:SEED", "twisty:SEED", "grandprix:SEED"}
+    out = tmp_path / "gp.png"
+    result = drivebench("circuits", "show", "grandprix:3", "-o", str(out), env=circuits_env, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert cv2.imread(str(out)) is not None and "grandprix:3" in result.stderr
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("circuit", ["montmelo", "nurburgring"])
 def test_explicit_brain_completes_a_lap_over_zenoh(circuit, tmp_path):

@@ -1,7 +1,8 @@
 """Closed loop in one process, no bus: Scene.render -> ExplicitBrain.act -> integrate_unicycle, 20 Hz.
 
 The explicit brain must drive a full lap of Behavior Metrics' three test circuits (``simple``, ``montmelo``,
-``nurburgring``) at 320 x 240 without touching the walls.
+``nurburgring``) and of a generated Grand-Prix-like one (``grandprix:1``: 24 m/s straights braking into a 9 m
+hairpin, a chicane of 8.5-12 m bends) at 320 x 240 without touching the walls.
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ def drive(circuit: Circuit, camera: CameraSpec, *, max_sim_s: float, wall_margin
             image = scene.render(car, camera)
             action = brain.act(Observation(image_rgb=image, stamp_ns=round(step * STEP_S * 1e9), seq=step))
             car = integrate_unicycle(car, speed_mps=action.speed_mps, yaw_rate_radps=action.yaw_rate_radps, dt_s=STEP_S)
-            # The global nearest point is unambiguous on the built-in circuits (no two parts of any of them within
-            # 8 m of each other, see tests/test_circuits.py); the branch check below would catch a jump.
+            # The global nearest point is unambiguous on the built-in and generated circuits (no two parts of any of
+            # them within 8 m of each other, see tests/test_circuits.py); the branch check below would catch a jump.
             projection = centreline.project(car.x_m, car.y_m, near_s_m=None)
             advance = float(centreline.wrap_ds(projection.s_m - s_prev))
             assert abs(advance) < MAX_STEP_ADVANCE_M, f"projection jumped {advance:.2f} m at step {step}"
@@ -64,7 +65,7 @@ def drive(circuit: Circuit, camera: CameraSpec, *, max_sim_s: float, wall_margin
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["simple", "montmelo", "nurburgring"])
+@pytest.mark.parametrize("name", ["simple", "montmelo", "nurburgring", "grandprix:1"])
 def test_the_explicit_brain_drives_a_full_lap_at_320x240(name):
     circuit = load_circuit(name)
     margin_m = 0.2
@@ -79,5 +80,8 @@ def test_the_explicit_brain_drives_a_full_lap_at_320x240(name):
     assert result.completed, summary
     assert result.abs_lateral_m.max() <= circuit.road_half_width_m - margin_m, summary
     assert result.abs_lateral_m.mean() < 0.25, summary
-    # The speed logic is live: straight-mode bursts up to 24 m/s and the 7 m/s curve speed both occur.
-    assert result.speeds_mps.max() == pytest.approx(24.0) and result.speeds_mps.min() == pytest.approx(7.0)
+    # The speed logic is live: straight-mode bursts up to 24 m/s and the 7 m/s curve speed both occur. The slow-down
+    # rule may take straight mode below the curve speed, to 6.8 m/s at the lowest (v_mult 2.1 - 0.4; it only drops
+    # while v > 8), as it does on grandprix:1; on the built-ins the slowest is the curve speed.
+    assert result.speeds_mps.max() == pytest.approx(24.0) and np.any(np.isclose(result.speeds_mps, 7.0))
+    assert result.speeds_mps.min() >= (6.8 if name.startswith("grandprix:") else 7.0) - 1e-9

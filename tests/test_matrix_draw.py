@@ -66,6 +66,21 @@ def test_a_family_draw_never_gives_a_circuit_the_training_drove(tmp_path):
     assert generated and not held_out & set(generated)
 
 
+def test_the_grandprix_family_draws_grandprix_circuits_the_training_never_drove(tmp_path):
+    """A draw of ``circuits: [grandprix]`` gives loadable grandprix:SEED circuits, and holds out the ones a brain's
+    training data drove, as the other families do."""
+    from circuits import load_circuit
+
+    draw = "draw: {count: 4, seed: SEED, circuits: [grandprix], variations: {line: [red]}}"
+    plain = [circuit for _, circuit, _ in drawn(parse_matrix(matrix_text(brains="[explicit]", draw=draw)))]
+    assert len(set(plain)) == 4 and all(circuit.startswith("grandprix:") for circuit in plain)
+    assert all(load_circuit(circuit).length_m >= 600.0 for circuit in plain)
+    weights = trained_on(tmp_path, plain)
+    brains = f"[explicit, {{name: deepest_lstm_tiny_pilotnet, weights: {weights}}}]"
+    held_out = {circuit for _, circuit, _ in drawn(parse_matrix(matrix_text(brains=brains, draw=draw)))}
+    assert len(held_out) == 4 and not held_out & set(plain)
+
+
 def test_a_named_circuit_the_training_drove_is_refused_naming_both(tmp_path):
     weights = trained_on(tmp_path, ["montreal", "random:5"])
     brains = f"[explicit, {{name: deepest_lstm_tiny_pilotnet, label: tiny, weights: {weights}}}]"

@@ -74,16 +74,17 @@ def test_same_seed_and_actions_give_the_same_observations_and_rewards_bit_for_bi
     assert not np.array_equal(obs_a[0], obs_d[0])  # another seed: other noise
 
 
-def test_a_generated_circuit_is_drawn_from_the_seed():
-    env = gym.make(ENV_ID, circuit=["simple", "random:*"], **SMALL)
+@pytest.mark.parametrize("family", ["random", "grandprix"])
+def test_a_generated_circuit_is_drawn_from_the_seed(family):
+    env = gym.make(ENV_ID, circuit=["simple", f"{family}:*"], **SMALL)
     try:
-        names = [env.reset(seed=seed, options={"circuit": "random:*"})[1]["circuit"] for seed in (1, 2, 1)]
+        names = [env.reset(seed=seed, options={"circuit": f"{family}:*"})[1]["circuit"] for seed in (1, 2, 1)]
         _, info = env.reset(seed=1)
         with pytest.raises(ValueError, match="not one of"):
             env.reset(options={"circuit": "montmelo"})
     finally:
         env.close()
-    assert names[0] == names[2] != names[1] and all(name.startswith("random:") for name in names)
+    assert names[0] == names[2] != names[1] and all(name.startswith(f"{family}:") for name in names)
     assert info["circuit"] in ("simple", names[0])
 
 

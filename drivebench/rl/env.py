@@ -61,13 +61,14 @@ class LaneFollowEnv(gym.Env):
     at the end ``end_reason`` and ``score``, the scorer's metrics of the episode (the same as
     ``drivebench run``'s).
 
-    ``reset(seed=...)`` draws the circuit (from the ``circuit`` list; ``"random:*"`` or ``"twisty:*"`` in it is a
-    new generated circuit each time it is drawn), the variation (from the ``variation`` list) and the episode seed
-    (which seeds the noise) from ``seed``; ``options={"circuit": ..., "variation_index": ...}``
-    choose them instead. Where the car starts (``EpisodeSpec.start_m``, metres along the circuit in driving order):
-    ``start="line"``, the start line (or a variation's ``start_m``); ``start="random"``, drawn uniformly over the
-    circuit's length from ``seed`` too; ``options={"start_m": ...}`` chooses it (a ValueError naming the circuit's
-    length when it is not on the circuit). The reward's progress, and the lap target, count from there.
+    ``reset(seed=...)`` draws the circuit (from the ``circuit`` list; ``"random:*"``, ``"twisty:*"`` or
+    ``"grandprix:*"`` in it is a new generated circuit each time it is drawn), the variation (from the ``variation``
+    list) and the episode seed (which seeds the noise) from ``seed``;
+    ``options={"circuit": ..., "variation_index": ...}`` choose them instead. Where the car starts
+    (``EpisodeSpec.start_m``, metres along the circuit in driving order): ``start="line"``, the start line (or a
+    variation's ``start_m``); ``start="random"``, drawn uniformly over the circuit's length from ``seed`` too;
+    ``options={"start_m": ...}`` chooses it (a ValueError naming the circuit's length when it is not on the
+    circuit). The reward's progress, and the lap target, count from there.
 
     ``render_threads``: llvmpipe threads of the environment's own simulator (renderer "gl"): 1, since a vector env
     runs a stack per environment; one environment alone on a machine may take its cores (same frames, faster).

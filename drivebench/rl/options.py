@@ -64,7 +64,11 @@ def value_range(value: Any, *, what: str) -> tuple[float, float]:
     return low, high
 
 
-GENERATED = ("random:*", "twisty:*")  # a fresh generated circuit per episode, its seed drawn from reset's seed
+GENERATED = (
+    "random:*",
+    "twisty:*",
+    "grandprix:*",
+)  # a fresh generated circuit per episode, its seed drawn from reset's seed
 
 
 def start_m_option(value: Any, circuit: Circuit) -> float:

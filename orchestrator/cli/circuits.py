@@ -17,7 +17,7 @@ def add(commands: argparse._SubParsersAction) -> None:
     listing = circuit_commands.add_parser("list", help="every circuit: name, lap length, road width, source")
     listing.add_argument("--json", action="store_true", help="one JSON array on stdout instead of the table")
     show = circuit_commands.add_parser("show", help="a top-down picture of a circuit (start point and direction)")
-    show.add_argument("name", help="circuit name (also random:SEED, twisty:SEED)")
+    show.add_argument("name", help="circuit name (also random:SEED, twisty:SEED, grandprix:SEED)")
     show.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
     show.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
     importer = circuit_commands.add_parser(
@@ -33,6 +33,12 @@ def add(commands: argparse._SubParsersAction) -> None:
 GENERATED = (
     ("random:SEED", "400-1500", "3.0", "generated from the seed: a spline, gentle bends"),
     ("twisty:SEED", "400-1500", "3.0", "generated from the seed: straights and 8.5-12 m hairpins"),
+    (
+        "grandprix:SEED",
+        "600-1500",
+        "3.0",
+        "generated from the seed: a Grand Prix layout: 120-300 m straights, an 8.25-9.75 m hairpin, a chicane",
+    ),
 )
 
 

@@ -6,12 +6,12 @@ A fixed list of cells tests what its author thought of; a draw tests conditions 
       draw:
         count: 20                   # distinct (circuit, world) conditions
         seed: 7                     # the same seed draws the same conditions
-        circuits: [random, twisty, montreal, nurburgring]   # generator families and/or named circuits
+        circuits: [random, twisty, grandprix, montreal]   # generator families and/or named circuits
         variations: {line: [red, white, none], road: [grey, white]}   # each condition draws one value per key
 
-Each condition picks one entry of ``circuits`` uniformly; a family (``random``, ``twisty``) becomes a circuit of
-that family with a drawn seed, a name stays itself. Then one value of each variation key. Every brain meets every
-drawn condition (paired), under each perturbation and repetition of the part.
+Each condition picks one entry of ``circuits`` uniformly; a family (``random``, ``twisty``, ``grandprix``) becomes
+a circuit of that family with a drawn seed, a name stays itself. Then one value of each variation key. Every brain
+meets every drawn condition (paired), under each perturbation and repetition of the part.
 
 Held out means held out: a circuit that a brain's checkpoint lists among the circuits its training data drove
 (``dataset.circuits``, written by ``drivebench train``) is refused when named, and never drawn from a family.
@@ -30,7 +30,7 @@ from orchestrator.matrix.schema import Draw, items, text_at
 from protocol.deploy.typed_yaml import Document
 from protocol.deploy.typed_yaml import Path as At
 
-FAMILIES = ("random", "twisty")  # circuits generated from a seed (circuits.library)
+FAMILIES = ("random", "twisty", "grandprix")  # circuits generated from a seed (circuits.library)
 _FAMILY_SEEDS = (1000, 100_000)  # drawn generator seeds; the shipped recipes train on seeds below 1000
 _TRIES_PER_CONDITION = 50
 

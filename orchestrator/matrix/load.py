@@ -5,7 +5,7 @@ A matrix file::
 
     name: generalization                      # default: the file's stem; letters, digits, _ . - (a folder name)
     brains: [explicit, {name: memdccp, weights: runs/train/memdccp.ckpt, label: memdccp-v1, options: {threads: 1}}]
-    circuits: [simple, montmelo, montreal]    # built-in, user, random:SEED or twisty:SEED circuits
+    circuits: [simple, montmelo, montreal]    # built-in, user, random:/twisty:/grandprix:SEED
     variations: {line: [red, white, none], road: [grey, white], walls: [on, off]}   # default: one "default" world
     #   also the route: direction: [forward, reverse], start_m: [0, 150] (metres along, below each circuit's length)
     # or, instead of the product, the worlds one by one:
@@ -29,7 +29,7 @@ Parts: a matrix may be several experiments over the same brains (the paper's tab
 
 A part sets any of circuits, variations or worlds, perturbations, repetitions, limits, exclude and include; what it
 does not set comes from the top level. Instead of circuits and worlds, a part may ``draw`` held-out conditions
-from a seed (``orchestrator.matrix.draw``: ``draw: {count: 20, seed: 7, circuits: [random, twisty, montreal],
+from a seed (``orchestrator.matrix.draw``: ``draw: {count: 20, seed: 7, circuits: [random, grandprix, montreal],
 variations: {line: [red, white]}}``), refusing circuits the brains' training data drove. Its episodes' keys start
 with ``<part>:``, and parts expand in written order.
 

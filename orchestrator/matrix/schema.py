@@ -76,7 +76,7 @@ class Draw(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """A part's ``draw``: held-out conditions drawn from a seed (``orchestrator.matrix.draw``)."""
 
     count: Annotated[int, Meta(ge=1, le=MAX_DRAWN)]
-    circuits: _one_or_more(Text)  # type: ignore[valid-type]  # names, or the families random and twisty
+    circuits: _one_or_more(Text)  # type: ignore[valid-type]  # names, or the families random, twisty and grandprix
     seed: Seed = 0
     variations: dict[str, _one_or_more(Scalar)] = {}  # type: ignore[valid-type]
 
