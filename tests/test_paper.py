@@ -259,5 +259,5 @@ def test_a_study_file_regenerates_its_tables_from_shipped_checkpoints_in_smoke_f
     assert {r.key.split(":")[1].split("/")[0] for r in results} == {"tiny-s0", "tiny-s1", "memdccp-s0", "memdccp-s1"}
     assert all(r.status == "done" and r.score is not None for r in results)
     report = (out / "report.md").read_text()
-    assert "Comparison with intervals" in report and "P(X > Y) [95 % CI]" in report
+    assert "Comparison with intervals" in report and "P(X > Y), all conditions [95 % CI: these conditions" in report
     assert "| memdccp | tiny |" in report or "| tiny | memdccp |" in report

@@ -22,6 +22,7 @@ from orchestrator.cli.run import add_scene_options
 MATRIX_EXAMPLES = """examples:
   drivebench matrix experiments/smoke.yaml -o runs/smoke                  eight short episodes, then the report
   drivebench matrix experiments/generalization.yaml --plan --json         the planned episodes; nothing starts
+  drivebench matrix study.yaml --plan --power runs/pilot                  what difference the study can detect
   drivebench matrix experiments/generalization.yaml --workers 2 -o runs/gen --record
   drivebench matrix experiments/generalization.yaml -o runs/gen --resume  after Ctrl-C, SIGKILL or a crash
   drivebench matrix experiments/generalization.yaml --ray auto -o runs/gen --artifacts /shared/gen
@@ -85,6 +86,27 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
     parser.add_argument("--plan", action="store_true", help="print the planned episodes and exit")
     parser.add_argument(
         "--json", action="store_true", help="with --plan: the planned episodes as one JSON array (index, key, spec)"
+    )
+    power = parser.add_argument_group("power before driving (with --plan; docs/statistics.md)")
+    power.add_argument(
+        "--power",
+        type=Path,
+        metavar="PILOT_DIR",
+        help="with --plan: the difference in lap success rate this design (its training runs x conditions) detects "
+        "with 80%% power, simulated from the run-to-run spread of a pilot's results folder",
+    )
+    power.add_argument(
+        "--run-spread",
+        type=float,
+        metavar="SD",
+        help="with --plan: the same from a given standard deviation of a run's success rate over training runs",
+    )
+    power.add_argument(
+        "--base-rate",
+        type=float,
+        default=0.5,
+        metavar="P",
+        help="with --run-spread: the success rate the difference is measured from (default 0.5)",
     )
     # camera and variations come from the matrix file; the renderer may be overridden for every episode
     add_scene_options(
@@ -200,8 +222,13 @@ def run_matrix_args(
         summary_line,
     )
 
+    sizing = getattr(args, "power", None) is not None or getattr(args, "run_spread", None) is not None
+    if sizing and not args.plan:
+        raise UsageError("--power and --run-spread go with --plan (they size a study before it runs)")
     if args.plan:
         print(plan_json(matrix) if args.json else plan_table(matrix))
+        if sizing:
+            print(_power_of_design(matrix, args))
         return EXIT_OK
     if args.json:
         raise UsageError("--json goes with --plan (a matrix's results are in DIR/results.sqlite and episodes.csv)")
@@ -242,6 +269,29 @@ def run_matrix_args(
     if report:
         _write_report(out_dir)
     return EXIT_SOME_FAILED if progress.failed else EXIT_OK
+
+
+def _power_of_design(matrix, args: argparse.Namespace) -> str:
+    """``--power`` / ``--run-spread``: what difference the matrix's design detects (lines for stdout)."""
+    from collections import Counter
+
+    from orchestrator.report.power import PowerError, power_curve, power_report, spread_given, spread_of_results
+
+    if args.power is not None and args.run_spread is not None:
+        raise UsageError("give --power PILOT_DIR or --run-spread SD, not both")
+    runs_by_brain = Counter(brain.compared_as for brain in matrix.brains)
+    runs = min(runs_by_brain.values(), default=0)
+    first = matrix.brains[0].label if matrix.brains else None
+    conditions = sum(episode.brain.label == first for episode in matrix.episodes)
+    try:
+        if args.power is not None:
+            spread = spread_of_results(args.power)
+        else:
+            spread = spread_given(run_spread=args.run_spread, base_rate=args.base_rate)
+        curve = power_curve(spread, runs=runs, conditions=conditions)
+    except PowerError as error:
+        raise UsageError(f"{matrix.name}: {error}") from None
+    return power_report(spread, runs=runs, conditions=conditions, curve=curve)
 
 
 def _check_run_options(args: argparse.Namespace, *, what: str) -> None:

@@ -8,6 +8,13 @@ Status of a row:
     ``failed`` the stack failed the episode (a process died, no score in time, the simulator refused it):
                ``failure`` says which, as ``<kind>: <detail>`` with kind one of :data:`FAILURE_KINDS`. A score is
                kept when the scorer still produced one (a brain killed mid-episode ends it with ``brain_lost``).
+
+The stored schema carries a version (SQLite's ``user_version``, :data:`SCHEMA_VERSION`), so that results written by
+an earlier drivebench stay readable: opening a file upgrades it to this version (:data:`_UPGRADES`), and a file
+written by a later drivebench is refused in one line rather than misread. Episode specs and scores are stored as
+JSON of their msgspec structs: a field added to them needs a default, or an upgrade step here that fills it in;
+``tests/test_results_schema.py`` reads a file written by drivebench 0.1.0 (``tests/fixtures/results-0.1.0``) and
+fails when neither was done.
 """
 
 from __future__ import annotations
@@ -23,6 +30,8 @@ from protocol import codec
 from protocol.messages import EpisodeScore, EpisodeSpec
 
 DATABASE_NAME = "results.sqlite"
+# The stored schema's version. 0: drivebench 0.1.0 and earlier (no version stored); 1: versioned (issue 39).
+SCHEMA_VERSION = 1
 # A fact the runner stores for the report: the variation label of the matrix's first episode (the baseline column).
 BASELINE_FACT = "baseline_variation"
 
@@ -71,6 +80,17 @@ CREATE TABLE IF NOT EXISTS episodes (
 """
 # Columns added after the first release: a results file written before them gets them (NULL) when opened.
 _ADDED_COLUMNS = {"node": "TEXT", "lost_attempts": "TEXT"}
+
+
+def _add_columns(db: sqlite3.Connection) -> None:
+    have = {row[1] for row in db.execute("PRAGMA table_info(episodes)")}
+    for name, kind in _ADDED_COLUMNS.items():
+        if name not in have:
+            db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {kind}")
+
+
+# The step that takes a file of version N to N + 1, applied in order from the file's version.
+_UPGRADES = {0: _add_columns}
 _COLUMNS = (
     "key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
     "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts"
@@ -146,16 +166,28 @@ class ResultStore:
             self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")  # a row committed is a row on disk, SIGKILL or not
-            self._db.executescript(_SCHEMA)
-            self._add_new_columns()
+            self._upgrade()
         except sqlite3.DatabaseError as error:
             raise ResultsError(f"{self.path}: not a usable results database ({error})") from None
 
-    def _add_new_columns(self) -> None:
-        have = {row[1] for row in self._db.execute("PRAGMA table_info(episodes)")}
-        for name, kind in _ADDED_COLUMNS.items():
-            if name not in have:
-                self._db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {kind}")
+    @property
+    def schema_version(self) -> int:
+        return int(self._db.execute("PRAGMA user_version").fetchone()[0])
+
+    def _upgrade(self) -> None:
+        """The file at :data:`SCHEMA_VERSION` (made when new, upgraded step by step when older), or a
+        :class:`ResultsError` for a file a later drivebench wrote."""
+        version = self.schema_version
+        if version > SCHEMA_VERSION:
+            raise ResultsError(
+                f"{self.path}: written by a newer drivebench (results schema {version}; this one reads schemas up "
+                f"to {SCHEMA_VERSION}): upgrade drivebench to read it"
+            )
+        self._db.executescript(_SCHEMA)
+        for step in range(version, SCHEMA_VERSION):
+            _UPGRADES[step](self._db)
+        # PRAGMA takes no bound parameter; the value is this module's integer constant.
+        self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION:d}")
 
     def close(self) -> None:
         self._db.close()
