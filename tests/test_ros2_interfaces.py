@@ -124,3 +124,79 @@ def test_odometry_turns_yaw_into_a_unit_quaternion_about_z():
 def test_bad_cdr_is_one_error_naming_the_type(data, message):
     with pytest.raises(cdr.CdrError, match=message):
         cdr.decode("geometry_msgs/msg/Twist", data)
+
+
+# -- rmw_zenoh's names: the examples of ros2/rmw_zenoh docs/design.md, character for character ---------------------
+
+DESIGN_STRING_HASH = ROS2_HASHES["std_msgs/msg/String"]
+
+
+def test_topic_keys_are_the_design_documents():
+    from protocol.ros2 import rmw_zenoh
+
+    string = "std_msgs/msg/String"
+    assert rmw_zenoh.topic_key(domain_id=0, topic="/chatter", type_name=string) == (
+        f"0/chatter/std_msgs::msg::dds_::String_/{DESIGN_STRING_HASH}"
+    )
+    robot1 = rmw_zenoh.fully_qualified("chatter", namespace="/robot1")
+    assert rmw_zenoh.topic_key(domain_id=0, topic=robot1, type_name=string) == (
+        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{DESIGN_STRING_HASH}"
+    )
+    assert rmw_zenoh.topic_key(domain_id=0, topic="/cmd_vel", type_name="geometry_msgs/msg/Twist") == (
+        f"0/cmd_vel/geometry_msgs::msg::dds_::Twist_/{ROS2_HASHES['geometry_msgs/msg/Twist']}"
+    )
+
+
+def test_liveliness_tokens_are_the_design_documents():
+    from protocol.ros2.rmw_zenoh import EntityKind, Node, qos_token
+
+    listener = Node(domain_id=2, session_id="aac3178e146ba6f1fc6e6a4085e77f21", node_id=0, name="listener")
+    assert listener.token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert listener.endpoint_token(
+        entity_id=10, kind=EntityKind.SUBSCRIPTION, topic="chatter", type_name="std_msgs/msg/String"
+    ) == (
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/"
+        f"{DESIGN_STRING_HASH}/::,10:,:,:,,"
+    )
+    talker = Node(domain_id=2, session_id="8b20917502ee955ac4476e0266340d5c", node_id=0, name="talker")
+    assert talker.endpoint_token(
+        entity_id=10,
+        kind=EntityKind.PUBLISHER,
+        topic="/chatter",
+        type_name="std_msgs/msg/String",
+        qos=qos_token(depth=7),
+    ) == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+        f"{DESIGN_STRING_HASH}/::,7:,:,:,,"
+    )
+
+
+def test_tokens_and_keys_are_valid_zenoh_key_expressions():
+    import zenoh
+
+    from protocol.ros2.rmw_zenoh import EntityKind, Node, topic_key
+
+    node = Node(
+        domain_id=0, session_id="0123456789abcdef0123456789abcdef", node_id=0, name="drivebench", namespace="/sim"
+    )
+    for key in (
+        topic_key(domain_id=0, topic="/camera/truth/image_raw", type_name="sensor_msgs/msg/Image"),
+        node.token(),
+        node.endpoint_token(entity_id=1, kind=EntityKind.PUBLISHER, topic="odom", type_name="nav_msgs/msg/Odometry"),
+    ):
+        assert str(zenoh.KeyExpr(key)) == key
+    assert "/%sim/drivebench/%sim%odom/" in node.endpoint_token(
+        entity_id=1, kind=EntityKind.PUBLISHER, topic="odom", type_name="nav_msgs/msg/Odometry"
+    )
+
+
+def test_an_attachment_is_sequence_stamp_and_gid_little_endian():
+    from protocol.ros2.rmw_zenoh import attachment, parse_attachment
+
+    gid = bytes(range(16))
+    data = attachment(sequence=258, source_timestamp_ns=1_700_000_000_000_000_001, gid=gid)
+    assert data == (258).to_bytes(8, "little") + (1_700_000_000_000_000_001).to_bytes(8, "little") + b"\x10" + gid
+    parsed = parse_attachment(data)
+    assert (parsed.sequence, parsed.source_timestamp_ns, parsed.gid) == (258, 1_700_000_000_000_000_001, gid)
+    with pytest.raises(ValueError, match="GID length"):
+        parse_attachment(data[:-1])
