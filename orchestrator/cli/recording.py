@@ -3,6 +3,7 @@
 drivebench recorder info FILE.mcap          what a recording holds (channels, counts, episodes)
 drivebench recorder repair FILE [-o OUT]    recover a recording left by a killed recorder
 drivebench recorder merge A B -o AB.mcap    compare runs: each under its own namespace (recorder.merge)
+drivebench recorder export FILE --ros2 -o DIR  a rosbag2 folder of standard ROS 2 messages (recorder.ros2bag)
 drivebench replay FILE.mcap [--rate R | --max-speed] [--run-id NEW] [--keys GLOB] [--router EP]
 drivebench dataset build RECORDINGS... -o DIR [--size 100x50] [--crop 0.5:1] [--history 3 --stride 1] ...
 drivebench dataset collect --circuits simple,many_curves --laps 1 -o DIR [build options]
@@ -70,6 +71,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     merge.add_argument("--names", help="namespaces, comma-separated, one per file (default runA,runB,...)")
     merge.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     merge.set_defaults(func=_usage_errors(_merge))
+    _add_export_command(recorder_commands)
 
     replay = commands.add_parser("replay", help="publish a recording back onto the bus")
     replay.add_argument("file", type=Path)
@@ -80,6 +82,23 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--keys", help="only keys matching this glob, e.g. '*/sim/*'")
     replay.add_argument("--router", help=f"router endpoint (default: ${ROUTER_ENV})")
     replay.set_defaults(func=_usage_errors(_replay))
+
+
+def _add_export_command(recorder_commands: argparse._SubParsersAction) -> None:
+    export = recorder_commands.add_parser(
+        "export", help="write a recording in another tool's format: --ros2, a rosbag2 folder (ros2 bag play, RViz)"
+    )
+    export.add_argument("file", type=Path, metavar="FILE.mcap")
+    target = export.add_mutually_exclusive_group(required=True)
+    target.add_argument(
+        "--ros2",
+        action="store_true",
+        help="a rosbag2 folder (metadata.yaml and MCAP, ros2msg schemas, CDR): sensor_msgs/Image, "
+        "geometry_msgs/Twist, nav_msgs/Odometry, tf2_msgs/TFMessage, rosgraph_msgs/Clock, events as std_msgs/String",
+    )
+    export.add_argument("-o", "--output", type=Path, required=True, help="the bag folder to write")
+    export.add_argument("--overwrite", action="store_true", help="replace the bag in the output folder if it exists")
+    export.set_defaults(func=_usage_errors(_export))
 
 
 def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
@@ -251,6 +270,19 @@ def _merge(args: argparse.Namespace) -> int:
     print(
         f"merged {report.messages} messages -> {report.output} ({runs}); open it in Foxglove with "
         f"docs/foxglove/drivebench-compare-layout.json",
+        file=sys.stderr,
+    )
+    return EXIT_OK
+
+
+def _export(args: argparse.Namespace) -> int:
+    """Raises RecordingError (a usage error here) for a bad recording or an output that holds a bag."""
+    from recorder.ros2bag import export_ros2
+
+    report = export_ros2(args.file, output=args.output, overwrite=args.overwrite)
+    print(
+        f"exported {report.messages} ROS 2 messages on {len(report.counts)} topics -> {report.folder} "
+        f"(ros2 bag info {report.folder})",
         file=sys.stderr,
     )
     return EXIT_OK
