@@ -235,6 +235,26 @@ def test_a_bad_config_file_is_one_line(tmp_path):
     assert line == f"drivebench: error: --config {path}:1: the run config is missing 'brains'"
 
 
+def test_a_config_that_is_not_a_file_says_what_it_is(tmp_path):
+    """A folder or a device is not "no such file": say what the path is, and point a run folder at its config."""
+    run_folder = tmp_path / "run"
+    run_folder.mkdir()
+    (run_folder / "config.yaml").write_text("episode: {}\nbrains: [{brain: explicit}]\n")
+    assert one_error_line(drivebench("run", "--config", str(run_folder))) == (
+        f"drivebench: error: --config {run_folder}: a folder, not a file (did you mean {run_folder / 'config.yaml'}?)"
+    )
+    assert one_error_line(drivebench("run", "--config", str(tmp_path))) == (
+        f"drivebench: error: --config {tmp_path}: a folder, not a file"
+    )
+    assert one_error_line(drivebench("run", "--config", "/dev/null")) == (
+        "drivebench: error: --config /dev/null: a device, not a file"
+    )
+    missing = tmp_path / "nothing.yaml"
+    assert one_error_line(drivebench("run", "--config", str(missing))) == (
+        f"drivebench: error: --config {missing}: no such file"
+    )
+
+
 def test_a_config_file_reports_every_mistake_at_once_with_its_line(tmp_path):
     path = tmp_path / "config.yaml"
     path.write_text("run_id: abc\nepisode:\n  circuit: nowhere\n  laps: 2\nbrains:\n  - {brain: explict}\n")
@@ -382,16 +402,16 @@ def test_the_readmes_own_brain_meets_the_brain_contract(tmp_path):
     assert "meets the brain contract" in result.stderr
 
 
-def test_a_command_that_needs_a_missing_extra_names_what_to_install():
-    """scripts/demo.sh's lean set has no torch: a network brain says which extra it needs, in one line (the
-    interpreter is told torch is absent, as it is in that set)."""
-    code = (
-        "import sys; sys.modules['torch'] = None\n"
-        "from orchestrator.cli import main\n"
-        "sys.exit(main(['run', '--brain', 'deepest_lstm_tiny_pilotnet', '--max-sim-seconds', '1']))\n"
-    )
+def test_the_readmes_torch_example_in_the_demos_environment_names_what_to_install():
+    """scripts/demo.sh's lean set has no torch: the README's example that needs it says which extra to install, in
+    one line, exit 2 (the user's set-up, not a stack that could not run). The interpreter is told torch is absent,
+    as it is in that set; the refusal comes before any process starts, so the children need not be told."""
+    readme = (ROOT / "README.md").read_text()
+    line = next(line for line in readme.splitlines() if line.startswith("drivebench run") and "(needs torch)" in line)
+    argv = shlex.split(line.partition("#")[0])[1:] + ["--max-sim-seconds", "1"]
+    code = f"import sys; sys.modules['torch'] = None\nfrom orchestrator.cli import main\nsys.exit(main({argv!r}))\n"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert result.stderr.strip() == (
         "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
         "(or bash scripts/setup.sh, which installs every extra)"

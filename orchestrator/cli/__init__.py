@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             "(or bash scripts/setup.sh, which installs every extra)",
             file=sys.stderr,
         )
-        return EXIT_FAILED
+        return EXIT_USAGE  # the user's set-up, fixed by the line above: not a stack that could not run
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
         return EXIT_INTERRUPTED

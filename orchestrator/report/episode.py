@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import collections
 
-from protocol.messages import EpisodeScore
+from protocol.messages import EpisodeScore, EpisodeSpec
 
 
 def _fmt(value, unit: str = "", digits: int = 2) -> str:
@@ -15,20 +15,32 @@ def _fmt(value, unit: str = "", digits: int = 2) -> str:
     return f"{value}{unit}"
 
 
+def episode_words(spec: EpisodeSpec, *, brain: str) -> str:
+    """What an episode is, in the words its run's first line and its metrics table share: the brain, the circuit,
+    the direction, where it starts (``from 0 m`` too: a run's start is a choice worth seeing), the world's look,
+    the laps and the seed."""
+    direction = " (reverse)" if spec.direction == "reverse" else ""
+    return (
+        f"{brain} on {spec.circuit}{direction} from {spec.start_m:g} m along, look {spec.world.look}, "
+        f"{spec.laps} lap(s), seed {spec.seed}"
+    )
+
+
+def lap_times_words(lap_times_s: list[float]) -> str:
+    """The arc-length lap times, or that there are none (a bare "- s" read as a broken value)."""
+    if not lap_times_s:
+        return "no lap completed"
+    return ", ".join(f"{t:.2f}" for t in lap_times_s) + " s"
+
+
 def metrics_table(score: EpisodeScore) -> str:
     """The episode's metrics as an aligned two-column table (Behavior-Metrics-compatible rows marked BM)."""
     m = score.metrics
-    spec = score.spec
-    laps = ", ".join(f"{t:.2f}" for t in m.lap_times_s) or "-"
     rows = [
-        (
-            "episode",
-            f"{score.brain} on {spec.circuit}{' (reverse)' if spec.direction == 'reverse' else ''}"
-            f"{f' from {spec.start_m:g} m along' if spec.start_m else ''}, {spec.laps} lap(s), seed {spec.seed}",
-        ),
+        ("episode", episode_words(score.spec, brain=score.brain)),
         ("ended by", f"{score.reason} ({score.detail})" if score.detail else str(score.reason)),
         ("completed laps", _fmt(m.completed_laps)),
-        ("lap times (arc length)", f"{laps} s"),
+        ("lap times (arc length)", lap_times_words(list(m.lap_times_s))),
         ("progress", f"{_fmt(m.progress_m, ' m', 1)} ({_fmt(m.progress_laps * 100, ' %', 1)})"),
         (
             "cross-track |e| mean / rms / max",
