@@ -166,7 +166,9 @@ def test_list_and_inspect_commands_print_json():
     simple = next(c for c in circuits if c["name"] == "simple")
     assert 400 < simple["length_m"] < 500 and simple["road_width_m"] == 3.0
     brains = json.loads(drivebench("brains", "list", "--json").stdout)
-    assert {"name": "explicit", "origin": "built-in", "target": "brains.explicit.brain:ExplicitBrain"} in brains
+    explicit = {"name": "explicit", "origin": "built-in", "target": "brains.explicit.brain:ExplicitBrain"}
+    assert {**explicit, "needs": None, "extra": None} in brains
+    assert {"needs": "torch", "extra": "ml"}.items() <= next(b for b in brains if b["name"] == "pilotnet").items()
     plan_text = drivebench("matrix", "experiments/generalization.yaml", "--plan", cwd=ROOT).stdout.splitlines()
     plan = json.loads(drivebench("matrix", "experiments/generalization.yaml", "--plan", "--json", cwd=ROOT).stdout)
     assert len(plan) == len(plan_text) - 1 == 16
@@ -176,10 +178,21 @@ def test_list_and_inspect_commands_print_json():
     assert info["messages"] == sum(channel["messages"] for channel in info["channels"]) > 0
 
 
-def test_brains_list_has_a_header_row():
+def test_brains_list_has_a_header_row_and_says_which_brains_need_torch():
     lines = drivebench("brains", "list").stdout.splitlines()
-    assert lines[0].split()[:2] == ["name", "from"]
-    assert any(line.startswith("explicit ") for line in lines[1:])
+    assert lines[0].split()[:3] == ["name", "from", "needs"]
+    rows = {line.split()[0]: line.split() for line in lines[1:]}
+    assert rows["explicit"][2] == "-"
+    for network in ("pilotnet", "deepest_lstm_tiny_pilotnet", "memdccp", "neural"):
+        assert rows[network][2:4] == ["torch", "(ml)"], rows[network]
+
+
+def test_brains_list_in_the_demos_environment_says_what_to_install():
+    """The demo's .venv has no torch (the interpreter is told so, as in the in-process torch test)."""
+    code = "import sys; sys.modules['torch'] = None\nfrom orchestrator.cli import main\nsys.exit(main(['brains', 'list']))"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "torch is not installed here: pip install 'drivebench[ml]'" in result.stderr.splitlines()
 
 
 def test_brains_check_shows_no_third_party_banner():
