@@ -60,6 +60,40 @@ def test_bash_completion_is_valid_bash_that_knows_the_commands_and_options():
     assert zsh.startswith("#compdef drivebench") and "--brain-timeout" in zsh
 
 
+def bash_completions(script: str, words: list[str], *, cwd: Path) -> list[str]:
+    """What bash completes for the last of ``words`` (the command line so far), through the generated script's own
+    completion function, in a real bash."""
+    bash = shutil.which("bash")
+    assert bash is not None
+    line = " ".join(shlex.quote(word) for word in words)
+    program = (
+        f"{script}\nCOMP_WORDS=({line}); COMP_CWORD={len(words) - 1}\n"
+        "_shtab_drivebench\nprintf '%s\\n' \"${COMPREPLY[@]}\"\n"
+    )
+    done = subprocess.run([bash, "-c", program], capture_output=True, text=True, cwd=cwd, timeout=30)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
+def test_bash_completion_completes_circuit_and_brain_names(tmp_path):
+    script = drivebench("completion", "bash").stdout
+    (tmp_path / "my_bm_brain.py").write_text("class Brain: ...\n")
+    assert bash_completions(script, ["drivebench", "run", "--circuit", "mont"], cwd=tmp_path) == [
+        "montmelo",
+        "montreal",
+    ]
+    assert bash_completions(script, ["drivebench", "circuits", "show", "nur"], cwd=tmp_path) == ["nurburgring"]
+    assert bash_completions(script, ["drivebench", "run", "--brain", "pilot"], cwd=tmp_path) == [
+        "pilotnet",
+        "pilotnet_x3",
+    ]
+    assert bash_completions(script, ["drivebench", "brains", "check", "my_bm"], cwd=tmp_path) == ["my_bm_brain.py"]
+    assert "explicit" in bash_completions(script, ["drivebench", "swap", "ex"], cwd=tmp_path)
+    assert "explicit" in bash_completions(script, ["drivebench", "run", "--shadow", "ex"], cwd=tmp_path)
+    zsh = drivebench("completion", "zsh").stdout
+    assert "(extended_simple many_curves monaco montmelo" in zsh and "pilotnet pilotnet_x3" in zsh
+
+
 @pytest.mark.parametrize(
     ("args", "starts", "suggests"),
     [
