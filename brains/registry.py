@@ -70,7 +70,10 @@ class BrainSource:
 # What a built-in brain needs beyond the core install, by the module its target lives in: a network brain loads a
 # checkpoint (torch) and serves it with onnxruntime (both the ``ml`` extra); a Behavior Metrics file's perturbations
 # are albumentations' (the ``bm`` extra), and the file itself may import more (its own requirements).
-_EXTRAS_OF_MODULE = {"brains.neural.brain": ("ml", "torch"), "brains.behavior_metrics.adapter": ("bm", "albumentations")}
+_EXTRAS_OF_MODULE = {
+    "brains.neural.brain": ("ml", "torch"),
+    "brains.behavior_metrics.adapter": ("bm", "albumentations"),
+}
 
 
 def needs(source: BrainSource) -> tuple[str, str] | None:

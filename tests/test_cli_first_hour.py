@@ -223,7 +223,11 @@ def test_brains_list_has_a_header_row_and_says_which_brains_need_torch():
 
 def test_brains_list_in_the_demos_environment_says_what_to_install():
     """The demo's .venv has no torch (the interpreter is told so, as in the in-process torch test)."""
-    code = "import sys; sys.modules['torch'] = None\nfrom orchestrator.cli import main\nsys.exit(main(['brains', 'list']))"
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from orchestrator.cli import main\n"
+        "sys.exit(main(['brains', 'list']))\n"
+    )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert "torch is not installed here: pip install 'drivebench[ml]'" in result.stderr.splitlines()

@@ -113,7 +113,6 @@ def _needs_words(pair: tuple[str, str] | None) -> str:
     return "-" if pair is None else f"{pair[1]} ({pair[0]})"
 
 
-
 def brain_option_dict(items: list[str], weights: Path | None) -> dict[str, Any]:
     """``--brain-option KEY=VALUE`` (YAML values) and ``--weights`` as constructor keyword options."""
     options: dict[str, Any] = {}

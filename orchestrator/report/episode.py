@@ -33,6 +33,13 @@ def lap_times_words(lap_times_s: list[float]) -> str:
     return ", ".join(f"{t:.2f}" for t in lap_times_s) + " s"
 
 
+def _own(value: float | None, *, scale: float, unit: str, digits: int) -> str:
+    """A figure BM takes from the brain's own lists (its model's timings, its suddenness), or why there is none."""
+    if value is None:
+        return "not kept by the brain (BM reports none)"
+    return f"{value * scale:.{digits}f}{unit}"
+
+
 def metrics_table(score: EpisodeScore) -> str:
     """The episode's metrics as an aligned two-column table (Behavior-Metrics-compatible rows marked BM)."""
     m = score.metrics
@@ -52,8 +59,21 @@ def metrics_table(score: EpisodeScore) -> str:
         ("BM completed distance", _fmt(m.completed_distance_m, " m", 1)),
         ("BM average speed", _fmt(m.average_speed_mps, " m/s")),
         ("BM position deviation (mean 1000^d)", _fmt(m.position_deviation_mae, "", 3)),
-        ("BM suddenness", _fmt(m.suddenness_distance, "", 4)),
-        ("BM mean inference time", _fmt(m.mean_inference_time_s * 1e3, " ms")),
+        ("suddenness (from the commands)", f"{m.suddenness_distance:.4f}"),
+        ("BM suddenness", _own(m.bm_suddenness_distance, scale=1, unit="", digits=4)),
+        ("brain step time (mean)", f"{m.mean_inference_time_s * 1e3:.2f} ms"),
+        ("BM mean inference time", _own(m.bm_mean_inference_time_s, scale=1e3, unit=" ms", digits=2)),
+        (
+            "BM circuit diameter",
+            "no lap completed" if m.circuit_diameter_m is None else f"{m.circuit_diameter_m:.1f} m",
+        ),
+        ("BM frame rate", f"{m.frame_rate_hz:.1f} Hz"),
+        (
+            "BM brain iterations real / sim time",
+            f"{m.brain_iterations_frequency_real_time_hz:.1f} / {m.brain_iterations_frequency_simulated_time_hz:.1f} "
+            f"Hz (BM's wall-clock target {m.target_brain_iterations_simulated_time_hz:.1f} Hz)",
+        ),
+        ("BM GPU inference", "yes" if m.gpu_inference else "no"),
         ("command rate", _fmt(m.command_rate_hz, " Hz", 1)),
         (
             "frame-to-command latency p50 / p95",
