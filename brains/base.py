@@ -51,10 +51,17 @@ class Action:
 
     speed_mps: forward speed along the car's x axis, m/s.
     yaw_rate_radps: yaw rate, rad/s, positive = turning left (anticlockwise seen from above).
+    model_inference_s: optional, the brain's own timing of its model for this command (Behavior Metrics' brains
+        keep one, ``inference_times``, around the network's predict only), s; None = it keeps none. The host times
+        all of ``act`` regardless; BM's ``mean_inference_time`` is the mean of the brain's own timings.
+    suddenness: optional, the brain's own suddenness value for this command (BM's brains append
+        ‖(v, w)_t − (v, w)_{t−1}‖ of their normalised outputs to ``suddenness_distance``); None = it keeps none.
     """
 
     speed_mps: float
     yaw_rate_radps: float
+    model_inference_s: float | None = None
+    suddenness: float | None = None
 
 
 @runtime_checkable

@@ -19,6 +19,7 @@ access control) for the running episode's spec, so it is seeded as the others we
 from __future__ import annotations
 
 import logging
+import math
 import os
 import socket
 import threading
@@ -234,6 +235,7 @@ class BrainHost:
         if len(self._sources) > 1:
             self._drive_only_from_source()
         invalid = ""
+        own: dict[str, Any] = {}  # what the brain measures itself (BM's inference_times, suddenness_distance)
         if image is None:  # lost on the way: keep doing what the brain last decided
             speed_mps = self._last.speed_mps if self._last is not None else 0.0
             yaw_rate_radps = self._last.yaw_rate_radps if self._last is not None else 0.0
@@ -244,6 +246,7 @@ class BrainHost:
             action = self.brain.act(Observation(image_rgb=image, stamp_ns=h.stamp_ns, seq=h.seq, ground_truth=truth))
             inference_ns = time.perf_counter_ns() - started
             speed_mps, yaw_rate_radps, invalid = self._checked(action, frame_seq=h.seq, episode=h.episode)
+            own = _own_measures(action)
         command = Command(
             header=Header(run_id=self.config.run_id, episode=h.episode, seq=self._seq, stamp_ns=h.stamp_ns),
             brain=self.name,
@@ -254,6 +257,8 @@ class BrainHost:
             invalid=invalid,
             shadow=self.config.shadow,
             host=self._host_id,
+            gpu=bool(getattr(self.brain, "gpu_inference", False)),
+            **own,
         )
         self._seq += 1
         self._commands.publish(command)
@@ -333,3 +338,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     return run_service("brain", run)
+
+
+def _own_measures(action: Any) -> dict[str, Any]:
+    """The Command fields of what the brain measured itself (optional ``Action`` fields): a value that is not a
+    finite non-negative number is left out (it would not cross the bus, and it is the brain's own bookkeeping, not
+    its command)."""
+    own: dict[str, Any] = {}
+    inference_s = getattr(action, "model_inference_s", None)
+    if isinstance(inference_s, int | float) and math.isfinite(inference_s) and inference_s >= 0:
+        own["model_inference_ns"] = max(1, round(inference_s * 1e9))
+    suddenness = getattr(action, "suddenness", None)
+    if isinstance(suddenness, int | float) and math.isfinite(suddenness) and suddenness >= 0:
+        own["suddenness"] = float(suddenness)
+    return own

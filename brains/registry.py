@@ -67,6 +67,23 @@ class BrainSource:
     options: tuple[tuple[str, Any], ...] = ()  # options the name itself implies (a BM file's path)
 
 
+# What a built-in brain needs beyond the core install, by the module its target lives in: a network brain loads a
+# checkpoint (torch) and serves it with onnxruntime (both the ``ml`` extra); a Behavior Metrics file's perturbations
+# are albumentations' (the ``bm`` extra), and the file itself may import more (its own requirements).
+_EXTRAS_OF_MODULE = {
+    "brains.neural.brain": ("ml", "torch"),
+    "brains.behavior_metrics.adapter": ("bm", "albumentations"),
+}
+
+
+def needs(source: BrainSource) -> tuple[str, str] | None:
+    """(extra, module) a brain needs beyond the core install (``("ml", "torch")``), or None when it needs none or
+    drivebench cannot tell (an installed package's or a module path's brain declares its own requirements)."""
+    if source.origin not in ("built-in", "Behavior Metrics file"):
+        return None
+    return _EXTRAS_OF_MODULE.get(source.target.partition(":")[0])
+
+
 def register(name: str, target: str) -> None:
     """Register a brain factory as ``"package.module:callable"`` (imported only when the brain is made)."""
     if ":" not in target:

@@ -449,6 +449,10 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     speed_mps: forward speed along the car's x axis; yaw_rate_radps: anticlockwise yaw rate; each within
         +-MAX_COMMAND_SPEED_MPS / +-MAX_COMMAND_YAW_RATE_RADPS (:func:`command_problem`).
     inference_ns: wall time the brain spent computing this command.
+    model_inference_ns: the brain's own timing of its model for this command (``Action.model_inference_s``, BM's
+        ``inference_times``), 0 = the brain keeps none.
+    suddenness: the brain's own suddenness value for this command (``Action.suddenness``), None = it keeps none.
+    gpu: the brain runs its model on a GPU (its ``gpu_inference`` attribute; BM's ``gpu_inference``).
     invalid: non-empty when the brain's answer was one no car can take (NaN, infinite, beyond the limits): what it
         was, e.g. ``"speed_mps=nan (not a finite number)"``. Its speed and yaw rate are then 0 and mean nothing;
         the brain host sends it so that the simulator ends the episode ``brain_invalid`` at once, with the value,
@@ -466,6 +470,9 @@ class Command(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Command
     shadow: bool = False
     host: str = ""
     invalid: str = ""
+    model_inference_ns: int = 0
+    suddenness: float | None = None
+    gpu: bool = False
 
     def problem(self) -> str:
         """Why this command cannot drive a car ("" when it can), whoever sent it."""
@@ -516,6 +523,18 @@ class EpisodeMetrics(msgspec.Struct, frozen=True, kw_only=True):
     off-track events, command rate and latency, real-time factor.
     ``command_latency_*_ms``: wall time from a frame going out to the arrival of the driving brain's command that
     answers it (both modes; in real time only commands that name their frame count); None when none was measured.
+
+    BM's other keys, by BM's definitions: ``circuit_diameter_m`` (the lap length, only when BM's percentage says a
+    lap was completed, else None); ``frame_rate_hz`` (frames / simulated seconds); ``mean_brain_iterations_real_time_s``
+    (mean wall time of the brain's step, as the host times it) and its inverse ``..._frequency_real_time_hz``;
+    ``mean_brain_iterations_simulated_time_s`` (simulated seconds per command) and its inverse; ``target_...`` (BM's
+    ``1000 / PilotTimeCycle / round(RTF, 2)`` with the step as PilotTimeCycle: what BM's wall-clock pacing would aim
+    at; drivebench's lock-step does not pace by it); ``gpu_inference`` (the driver ran its model on a GPU).
+    Where drivebench's definition differs from BM's, BM's is beside it: ``mean_inference_time_s`` and the
+    ``inference_p*`` time the brain's whole step (a BM brain's own rain or crop included), ``bm_mean_inference_time_s``
+    is BM's mean of the brain's own ``inference_times[10:-10]`` (None when the brain keeps none);
+    ``suddenness_distance`` is computed from the commands, ``bm_suddenness_distance`` is the mean of the brain's own
+    list (BM's brains append one value per step from their normalised outputs; None when it keeps none).
     """
 
     sim_time_s: float
@@ -544,6 +563,17 @@ class EpisodeMetrics(msgspec.Struct, frozen=True, kw_only=True):
     command_latency_p95_ms: float | None
     inference_p50_ms: float
     inference_p95_ms: float
+    # Behavior Metrics' keys drivebench measured no other way (defaults: a score written before them still reads).
+    circuit_diameter_m: float | None = None
+    frame_rate_hz: float = 0.0
+    mean_brain_iterations_real_time_s: float = 0.0
+    brain_iterations_frequency_real_time_hz: float = 0.0
+    mean_brain_iterations_simulated_time_s: float = 0.0
+    brain_iterations_frequency_simulated_time_hz: float = 0.0
+    target_brain_iterations_simulated_time_hz: float = 0.0
+    gpu_inference: bool = False
+    bm_mean_inference_time_s: float | None = None
+    bm_suddenness_distance: float | None = None
 
 
 class BrainSwitch(msgspec.Struct, frozen=True, kw_only=True):

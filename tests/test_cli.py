@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -58,10 +59,18 @@ def test_run_json_prints_one_json_object_and_writes_the_run_folder(tmp_path):
 
 
 def test_run_prints_a_metrics_table(tmp_path):
-    result = drivebench("run", "--max-sim-seconds", "3", "--camera", "100x50", "--out", str(tmp_path / "r"))
+    result = drivebench(
+        "run", "--max-sim-seconds", "3", "--camera", "100x50", "--start-m", "50", "--out", str(tmp_path / "r")
+    )
     assert result.returncode == 0, result.stderr
     assert "ended by" in result.stdout and "time_limit" in result.stdout
     assert "BM position deviation" in result.stdout
+    # No lap in 3 s: said in words, not as a bare "- s"
+    assert re.search(r"^lap times \(arc length\) +no lap completed$", result.stdout, re.MULTILINE), result.stdout
+    # The run's first line says where the car starts and which look the world has, as the table's episode row does
+    first = result.stderr.splitlines()[0]
+    assert "explicit on simple from 50 m along, look flat, 1 lap(s), seed 0" in first, first
+    assert "explicit on simple from 50 m along, look flat, 1 lap(s), seed 0" in result.stdout
 
 
 @pytest.mark.parametrize(

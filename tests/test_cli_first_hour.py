@@ -60,6 +60,40 @@ def test_bash_completion_is_valid_bash_that_knows_the_commands_and_options():
     assert zsh.startswith("#compdef drivebench") and "--brain-timeout" in zsh
 
 
+def bash_completions(script: str, words: list[str], *, cwd: Path) -> list[str]:
+    """What bash completes for the last of ``words`` (the command line so far), through the generated script's own
+    completion function, in a real bash."""
+    bash = shutil.which("bash")
+    assert bash is not None
+    line = " ".join(shlex.quote(word) for word in words)
+    program = (
+        f"{script}\nCOMP_WORDS=({line}); COMP_CWORD={len(words) - 1}\n"
+        "_shtab_drivebench\nprintf '%s\\n' \"${COMPREPLY[@]}\"\n"
+    )
+    done = subprocess.run([bash, "-c", program], capture_output=True, text=True, cwd=cwd, timeout=30)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
+def test_bash_completion_completes_circuit_and_brain_names(tmp_path):
+    script = drivebench("completion", "bash").stdout
+    (tmp_path / "my_bm_brain.py").write_text("class Brain: ...\n")
+    assert bash_completions(script, ["drivebench", "run", "--circuit", "mont"], cwd=tmp_path) == [
+        "montmelo",
+        "montreal",
+    ]
+    assert bash_completions(script, ["drivebench", "circuits", "show", "nur"], cwd=tmp_path) == ["nurburgring"]
+    assert bash_completions(script, ["drivebench", "run", "--brain", "pilot"], cwd=tmp_path) == [
+        "pilotnet",
+        "pilotnet_x3",
+    ]
+    assert bash_completions(script, ["drivebench", "brains", "check", "my_bm"], cwd=tmp_path) == ["my_bm_brain.py"]
+    assert "explicit" in bash_completions(script, ["drivebench", "swap", "ex"], cwd=tmp_path)
+    assert "explicit" in bash_completions(script, ["drivebench", "run", "--shadow", "ex"], cwd=tmp_path)
+    zsh = drivebench("completion", "zsh").stdout
+    assert "(extended_simple many_curves monaco montmelo" in zsh and "pilotnet pilotnet_x3" in zsh
+
+
 @pytest.mark.parametrize(
     ("args", "starts", "suggests"),
     [
@@ -166,7 +200,9 @@ def test_list_and_inspect_commands_print_json():
     simple = next(c for c in circuits if c["name"] == "simple")
     assert 400 < simple["length_m"] < 500 and simple["road_width_m"] == 3.0
     brains = json.loads(drivebench("brains", "list", "--json").stdout)
-    assert {"name": "explicit", "origin": "built-in", "target": "brains.explicit.brain:ExplicitBrain"} in brains
+    explicit = {"name": "explicit", "origin": "built-in", "target": "brains.explicit.brain:ExplicitBrain"}
+    assert {**explicit, "needs": None, "extra": None} in brains
+    assert {"needs": "torch", "extra": "ml"}.items() <= next(b for b in brains if b["name"] == "pilotnet").items()
     plan_text = drivebench("matrix", "experiments/generalization.yaml", "--plan", cwd=ROOT).stdout.splitlines()
     plan = json.loads(drivebench("matrix", "experiments/generalization.yaml", "--plan", "--json", cwd=ROOT).stdout)
     assert len(plan) == len(plan_text) - 1 == 16
@@ -176,10 +212,25 @@ def test_list_and_inspect_commands_print_json():
     assert info["messages"] == sum(channel["messages"] for channel in info["channels"]) > 0
 
 
-def test_brains_list_has_a_header_row():
+def test_brains_list_has_a_header_row_and_says_which_brains_need_torch():
     lines = drivebench("brains", "list").stdout.splitlines()
-    assert lines[0].split()[:2] == ["name", "from"]
-    assert any(line.startswith("explicit ") for line in lines[1:])
+    assert lines[0].split()[:3] == ["name", "from", "needs"]
+    rows = {line.split()[0]: line.split() for line in lines[1:]}
+    assert rows["explicit"][2] == "-"
+    for network in ("pilotnet", "deepest_lstm_tiny_pilotnet", "memdccp", "neural"):
+        assert rows[network][2:4] == ["torch", "(ml)"], rows[network]
+
+
+def test_brains_list_in_the_demos_environment_says_what_to_install():
+    """The demo's .venv has no torch (the interpreter is told so, as in the in-process torch test)."""
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from orchestrator.cli import main\n"
+        "sys.exit(main(['brains', 'list']))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "torch is not installed here: pip install 'drivebench[ml]'" in result.stderr.splitlines()
 
 
 def test_brains_check_shows_no_third_party_banner():
@@ -233,6 +284,26 @@ def test_a_bad_config_file_is_one_line(tmp_path):
     path.write_text("episode: {circuit: simple}\n")
     line = one_error_line(drivebench("run", "--config", str(path)))
     assert line == f"drivebench: error: --config {path}:1: the run config is missing 'brains'"
+
+
+def test_a_config_that_is_not_a_file_says_what_it_is(tmp_path):
+    """A folder or a device is not "no such file": say what the path is, and point a run folder at its config."""
+    run_folder = tmp_path / "run"
+    run_folder.mkdir()
+    (run_folder / "config.yaml").write_text("episode: {}\nbrains: [{brain: explicit}]\n")
+    assert one_error_line(drivebench("run", "--config", str(run_folder))) == (
+        f"drivebench: error: --config {run_folder}: a folder, not a file (did you mean {run_folder / 'config.yaml'}?)"
+    )
+    assert one_error_line(drivebench("run", "--config", str(tmp_path))) == (
+        f"drivebench: error: --config {tmp_path}: a folder, not a file"
+    )
+    assert one_error_line(drivebench("run", "--config", "/dev/null")) == (
+        "drivebench: error: --config /dev/null: a device, not a file"
+    )
+    missing = tmp_path / "nothing.yaml"
+    assert one_error_line(drivebench("run", "--config", str(missing))) == (
+        f"drivebench: error: --config {missing}: no such file"
+    )
 
 
 def test_a_config_file_reports_every_mistake_at_once_with_its_line(tmp_path):
@@ -382,16 +453,16 @@ def test_the_readmes_own_brain_meets_the_brain_contract(tmp_path):
     assert "meets the brain contract" in result.stderr
 
 
-def test_a_command_that_needs_a_missing_extra_names_what_to_install():
-    """scripts/demo.sh's lean set has no torch: a network brain says which extra it needs, in one line (the
-    interpreter is told torch is absent, as it is in that set)."""
-    code = (
-        "import sys; sys.modules['torch'] = None\n"
-        "from orchestrator.cli import main\n"
-        "sys.exit(main(['run', '--brain', 'deepest_lstm_tiny_pilotnet', '--max-sim-seconds', '1']))\n"
-    )
+def test_the_readmes_torch_example_in_the_demos_environment_names_what_to_install():
+    """scripts/demo.sh's lean set has no torch: the README's example that needs it says which extra to install, in
+    one line, exit 2 (the user's set-up, not a stack that could not run). The interpreter is told torch is absent,
+    as it is in that set; the refusal comes before any process starts, so the children need not be told."""
+    readme = (ROOT / "README.md").read_text()
+    line = next(line for line in readme.splitlines() if line.startswith("drivebench run") and "(needs torch)" in line)
+    argv = shlex.split(line.partition("#")[0])[1:] + ["--max-sim-seconds", "1"]
+    code = f"import sys; sys.modules['torch'] = None\nfrom orchestrator.cli import main\nsys.exit(main({argv!r}))\n"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert result.stderr.strip() == (
         "drivebench: this needs torch, which is not installed: pip install 'drivebench[ml]' "
         "(or bash scripts/setup.sh, which installs every extra)"

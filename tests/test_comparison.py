@@ -19,7 +19,7 @@ def metrics_with(progress_laps: float) -> EpisodeMetrics:
     fields = {name: 0.0 for name in EpisodeMetrics.__struct_fields__}
     fields.update(
         steps=100, completed_laps=int(progress_laps >= 1.0), lap_times_s=[], off_track_events=0,
-        bm_lap_seconds=None, progress_laps=progress_laps,
+        bm_lap_seconds=None, progress_laps=progress_laps, gpu_inference=False,
     )  # fmt: skip
     return msgspec.convert(fields, EpisodeMetrics)
 

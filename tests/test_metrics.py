@@ -592,3 +592,46 @@ def test_long_episode_finishes():
     assert metrics.cross_track_max_m == pytest.approx(0.6, abs=0.01)
     assert 1.0 < metrics.position_deviation_mae < 1000**0.6
     assert metrics.percentage_completed > 300.0
+
+
+def test_bm_runtime_keys_and_the_brains_own_lists_beside_drivebenchs():
+    """BM's circuit_diameter (only with a completed lap), frame_rate, brain-iteration keys and gpu_inference; its
+    mean_inference_time and suddenness_distance from the brain's own lists, beside drivebench's, which time the
+    whole step and measure the commands."""
+    radius, speed = 20.0, 6.0
+    circuit = make_circuit(circle_points(radius))
+    scorer = EpisodeScorer(circuit=circuit, laps_target=1, step_s=STEP_S)
+    xy = circle_trajectory(radius, speed, 1.2)
+    for k, (x, y) in enumerate(xy.tolist()):
+        scorer.add_pose(seq=k, stamp_ns=k * STEP_NS, x_m=x, y_m=y, yaw_rad=0.0)
+        scorer.add_command(
+            stamp_ns=k * STEP_NS,
+            speed_mps=speed,
+            yaw_rate_radps=speed / radius,
+            inference_ns=20_000_000,  # the host's timing of the whole step: 20 ms (brain-side rain included)
+            model_inference_ns=3_000_000 if k >= 5 else 0,  # the brain's own list, from its 6th frame: 3 ms
+            suddenness=0.25 if k >= 5 else None,
+            gpu=k == 7,
+        )
+    steps = len(xy) - 1
+    metrics = scorer.finish(wall_time_s=steps * STEP_S / 2)  # RTF 2
+    assert metrics.circuit_diameter_m == pytest.approx(circuit.centreline.length_m)
+    assert metrics.frame_rate_hz == pytest.approx(1 / STEP_S)
+    assert metrics.mean_brain_iterations_real_time_s == pytest.approx(0.020)
+    assert metrics.brain_iterations_frequency_real_time_hz == pytest.approx(50.0)
+    assert metrics.mean_brain_iterations_simulated_time_s == pytest.approx(steps * STEP_S / len(xy))
+    assert metrics.target_brain_iterations_simulated_time_hz == pytest.approx(1 / STEP_S / 2)
+    assert metrics.gpu_inference is True
+    assert metrics.mean_inference_time_s == pytest.approx(0.020)
+    assert metrics.bm_mean_inference_time_s == pytest.approx(0.003)
+    assert metrics.suddenness_distance == 0.0 and metrics.bm_suddenness_distance == pytest.approx(0.25)
+
+
+def test_bm_keys_a_brain_does_not_keep_are_none_and_no_lap_has_no_circuit_diameter():
+    radius, speed = 20.0, 6.0
+    scorer = EpisodeScorer(circuit=make_circuit(circle_points(radius)), laps_target=1, step_s=STEP_S)
+    drive(scorer, circle_trajectory(radius, speed, 0.5), speed=speed, inference_ns=1_000_000)
+    metrics = scorer.finish(wall_time_s=1.0)
+    assert metrics.circuit_diameter_m is None
+    assert metrics.bm_mean_inference_time_s is None and metrics.bm_suddenness_distance is None
+    assert metrics.gpu_inference is False

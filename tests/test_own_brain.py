@@ -120,6 +120,58 @@ def test_a_behavior_metrics_brain_file_drives_a_lap_unchanged(tmp_path):
     assert score["brain"] == "brain_f1_follow_line"
 
 
+BM_BRAIN_WITH_OWN_LISTS = """
+import time
+
+
+class Brain:
+    # As BM's neural brains: its own timings of predict only, and its own suddenness values, one per step
+    def __init__(self, sensors, actuators, model=None, handler=None, config=None):
+        self.motors = actuators.get_motor("motors_0")
+        self.inference_times = []
+        self.suddenness_distance = []
+        self.gpu_inference = True
+
+    def execute(self):
+        time.sleep(0.01)  # work outside the model (BM's brains apply their perturbation here)
+        self.inference_times.append(0.004)
+        self.suddenness_distance.append(0.125)
+        self.motors.sendV(2.0)
+        self.motors.sendW(0.0)
+"""
+
+
+def test_bm_metrics_come_from_a_bm_brains_own_lists_beside_drivebenchs_step_time(tmp_path):
+    """BM's mean_inference_time is the mean of the brain's own inference_times (its model only), and its
+    suddenness_distance the mean of the brain's own list; drivebench's step time (the whole execute(), 10 ms of
+    work outside the model here) and its command-based suddenness stay beside them; gpu_inference is the brain's."""
+    brain = tmp_path / "brain_own_lists.py"
+    brain.write_text(BM_BRAIN_WITH_OWN_LISTS)
+    result = drivebench(
+        "run",
+        "--brain",
+        str(brain),
+        "--camera",
+        "160x120",
+        "--max-sim-seconds",
+        "3",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    metrics = json.loads(result.stdout)["metrics"]
+    assert metrics["bm_mean_inference_time_s"] == pytest.approx(0.004)
+    assert metrics["bm_suddenness_distance"] == pytest.approx(0.125)
+    assert metrics["mean_inference_time_s"] > 0.009  # the whole step, the 10 ms outside the model included
+    assert metrics["suddenness_distance"] == 0.0  # constant commands
+    assert metrics["gpu_inference"] is True
+    assert metrics["frame_rate_hz"] == pytest.approx(20.0)
+    assert metrics["brain_iterations_frequency_simulated_time_hz"] == pytest.approx(20.0, rel=0.05)
+    assert 0 < metrics["brain_iterations_frequency_real_time_hz"] < 100
+    assert metrics["circuit_diameter_m"] is None  # no lap in 3 s
+
+
 @pytest.mark.slow
 def test_a_standalone_zenoh_brain_without_project_code_drives_a_lap(tmp_path):
     source = STANDALONE.read_text()

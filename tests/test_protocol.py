@@ -198,13 +198,21 @@ FULL_SPEC = EpisodeSpec(
 )
 # Every message with each optional part filled in: every float field, however deep, carries a value.
 FULL_SAMPLES = SAMPLES | {
+    Command: msgspec.structs.replace(SAMPLES[Command], model_inference_ns=900, suddenness=0.1, gpu=True),
     EpisodeEvent: EpisodeEvent(header=HEADER, kind=EventKind.START, spec=FULL_SPEC),
     EpisodeScore: EpisodeScore(
         header=HEADER,
         spec=FULL_SPEC,
         reason=EndReason.LAPS_COMPLETED,
         brain="explicit",
-        metrics=msgspec.structs.replace(METRICS, bm_lap_seconds=40.0, lap_times_s=[41.5]),
+        metrics=msgspec.structs.replace(
+            METRICS,
+            bm_lap_seconds=40.0,
+            lap_times_s=[41.5],
+            circuit_diameter_m=462.9,
+            bm_mean_inference_time_s=0.004,
+            bm_suddenness_distance=0.02,
+        ),
         shadows=[
             ShadowDistance(
                 brain="b",

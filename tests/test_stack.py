@@ -81,6 +81,10 @@ WALL_CLOCK_METRICS = {
     "inference_p50_ms",
     "inference_p95_ms",
     "mean_inference_time_s",
+    "mean_brain_iterations_real_time_s",
+    "brain_iterations_frequency_real_time_hz",
+    "target_brain_iterations_simulated_time_hz",  # BM's: divided by the real-time factor
+    "bm_mean_inference_time_s",
 }
 
 

@@ -212,6 +212,7 @@ class BehaviorMetricsBrain:
         truth = observation.ground_truth
         if truth is not None:
             self.pose3d.pose = Pose3d(x=truth.x_m, y=truth.y_m, yaw=truth.yaw_rad, stamp_s=stamp_s)
+        counts = {name: len(_own_list(self._brain, name)) for name in ("inference_times", "suddenness_distance")}
         try:
             self._brain.execute()
         except Exception as error:  # the user's code: one line naming the file, the line and the error
@@ -221,4 +222,32 @@ class BehaviorMetricsBrain:
             raise BrainExecuteError(
                 f"Behavior Metrics brain {where}: execute() raised {type(error).__name__}: {error}"
             ) from error
-        return Action(speed_mps=self.motors.v_mps, yaw_rate_radps=self.motors.w_radps)
+        return Action(
+            speed_mps=self.motors.v_mps,
+            yaw_rate_radps=self.motors.w_radps,
+            model_inference_s=_appended(self._brain, "inference_times", counts["inference_times"]),
+            suddenness=_appended(self._brain, "suddenness_distance", counts["suddenness_distance"]),
+        )
+
+    @property
+    def gpu_inference(self) -> bool:
+        """BM's ``gpu_inference``: what the brain says of itself (BM's neural brains set it), False when silent."""
+        return bool(getattr(getattr(self, "_brain", None), "gpu_inference", False))
+
+
+def _own_list(brain: Any, name: str) -> list:
+    """A list BM's pilot reads from the brain after a run (``inference_times``, ``suddenness_distance``), or []."""
+    value = getattr(brain, name, None)
+    return value if isinstance(value, list) else []
+
+
+def _appended(brain: Any, name: str, before: int) -> float | None:
+    """The value this step appended to the brain's own list ``name``, None when it appended none (a brain that
+    keeps no such list, or skipped the step, as BM's do for their first frames)."""
+    values = _own_list(brain, name)
+    if len(values) <= before:
+        return None
+    try:
+        return float(values[-1])
+    except (TypeError, ValueError):
+        return None

@@ -117,6 +117,8 @@ class NeuralBrain:
             _check_model(self.checkpoint, model)
             self._run = _backend(self.checkpoint, backend=backend, threads=threads, onnx_path=onnx_path, device=device)
         self.backend = backend
+        # BM's gpu_inference: whether the model runs on a GPU (the host puts it in every command)
+        self.gpu_inference = getattr(getattr(self._run, "device", None), "type", "cpu") == "cuda"
         self.preprocess = Preprocessor(self.checkpoint.input, self.checkpoint.normalisation)
         self._offsets_ns = [round(o * 1e9) for o in self.checkpoint.input.offsets_s]
         self._label_mean = np.asarray(self.checkpoint.normalisation.label_mean, dtype=np.float64)

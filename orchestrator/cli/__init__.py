@@ -137,8 +137,52 @@ def command_completion(args: argparse.Namespace) -> int:
     zsh: ``drivebench completion zsh > "${fpath[1]}/_drivebench"``."""
     import shtab
 
-    print(shtab.complete(build_parser(), shell=args.shell))
+    parser = build_parser()
+    _complete_names(parser)
+    print(shtab.complete(parser, shell=args.shell))
     return EXIT_OK
+
+
+def _complete_names(parser: argparse.ArgumentParser) -> None:
+    """Give every option and argument that takes a circuit or a brain the names there are, as shtab completions.
+
+    The names are written into the script when it is generated (a completion that ran drivebench on every Tab would
+    wait for Python each time): regenerate it after importing a circuit or installing a brain package. A brain
+    also completes to ``.py`` files (a Behavior Metrics brain file) in bash."""
+    from brains.registry import brain_names
+    from circuits.library import circuit_names
+
+    circuits, brains = " ".join(circuit_names()), " ".join(brain_names())
+    # bash: functions that print the candidates for the word ($1); "_file" in a name makes shtab complete file names
+    circuit_complete = {
+        "bash": "_drivebench_circuits",
+        "zsh": f"({circuits})",
+        "preamble": {"bash": f'_drivebench_circuits() {{ compgen -W "{circuits}" -- "$1"; }}'},
+    }
+    brain_complete = {
+        "bash": "_drivebench_brains_file",
+        "zsh": f"({brains})",
+        "preamble": {
+            "bash": f'_drivebench_brains_file() {{ compgen -W "{brains}" -- "$1"; compgen -d -- "$1"; '
+            f"compgen -f -X '!*.py' -- \"$1\"; }}"
+        },
+    }
+    for command, action in _actions(parser):
+        if action.dest == "circuit" or (command.endswith(" circuits show") and action.dest == "name"):
+            action.complete = circuit_complete  # type: ignore[attr-defined]
+        elif action.dest in ("brain", "shadow"):
+            action.complete = brain_complete  # type: ignore[attr-defined]
+
+
+def _actions(parser: argparse.ArgumentParser) -> list[tuple[str, argparse.Action]]:
+    """Every action of the parser and of its subcommands, each with the prog of the (sub)command it belongs to."""
+    found = []
+    for action in parser._actions:
+        found.append((parser.prog, action))
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases map to the same parser
+                found += _actions(sub)
+    return found
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             "(or bash scripts/setup.sh, which installs every extra)",
             file=sys.stderr,
         )
-        return EXIT_FAILED
+        return EXIT_USAGE  # the user's set-up, fixed by the line above: not a stack that could not run
     except KeyboardInterrupt:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
         return EXIT_INTERRUPTED

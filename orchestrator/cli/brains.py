@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import importlib.util
 import json
 import os
 import sys
@@ -77,26 +78,39 @@ def run_brains_command(args: argparse.Namespace) -> int:
 
 
 def _list(*, as_json: bool) -> int:
-    from brains.registry import brain_sources
+    """Every brain by name, where it comes from, what it needs beyond the core install (the demo's .venv has no
+    torch: a network brain there says so before a run does) and what makes it."""
+    from brains.registry import brain_sources, needs
 
     sources = brain_sources()
+    extras = {source.name: needs(source) for source in sources}
     if as_json:
-        rows = [{"name": source.name, "origin": source.origin, "target": source.target} for source in sources]
+        rows = [
+            {
+                "name": source.name,
+                "origin": source.origin,
+                "target": source.target,
+                "needs": None if extras[source.name] is None else extras[source.name][1],
+                "extra": None if extras[source.name] is None else extras[source.name][0],
+            }
+            for source in sources
+        ]
         print(json.dumps(rows, indent=2))
         return 0
-    width = max(len(source.name) for source in [*sources, _HEADER])
-    origin_width = max(len(source.origin) for source in [*sources, _HEADER])
-    for source in [_HEADER, *sources]:
-        print(f"{source.name:<{width}}  {source.origin:<{origin_width}}  {source.target}")
+    rows = [("name", "from", "needs", "made by")]
+    rows += [(s.name, s.origin, _needs_words(extras[s.name]), s.target) for s in sources]
+    widths = [max(len(row[column]) for row in rows) for column in range(3)]
+    for row in rows:
+        print("  ".join(f"{cell:<{width}}" for cell, width in zip(row[:3], widths, strict=True)) + f"  {row[3]}")
     print("\nalso: --brain package.module:Class, or a Behavior Metrics brain file path/to/brain.py", file=sys.stderr)
+    for extra, module in sorted({pair for pair in extras.values() if pair is not None}):
+        if importlib.util.find_spec(module) is None:
+            print(f"{module} is not installed here: pip install 'drivebench[{extra}]'", file=sys.stderr)
     return 0
 
 
-class _Heading:
-    name, origin, target = "name", "from", "made by"
-
-
-_HEADER = _Heading()
+def _needs_words(pair: tuple[str, str] | None) -> str:
+    return "-" if pair is None else f"{pair[1]} ({pair[0]})"
 
 
 def brain_option_dict(items: list[str], weights: Path | None) -> dict[str, Any]:

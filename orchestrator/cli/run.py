@@ -26,8 +26,8 @@ import yaml
 
 from brains.registry import BEHAVIOR_METRICS, UnknownBrainError, bus_name, is_brain_file, require_brain
 from circuits import Circuit, CircuitError, load_circuit
-from orchestrator.cli.errors import EXIT_OK, UsageError
-from orchestrator.report.episode import metrics_table
+from orchestrator.cli.errors import EXIT_OK, UsageError, require_file
+from orchestrator.report.episode import episode_words, metrics_table
 from orchestrator.stack.launcher import (
     BrainLaunch,
     LocalStack,
@@ -457,7 +457,7 @@ def command_run(args: argparse.Namespace) -> int:
         )
     )
     print(
-        f"drivebench: run {run_id}: {spec.active_brain} on {spec.circuit}, {spec.laps} lap(s), "
+        f"drivebench: run {run_id}: {episode_words(spec, brain=spec.active_brain)}, "
         f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
         f"{'real-time' if spec.realtime else 'lock-step'}; run folder {run_dir}",
         file=sys.stderr,
@@ -503,8 +503,7 @@ def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainL
     spec = episode_spec(args)
     options = tuple(args.brain_option)
     if args.weights is not None:
-        if not args.weights.is_file():
-            raise UsageError(f"--weights: no such file {args.weights}")
+        require_file(args.weights, option="--weights")
         options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
     brains = [BrainLaunch(args.brain, options=options)]
     brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
@@ -532,8 +531,7 @@ class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
     """The episode and brains of an earlier run (``--config RUN/config.yaml``), checked as the options would be:
     every mistake of the file at once, one line each with its line number."""
-    if not path.is_file():
-        raise UsageError(f"--config {path}: no such file")
+    require_file(path, option="--config")
     try:
         document = typed_yaml.compose(path.read_text(), source=f"--config {path}")
         data = _note_value_mistakes(document)

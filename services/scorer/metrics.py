@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -232,6 +233,12 @@ def mean_inference_time_s(inference_times_s: Sequence[float]) -> float:
     return float(np.mean(times)) if len(times) else 0.0
 
 
+def bm_circuit_diameter_m(percentage_completed: float, *, lap_length_m: float) -> float | None:
+    """BM ``circuit_diameter``: the lap's length (BM: its perfect lap's), reported only with a completed lap, i.e.
+    BM's percentage strictly above 100; None otherwise."""
+    return float(lap_length_m) if percentage_completed > 100 else None
+
+
 # --- Beyond BM ---------------------------------------------------------------------------------------------------
 
 
@@ -337,6 +344,9 @@ class EpisodeScorer:
         self._cmd_speed: list[float] = []
         self._cmd_yaw_rate: list[float] = []
         self._cmd_inference_ns: list[int] = []
+        self._cmd_model_inference_ns: list[int] = []  # the brain's own timings (BM's inference_times), > 0 only
+        self._cmd_suddenness: list[float] = []  # the brain's own suddenness values
+        self._gpu = False
 
     # -- input ----------------------------------------------------------------------------------------------------
 
@@ -366,13 +376,29 @@ class EpisodeScorer:
         self._progress.append(progress)
         self._latency_ns.append(int(command_latency_ns))
 
-    def add_command(self, *, stamp_ns: int, speed_mps: float, yaw_rate_radps: float, inference_ns: int) -> None:
+    def add_command(
+        self,
+        *,
+        stamp_ns: int,
+        speed_mps: float,
+        yaw_rate_radps: float,
+        inference_ns: int,
+        model_inference_ns: int = 0,
+        suddenness: float | None = None,
+        gpu: bool = False,
+    ) -> None:
         """Add one command of the active brain. ``stamp_ns``: the sim stamp of the frame it answers;
-        ``inference_ns``: wall time the brain spent on it, 0 = not measured."""
+        ``inference_ns``: wall time the brain spent on it, 0 = not measured. ``model_inference_ns`` /
+        ``suddenness``: what the brain measured itself (0 / None: nothing); ``gpu``: its model runs on a GPU."""
         self._cmd_stamp_ns.append(int(stamp_ns))
         self._cmd_speed.append(float(speed_mps))
         self._cmd_yaw_rate.append(float(yaw_rate_radps))
         self._cmd_inference_ns.append(int(inference_ns))
+        if model_inference_ns > 0:
+            self._cmd_model_inference_ns.append(int(model_inference_ns))
+        if suddenness is not None:
+            self._cmd_suddenness.append(float(suddenness))
+        self._gpu = self._gpu or bool(gpu)
 
     # -- output ---------------------------------------------------------------------------------------------------
 
@@ -430,6 +456,9 @@ class EpisodeScorer:
         latency_p50, latency_p95 = percentiles_ms(measured_latency) if measured_latency else (None, None)
         measured_inference = [v for v in self._cmd_inference_ns if v > 0]
         inference_p50, inference_p95 = percentiles_ms(trimmed_inference_times(measured_inference))
+        bm_runtime = self._bm_runtime(
+            sim_time_s=sim_time, wall_time_s=wall_time_s, steps=max(0, n - 1), inference_ns=measured_inference
+        )
 
         return EpisodeMetrics(
             sim_time_s=float(sim_time),
@@ -458,7 +487,31 @@ class EpisodeScorer:
             command_latency_p95_ms=latency_p95,
             inference_p50_ms=inference_p50,
             inference_p95_ms=inference_p95,
+            circuit_diameter_m=bm_circuit_diameter_m(percentage, lap_length_m=self.lap_length_m),
+            **bm_runtime,
         )
+
+    def _bm_runtime(
+        self, *, sim_time_s: float, wall_time_s: float, steps: int, inference_ns: list[int]
+    ) -> dict[str, Any]:
+        """BM's runtime keys, by BM's definitions, from what drivebench measures (see :class:`EpisodeMetrics`)."""
+        commands = len(self._cmd_speed)
+        real_s = float(np.mean(inference_ns)) / 1e9 if inference_ns else 0.0
+        simulated_s = sim_time_s / commands if commands else 0.0
+        rtf = round(sim_time_s / wall_time_s, 2) if wall_time_s > 0 else 0.0
+        own_times = [v / 1e9 for v in self._cmd_model_inference_ns]
+        return {
+            "frame_rate_hz": steps / sim_time_s if sim_time_s > 0 else 0.0,
+            "mean_brain_iterations_real_time_s": real_s,
+            "brain_iterations_frequency_real_time_hz": 1 / real_s if real_s > 0 else 0.0,
+            "mean_brain_iterations_simulated_time_s": simulated_s,
+            "brain_iterations_frequency_simulated_time_hz": 1 / simulated_s if simulated_s > 0 else 0.0,
+            # BM: 1000 / PilotTimeCycle / round(RTF, 2), PilotTimeCycle in ms; here the step is the cycle
+            "target_brain_iterations_simulated_time_hz": 1 / self.step_s / rtf if rtf > 0 else 0.0,
+            "gpu_inference": self._gpu,
+            "bm_mean_inference_time_s": mean_inference_time_s(own_times) if own_times else None,
+            "bm_suddenness_distance": float(np.mean(self._cmd_suddenness)) if self._cmd_suddenness else None,
+        }
 
     # -- internals ------------------------------------------------------------------------------------------------
 

@@ -273,6 +273,9 @@ def _driver_feed(scorer: EpisodeScorer):
             speed_mps=command.speed_mps,
             yaw_rate_radps=command.yaw_rate_radps,
             inference_ns=command.inference_ns,
+            model_inference_ns=command.model_inference_ns,
+            suddenness=command.suddenness,
+            gpu=command.gpu,
         )
 
     return feed

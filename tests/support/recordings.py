@@ -62,7 +62,8 @@ def zero_metrics() -> EpisodeMetrics:
     """Metrics with every field zero / empty (the values do not matter here)."""
     values = {}
     for field in msgspec.structs.fields(EpisodeMetrics):
-        values[field.name] = [] if "list" in str(field.type) else None if "None" in str(field.type) else 0
+        empty = False if field.type is bool else 0
+        values[field.name] = [] if "list" in str(field.type) else None if "None" in str(field.type) else empty
     return msgspec.convert(values, EpisodeMetrics)
 
 
