@@ -62,6 +62,7 @@ from orchestrator.matrix.runner import (
     WorkerState,
 )
 from orchestrator.matrix.warm import WarmLane
+from orchestrator.stack.failures import Failure, FailureKind
 
 log = logging.getLogger("drivebench.ray")
 
@@ -391,7 +392,9 @@ class RayMatrixRunner(MatrixRunner):
                 return None
             return self._lost_result(episode, lost)
         except (ray.exceptions.RayError, RuntimeError) as error:  # the task itself broke, not the episode: not retried
-            return self._lost_result(episode, lost, failure=f"error: {type(error).__name__}: {_first_line(error)}")
+            return self._lost_result(
+                episode, lost, failure=Failure(FailureKind.ERROR, f"{type(error).__name__}: {_first_line(error)}")
+            )
         return self._land(episode, outcome, lost)
 
     def _land(self, episode: PlannedEpisode, outcome: dict, lost: tuple) -> EpisodeResult:
@@ -416,10 +419,10 @@ class RayMatrixRunner(MatrixRunner):
         except ValueError:
             return str(path.resolve())
 
-    def _lost_result(self, episode: PlannedEpisode, lost: tuple, *, failure: str | None = None) -> EpisodeResult:
+    def _lost_result(self, episode: PlannedEpisode, lost: tuple, *, failure: Failure | None = None) -> EpisodeResult:
         now = time.time()
         if failure is None:
-            failure = f"node_died: lost {len(lost)} time(s), last: {lost[-1]['error']}"
+            failure = Failure(FailureKind.NODE_DIED, f"lost {len(lost)} time(s), last: {lost[-1]['error']}")
         return EpisodeResult.of(
             episode,
             status="failed",
@@ -692,7 +695,9 @@ def _watched(
 def _timed_out(
     episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float, result: EpisodeResult | None
 ) -> EpisodeResult:
-    failure = f"wall_timeout: the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
+    failure = Failure(
+        FailureKind.WALL_TIMEOUT, f"the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
+    )
     if result is not None:
         return dataclasses.replace(result, status="failed", failure=failure)
     return EpisodeResult.of(
