@@ -349,7 +349,7 @@ class RayMatrixRunner(MatrixRunner):
         """Tasks in flight: the cluster's slots now (nodes come and go), at least one."""
         try:
             return max(1, sum(slots_of(node, self.ray_options.resources) for node in alive_nodes()))
-        except Exception:  # noqa: BLE001 - a GCS hiccup must not end the matrix; keep going one at a time
+        except Exception:  # a GCS hiccup must not end the matrix; keep going one at a time
             return 1
 
     def _artifacts_text(self) -> str | None:
@@ -663,7 +663,7 @@ def _watched(
     def drive() -> None:
         try:
             outcome["result"] = run(state)
-        except BaseException as error:  # noqa: BLE001 - raised again in the task, where Ray reports it
+        except BaseException as error:  # raised again in the task, where Ray reports it
             outcome["error"] = error
 
     thread = threading.Thread(target=drive, name="episode", daemon=True)

@@ -362,7 +362,7 @@ class MatrixRunner:
             outcome.update(status="failed", failure=failure.failure, score=failure.score)
         except StackError as error:
             outcome.update(status="failed", failure=Failure(FailureKind.START_FAILED, str(error)))
-        except Exception as error:  # noqa: BLE001 - one broken episode must not end the matrix
+        except Exception as error:  # one broken episode must not end the matrix
             log.exception("episode %s", episode.key)
             outcome.update(status="failed", failure=Failure(FailureKind.ERROR, f"{type(error).__name__}: {error}"))
         return outcome
