@@ -71,7 +71,7 @@ class Viewer:
                 elif message[0] == 1 and struct.unpack_from("<I", message, 1)[0] == 0:
                     self.received += 1
                     self.bytes += len(message)
-        except Exception:  # noqa: BLE001 - closed at the end
+        except Exception:  # closed at the end
             pass
 
 

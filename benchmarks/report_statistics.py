@@ -18,6 +18,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
 from orchestrator.report import comparison as comparison_module
 from orchestrator.report import matrix as matrix_report
@@ -60,8 +61,7 @@ def fill(folder: Path, *, brains: int, seeds: int, episodes: int) -> None:
                         EpisodeResult(
                             key=f"{label}/{circuit}/default/none/r0", index=index, brain=label, circuit=circuit,
                             variation="default", perturbation="none", repetition=0, spec=spec,
-                            brain_entry={"label": label, "brain": "x", "weights": None, "options": {},
-                                         "group": f"b{brain}", "training_seed": seed},
+                            brain_entry=BrainEntry(label=label, brain="x", group=f"b{brain}", training_seed=seed),
                             status="done", run_id=f"r{index}", started_at=0.0, ended_at=1.0, reason=str(reason),
                             score=score,
                         )

@@ -470,7 +470,7 @@ class Bus:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
                 reply = handler(payload)
-            except Exception as error:  # noqa: BLE001 - a bad request must not kill the server
+            except Exception as error:  # a bad request must not kill the server
                 self.rejects.reject(key, error, what="request")  # logged as bad input is: rate-limited, counted
                 query.reply_err(str(error).encode())
                 return

@@ -95,8 +95,16 @@ def bound_text(bound: msgspec.Meta) -> str:
     return " and ".join(f"{sign} {value}" for sign, value in limits if value is not None)
 
 
+class FieldError(ValueError):
+    """A struct's value outside its bound; ``field`` names the field, so a caller decides on it, not on the text."""
+
+    def __init__(self, message: str, *, field: str):
+        super().__init__(message)
+        self.field = field
+
+
 def check_bounds(struct: msgspec.Struct, bounds: dict[str, msgspec.Meta]) -> None:
-    """Raise ValueError naming the first field of ``struct`` outside its bound in ``bounds``."""
+    """Raise FieldError naming the first field of ``struct`` outside its bound in ``bounds``."""
     for name, bound in bounds.items():
         value = getattr(struct, name)
         inside = (
@@ -106,7 +114,7 @@ def check_bounds(struct: msgspec.Struct, bounds: dict[str, msgspec.Meta]) -> Non
             and (bound.lt is None or value < bound.lt)
         )
         if not inside:
-            raise ValueError(f"{name} must be {bound_text(bound)}, got {value}")
+            raise FieldError(f"{name} must be {bound_text(bound)}, got {value}", field=name)
 
 
 class WorldVariation(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -378,9 +386,11 @@ class EpisodeSpec(msgspec.Struct, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         if self.renderer not in RENDERERS:
-            raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {self.renderer!r}")
+            raise FieldError(f"renderer must be one of {', '.join(RENDERERS)}, got {self.renderer!r}", field="renderer")
         if self.direction not in DIRECTIONS:
-            raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, got {self.direction!r}")
+            raise FieldError(
+                f"direction must be one of {', '.join(DIRECTIONS)}, got {self.direction!r}", field="direction"
+            )
         check_bounds(self, SPEC_BOUNDS)
 
     @property

@@ -48,7 +48,7 @@ STARTED_AT = time.strftime("%Y%m%d-%H%M%S")  # the {time} of output file names: 
 STOP_QUIET_S = 0.2  # on a stop, record until nothing has arrived for this long ...
 STOP_DRAIN_MAX_S = 3.0  # ... but no longer than this: a publisher that never pauses must not keep it open
 STOP_COMPLETE_MAX_S = 10.0  # and, for a lock-step episode that ended, until its last frames and pose are in
-RecordedMessage = Union[RECORDED_MESSAGES]  # noqa: UP007 - a runtime union of the tagged structs for msgspec
+RecordedMessage = Union[RECORDED_MESSAGES]  # a runtime union of the tagged structs for msgspec
 
 
 class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -174,3 +174,21 @@ def test_the_floor_imports_nothing_of_ours():
     ours = sorted(name for name in imports if name.split(".")[0] in TOP_LEVEL)
     assert not ours, f"{FLOOR} must stay below every package: it imports {ours}"
     assert imports <= set(sys.stdlib_module_names) | {"__future__", "collections.abc"}, imports
+
+
+def test_every_noqa_names_a_rule_ruff_runs():
+    """A noqa comment for a rule ruff does not run silences nothing and tells a reader a check exists that does
+    not (issue 41: BLE001, N802, SIM115, ... were named while ruff ran E, F, W, I)."""
+    import re
+    import tomllib
+
+    selected = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["ruff"]["lint"]["select"]
+    stray = []
+    for folder in (*TOP_LEVEL, "tests", "benchmarks", "scripts", "tools", "examples", "experiments"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                for codes in re.findall(r"#\s*noqa:\s*([A-Z0-9, ]+)", line):
+                    for code in filter(None, (c.strip() for c in codes.split(","))):
+                        if not any(code.startswith(prefix) for prefix in selected):
+                            stray.append(f"{path.relative_to(ROOT)}:{number}: {code}")
+    assert not stray, f"noqa for rules ruff does not run ({', '.join(selected)}): {stray}"

@@ -8,6 +8,7 @@ import math
 import msgspec
 import pytest
 
+from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.report.comparison import brain_scores, comparison_section
 from orchestrator.report.document import Table
@@ -41,8 +42,8 @@ def episode(
     prefix = f"{part}:" if part else ""
     return EpisodeResult(
         key=f"{prefix}{label}/{circuit}/default/none/r0", index=0, brain=label, circuit=circuit,
-        variation="default", perturbation="none", repetition=0, spec=spec, brain_entry=entry, status="done",
-        run_id="r", started_at=0.0, ended_at=1.0, reason=str(reason), score=score,
+        variation="default", perturbation="none", repetition=0, spec=spec, brain_entry=BrainEntry.from_dict(entry),
+        status="done", run_id="r", started_at=0.0, ended_at=1.0, reason=str(reason), score=score,
     )  # fmt: skip
 
 

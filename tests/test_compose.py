@@ -222,7 +222,7 @@ class ComposeEmulation:
     def start(self, name: str) -> subprocess.Popen:
         for dependency in self.services[name].get("depends_on", {}):
             assert dependency in self.processes, f"{name} depends on {dependency}, which was not started first"
-        log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        log = open(self.logs / f"{name}.log", "ab")  # closed with the process
         process = subprocess.Popen(
             self.argv(name), stdout=log, stderr=subprocess.STDOUT, env=self.env(name), cwd=ROOT, start_new_session=True
         )

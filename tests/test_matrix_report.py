@@ -16,9 +16,11 @@ from needs import require
 from circuits import load_circuit
 from orchestrator.cli import main
 from orchestrator.matrix.load import parse_matrix
+from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.results import EpisodeResult, ResultStore
 from orchestrator.report.cells import baseline_variation, grid_cell, mean_std
 from orchestrator.report.matrix import BASELINE_FACT, ReportError, write_report
+from orchestrator.stack.failures import Failure, FailureKind
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
 from services.scorer.metrics import EpisodeScorer
 
@@ -102,7 +104,7 @@ def make_results(folder: Path) -> dict:
                 perturbation=perturbation,
                 repetition=rep,
                 spec=spec,
-                brain_entry=entry,
+                brain_entry=BrainEntry.from_dict(entry),
                 run_id=f"r{index}",
                 started_at=started,
                 logs=f"logs/{index:03d}",
@@ -113,7 +115,7 @@ def make_results(folder: Path) -> dict:
                         **common,
                         status="failed",
                         ended_at=started + 3.0,
-                        failure="brain_died: brain 'x' exited with code -9",
+                        failure=Failure(FailureKind.BRAIN_DIED, "brain 'x' exited with code -9"),
                     )
                 )
                 continue
@@ -343,7 +345,7 @@ def test_internal_metrics_come_from_the_checkpoint(tmp_path):
                 perturbation="none",
                 repetition=0,
                 spec=spec,
-                brain_entry={"label": "tiny", "brain": "neural", "weights": "model.ckpt"},
+                brain_entry=BrainEntry(label="tiny", brain="neural", weights=Path("model.ckpt")),
                 status="done",
                 run_id="r",
                 started_at=0.0,

@@ -14,6 +14,7 @@ import pytest
 from brains.registry import shipped_weights
 from circuits import load_circuit
 from orchestrator.matrix.load import load_matrix
+from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.results import EpisodeResult, ResultStore
 from orchestrator.report.document import Table
 from orchestrator.report.matrix import write_report
@@ -136,7 +137,7 @@ def paper_results(tmp_path_factory) -> tuple[Path, list[EpisodeResult]]:
                     perturbation=perturbation,
                     repetition=0,
                     spec=spec,
-                    brain_entry={"label": brain, "brain": brain, "weights": None, "options": {}},
+                    brain_entry=BrainEntry(label=brain, brain=brain),
                     status="done",
                     run_id=f"r{index}",
                     started_at=0.0,

@@ -28,7 +28,7 @@ def test_results_of_drivebench_0_1_0_are_read_and_upgraded(tmp_path):
         results = store.results()
         assert store.schema_version == SCHEMA_VERSION
     assert len(results) == 12 and all(r.score is not None and r.status == "done" for r in results)
-    assert {r.brain_entry.get("group") for r in results} == {None, "tiny"}
+    assert {r.brain_entry.group for r in results} == {"", "tiny"}
 
 
 def test_drivebench_report_reads_results_of_drivebench_0_1_0(tmp_path, capsys):

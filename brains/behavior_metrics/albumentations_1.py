@@ -26,7 +26,7 @@ def _p(p: float, always_apply: bool) -> float:
     return 1.0 if always_apply else p
 
 
-def RandomBrightness(limit: Any = 0.2, always_apply: bool = False, p: float = 0.5) -> Any:  # noqa: N802 (1.x's name)
+def RandomBrightness(limit: Any = 0.2, always_apply: bool = False, p: float = 0.5) -> Any:  # 1.x's name
     """1.0.3's RandomBrightness: RandomBrightnessContrast with the contrast left alone."""
     import albumentations
 
@@ -35,14 +35,14 @@ def RandomBrightness(limit: Any = 0.2, always_apply: bool = False, p: float = 0.
     )
 
 
-def RandomContrast(limit: Any = 0.2, always_apply: bool = False, p: float = 0.5) -> Any:  # noqa: N802
+def RandomContrast(limit: Any = 0.2, always_apply: bool = False, p: float = 0.5) -> Any:
     """1.0.3's RandomContrast: RandomBrightnessContrast with the brightness left alone."""
     import albumentations
 
     return albumentations.RandomBrightnessContrast(brightness_limit=0, contrast_limit=limit, p=_p(p, always_apply))
 
 
-def JpegCompression(  # noqa: N802
+def JpegCompression(
     quality_lower: int = 99, quality_upper: int = 100, always_apply: bool = False, p: float = 0.5
 ) -> Any:
     """1.0.3's JpegCompression: ImageCompression (JPEG) with its quality range."""
@@ -53,7 +53,7 @@ def JpegCompression(  # noqa: N802
     )
 
 
-def Cutout(  # noqa: N802
+def Cutout(
     num_holes: int = 8,
     max_h_size: int = 8,
     max_w_size: int = 8,
@@ -104,8 +104,8 @@ def bm_file_builtins() -> dict[str, Any]:
 
     def bm_import(
         name: str,
-        globals: Mapping[str, Any] | None = None,  # noqa: A002 (__import__'s own parameter names)
-        locals: Mapping[str, Any] | None = None,  # noqa: A002
+        globals: Mapping[str, Any] | None = None,  # __import__'s own parameter names
+        locals: Mapping[str, Any] | None = None,
         fromlist: Sequence[str] | None = (),
         level: int = 0,
     ) -> Any:

@@ -38,7 +38,7 @@ class Image:
         self.data = np.zeros((3, 3, 3), np.uint8) if data is None else data
         self.height, self.width = self.data.shape[:2]
         self.format = "RGB8"
-        self.timeStamp = stamp_s  # noqa: N815 (Behavior Metrics' spelling)
+        self.timeStamp = stamp_s  # Behavior Metrics' spelling
 
 
 class Camera:
@@ -47,7 +47,7 @@ class Camera:
     def __init__(self) -> None:
         self.image = Image()
 
-    def getImage(self) -> Image:  # noqa: N802 (Behavior Metrics' spelling)
+    def getImage(self) -> Image:  # Behavior Metrics' spelling
         return self.image
 
 
@@ -58,7 +58,7 @@ class Pose3d:
         self.x, self.y, self.z, self.h = float(x), float(y), 0.0, 1
         self.yaw, self.pitch, self.roll = float(yaw), 0.0, 0.0
         self.q = [math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)]
-        self.timeStamp = stamp_s  # noqa: N815
+        self.timeStamp = stamp_s
 
     def __repr__(self) -> str:
         return f"Pose3d(x={self.x:.3f}, y={self.y:.3f}, yaw={self.yaw:.3f}, timeStamp={self.timeStamp:.3f})"
@@ -70,7 +70,7 @@ class Pose3dSensor:
     def __init__(self) -> None:
         self.pose = Pose3d()
 
-    def getPose3d(self) -> Pose3d:  # noqa: N802
+    def getPose3d(self) -> Pose3d:
         return self.pose
 
 
@@ -81,13 +81,13 @@ class Motors:
         self.v_mps = 0.0
         self.w_radps = 0.0
 
-    def sendV(self, v: float) -> None:  # noqa: N802
+    def sendV(self, v: float) -> None:
         self.v_mps = float(v)
 
-    def sendW(self, w: float) -> None:  # noqa: N802
+    def sendW(self, w: float) -> None:
         self.w_radps = float(w)
 
-    def sendVW(self, v: float, w: float) -> None:  # noqa: N802
+    def sendVW(self, v: float, w: float) -> None:
         self.sendV(v)
         self.sendW(w)
 

@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         print("drivebench: interrupted; every process stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # `drivebench ... | head`: the reader has all it wanted
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - so the interpreter's final flush does not fail
+        sys.stdout = open(os.devnull, "w")  # so the interpreter's final flush does not fail
         return EXIT_OK
     except SystemExit as stop:
         if isinstance(stop.code, int) and stop.code > 128:  # our SIGTERM handler: the stack is already stopped

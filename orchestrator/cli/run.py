@@ -49,6 +49,7 @@ from protocol.messages import (
     EndReason,
     EpisodeScore,
     EpisodeSpec,
+    FieldError,
 )
 from protocol.suggest import did_you_mean
 from protocol.variations import apply_variation, check_look, noise_stage
@@ -321,12 +322,12 @@ SPEC_FLAGS = {
 
 @contextlib.contextmanager
 def spec_flags(args: argparse.Namespace):
-    """EpisodeSpec's own checks name the field first (``laps must be >= 1, got 0``): name the option instead."""
+    """EpisodeSpec's own checks raise a FieldError that carries the field (``laps must be >= 1, got 0``): name the
+    option that set it instead."""
     try:
         yield
     except ValueError as error:
-        field = str(error).split(" ", 1)[0]
-        dest = SPEC_FLAGS.get(field)
+        dest = SPEC_FLAGS.get(error.field) if isinstance(error, FieldError) else None
         where = f"--{dest.replace('_', '-')} {getattr(args, dest)}" if dest else "drivebench run"
         raise UsageError(f"{where}: {error}") from None
 
@@ -443,19 +444,8 @@ def command_run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         filename=run_dir / "launcher.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
-    (run_dir / "config.yaml").write_text(
-        yaml.safe_dump(
-            {
-                "run_id": run_id,
-                "episode": msgspec.to_builtins(spec),
-                "brains": [
-                    {"brain": b.brain, "name": b.bus_name, "options": list(b.options), "host": list(b.host)}
-                    for b in brains
-                ],
-            },
-            sort_keys=False,
-        )
-    )
+    config = RunConfig(run_id=run_id, episode=spec, brains=[LaunchedBrain.of(launch) for launch in brains])
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
     print(
         f"drivebench: run {run_id}: {episode_words(spec, brain=spec.active_brain)}, "
         f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
@@ -510,13 +500,22 @@ def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainL
     return spec, brains
 
 
-class BrainEntry(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """One brain launched by a run, as its config.yaml lists it."""
+class LaunchedBrain(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """One brain process a run launched, as its config.yaml lists it: ``brain`` as ``--brain`` takes it, ``name``
+    its bus name, ``options`` its ``KEY=VALUE`` overrides (weights last), ``host`` the brain host's own options.
+    (A matrix's brain is ``orchestrator.matrix.plan.BrainEntry``; this is what one launch of a brain process is.)"""
 
     brain: str
     name: str = ""
     options: list[str] = []
     host: list[str] = []
+
+    @classmethod
+    def of(cls, launch: BrainLaunch) -> LaunchedBrain:
+        return cls(brain=launch.brain, name=launch.bus_name, options=list(launch.options), host=list(launch.host))
+
+    def launch(self) -> BrainLaunch:
+        return BrainLaunch(self.brain, name=self.name, options=tuple(self.options), host=tuple(self.host))
 
 
 class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -525,7 +524,7 @@ class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 
     run_id: Any = None
     episode: EpisodeSpec
-    brains: list[BrainEntry]
+    brains: list[LaunchedBrain]
 
 
 def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
@@ -542,11 +541,7 @@ def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
     except typed_yaml.FileError as error:
         raise UsageError(str(error)) from None
     assert config is not None  # a config that did not convert noted why, and raise_noted raised it
-    brains = [
-        BrainLaunch(entry.brain, name=entry.name, options=tuple(entry.options), host=tuple(entry.host))
-        for entry in config.brains
-    ]
-    return config.episode, brains
+    return config.episode, [entry.launch() for entry in config.brains]
 
 
 def _note_value_mistakes(document: typed_yaml.Document) -> Any:

@@ -74,6 +74,19 @@ class BrainEntry:
             entry.update(group=self.group, training_seed=self.training_seed)
         return entry
 
+    @classmethod
+    def from_dict(cls, entry: dict[str, Any]) -> BrainEntry:
+        """The entry :meth:`to_dict` wrote (results, an episode's config.yaml) read back as the same entry."""
+        weights = entry.get("weights")
+        return cls(
+            label=entry["label"],
+            brain=entry["brain"],
+            weights=Path(weights) if weights else None,
+            options=tuple((entry.get("options") or {}).items()),
+            group=entry.get("group", ""),
+            training_seed=entry.get("training_seed"),
+        )
+
 
 @dataclass(frozen=True)
 class PlannedEpisode:

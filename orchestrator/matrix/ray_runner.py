@@ -62,6 +62,7 @@ from orchestrator.matrix.runner import (
     WorkerState,
 )
 from orchestrator.matrix.warm import WarmLane
+from orchestrator.stack.failures import Failure, FailureKind
 
 log = logging.getLogger("drivebench.ray")
 
@@ -348,7 +349,7 @@ class RayMatrixRunner(MatrixRunner):
         """Tasks in flight: the cluster's slots now (nodes come and go), at least one."""
         try:
             return max(1, sum(slots_of(node, self.ray_options.resources) for node in alive_nodes()))
-        except Exception:  # noqa: BLE001 - a GCS hiccup must not end the matrix; keep going one at a time
+        except Exception:  # a GCS hiccup must not end the matrix; keep going one at a time
             return 1
 
     def _artifacts_text(self) -> str | None:
@@ -391,7 +392,9 @@ class RayMatrixRunner(MatrixRunner):
                 return None
             return self._lost_result(episode, lost)
         except (ray.exceptions.RayError, RuntimeError) as error:  # the task itself broke, not the episode: not retried
-            return self._lost_result(episode, lost, failure=f"error: {type(error).__name__}: {_first_line(error)}")
+            return self._lost_result(
+                episode, lost, failure=Failure(FailureKind.ERROR, f"{type(error).__name__}: {_first_line(error)}")
+            )
         return self._land(episode, outcome, lost)
 
     def _land(self, episode: PlannedEpisode, outcome: dict, lost: tuple) -> EpisodeResult:
@@ -416,10 +419,10 @@ class RayMatrixRunner(MatrixRunner):
         except ValueError:
             return str(path.resolve())
 
-    def _lost_result(self, episode: PlannedEpisode, lost: tuple, *, failure: str | None = None) -> EpisodeResult:
+    def _lost_result(self, episode: PlannedEpisode, lost: tuple, *, failure: Failure | None = None) -> EpisodeResult:
         now = time.time()
         if failure is None:
-            failure = f"node_died: lost {len(lost)} time(s), last: {lost[-1]['error']}"
+            failure = Failure(FailureKind.NODE_DIED, f"lost {len(lost)} time(s), last: {lost[-1]['error']}")
         return EpisodeResult.of(
             episode,
             status="failed",
@@ -660,7 +663,7 @@ def _watched(
     def drive() -> None:
         try:
             outcome["result"] = run(state)
-        except BaseException as error:  # noqa: BLE001 - raised again in the task, where Ray reports it
+        except BaseException as error:  # raised again in the task, where Ray reports it
             outcome["error"] = error
 
     thread = threading.Thread(target=drive, name="episode", daemon=True)
@@ -692,7 +695,9 @@ def _watched(
 def _timed_out(
     episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float, result: EpisodeResult | None
 ) -> EpisodeResult:
-    failure = f"wall_timeout: the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
+    failure = Failure(
+        FailureKind.WALL_TIMEOUT, f"the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
+    )
     if result is not None:
         return dataclasses.replace(result, status="failed", failure=failure)
     return EpisodeResult.of(

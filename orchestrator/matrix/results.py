@@ -6,7 +6,8 @@ killed with SIGKILL loses only the episodes that were still running; ``--resume`
 Status of a row:
     ``done``   the episode ran and was scored, whatever the brain did (a crash is a result, not a failure);
     ``failed`` the stack failed the episode (a process died, no score in time, the simulator refused it):
-               ``failure`` says which, as ``<kind>: <detail>`` with kind one of :data:`FAILURE_KINDS`. A score is
+               ``failure`` says which, as ``<kind>: <detail>`` with kind a ``FailureKind``
+               (``orchestrator/stack/failures.py``). A score is
                kept when the scorer still produced one (a brain killed mid-episode ends it with ``brain_lost``).
 
 The stored schema carries a version (SQLite's ``user_version``, :data:`SCHEMA_VERSION`), so that results written by
@@ -25,7 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from orchestrator.matrix.plan import PlannedEpisode
+from orchestrator.matrix.plan import BrainEntry, PlannedEpisode
+from orchestrator.stack.failures import Failure, FailureKind
 from protocol import codec
 from protocol.messages import EpisodeScore, EpisodeSpec
 
@@ -34,20 +36,6 @@ DATABASE_NAME = "results.sqlite"
 SCHEMA_VERSION = 1
 # A fact the runner stores for the report: the variation label of the matrix's first episode (the baseline column).
 BASELINE_FACT = "baseline_variation"
-
-# Typed failures: what went wrong with the stack (never what the brain did on the road).
-FAILURE_KINDS = (
-    "brain_died",  # a brain process exited or lost its liveliness token during the episode
-    "simulator_died",  # the simulator process exited or lost its token
-    "scorer_died",  # the scorer exited or lost its token
-    "noise_died",  # the noise injector exited or lost its token
-    "recorder_died",  # the recorder exited (the episode goes on and is scored; only its recording is incomplete)
-    "router_died",  # the router went away: every process lost its link at once
-    "start_failed",  # the stack did not come up, or the simulator refused the episode
-    "wall_timeout",  # no score within the wall-clock guard (a hung episode)
-    "node_died",  # (--ray) the cluster node running it died, more often than the retries allow
-    "error",  # anything else, with its message
-)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS matrix (
@@ -109,13 +97,13 @@ class EpisodeResult:
     perturbation: str
     repetition: int
     spec: EpisodeSpec
-    brain_entry: dict[str, Any]
+    brain_entry: BrainEntry
     status: str
     run_id: str
     started_at: float
     ended_at: float
     reason: str | None = None
-    failure: str | None = None
+    failure: Failure | None = None
     score: EpisodeScore | None = None
     recording: str | None = None
     trajectory: str | None = None
@@ -136,7 +124,7 @@ class EpisodeResult:
             perturbation=episode.perturbation,
             repetition=episode.repetition,
             spec=episode.spec,
-            brain_entry=episode.brain.to_dict(),
+            brain_entry=episode.brain,
             **outcome,
         )
 
@@ -145,8 +133,8 @@ class EpisodeResult:
         return self.ended_at - self.started_at
 
     @property
-    def failure_kind(self) -> str | None:
-        return self.failure.split(":", 1)[0] if self.failure else None
+    def failure_kind(self) -> FailureKind | None:
+        return self.failure.kind if self.failure else None
 
 
 class ResultsError(RuntimeError):
@@ -222,10 +210,10 @@ class ResultStore:
                 result.perturbation,
                 result.repetition,
                 codec.to_json(result.spec),
-                json.dumps(result.brain_entry),
+                json.dumps(result.brain_entry.to_dict()),
                 result.status,
                 result.reason,
-                result.failure,
+                None if result.failure is None else str(result.failure),
                 codec.to_json(result.score) if result.score is not None else None,
                 result.run_id,
                 result.started_at,
@@ -285,13 +273,13 @@ class ResultStore:
             perturbation=perturbation,
             repetition=repetition,
             spec=spec,
-            brain_entry=json.loads(brain_json),
+            brain_entry=BrainEntry.from_dict(json.loads(brain_json)),
             status=status,
             run_id=run_id,
             started_at=started_at,
             ended_at=ended_at,
             reason=reason,
-            failure=failure,
+            failure=Failure.parse(failure) if failure else None,
             score=score,
             recording=recording,
             trajectory=trajectory,

@@ -127,7 +127,7 @@ def _spec_changes(result: EpisodeResult, episode: PlannedEpisode) -> list[str]:
 
 
 def _brain_changes(result: EpisodeResult, episode: PlannedEpisode) -> list[str]:
-    before, after = result.brain_entry, episode.brain.to_dict()
+    before, after = result.brain_entry.to_dict(), episode.brain.to_dict()
     return [
         f"brain {episode.brain.label!r} {field} {before.get(field)!r} -> {after.get(field)!r}"
         for field in dict.fromkeys([*before, *after])

@@ -39,6 +39,7 @@ from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
 from orchestrator.matrix.resume import PLANNED_KEYS_FACT, resume_matrix
 from orchestrator.matrix.warm import JobQueue, WarmLane, copy_episode_logs, log_marks
+from orchestrator.stack.failures import Failure, FailureKind
 from orchestrator.stack.launcher import (
     BrainLaunch,
     EpisodeAborted,
@@ -354,16 +355,16 @@ class MatrixRunner:
                 detail = (
                     stack.dead_child_reason(wait_s=BRAIN_EXIT_WAIT_S) or "the active brain lost its liveliness token"
                 )
-                outcome.update(status="failed", failure=f"brain_died: {detail}")
+                outcome.update(status="failed", failure=Failure(FailureKind.BRAIN_DIED, detail))
         except EpisodeAborted:
             return None
         except StackFailure as failure:
-            outcome.update(status="failed", failure=f"{failure.kind}: {failure}", score=failure.score)
+            outcome.update(status="failed", failure=failure.failure, score=failure.score)
         except StackError as error:
-            outcome.update(status="failed", failure=f"start_failed: {error}")
-        except Exception as error:  # noqa: BLE001 - one broken episode must not end the matrix
+            outcome.update(status="failed", failure=Failure(FailureKind.START_FAILED, str(error)))
+        except Exception as error:  # one broken episode must not end the matrix
             log.exception("episode %s", episode.key)
-            outcome.update(status="failed", failure=f"error: {type(error).__name__}: {error}")
+            outcome.update(status="failed", failure=Failure(FailureKind.ERROR, f"{type(error).__name__}: {error}"))
         return outcome
 
     def _episode_result(

@@ -89,8 +89,8 @@ def brain_scores(results: list[EpisodeResult]) -> tuple[list[BrainScores], int, 
     for r in results:
         if r.score is None or unusable(r) is not None:
             continue
-        brain = str(r.brain_entry.get("group") or r.brain)
-        runs.setdefault(brain, {}).setdefault(r.brain_entry.get("training_seed"), {})[condition_of(r)] = r
+        brain = r.brain_entry.group or r.brain
+        runs.setdefault(brain, {}).setdefault(r.brain_entry.training_seed, {})[condition_of(r)] = r
     every = {condition_of(r) for r in results}
     shared = sorted(set.intersection(*(set(c) for by_seed in runs.values() for c in by_seed.values())) if runs else [])
     scored = []

@@ -23,8 +23,8 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
             "key": r.key,
             "brain": r.brain,
             # A training run of a brain compared over seeds: the brain it is a run of, and its training seed.
-            "brain_group": r.brain_entry.get("group", r.brain),
-            "training_seed": r.brain_entry.get("training_seed", ""),
+            "brain_group": r.brain_entry.group or r.brain,
+            "training_seed": "" if r.brain_entry.training_seed is None else r.brain_entry.training_seed,
             "circuit": r.circuit,
             "variation": r.variation,
             "perturbation": r.perturbation,
@@ -33,7 +33,7 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
             "laps_target": r.spec.laps,
             "status": r.status,
             "reason": r.reason or "",
-            "failure": r.failure or "",
+            "failure": str(r.failure or ""),
             "wall_s": round(r.wall_s, 3),
         }
         metrics = r.score.metrics if r.score is not None else None

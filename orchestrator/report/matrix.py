@@ -41,7 +41,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -364,10 +363,10 @@ class _Report(ReportPlots):
         return section
 
     def internal_metrics(self) -> Section | None:
-        entries: dict[str, dict[str, Any]] = {}
+        entries: dict[str, Path] = {}
         for r in self.results:
-            if r.brain_entry.get("weights") and r.brain not in entries:
-                entries[r.brain] = r.brain_entry
+            if r.brain_entry.weights is not None and r.brain not in entries:
+                entries[r.brain] = r.brain_entry.weights
         if not entries:
             return None
         section = Section("Internal metrics (offline, from training)")
@@ -379,8 +378,8 @@ class _Report(ReportPlots):
         from brains.neural.checkpoint import CheckpointError, read_checkpoint
 
         rows, notes = [], []
-        for brain, entry in entries.items():
-            path = self._weights_path(str(entry["weights"]))
+        for brain, weights in entries.items():
+            path = self._weights_path(str(weights))
             try:
                 checkpoint = read_checkpoint(path)
             except CheckpointError as error:
@@ -480,7 +479,7 @@ class _Report(ReportPlots):
                             r.brain,
                             r.circuit,
                             f"{r.variation} / {r.perturbation}",
-                            r.failure or "–",
+                            str(r.failure or "–"),
                             f"`{r.logs}`" if r.logs else "–",
                         ]
                         for r in failed

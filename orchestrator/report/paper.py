@@ -339,8 +339,8 @@ def checkpoint_tables(results: Sequence[EpisodeResult], folder: Path) -> list[Ta
     """Tables 1 and 2 from the weights of every brain that has them."""
     weights = {}
     for r in results:
-        if r.brain_entry.get("weights") and r.brain not in weights:
-            weights[r.brain] = Path(str(r.brain_entry["weights"]))
+        if r.brain_entry.weights is not None and r.brain not in weights:
+            weights[r.brain] = r.brain_entry.weights
     if not weights:
         return ["No brain of this run has a checkpoint: tables 1 and 2 are empty."]
     if importlib.util.find_spec("torch") is None:

@@ -24,6 +24,7 @@ import msgspec
 
 from brains.registry import bus_name
 from orchestrator.stack import processes
+from orchestrator.stack.failures import Failure, FailureKind
 from protocol import codec, environment, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
 from protocol.deploy import graph
@@ -42,17 +43,21 @@ class StackError(RuntimeError):
 
 
 class StackFailure(StackError):
-    """An episode the stack failed, typed for results: ``kind`` is one of ``orchestrator.matrix.results.FAILURE_KINDS``.
+    """An episode the stack failed, typed for results (``kind``, a :class:`FailureKind`).
 
     ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
     ``brain_lost`` and is scored), else None.
     """
 
-    def __init__(self, kind: str, detail: str, *, score: EpisodeScore | None = None):
+    def __init__(self, kind: FailureKind, detail: str, *, score: EpisodeScore | None = None):
         super().__init__(detail)
         self.kind = kind
         self.score = score
         self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
+
+    @property
+    def failure(self) -> Failure:
+        return Failure(self.kind, str(self))
 
     def record(self, *, run_id: str, episode: int | None = None) -> dict:
         """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
@@ -72,15 +77,6 @@ class EpisodeAborted(StackError):
 
 LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions read their bus settings from: none
 
-# Which failure a dead or vanished process of each role means for its episode.
-FAILURE_OF_ROLE = {
-    "brain": "brain_died",
-    "simulator": "simulator_died",
-    "scorer": "scorer_died",
-    "noise": "noise_died",
-    "recorder": "recorder_died",
-    "router": "router_died",
-}
 # How long a start refused because the simulator has not yet seen the brain's token is retried.
 START_RETRY_S = 5.0
 # After a brain dies, the simulator ends the episode (brain_lost) and the scorer still scores it: wait this long.
@@ -317,7 +313,9 @@ class LocalStack:
         reply = None if payload is None else codec.decode(payload, ControlReply)
         if reply is None or not reply.ok:
             why = "no answer" if reply is None else reply.detail
-            raise StackFailure("recorder_died", f"the recorder did not take {request.action!r} on {key}: {why}")
+            raise StackFailure(
+                FailureKind.RECORDER_DIED, f"the recorder did not take {request.action!r} on {key}: {why}"
+            )
         deadline = time.monotonic() + RECORDER_STOP_GRACE_S
         status = codec.encode(ControlRequest(action="status"))
         while time.monotonic() < deadline:
@@ -325,10 +323,11 @@ class LocalStack:
             if payload is not None and done(codec.decode(payload, ControlReply)):
                 return
             if (dead := self._dead_child_reason()) is not None:
-                raise StackFailure("recorder_died", dead)
+                raise StackFailure(FailureKind.RECORDER_DIED, dead)
             time.sleep(0.02)
         raise StackFailure(
-            "recorder_died", f"the recorder did not {request.action} a file within {RECORDER_STOP_GRACE_S:.0f} s"
+            FailureKind.RECORDER_DIED,
+            f"the recorder did not {request.action} a file within {RECORDER_STOP_GRACE_S:.0f} s",
         )
 
     def stop_recorder(self) -> None:
@@ -388,16 +387,19 @@ class LocalStack:
         self.children.append(child)
         return child
 
-    def _dead_child_reason(self) -> str | None:
+    def _dead_child(self) -> Child | None:
         for child in self.children:
             code = child.process.poll()
             if code == 0 and child.role == "brain":
                 continue  # stopped on request (a live swap retired it): not a failure
             if code is not None and (child.role, child.name) not in self._tolerated:
-                return processes.exit_reason(
-                    child.process, what=f"{child.role} {child.name!r}", log_path=child.log_path
-                )
+                return child
         return None
+
+    def _dead_child_reason(self) -> str | None:
+        if (child := self._dead_child()) is None:
+            return None
+        return processes.exit_reason(child.process, what=f"{child.role} {child.name!r}", log_path=child.log_path)
 
     def dead_child_reason(self, *, wait_s: float = 0.0) -> str | None:
         """Which process of this stack has exited, with its exit code and last log line (None: all running after
@@ -410,26 +412,26 @@ class LocalStack:
 
     def _failure(self) -> StackFailure | None:
         """A process of this stack that died, or a required liveliness token that vanished, as a typed failure."""
-        if (dead := self._dead_child_reason()) is not None:
-            role = dead.split(" ", 1)[0]
-            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), dead)
+        if (dead := self._dead_child()) is not None:
+            reason = processes.exit_reason(dead.process, what=f"{dead.role} {dead.name!r}", log_path=dead.log_path)
+            return StackFailure(FailureKind.died(dead.role), reason or f"{dead.role} {dead.name!r} exited")
         if self._watch is not None and (gone := self._required - self._watch.alive()):
             if self._router_gone():
                 return StackFailure(
-                    "router_died",
+                    FailureKind.ROUTER_DIED,
                     f"the router at {self.endpoint} stopped answering (every "
                     f"process lost its link: {len(gone)} liveliness token(s) gone)",
                 )
             if len(gone) > 1 and gone == self._required:
                 # A router killed and started again at once answers the probe, but every link through it broke.
                 return StackFailure(
-                    "router_died",
+                    FailureKind.ROUTER_DIED,
                     f"every process lost its liveliness token at once ({len(gone)} "
                     f"tokens): the link through the router at {self.endpoint} broke "
                     f"(the router restarted?)",
                 )
             _, role, name = keys.parse_alive(sorted(gone)[0])
-            return StackFailure(FAILURE_OF_ROLE.get(role, "error"), f"{role} {name!r} lost its liveliness token")
+            return StackFailure(FailureKind.died(role), f"{role} {name!r} lost its liveliness token")
         return None
 
     def _router_gone(self) -> bool:
@@ -535,7 +537,7 @@ class LocalStack:
         self.last_episode = None
         reply = self._start(spec)
         if not reply.ok:
-            raise StackFailure("start_failed", f"the simulator refused the episode: {reply.detail}")
+            raise StackFailure(FailureKind.START_FAILED, f"the simulator refused the episode: {reply.detail}")
         episode = self.last_episode = reply.episode
         guard = wall_timeout_s or wall_guard_s(max_sim_seconds=spec.max_sim_seconds)
         deadline = time.monotonic() + guard
@@ -543,11 +545,11 @@ class LocalStack:
         failure_deadline = 0.0
         while True:
             if failure is None and (failure := self._failure()) is not None:
-                if failure.kind == "recorder_died":  # the driving is fine: score the episode, flag the recording
+                if failure.kind == FailureKind.RECORDER_DIED:  # the driving is fine: score it, flag the recording
                     self._tolerate_recorder(failure)
                     failure = None
                     continue
-                if failure.kind != "brain_died":
+                if failure.kind != FailureKind.BRAIN_DIED:
                     raise failure
                 failure_deadline = time.monotonic() + SCORE_AFTER_DEATH_S
             if failure is not None and time.monotonic() > failure_deadline:
@@ -557,7 +559,9 @@ class LocalStack:
                 raise EpisodeAborted(f"episode {episode} abandoned")
             if time.monotonic() > deadline:
                 self._control(ControlRequest(action="stop"), attempts=1)
-                raise StackFailure("wall_timeout", f"episode {episode} not scored after {guard:.0f} s of wall time")
+                raise StackFailure(
+                    FailureKind.WALL_TIMEOUT, f"episode {episode} not scored after {guard:.0f} s of wall time"
+                )
             received = inbox.recv(timeout_s=0.2)
             if received is None:
                 continue
@@ -614,7 +618,7 @@ class LocalStack:
             else ""
         )
         raise StackFailure(
-            "simulator_died",
+            FailureKind.SIMULATOR_DIED,
             f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}",
         )
 

@@ -76,7 +76,7 @@ def exit_on_sigterm() -> None:
     instead: an exception raised at an arbitrary point could cut a write in half.
     """
 
-    def handler(signum, frame):  # noqa: ARG001
+    def handler(signum, frame):
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, handler)
@@ -93,7 +93,7 @@ def stop_on_signals() -> None:
     if threading.current_thread() is not threading.main_thread():
         return
 
-    def handler(signum, frame):  # noqa: ARG001
+    def handler(signum, frame):
         _stop_signal.append(signum)
         _stopping.set()
 

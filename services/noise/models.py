@@ -406,7 +406,7 @@ def _albumentations():
 def _bm_transform(stage: NoiseStage):
     """The albumentations transform of one of Behavior Metrics' perturbations, with BM's parameters; always applied
     (BM's ``always_apply=True``). The library's defaults for shadow, snow, fog and sun flare are those BM used."""
-    A = _albumentations()  # noqa: N806 (the library's usual name)
+    A = _albumentations()  # the library's usual name
     if isinstance(stage, Rain):
         return A.RandomRain(
             slant_range=(-10, 10),

@@ -107,7 +107,7 @@ class _CameraPump(threading.Thread):
                 self.handled += 1
                 try:
                     self.bridge.publish_frame(received.key, received.message)
-                except Exception:  # noqa: BLE001 - one bad frame must not end the camera stream
+                except Exception:  # one bad frame must not end the camera stream
                     log.exception("could not send a camera frame on %s", received.key)
 
 

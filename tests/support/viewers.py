@@ -51,7 +51,7 @@ class FoxgloveClient:
                     self.messages[self._topic_of_subscription[subscription]].append(
                         Received(time.monotonic(), log_time, message[13:])
                     )
-        except Exception:  # noqa: BLE001 - the connection closed under us at the end of a test
+        except Exception:  # the connection closed under us at the end of a test
             pass
 
     def _on_text(self, message: dict) -> None:

@@ -5,11 +5,11 @@ from brains.nets.info import ModelInfo
 # What the network expects (torch-free: read by recorders and brains); its model is in model.py, loaded on demand.
 # The only one trained on the lower half of the 480-row frame (rows 240:480).
 INFO = ModelInfo(
-    "deepest_lstm_tiny_pilotnet",
-    50,
-    100,
-    1,
-    0.5,
-    "brains.nets.deepest_lstm_tiny_pilotnet.model:DeepestLSTMTinyPilotNet",
-    62_470,
+    name="deepest_lstm_tiny_pilotnet",
+    input_height_px=50,
+    input_width_px=100,
+    frames=1,
+    crop_top_fraction=0.5,
+    module="brains.nets.deepest_lstm_tiny_pilotnet.model:DeepestLSTMTinyPilotNet",
+    reference_params=62_470,
 )

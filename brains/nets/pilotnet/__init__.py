@@ -3,4 +3,12 @@
 from brains.nets.info import ModelInfo
 
 # What the network expects (torch-free: read by recorders and brains); its model is in model.py, loaded on demand.
-INFO = ModelInfo("pilotnet", 66, 200, 1, 0.0, "brains.nets.pilotnet.model:PilotNet", 17_016_206)
+INFO = ModelInfo(
+    name="pilotnet",
+    input_height_px=66,
+    input_width_px=200,
+    frames=1,
+    crop_top_fraction=0.0,
+    module="brains.nets.pilotnet.model:PilotNet",
+    reference_params=17_016_206,
+)

@@ -3,4 +3,12 @@
 from brains.nets.info import ModelInfo
 
 # What the network expects (torch-free: read by recorders and brains); its model is in model.py, loaded on demand.
-INFO = ModelInfo("pilotnet_x3", 50, 100, 3, 0.0, "brains.nets.pilotnet_x3.model:PilotNetX3", 352_958)
+INFO = ModelInfo(
+    name="pilotnet_x3",
+    input_height_px=50,
+    input_width_px=100,
+    frames=3,
+    crop_top_fraction=0.0,
+    module="brains.nets.pilotnet_x3.model:PilotNetX3",
+    reference_params=352_958,
+)

@@ -1,0 +1,55 @@
+"""Typed stack failures: what went wrong with the stack during an episode (never what the brain did on the road).
+
+One enum, :class:`FailureKind`, for the launcher, the runners and the results. Its ``<role>_died`` members follow
+the process graph: every role of ``protocol/deploy/graph.py`` that runs a process has one (``tests/test_failures.py``
+fails when a role is added without it), and :meth:`FailureKind.died` maps a role to its member, so nothing decides
+on the text of a message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+
+class FailureKind(StrEnum):
+    """Why the stack failed an episode. The value is what results store (``<kind>: <detail>``) and tables show."""
+
+    BRAIN_DIED = "brain_died"  # a brain process exited or lost its liveliness token during the episode
+    SIMULATOR_DIED = "simulator_died"  # the simulator process exited or lost its token
+    SCORER_DIED = "scorer_died"  # the scorer exited or lost its token
+    NOISE_DIED = "noise_died"  # the noise injector exited or lost its token
+    RECORDER_DIED = "recorder_died"  # the recorder exited (the episode is still scored; its recording is incomplete)
+    ROUTER_DIED = "router_died"  # the router went away: every process lost its link at once
+    VIZ_DIED = "viz_died"  # the live view exited
+    START_FAILED = "start_failed"  # the stack did not come up, or the simulator refused the episode
+    WALL_TIMEOUT = "wall_timeout"  # no score within the wall-clock guard (a hung episode)
+    NODE_DIED = "node_died"  # (--ray) the cluster node running it died, more often than the retries allow
+    ERROR = "error"  # anything else, with its message
+
+    @classmethod
+    def died(cls, role: str) -> FailureKind:
+        """The failure a dead or vanished process of graph role ``role`` means for its episode (``error`` for a
+        role without one)."""
+        try:
+            return cls(f"{role}_died")
+        except ValueError:
+            return cls.ERROR
+
+
+@dataclass(frozen=True)
+class Failure:
+    """One failed episode's failure: its kind, and the detail a person reads (never parsed)."""
+
+    kind: FailureKind
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.detail}"  # the form results store and print
+
+    @classmethod
+    def parse(cls, stored: str) -> Failure:
+        """A failure as results stored it (``<kind>: <detail>``); a kind this drivebench does not know is ``error``."""
+        kind, _, detail = stored.partition(": ")
+        known = kind in FailureKind._value2member_map_
+        return cls(FailureKind(kind), detail) if known else cls(FailureKind.ERROR, stored)
