@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 import pytest
-from support.matrices import KILLING, brain_killer, finished_rows, write_matrix
+from support.held_brain import Hold, pythonpath_with_support
+from support.matrices import brain_killer, finished_rows, killing_matrix, write_matrix
 from support.waits import wait_for
 
 from orchestrator.matrix.load import load_matrix
@@ -149,11 +150,13 @@ repetitions: 4
     assert f"{4 - len(before)} episode(s) run" in stderr and f"{len(before)} already in the results" in stderr
 
 
-def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, KILLING))
+def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", pythonpath_with_support())  # the stack's brain hosts import support.held_brain
+    hold = Hold(tmp_path)
+    matrix = load_matrix(write_matrix(tmp_path, killing_matrix(hold)))
     killed: list[int] = []
 
-    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_change=brain_killer(killed))
+    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_change=brain_killer(hold, killed))
     progress = runner.run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)

@@ -31,11 +31,12 @@ ray = needs.require("ray")
 
 from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
+from support.held_brain import Hold, pythonpath_with_support  # noqa: E402
 from support.matrices import (  # noqa: E402
-    KILLING,
     assert_same_trajectory,
     brain_killer,
     finished_rows,
+    killing_matrix,
     processes_with,
     results_by_key,
     simulated,
@@ -64,14 +65,17 @@ def worker_node(cluster: Cluster, *, slots: int, gpus: int = 0):
 @pytest.fixture(scope="module")
 def cluster():
     """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot and one GPU (Ray's
-    bookkeeping only: nothing here uses it); this process is the driver."""
-    cluster = Cluster(
-        initialize_head=True,
-        connect=False,
-        head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH},
-    )
-    worker_node(cluster, slots=1, gpus=1)
-    cluster.wait_for_nodes()
+    bookkeeping only: nothing here uses it); this process is the driver. Its nodes' processes, and so the brain hosts
+    their tasks start, can import the tests' own brains (support.held_brain)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", pythonpath_with_support())
+        cluster = Cluster(
+            initialize_head=True,
+            connect=False,
+            head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH},
+        )
+        worker_node(cluster, slots=1, gpus=1)
+        cluster.wait_for_nodes()
     ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
     yield cluster
     ray.shutdown()
@@ -217,7 +221,8 @@ camera: 96x72
 
 
 def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_is_not_retried(cluster, tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, KILLING))
+    hold = Hold(tmp_path)
+    matrix = load_matrix(write_matrix(tmp_path, killing_matrix(hold)))
     killed: list[int] = []
 
     progress = RayMatrixRunner(
@@ -225,7 +230,7 @@ def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_
         tmp_path / "out",
         RunOptions(),
         ray_options=RayOptions(address=cluster.address),
-        on_change=brain_killer(killed),
+        on_change=brain_killer(hold, killed),
     ).run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)
