@@ -13,12 +13,15 @@ Brain hosts import it as ``support.held_brain:HeldBrain`` (a module path): the t
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from brains.base import Action, Observation
+from brains.registry import make_brain
 
 TARGET = "support.held_brain:HeldBrain"
 TESTS_DIR = Path(__file__).resolve().parent.parent  # where ``support`` is a package, as pytest sees it
@@ -34,10 +37,10 @@ def pythonpath_with_support() -> str:
 
 
 class HeldBrain:
-    """Answers ``Action(speed_mps, yaw_rate_radps)`` like the constant brain; at the first frame at or past
-    ``hold_at_s`` (simulated seconds since the episode start) it writes its pid to the file ``held`` and waits until
-    the file ``release`` exists (at most ``max_hold_s`` wall seconds). A brain started after the release drives
-    through without holding."""
+    """Drives as the registered brain ``brain`` built with ``options`` (the constant brain by default); at the first
+    frame at or past ``hold_at_s`` (simulated seconds since the episode start) it writes its pid to the file ``held``
+    and waits until the file ``release`` exists (at most ``max_hold_s`` wall seconds) before answering. A brain that
+    reaches its hold after the release drives through."""
 
     def __init__(
         self,
@@ -45,24 +48,24 @@ class HeldBrain:
         held: str,
         release: str,
         hold_at_s: float = 2.0,
-        speed_mps: float = 0.5,
-        yaw_rate_radps: float = 0.0,
+        brain: str = "constant",
         max_hold_s: float = MAX_HOLD_S,
+        **options: Any,
     ):
-        self._action = Action(speed_mps=float(speed_mps), yaw_rate_radps=float(yaw_rate_radps))
+        self._inner = make_brain(brain, **options)
         self._held, self._release = Path(held), Path(release)
         self._hold_at_ns = int(float(hold_at_s) * 1e9)
         self._max_hold_s = float(max_hold_s)
         self._done = False
 
     def reset(self, *, seed: int) -> None:
-        del seed  # one hold per brain process, not per episode: a released test stays released
+        self._inner.reset(seed=seed)  # one hold per brain process, not per episode: a released test stays released
 
     def act(self, observation: Observation) -> Action:
         if not self._done and observation.stamp_ns >= self._hold_at_ns:
             self._done = True
             self._hold()
-        return self._action
+        return self._inner.act(observation)
 
     def _hold(self) -> None:
         if self._release.exists():
@@ -89,13 +92,13 @@ class Hold:
     def release_path(self) -> Path:
         return self.folder / "release"
 
-    def options(self, *, hold_at_s: float = 2.0, speed_mps: float = 0.5) -> dict[str, object]:
-        return {
-            "held": str(self.held_path),
-            "release": str(self.release_path),
-            "hold_at_s": hold_at_s,
-            "speed_mps": speed_mps,
-        }
+    def options(self, *, hold_at_s: float, **brain: object) -> dict[str, object]:
+        """A :class:`HeldBrain`'s options: these files, the hold's sim time, and ``brain``'s (its name and options)."""
+        return {"held": str(self.held_path), "release": str(self.release_path), "hold_at_s": hold_at_s, **brain}
+
+    def launch_options(self, *, hold_at_s: float, **brain: object) -> tuple[str, ...]:
+        """The same as ``key=value`` overrides, for a :class:`~orchestrator.stack.launcher.BrainLaunch`."""
+        return tuple(f"{key}={json.dumps(value)}" for key, value in self.options(hold_at_s=hold_at_s, **brain).items())
 
     def held_pid(self) -> int | None:
         """The pid of the brain holding its episode now, or None while none has reached its hold."""

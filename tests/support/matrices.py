@@ -95,7 +95,7 @@ def killing_matrix(hold: Hold) -> str:
     """One brain that drives slowly for up to 30 s (sim), twice; the first brain holds its episode 2 s into it until
     ``hold`` is released (:class:`~support.held_brain.HeldBrain`), so a kill provably lands inside the episode. The
     brain timeout is long enough for a loaded machine's kill to come before the simulator gives up on the answer."""
-    brain = {"name": TARGET, "options": hold.options(hold_at_s=2.0, speed_mps=0.5)}
+    brain = {"name": TARGET, "options": hold.options(hold_at_s=2.0, brain="constant", speed_mps=0.5)}
     return f"""
 name: killing
 brains: [{json.dumps(brain)}]
