@@ -37,10 +37,11 @@ def pythonpath_with_support() -> str:
 
 
 class HeldBrain:
-    """Drives as the registered brain ``brain`` built with ``options`` (the constant brain by default); at the first
-    frame at or past ``hold_at_s`` (simulated seconds since the episode start) it writes its pid to the file ``held``
-    and waits until the file ``release`` exists (at most ``max_hold_s`` wall seconds) before answering. A brain that
-    reaches its hold after the release drives through."""
+    """Drives as the registered brain ``brain`` built with ``options`` (the constant brain by default); in its episode
+    number ``hold_in_episode`` (0: the first it drives), at the first frame at or past ``hold_at_s`` (simulated
+    seconds since the episode start), it writes its pid to the file ``held`` and waits until the file ``release``
+    exists (at most ``max_hold_s`` wall seconds) before answering. A brain that reaches its hold after the release
+    drives through."""
 
     def __init__(
         self,
@@ -48,6 +49,7 @@ class HeldBrain:
         held: str,
         release: str,
         hold_at_s: float = 2.0,
+        hold_in_episode: int = 0,
         brain: str = "constant",
         max_hold_s: float = MAX_HOLD_S,
         **options: Any,
@@ -55,14 +57,18 @@ class HeldBrain:
         self._inner = make_brain(brain, **options)
         self._held, self._release = Path(held), Path(release)
         self._hold_at_ns = int(float(hold_at_s) * 1e9)
+        self._hold_in_episode = int(hold_in_episode)
         self._max_hold_s = float(max_hold_s)
+        self._episodes = 0  # episodes this process began (a warm stack's brain drives several)
         self._done = False
 
     def reset(self, *, seed: int) -> None:
-        self._inner.reset(seed=seed)  # one hold per brain process, not per episode: a released test stays released
+        self._episodes += 1
+        self._inner.reset(seed=seed)
 
     def act(self, observation: Observation) -> Action:
-        if not self._done and observation.stamp_ns >= self._hold_at_ns:
+        # One hold per brain process, in its hold_in_episode-th episode (counted from 0).
+        if not self._done and self._episodes == self._hold_in_episode + 1 and observation.stamp_ns >= self._hold_at_ns:
             self._done = True
             self._hold()
         return self._inner.act(observation)
