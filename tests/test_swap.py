@@ -124,8 +124,14 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path, mo
     assert_valid_mcap(recording)
 
 
-def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
-    stack = make_stack(BrainLaunch("explicit"))
+def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack, tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", pythonpath_with_support())  # the stack's brain host imports support.held_brain
+    hold = Hold(tmp_path)
+    # The explicit brain, held 1 s (sim) into the episode until the refusals are checked: they meet a running
+    # episode however fast the machine (a fast one drove the whole 4 s between two requests).
+    stack = make_stack(
+        BrainLaunch(TARGET, name="explicit", options=hold.launch_options(hold_at_s=1.0, brain="explicit"))
+    )
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
     assert (reply.ok, reply.code) == (False, ReplyCode.NOT_RUNNING) and "no episode is running" in reply.detail
     died = "brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"
@@ -142,17 +148,15 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     thread, outcome = run_in_thread(
         stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64, height_px=48))
     )
-    wait_for(
-        lambda: control(stack, ControlRequest(action="status")).state == ServerState.RUNNING,
-        timeout_s=30,
-        what="the episode to run",
-    )
+    wait_for(hold.held_pid, timeout_s=60, what="the episode held 1 s in")
     status = control(stack, ControlRequest(action="status"))
+    assert status.state == ServerState.RUNNING
     assert status.active_brain == "explicit" and status.spec is not None and status.spec.max_sim_seconds == 4.0
     reply = control(stack, ControlRequest(action="switch", brain="ghost"))
     assert (reply.ok, reply.code) == (False, ReplyCode.NOT_ALIVE) and "'ghost' is not alive" in reply.detail
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
     assert (reply.ok, reply.code) == (False, ReplyCode.ALREADY_ACTIVE)
+    hold.release()
     thread.join(timeout=60)
     assert outcome["score"].reason == EndReason.TIME_LIMIT and outcome["score"].switches == []
 
