@@ -267,7 +267,7 @@ class ComposeEmulation:
 
 
 def emulated_stack(
-    tmp_path: Path, *, run_prefix: str, max_sim_seconds: float, profiles: tuple[str, ...] = ()
+    tmp_path: Path, *, run_prefix: str, max_sim_seconds: float, laps: int = 1, profiles: tuple[str, ...] = ()
 ) -> tuple[ComposeEmulation, dict[str, str], int]:
     """The resolved compose file on a free loopback port, as processes: (stack, its environment, the port)."""
     port = free_loopback_port()
@@ -275,6 +275,7 @@ def emulated_stack(
         "DRIVEBENCH_ROUTER": f"tcp/127.0.0.1:{port}",
         "DRIVEBENCH_LISTEN": f"tcp/127.0.0.1:{port}",
         "MAX_SIM_SECONDS": f"{max_sim_seconds:g}",
+        "LAPS": str(laps),
         "DRIVEBENCH_RUN_ID": f"{run_prefix}{port}",
     }
     results, logs = tmp_path / "results", tmp_path / "logs"
@@ -329,7 +330,10 @@ def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_n
     """kill -9 of the router mid-episode, started again at once: the driver fails typed (router_died), the simulator
     ends the episode (driver_lost) instead of driving on over its peer links, and the services, never restarted,
     run the next attached episode."""
-    stack, env, _ = emulated_stack(tmp_path, run_prefix="restart", max_sim_seconds=600)
+    # 100 laps: the episode runs to its 600 s of sim (12,000 lock-step steps) instead of ending at its first lap,
+    # which a fast machine may drive within the 2 s below. Compose has no real-time switch, so this is a margin
+    # (6,000 steps a second would be needed to end it first), not a proof as a real-time episode would be.
+    stack, env, _ = emulated_stack(tmp_path, run_prefix="restart", max_sim_seconds=600, laps=100)
     results, logs = stack.results, stack.logs
     try:
         for name in ("router", "simulator", "noise", "scorer", "brain"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import signal
 import subprocess
 import sys
@@ -9,7 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-from support.matrices import KILLING, brain_killer, finished_rows, write_matrix
+from support.held_brain import MAX_HOLD_S, TARGET, Hold, pythonpath_with_support
+from support.matrices import brain_killer, finished_rows, killing_matrix, write_matrix
 from support.waits import wait_for
 
 from orchestrator.matrix.load import load_matrix
@@ -112,27 +115,36 @@ variations: {{line: [red, white]}}
 
 
 def test_resume_after_sigkill_reruns_only_what_did_not_finish(tmp_path):
+    # The warm stack's brain drives two episodes, then holds the third 1 s (sim) into it until the test releases it:
+    # the kill lands with exactly two finished, however fast the machine (the matrix once could finish between the
+    # test's look at the results and its kill).
+    hold = Hold(tmp_path)
+    brain = {"name": TARGET, "options": hold.options(hold_at_s=1.0, hold_in_episode=2, brain="constant", speed_mps=1.0)}
     path = write_matrix(
         tmp_path,
         f"""
 name: resumable
-brains: [{{name: constant, options: {{speed_mps: 1.0}}}}]
+brains: [{json.dumps(brain)}]
 circuits: [simple]
 repetitions: 4
-{SHORT}""",
+limits: {{laps: 1, max_sim_seconds: 4, brain_timeout_s: {MAX_HOLD_S + 30}}}
+camera: 96x72
+""",
     )
     out = tmp_path / "out"
-    first = drivebench("matrix", str(path), "-o", str(out), "--no-report")
+    env = {**os.environ, "PYTHONPATH": pythonpath_with_support()}  # its brain hosts import support.held_brain
+    first = drivebench("matrix", str(path), "-o", str(out), "--no-report", env=env)
     wait_for(
-        lambda: len(finished_rows(out / "results.sqlite")) >= 2,
+        hold.held_pid,
         timeout_s=120,
-        what="two finished episodes",
+        what="the third episode held",
         alive=lambda: None if first.poll() is None else first.communicate()[1],
     )
     first.send_signal(signal.SIGKILL)
     first.wait()
+    hold.release()  # the orphaned brain answers again, sees its launcher gone and stops like the rest
     before = finished_rows(out / "results.sqlite")
-    assert 2 <= len(before) < 4
+    assert len(before) == 2
     # Its stacks' processes notice that their launcher is gone and stop by themselves: nothing is orphaned.
     wait_for(
         lambda: not started_by(first.pid),
@@ -140,7 +152,7 @@ repetitions: 4
         what=f"the stack processes of {first.pid} to stop by themselves",
     )
 
-    resumed = drivebench("matrix", str(path), "-o", str(out), "--resume", "--no-report")
+    resumed = drivebench("matrix", str(path), "-o", str(out), "--resume", "--no-report", env=env)
     _, stderr = resumed.communicate(timeout=200)
     assert resumed.returncode == 0, stderr
     after = finished_rows(out / "results.sqlite")
@@ -149,11 +161,13 @@ repetitions: 4
     assert f"{4 - len(before)} episode(s) run" in stderr and f"{len(before)} already in the results" in stderr
 
 
-def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, KILLING))
+def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", pythonpath_with_support())  # the stack's brain hosts import support.held_brain
+    hold = Hold(tmp_path)
+    matrix = load_matrix(write_matrix(tmp_path, killing_matrix(hold)))
     killed: list[int] = []
 
-    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_change=brain_killer(killed))
+    runner = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_change=brain_killer(hold, killed))
     progress = runner.run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)
@@ -238,9 +252,10 @@ def test_ctrl_c_on_a_two_worker_matrix_exits_cleanly_every_time(tmp_path):
     path = write_matrix(
         tmp_path,
         "name: interrupted\nbrains: [explicit, {name: constant, options: {speed_mps: 1.0}}]\ncircuits: [simple]\n"
-        # 12 episodes of up to 40 s sim: warm stacks run one in about a second of wall time, and the last SIGINT
-        # (5 s after both stacks started) must still find episodes left to resume.
-        "repetitions: 6\nlimits: {laps: 1, max_sim_seconds: 40}\ncamera: 96x72\n",
+        # 12 episodes of up to 40 s, in real time: each lasts its wall time, so the last SIGINT (5 s after both
+        # stacks started) finds episodes left to resume however fast the machine (in lock-step a warm stack ran
+        # one in about a second, and a fast machine could finish all 12 first).
+        "repetitions: 6\nlimits: {laps: 1, max_sim_seconds: 40}\ncamera: 96x72\nrealtime: true\n",
     )
     for attempt, delay_s in enumerate((0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 1.5, 2.5)):
         out = tmp_path / f"out{attempt}"

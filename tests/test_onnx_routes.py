@@ -73,8 +73,9 @@ def test_a_matrix_drives_and_shadows_an_exported_onnx_file(onnx_file, tmp_path):
 
 def test_swap_makes_an_exported_onnx_file_drive(onnx_file, tmp_path):
     out = tmp_path / "run"
+    # Real time: the episode lasts its wall time (3000 s), so the swap lands in it however fast the machine.
     run = subprocess.Popen(
-        [sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--laps", "50"]
+        [sys.executable, "-m", "orchestrator.cli", "run", "--realtime", "--max-sim-seconds", "3000", "--laps", "50"]
         + ["--camera", "96x72", "--out", str(out), "--json"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

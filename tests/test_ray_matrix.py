@@ -7,6 +7,7 @@ Ray is the optional extra ``cluster``: skipped without it on a developer's machi
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -31,11 +32,12 @@ ray = needs.require("ray")
 
 from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
+from support.held_brain import MAX_HOLD_S, TARGET, Hold, pythonpath_with_support  # noqa: E402
 from support.matrices import (  # noqa: E402
-    KILLING,
     assert_same_trajectory,
     brain_killer,
     finished_rows,
+    killing_matrix,
     processes_with,
     results_by_key,
     simulated,
@@ -64,18 +66,32 @@ def worker_node(cluster: Cluster, *, slots: int, gpus: int = 0):
 @pytest.fixture(scope="module")
 def cluster():
     """A head that runs no episode (no CPUs, no episode_slot) and one worker node with one slot and one GPU (Ray's
-    bookkeeping only: nothing here uses it); this process is the driver."""
-    cluster = Cluster(
-        initialize_head=True,
-        connect=False,
-        head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH},
-    )
-    worker_node(cluster, slots=1, gpus=1)
-    cluster.wait_for_nodes()
-    ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
-    yield cluster
-    ray.shutdown()
-    cluster.shutdown()
+    bookkeeping only: nothing here uses it); this process is the driver. Its nodes' processes, and so the brain hosts
+    their tasks start, can import the tests' own brains (support.held_brain)."""
+    with pytest.MonkeyPatch.context() as patch:  # for the nodes tests add too, and the CLI drivers they start
+        patch.setenv("PYTHONPATH", pythonpath_with_support())
+        cluster = Cluster(
+            initialize_head=True,
+            connect=False,
+            head_node_args={"num_cpus": 0, "node_ip_address": LOOPBACK, "_system_config": FAST_HEALTH},
+        )
+        worker_node(cluster, slots=1, gpus=1)
+        cluster.wait_for_nodes()
+        ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
+        yield cluster
+        ray.shutdown()
+        cluster.shutdown()
+
+
+def held_explicit(hold: Hold, *, hold_in_episode: int = 0) -> str:
+    """A matrix's brains line: the explicit brain, held 1 s (sim) into an episode until the test releases it
+    (support.held_brain), so what the test does while it drives provably lands mid-episode."""
+    options = hold.options(hold_at_s=1.0, hold_in_episode=hold_in_episode, brain="explicit")
+    return f"brains: [{json.dumps({'name': TARGET, 'options': options})}]"
+
+
+# Long enough for a held brain's answer: the test acts and releases it in seconds, even on a loaded machine.
+HELD_TIMEOUT = f"brain_timeout_s: {MAX_HOLD_S + 30}"
 
 
 def drivebench(*args: str) -> subprocess.Popen:
@@ -217,7 +233,8 @@ camera: 96x72
 
 
 def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_is_not_retried(cluster, tmp_path):
-    matrix = load_matrix(write_matrix(tmp_path, KILLING))
+    hold = Hold(tmp_path)
+    matrix = load_matrix(write_matrix(tmp_path, killing_matrix(hold)))
     killed: list[int] = []
 
     progress = RayMatrixRunner(
@@ -225,7 +242,7 @@ def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_
         tmp_path / "out",
         RunOptions(),
         ray_options=RayOptions(address=cluster.address),
-        on_change=brain_killer(killed),
+        on_change=brain_killer(hold, killed),
     ).run()
     assert killed, "the brain process of the first episode was never found"
     assert (progress.done, progress.failed) == (1, 1)
@@ -241,15 +258,17 @@ def test_a_slot_whose_brain_died_mid_episode_replaces_its_stack_and_the_episode_
 def test_a_worker_node_removed_mid_matrix_loses_nothing(cluster, tmp_path, fresh_stacks):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
+    # Every brain holds its first episode 1 s (sim) in until the node is gone: neither can end before both drive.
+    hold = Hold(tmp_path)
     matrix = load_matrix(
         write_matrix(
             tmp_path,
-            """
+            f"""
 name: dying
-brains: [explicit]
+{held_explicit(hold)}
 circuits: [simple]
 repetitions: 3
-limits: {laps: 2, max_sim_seconds: 600}
+limits: {{laps: 1, max_sim_seconds: 600, {HELD_TIMEOUT}}}
 camera: 96x72
 """,
         )
@@ -261,6 +280,7 @@ camera: 96x72
         if not removed.is_set() and not progress.done and len(driving) == 2:  # both stacks up, both cars moving
             cluster.remove_node(second, allow_graceful=False)
             removed.set()
+            hold.release()
 
     progress = RayMatrixRunner(
         matrix,
@@ -296,28 +316,30 @@ camera: 96x72
 def test_past_its_retries_a_node_death_is_a_failed_row_of_kind_node_died(cluster, tmp_path):
     second = worker_node(cluster, slots=1)
     cluster.wait_for_nodes()
+    # Both brains hold their episode 1 s (sim) in until the node is gone, so both surely drive at once: two laps
+    # each (seconds of wall time) once let the first end before the second's stack was up on a fast machine.
+    hold = Hold(tmp_path)
     matrix = load_matrix(
         write_matrix(
             tmp_path,
-            """
+            f"""
 name: unlucky
-brains: [explicit]
+{held_explicit(hold)}
 circuits: [simple]
 repetitions: 2
-limits: {laps: 2, max_sim_seconds: 600}
+limits: {{laps: 1, max_sim_seconds: 600, {HELD_TIMEOUT}}}
 camera: 96x72
 """,
         )
     )
     removed = threading.Event()
 
-    # Two laps each (seconds of wall time), so that both episodes surely drive at once even on a loaded machine:
-    # 12 s of sim once let the first end before the second's stack was up, and the node was never removed.
     def remove_the_second_node_once_both_drive(progress) -> None:
         driving = [worker for worker in progress.workers if worker.episode is not None and worker.live is not None]
         if not removed.is_set() and len(driving) == 2:
             cluster.remove_node(second, allow_graceful=False)
             removed.set()
+            hold.release()
 
     progress = RayMatrixRunner(
         matrix,
@@ -354,14 +376,17 @@ def running_episodes(out: Path) -> list[str]:
 
 
 def test_driver_killed_then_resume_runs_only_what_did_not_finish(cluster, tmp_path):
+    # The slot's warm brain drives one episode, then holds the second 1 s (sim) in until the driver is dead: the kill
+    # finds exactly one finished and one under way, however fast the machine.
+    hold = Hold(tmp_path)
     path = write_matrix(
         tmp_path,
-        """
+        f"""
 name: resumable
-brains: [explicit]
+{held_explicit(hold, hold_in_episode=1)}
 circuits: [simple]
 repetitions: 3
-limits: {laps: 1, max_sim_seconds: 3}
+limits: {{laps: 1, max_sim_seconds: 3, {HELD_TIMEOUT}}}
 camera: 96x72
 """,
     )
@@ -370,15 +395,16 @@ camera: 96x72
     first = drivebench(
         "matrix", str(path), "-o", str(out), "--ray", cluster.address, "--artifacts", str(out), "--no-report"
     )
-    deadline = time.monotonic() + 120
-    while not (finished_rows(out / "results.sqlite") and running_episodes(out)):  # one done, the next under way
-        assert first.poll() is None, first.communicate()[1]
-        assert time.monotonic() < deadline, "no episode finished in 120 s"
-        time.sleep(0.1)
+    wait_for(
+        hold.held_pid,
+        timeout_s=120,
+        what="the second episode held",
+        alive=lambda: None if first.poll() is None else first.communicate()[1],
+    )
     first.send_signal(signal.SIGKILL)
     first.wait()
     before = finished_rows(out / "results.sqlite")
-    assert 1 <= len(before) < 3
+    assert len(before) == 1
     # The episode that was running when the driver died: its stack does not outlive it (Ray ends the dead driver's
     # tasks; the stack's processes watch their parent).
     cut_short = running_episodes(out)
@@ -387,6 +413,7 @@ camera: 96x72
     while any(processes_with(f"--run-id {run_id}") for run_id in cut_short):
         assert time.monotonic() < deadline, f"orphaned stack processes of {cut_short}"
         time.sleep(0.2)
+    hold.release()  # for the resumed run's brain, which would otherwise hold its second episode too
     resumed = drivebench("matrix", str(path), "-o", str(out), "--ray", cluster.address, "--resume", "--no-report")
     _, stderr = resumed.communicate(timeout=200)
     assert resumed.returncode == 0, stderr
@@ -398,10 +425,12 @@ camera: 96x72
 
 
 def test_ctrl_c_on_the_driver_kills_the_slots_and_their_stacks(cluster, tmp_path):
+    # The first episode holds 1 s (sim) in, never released: the Ctrl-C lands mid-episode however fast the machine.
+    hold = Hold(tmp_path)
     path = write_matrix(
         tmp_path,
-        "name: interrupted\nbrains: [explicit]\ncircuits: [simple]\nrepetitions: 3\n"
-        "limits: {laps: 2, max_sim_seconds: 600}\ncamera: 96x72\n",
+        f"name: interrupted\n{held_explicit(hold)}\ncircuits: [simple]\nrepetitions: 3\n"
+        f"limits: {{laps: 2, max_sim_seconds: 600, {HELD_TIMEOUT}}}\ncamera: 96x72\n",
     )
     out = tmp_path / "out"
     run = subprocess.Popen(
@@ -413,9 +442,9 @@ def test_ctrl_c_on_the_driver_kills_the_slots_and_their_stacks(cluster, tmp_path
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal sends it
     )
     run_ids = wait_for(
-        lambda: [run_id for run_id in running_episodes(out) if len(processes_with(f"--run-id {run_id}")) >= 4],
+        lambda: hold.held_pid() and [r for r in running_episodes(out) if len(processes_with(f"--run-id {r}")) >= 4],
         timeout_s=120,
-        what="an episode driving on a slot's stack",
+        what="an episode held on a slot's stack",
         alive=lambda: None if run.poll() is None else run.communicate()[1],
     )
     run.send_signal(signal.SIGINT)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from mcap_validation import assert_valid_mcap
 from support.recorder import run_cli, start_recorder
+from support.waits import wait_for
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
@@ -448,10 +449,15 @@ def test_a_max_speed_replay_delivers_every_camera_frame_to_a_recorder_20_times_o
 @pytest.mark.integration
 def test_a_recorder_that_joins_mid_episode_writes_the_start_the_simulator_published(tmp_path, make_stack):
     stack = make_stack()
-    spec = EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48))
-    episode = threading.Thread(target=stack.run_episode, args=(spec,), daemon=True)
+    # Real time, many laps: the episode lasts its wall time, so it is still running when the recorder joins and when
+    # the test stops it, however fast the machine (in lock-step a fast one drove its lap before the recorder came).
+    spec = EpisodeSpec(laps=100, max_sim_seconds=600.0, realtime=True, camera=CameraSpec(width_px=64, height_px=48))
+    under_way = threading.Event()
+    episode = threading.Thread(
+        target=stack.run_episode, args=(spec,), kwargs={"on_live": lambda live: under_way.set()}, daemon=True
+    )
     episode.start()
-    time.sleep(1.0)  # the START event is long gone
+    wait_for(under_way.is_set, timeout_s=60, what="the episode's first live metrics")  # its START is gone
     output = tmp_path / "late.mcap"
     recorder = start_recorder(stack.endpoint, stack.bus, stack.run_id, output)
     time.sleep(1.5)
@@ -462,7 +468,7 @@ def test_a_recorder_that_joins_mid_episode_writes_the_start_the_simulator_publis
     log = recorder.communicate(timeout=30)[0]
     events = [r.message for r in read_messages(output) if r.key == keys.events(stack.run_id)]
     kinds = [event.kind for event in events]
-    # on an idle machine the car may finish a lap of the small camera's fast episode before the stop: LAPs between
+    # LAP events between would not be wrong (none comes in the few seconds of a real-time episode)
     assert kinds[0] == "start" and kinds[-1] == "end" and set(kinds[1:-1]) <= {"lap"}, log
     start = events[0]
     assert start.spec == msgspec.convert(msgspec.to_builtins(spec), EpisodeSpec)

@@ -49,7 +49,9 @@ from protocol.messages import (
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = EpisodeSpec(circuit="simple", max_sim_seconds=3.0, seed=5, camera=CameraSpec(width_px=160, height_px=120))
 INTRUDER_YAW_RATE = 4.321  # rad/s: absurd, and recognisable in the poses (they carry the applied command)
-SPEC_LONG = EpisodeSpec(circuit="simple", max_sim_seconds=600.0, seed=5, camera=SPEC.camera)  # stopped by the test
+# Stopped by the test. Real time, many laps: it lasts its 600 s of wall time, so a swap lands in it however fast
+# the machine (in lock-step a fast one could drive its lap while the new brain's process started).
+SPEC_LONG = EpisodeSpec(circuit="simple", laps=100, max_sim_seconds=600.0, realtime=True, seed=5, camera=SPEC.camera)
 FAILED_OPEN_MS = 1500  # connect timeout of the buses that must fail to open
 
 

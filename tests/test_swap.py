@@ -9,6 +9,7 @@ import threading
 
 import pytest
 from mcap_validation import assert_valid_mcap
+from support.held_brain import TARGET, Hold, pythonpath_with_support
 from support.stacks import stop_episode
 from support.waits import wait_for
 
@@ -57,14 +58,20 @@ def control(stack, request: ControlRequest) -> ControlReply:
     )
 
 
-def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
+def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", pythonpath_with_support())  # the stack's brain host imports support.held_brain
+    hold = Hold(tmp_path)
     recording = tmp_path / "swap.mcap"
-    stack = make_stack(BrainLaunch("explicit"), record=recording)
+    # The first driver drives as the explicit brain and holds its episode at frame 60 (3 s of sim time) until the
+    # swap is done: the swap lands mid-episode by construction (a fast machine drove the whole episode while the
+    # new brain's process started).
+    first = BrainLaunch(TARGET, name="explicit", options=hold.launch_options(hold_at_s=3.0, brain="explicit"))
+    stack = make_stack(first, record=recording)
     poses, events = Inbox(), Inbox()
     stack.bus.subscribe(keys.pose(stack.run_id), Pose, inbox=poses)
     stack.bus.subscribe(keys.events(stack.run_id), EpisodeEvent, inbox=events)
     thread, outcome = run_in_thread(stack, EpisodeSpec(circuit="simple", laps=2, max_sim_seconds=60.0, camera=TINY))
-    wait_for(lambda: poses.received >= 60, timeout_s=60, what="3 s of sim time")  # 20 Hz
+    wait_for(lambda: hold.held_pid() is not None, timeout_s=60, what="the episode held at 3 s of sim time")
 
     result = swap_brain(
         router=stack.endpoint,
@@ -75,6 +82,7 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
         log_path=stack.run_dir / "logs",
         timeout_s=60,
     )
+    hold.release()  # the old brain answers its held frame (too late: the new one drives it) and sees its stop
     assert (result.name, result.old_brain, result.switched, result.old_stopped) == (
         "explicit-2",
         "explicit",
@@ -92,7 +100,7 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
     assert len(score.switches) == 1
     switch = score.switches[0]
     assert (switch.from_brain, switch.to_brain) == ("explicit", "explicit-2")
-    assert 60 <= switch.seq < 1200 and switch.stamp_ns == switch.seq * 50_000_000
+    assert switch.seq == 60 and switch.stamp_ns == switch.seq * 50_000_000  # at the held frame
     assert score.metrics.steps == 1200
     assert score.metrics.command_rate_hz == pytest.approx(20.0, rel=0.02)  # one driving command per frame
 
@@ -116,8 +124,14 @@ def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path):
     assert_valid_mcap(recording)
 
 
-def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
-    stack = make_stack(BrainLaunch("explicit"))
+def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack, tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", pythonpath_with_support())  # the stack's brain host imports support.held_brain
+    hold = Hold(tmp_path)
+    # The explicit brain, held 1 s (sim) into the episode until the refusals are checked: they meet a running
+    # episode however fast the machine (a fast one drove the whole 4 s between two requests).
+    stack = make_stack(
+        BrainLaunch(TARGET, name="explicit", options=hold.launch_options(hold_at_s=1.0, brain="explicit"))
+    )
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
     assert (reply.ok, reply.code) == (False, ReplyCode.NOT_RUNNING) and "no episode is running" in reply.detail
     died = "brain 'constant' exited with code 2; its last log line: .*bad options for brain 'constant'"
@@ -134,17 +148,15 @@ def test_the_simulator_refuses_a_switch_it_cannot_make(make_stack):
     thread, outcome = run_in_thread(
         stack, EpisodeSpec(max_sim_seconds=4.0, camera=CameraSpec(width_px=64, height_px=48))
     )
-    wait_for(
-        lambda: control(stack, ControlRequest(action="status")).state == ServerState.RUNNING,
-        timeout_s=30,
-        what="the episode to run",
-    )
+    wait_for(hold.held_pid, timeout_s=60, what="the episode held 1 s in")
     status = control(stack, ControlRequest(action="status"))
+    assert status.state == ServerState.RUNNING
     assert status.active_brain == "explicit" and status.spec is not None and status.spec.max_sim_seconds == 4.0
     reply = control(stack, ControlRequest(action="switch", brain="ghost"))
     assert (reply.ok, reply.code) == (False, ReplyCode.NOT_ALIVE) and "'ghost' is not alive" in reply.detail
     reply = control(stack, ControlRequest(action="switch", brain="explicit"))
     assert (reply.ok, reply.code) == (False, ReplyCode.ALREADY_ACTIVE)
+    hold.release()
     thread.join(timeout=60)
     assert outcome["score"].reason == EndReason.TIME_LIMIT and outcome["score"].switches == []
 
@@ -177,12 +189,14 @@ def test_shadow_brains_are_scored_against_the_driver(make_stack, tmp_path):
     assert sorted(shadow.brain for shadow in score.shadows) == ["constant", "twin", "twin"]
     assert len({shadow.host for shadow in score.shadows}) == 3  # one per process
     for twin in (shadow for shadow in score.shadows if shadow.brain == "twin"):
-        # Of 200: a shadow skips the frames that come while it is busy (five brains share two cores; 120 seen at
-        # load 10), and never drives one.
-        assert twin.frames >= 100
+        # Of 200: a shadow skips the frames that come while it is busy, by design (it never holds the episode up), so
+        # how many it answers is the machine's speed (120 seen at load 10, five brains on two cores): no threshold
+        # on it. What is not speed is that it answered, never more than once a frame, and that every answer it
+        # gave is the driver's own on that frame.
+        assert 0 < twin.frames <= 200
         assert twin.speed_mae_mps < 1e-6 and twin.yaw_rate_max_abs_radps < 1e-6  # the same brain on the same frames
     (constant,) = (shadow for shadow in score.shadows if shadow.brain == "constant")
-    assert constant.frames >= 100
+    assert 0 < constant.frames <= 200
     assert constant.yaw_rate_mae_radps > 0.05  # it never steers; the explicit brain does on simple's curves
     assert constant.speed_mae_mps > 0.5
 
@@ -195,13 +209,15 @@ def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 
 def test_the_swap_command_finds_a_running_stack_by_its_stack_file(tmp_path):
     out = tmp_path / "run"
-    # 50 laps: one lap of simple at 96x72 takes only ~4 s of wall time, less than a swap on a loaded machine.
+    # Real time, 50 laps: the episode lasts its 3000 s of wall time whatever the machine's speed, so it is still
+    # running when the swap comes (in lock-step a lap of simple at 96x72 took ~4 s, and a fast machine ~1 s).
     run = subprocess.Popen(
         [
             sys.executable,
             "-m",
             "orchestrator.cli",
             "run",
+            "--realtime",
             "--max-sim-seconds",
             "3000",
             "--laps",
@@ -279,7 +295,8 @@ def test_two_swaps_at_once_start_two_differently_named_brains(tmp_path):
     and both switch (before the claim, both started an explicit-2 and one failed as "already the active brain")."""
     out = tmp_path / "run"
     run = subprocess.Popen(
-        [sys.executable, "-m", "orchestrator.cli", "run", "--max-sim-seconds", "3000", "--laps", "50"]
+        # Real time: the episode lasts its 3000 s of wall time, however fast the machine, until the test stops it.
+        [sys.executable, "-m", "orchestrator.cli", "run", "--realtime", "--max-sim-seconds", "3000", "--laps", "50"]
         + ["--camera", "96x72", "--out", str(out), "--json"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

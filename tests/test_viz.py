@@ -400,13 +400,16 @@ def test_view_joins_the_only_run_mid_episode_draws_its_circuit_and_stops_on_sigt
 
     stack = make_stack()
     run = stack.run_id
+    under_way = threading.Event()
+    # Real time, many laps: the episode lasts its 600 s of wall time whatever the machine's speed (in lock-step a
+    # fast machine drove its lap before the view had joined), until the test stops it.
+    spec = EpisodeSpec(laps=100, max_sim_seconds=600.0, realtime=True, camera=CameraSpec(width_px=64, height_px=48))
     episode = threading.Thread(
-        target=stack.run_episode,
-        daemon=True,
-        args=(EpisodeSpec(max_sim_seconds=600.0, camera=CameraSpec(width_px=64, height_px=48)),),
+        target=stack.run_episode, daemon=True, args=(spec,), kwargs={"on_live": lambda live: under_way.set()}
     )
     episode.start()
-    time.sleep(1.0)  # its START event is long gone when the view joins
+    # Its first live metrics: the episode is under way, so its START event is gone when the view joins.
+    wait_for(under_way.is_set, timeout_s=60, what="the episode's first live metrics")
     port = free_loopback_port()
     env = clean_env()
     view = subprocess.Popen(

@@ -3,6 +3,7 @@ what two runs of a matrix must have in common (the simulated metrics, the trajec
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -12,6 +13,7 @@ import numpy as np
 
 from orchestrator.matrix.results import ResultStore
 from protocol.messages import EpisodeScore
+from support.held_brain import MAX_HOLD_S, TARGET, Hold
 
 
 def write_matrix(folder: Path, body: str) -> Path:
@@ -89,28 +91,32 @@ def assert_same_trajectory(one: dict[str, np.ndarray], other: dict[str, np.ndarr
         assert one[name].shape == other[name].shape and np.array_equal(one[name], other[name]), f"{what}: {name}"
 
 
-# One brain that drives slowly for up to 30 s, twice: long enough to be killed mid-episode.
-KILLING = """
+def killing_matrix(hold: Hold) -> str:
+    """One brain that drives slowly for up to 30 s (sim), twice; the first brain holds its episode 2 s into it until
+    ``hold`` is released (:class:`~support.held_brain.HeldBrain`), so a kill provably lands inside the episode. The
+    brain timeout is long enough for a loaded machine's kill to come before the simulator gives up on the answer."""
+    brain = {"name": TARGET, "options": hold.options(hold_at_s=2.0, brain="constant", speed_mps=0.5)}
+    return f"""
 name: killing
-brains: [{name: constant, options: {speed_mps: 0.5}}]
+brains: [{json.dumps(brain)}]
 circuits: [simple]
 repetitions: 2
-limits: {laps: 1, max_sim_seconds: 30}
+limits: {{laps: 1, max_sim_seconds: 30, brain_timeout_s: {MAX_HOLD_S + 30}}}
 camera: 96x72
 """
 
 
-def brain_killer(killed: list[int]):
-    """A matrix ``on_change`` callback that SIGKILLs the brain host of the first episode 2 s (sim) into it, once,
-    appending the pid to ``killed``."""
+def brain_killer(hold: Hold, killed: list[int]):
+    """A matrix ``on_change`` callback that SIGKILLs the brain host of the first episode while it holds that episode
+    (2 s of sim time into it), once, appending the pid to ``killed``; then releases the hold, so the next episode's
+    brain drives through."""
 
-    def kill_the_first_brain_2_s_into_its_episode(progress) -> None:
-        live = progress.workers[0].live
-        if killed or progress.finished or live is None or live.sim_time_s < 2.0:  # the first episode only
+    def kill_the_first_brain_while_it_holds_its_episode(progress) -> None:
+        del progress  # the hold, not the progress shown, says the episode is under way and cannot end yet
+        if killed or (pid := hold.held_pid()) is None:
             return
-        for pid in processes_with(f"--run-id {live.header.run_id}"):
-            if " -m brains " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
+        os.kill(pid, signal.SIGKILL)
+        killed.append(pid)
+        hold.release()
 
-    return kill_the_first_brain_2_s_into_its_episode
+    return kill_the_first_brain_while_it_holds_its_episode
