@@ -262,7 +262,16 @@ if [ -n "$run_container" ]; then
     "$PYTHON" -c "import sys, datetime as d; a, b, c = sys.stdin.read().split(); p = lambda t: d.datetime.fromisoformat(t[:26].rstrip('Z') + '+00:00'); print(f'run container: {(p(b) - p(a)).total_seconds():.1f} s from start to exit, exit code {c}')" |
     tee -a "$LOG" >&2 || true
 fi
-[ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; die "compose up --exit-code-from run exited $status"; }
+# Why a service was unhealthy: the last healthcheck outputs, which `compose down` would take away.
+health_report() {
+  local id
+  for id in $(compose --profile record --profile viz ps -a -q 2>/dev/null); do
+    docker inspect --format '{{.Name}} {{.State.Status}}{{if .State.Health}} {{.State.Health.Status}}:
+{{range .State.Health.Log}}  exit {{.ExitCode}} at {{.End}}: {{.Output}}{{end}}{{end}}' "$id"
+  done
+}
+[ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; health_report 2>&1 | tee -a "$LOG" >&2
+  die "compose up --exit-code-from run exited $status"; }
 wait "${PROBE:-}" 2>/dev/null || die "the live view served no decodable camera image: $(cat "$RESULTS_DIR/viz-probe.json")"
 say "live view: $(cat "$RESULTS_DIR/viz-probe.json")"
 
