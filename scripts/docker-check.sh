@@ -212,8 +212,8 @@ if [ -n "$left" ]; then
   done
   die "docker compose build left $(wc -w <<<"$left") untagged image(s): one service must build, the others run its image"
 fi
-say "the build left no untagged image: $(docker images --format '{{.Repository}}:{{.Tag}}' | grep -c '^drivebench:') \
-drivebench image(s) (docker images: $(docker images --format '{{.Repository}}:{{.Tag}}' | tr '\n' ' '))"
+say "the build left no untagged image (tagged images: $(docker images --filter dangling=false \
+  --format '{{.Repository}}:{{.Tag}}' | tr '\n' ' '))"
 if [[ ",$EXTRAS," == *,gl,* ]]; then
   # The gl extra is there only if the image can draw: moderngl on Mesa's EGL (llvmpipe), as the simulator will.
   why=$(docker run --rm --network host --entrypoint python "drivebench:$TAG" -c \
