@@ -161,7 +161,7 @@ def test_a_converted_bm_config_runs_as_a_smoke_matrix_each_brain_as_its_code_say
         assert all(r.score.metrics.completed_distance_m > 5.0 for r in by_brain[brain])  # it drove, in both worlds
     for failed in by_brain["brain_f1_fails"]:
         assert failed.status == "failed" and failed.failure_kind == "brain_died", failed.failure
-        assert "brain_f1_fails.py:15: execute() raised KeyError: 'SteeringGain'" in failed.failure
+        assert "brain_f1_fails.py:15: execute() raised KeyError: 'SteeringGain'" in failed.failure.detail
     assert "night" in (tmp_path / "runs" / "report.md").read_text()
 
 

@@ -174,7 +174,7 @@ def test_a_brain_killed_mid_episode_is_a_failed_episode_and_the_matrix_goes_on(t
     with ResultStore(tmp_path / "out", create=False) as store:
         first, second = store.results()
     assert first.status == "failed" and first.failure_kind == "brain_died", first.failure
-    assert "killed by SIGKILL" in first.failure
+    assert "killed by SIGKILL" in first.failure.detail
     assert first.reason == "brain_lost" and first.score is not None  # scored up to the moment it died
     assert second.status == "done" and second.reason == "time_limit"  # a fresh brain drove the next one
     assert second.run_id != first.run_id  # on a new stack: a warm stack that failed an episode is replaced
