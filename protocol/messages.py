@@ -251,13 +251,14 @@ class Drop(_Noise, tag="drop", frozen=True):
         _check_probability("drop probability", self.probability)
 
 
-# Behavior Metrics' image perturbations (its ``ImageTranform`` options), with BM's parameters, applied through
-# albumentations as BM does (``pip install drivebench[bm]``). Each is seeded from the episode like every model.
+# Behavior Metrics' image perturbations (its ``ImageTranform`` options), with BM's parameters, as BM's pinned
+# albumentations 1.0.3 draws them (night, daytime and affine through albumentations: ``pip install drivebench[bm]``;
+# the others drawn by drivebench). Each is seeded from the episode like every model.
 
 
 class Rain(_Noise, tag="rain", frozen=True):
-    """BM's rain: torrential drops slanted -10..10 degrees, 20 px long, 1 px wide, grey (200, 200, 200), blur 7,
-    brightness x 0.7."""
+    """BM's rain as albumentations 1.0.3 draws it: torrential, H x W // 500 streaks 60 px long (BM's 20 px is
+    overridden), all leaning 10 px right, 1 px wide, grey (200, 200, 200), blur 7, HLS lightness x 0.7."""
 
 
 class Night(_Noise, tag="night", frozen=True):
@@ -269,19 +270,19 @@ class Daytime(_Noise, tag="daytime", frozen=True):
 
 
 class Shadow(_Noise, tag="shadow", frozen=True):
-    """BM's shadow: albumentations' random shadow with its defaults (1-2 shadows in the lower half)."""
+    """BM's shadow: 1.0.3's random shadow with its defaults (1-2 pentagons in the lower half, lightness x 0.5)."""
 
 
 class Snow(_Noise, tag="snow", frozen=True):
-    """BM's snow: albumentations' random snow with its defaults."""
+    """BM's snow: 1.0.3's random snow with its defaults (lightness under a random threshold x 2.5)."""
 
 
 class Fog(_Noise, tag="fog", frozen=True):
-    """BM's fog: albumentations' random fog with its defaults."""
+    """BM's fog: 1.0.3's random fog with its defaults (faint white discs blended from the centre out, blurred)."""
 
 
 class Sunflare(_Noise, tag="sunflare", frozen=True):
-    """BM's sun flare: albumentations' random sun flare with its defaults (in the upper half)."""
+    """BM's sun flare: 1.0.3's random sun flare with its defaults (a 400 px sun in the upper half, 6-10 discs)."""
 
 
 class Affine(_Noise, tag="affine", frozen=True):

@@ -639,5 +639,5 @@ def test_bm_perturbations_are_named_as_bm_names_them_and_take_no_value():
 def test_without_albumentations_bm_perturbations_are_refused_in_one_line_naming_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "albumentations", None)  # as where it is not installed
     require_extras([SaltPepper(probability=0.1)])  # drivebench's own models need nothing more
-    with pytest.raises(MissingExtra, match=r"noise model fog needs albumentations: pip install 'drivebench\[bm\]'"):
-        require_extras([Blur(kernel_px=3), Fog()])
+    with pytest.raises(MissingExtra, match=r"noise model night needs albumentations: pip install 'drivebench\[bm\]'"):
+        require_extras([Blur(kernel_px=3), Night()])

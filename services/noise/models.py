@@ -2,8 +2,10 @@
 
 One model class per noise stage of ``protocol.messages`` (``SaltPepper``, ``Gaussian``, ``Blur``, ``Brightness``,
 ``Occlusion``, ``Jpeg``, ``Delay``, ``Drop``), and one for Behavior Metrics' perturbations (``Rain``, ``Night``,
-``Daytime``, ``Shadow``, ``Snow``, ``Fog``, ``Sunflare``, ``Affine``: albumentations, as BM applies them, from the
-optional extra ``drivebench[bm]``); the struct's docstring defines what the stage does, the model class says how.
+``Daytime``, ``Shadow``, ``Snow``, ``Fog``, ``Sunflare``, ``Affine``, as BM applies them: rain, shadow, snow, fog and
+sunflare drawn by ``services.noise.bm`` as albumentations 1.0.3 (BM's pin) draws them; night, daytime and affine by
+albumentations itself, from the optional extra ``drivebench[bm]``, whose 2.x gives 1.0.3's exact output for them);
+the struct's docstring defines what the stage does, the model class says how.
 Every model has
 
   * ``reset(*, seed)``: start a new episode: (re)seed its generator, clear its state (Delay's buffer);
@@ -46,17 +48,12 @@ from protocol.messages import (
     Daytime,
     Delay,
     Drop,
-    Fog,
     Gaussian,
     Jpeg,
     Night,
     NoiseStage,
     Occlusion,
-    Rain,
     SaltPepper,
-    Shadow,
-    Snow,
-    Sunflare,
 )
 
 __all__ = [
@@ -71,6 +68,7 @@ __all__ = [
     "OcclusionModel",
     "SaltPepperModel",
     "AlbumentationsModel",
+    "BMDrawnModel",
     "MissingExtra",
     "make_model",
     "require_extras",
@@ -373,11 +371,16 @@ _BM_MIN_PX = 32  # smaller frames (tests' tiny images, not cameras) are perturbe
 BM_EXTRA_HINT = "pip install 'drivebench[bm]' (scripts/setup.sh installs it)"
 
 
+# BM's perturbations that albumentations 2.x draws exactly as 1.0.3 did (measured: benchmarks/bm_perturbations.py);
+# the others are drawn by services.noise.bm and need nothing more.
+_ALBUMENTATIONS_STAGES: tuple[type[NoiseStage], ...] = (Night, Daytime, Affine)
+
+
 def require_extras(stages: Sequence[NoiseStage]) -> None:
     """:class:`MissingExtra` when a stage needs albumentations and it is not installed, before anything starts."""
     import importlib.util
 
-    needing = [str(type(stage).__struct_config__.tag) for stage in stages if isinstance(stage, BM_NOISE_MODELS)]
+    needing = [str(type(stage).__struct_config__.tag) for stage in stages if isinstance(stage, _ALBUMENTATIONS_STAGES)]
     if needing and importlib.util.find_spec("albumentations") is None:
         raise MissingExtra(f"noise model {needing[0]} needs albumentations: {BM_EXTRA_HINT}")
 
@@ -404,37 +407,20 @@ def _albumentations():
 
 
 def _bm_transform(stage: NoiseStage):
-    """The albumentations transform of one of Behavior Metrics' perturbations, with BM's parameters; always applied
-    (BM's ``always_apply=True``). The library's defaults for shadow, snow, fog and sun flare are those BM used."""
+    """The albumentations transform of night, daytime or affine, with BM's parameters; always applied (BM's
+    ``always_apply=True``)."""
     A = _albumentations()  # the library's usual name
-    if isinstance(stage, Rain):
-        return A.RandomRain(
-            slant_range=(-10, 10),
-            drop_length=20,
-            drop_width=1,
-            drop_color=(200, 200, 200),
-            blur_value=7,
-            brightness_coefficient=0.7,
-            rain_type="torrential",
-            p=1.0,
-        )
     if isinstance(stage, Night | Daytime):
         shift = -0.5 if isinstance(stage, Night) else 0.3
         return A.RandomBrightnessContrast(brightness_limit=(shift, shift), contrast_limit=(0.0, 0.0), p=1.0)
-    simple = {Shadow: A.RandomShadow, Snow: A.RandomSnow, Fog: A.RandomFog, Sunflare: A.RandomSunFlare}
-    if type(stage) in simple:
-        return simple[type(stage)](p=1.0)
     if isinstance(stage, Affine):
         return A.Affine(translate_percent={"x": -0.1, "y": 0.0}, p=1.0)
-    raise TypeError(f"not one of Behavior Metrics' perturbations: {stage!r}")
+    raise TypeError(f"not one of Behavior Metrics' albumentations perturbations: {stage!r}")
 
 
 class AlbumentationsModel(NoiseModel):
-    """One of Behavior Metrics' perturbations (rain, night, daytime, shadow, snow, fog, sunflare, affine) through
-    albumentations, as BM's ``transform_image`` applies them. Seeded: ``reset(seed=...)`` reseeds the transform from
-    the seed's entropy, so the same seed and the same frames give the same output (on one albumentations version:
-    the library's random draws may change between releases). Costs several ms a frame at 640x480 (rain, fog and
-    sunflare the most: ``benchmarks/noise.py``)."""
+    """Behavior Metrics' night, daytime or affine through albumentations, as BM's ``transform_image`` applies them
+    (deterministic: they draw nothing at random; the seed is passed on all the same)."""
 
     def __init__(self, stage: NoiseStage):
         self._compose = _albumentations().Compose([_bm_transform(stage)])
@@ -448,15 +434,28 @@ class AlbumentationsModel(NoiseModel):
     def apply(self, image_rgb: np.ndarray) -> np.ndarray:
         image = _check_image(image_rgb)
         height, width = image.shape[:2]
-        if min(height, width) < _BM_MIN_PX:  # rain's 20 px drops need room: perturb a padded canvas, crop it back
+        if min(height, width) < _BM_MIN_PX:  # tiny frames: perturb a padded canvas, crop it back
             pad_y, pad_x = max(0, _BM_MIN_PX - height), max(0, _BM_MIN_PX - width)
             canvas = cv2.copyMakeBorder(image, 0, pad_y, 0, pad_x, cv2.BORDER_REPLICATE)
             return np.ascontiguousarray(self._compose(image=canvas)["image"][:height, :width], dtype=np.uint8)
         return np.ascontiguousarray(self._compose(image=image)["image"], dtype=np.uint8)
 
 
+class BMDrawnModel(NoiseModel):
+    """Behavior Metrics' rain, shadow, snow, fog or sunflare, drawn by ``services.noise.bm`` as albumentations 1.0.3
+    draws them, from this model's seeded generator. Costs a few ms a frame at 640x480, fog and sunflare the most
+    (``benchmarks/noise.py``)."""
+
+    def apply(self, image_rgb: np.ndarray) -> np.ndarray:
+        from services.noise.bm import DRAWS
+
+        image = _check_image(image_rgb)
+        return DRAWS[str(type(self.stage).__struct_config__.tag)](image, self._rng)
+
+
 _MODELS: dict[type, type[NoiseModel]] = {
-    **{model: AlbumentationsModel for model in BM_NOISE_MODELS},
+    **{model: AlbumentationsModel for model in _ALBUMENTATIONS_STAGES},
+    **{model: BMDrawnModel for model in BM_NOISE_MODELS if model not in _ALBUMENTATIONS_STAGES},
     SaltPepper: SaltPepperModel,
     Gaussian: GaussianModel,
     Blur: BlurModel,
