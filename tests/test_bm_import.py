@@ -356,3 +356,25 @@ def test_smoke_keeps_a_bm_brain_s_camera_and_names_a_brain_that_never_moved(tmp_
     crops = results["brain_f1_crops"]
     assert crops.score.spec.camera.width_px == 640 and crops.score.metrics.completed_distance_m > 10.0
     assert "smoke: brain_f1_still never moved" in run.stderr and "smoke: brain_f1_crops" not in run.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_the_matrix_bm_import_writes_from_a_config_in_the_checkout_starts_without_bm_root(bm_checkout, tmp_path):
+    """BM keeps default.yml beside brains/ and utils/: a config there names its own checkout, so the matrix written
+    from it gives its brains their bm_root, and a brain importing utils.constants (as BM's default brain does)
+    starts (it used to stop before the first episode: "give --brain-option bm_root=PATH")."""
+    config = bm_checkout / "behavior_metrics" / "default.yml"
+    data = yaml.safe_load(CONFIG.read_text())
+    data["Behaviors"]["Robot"]["BrainPath"] = "brains/gazebo/f1/brain_f1_opencv_imports.py"
+    data["Behaviors"]["Robot"]["Parameters"] = {"ImageTranform": ""}
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "m.yaml"
+    converted = drivebench("bm", "import", str(config), "-o", str(out))
+    assert converted.returncode == 0, converted.stderr
+    [brain] = yaml.safe_load(out.read_text())["brains"]
+    assert brain["options"]["bm_root"] == str((bm_checkout / "behavior_metrics").resolve())
+    run = drivebench("matrix", str(out), "--smoke", "-o", str(tmp_path / "runs"), "--workers", "1", timeout_s=600)
+    assert run.returncode == 0, run.stderr
+    with ResultStore(tmp_path / "runs", create=False) as store:
+        assert {result.status for result in store.results()} == {"done"}

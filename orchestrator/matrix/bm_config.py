@@ -273,12 +273,23 @@ def _brains(
         options: dict[str, Any] = {"config": dict(config)}  # a copy each: no YAML anchors in the file
         if model:  # BM passes a model only when one is set ('' is none)
             options["model"] = str(model)
-        if bm_root_option:
-            options["bm_root"] = bm_root_option
+        root_option = bm_root_option or _checkout_of(path, config_dir=config_dir)
+        if root_option:
+            options["bm_root"] = root_option
         # An absolute BrainPath stays absolute; a relative one is written relative to the matrix file.
         name = str(path) if path in absolute else os.path.relpath(path, out_dir)
         brains.append({"name": name, "label": label, "options": options})
     return brains, str(transform), notes
+
+
+def _checkout_of(brain: Path, *, config_dir: Path) -> str | None:
+    """The checkout a brain file imports from when none was given: BM keeps its configs (``default.yml``) in the
+    folder that holds ``brains/`` and ``utils/``, so a config beside ``brains/`` names its own checkout, and the
+    matrix starts as BM would (its brains import ``utils.constants`` and ``brains.f1...`` from there)."""
+    root = config_dir.resolve()
+    if (root / "brains").is_dir() and brain.resolve().is_relative_to(root):
+        return str(root)
+    return None
 
 
 def _parts(simulation: dict[str, Any], experiment: dict[str, Any]) -> dict[str, dict[str, Any]]:
