@@ -31,7 +31,7 @@ from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
 from circuits.centreline import Centreline
-from protocol.environment import CIRCUITS_DIR  # stdlib only: the one table of environment variables
+from circuits.variables import CIRCUITS_DIR  # stdlib only; listed in the one table, protocol.environment
 
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
