@@ -16,10 +16,8 @@ reported as a share of one core, side by side for each image case:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -44,6 +42,7 @@ from protocol.messages import (
     Pose,
 )
 from recorder.reading import read_messages
+from recorder.standalone import RecorderStartError, start_recorder
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = (("rendered", "raw", False), ("noisy", "raw", True), ("jpeg", "jpeg", False))
@@ -75,27 +74,17 @@ def run_case(
     run_id = f"bench-{name}"
     output = folder / f"{name}.mcap"
     with Bus(BusConfig(mode="router", listen=[endpoint]), name="bench") as bus:
-        watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
-        recorder = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "recorder",
-                "--router",
-                endpoint,
-                "--run-id",
-                run_id,
-                "--set",
-                f"output={json.dumps(str(output))}",
-                "--set",
-                f"image_format={image_format}",
-            ],
-            cwd=ROOT,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        if watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30):
-            raise SystemExit(f"{name}: the recorder did not come up")
+        try:
+            recorder = start_recorder(
+                endpoint=endpoint,
+                bus=bus,
+                run_id=run_id,
+                output=output,
+                extra_args=("--set", f"image_format={image_format}"),
+                cwd=ROOT,
+            )
+        except RecorderStartError as error:
+            raise SystemExit(f"{name}: {error}") from None
         cpu_before = cpu_seconds(recorder.pid)  # start-up (imports) is not recording
         published = publish(bus, run_id, images, seconds=seconds, rate_hz=rate_hz, desc=name)
         time.sleep(1.0)  # let the recorder drain before it is stopped

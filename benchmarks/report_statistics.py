@@ -86,10 +86,10 @@ def main() -> int:
         folder.mkdir()
         print(f"filling {args.episodes} episodes ...", file=sys.stderr)
         fill(folder, brains=args.brains, seeds=args.seeds, episodes=args.episodes)
-        with_statistics = matrix_report._Report.comparison
-        matrix_report._Report.comparison = lambda self: Section("Comparison with intervals")  # type: ignore[method-assign]
+        with_statistics = matrix_report.MatrixReport.comparison
+        matrix_report.MatrixReport.comparison = lambda self: Section("Comparison with intervals")  # type: ignore[method-assign]
         without = timed_report(folder, Path(tmp) / "without")
-        matrix_report._Report.comparison = with_statistics  # type: ignore[method-assign]
+        matrix_report.MatrixReport.comparison = with_statistics  # type: ignore[method-assign]
         with_ = timed_report(folder, Path(tmp) / "with")
         results = ResultStore(folder, create=False).results()
         started = time.perf_counter()

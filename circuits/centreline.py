@@ -10,7 +10,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 # Half-width of the arc-length window searched around a moving point's previous projection: wider than any
 # distance a car covers in one step, narrower than the gap between two branches of a track along its length.
@@ -48,6 +47,10 @@ class Centreline:
             raise ValueError("centreline has repeated consecutive points")
         self.s_m = np.concatenate([[0.0], np.cumsum(self._segment_lengths)[:-1]])
         self.length_m = float(np.sum(self._segment_lengths))
+        # Lazy, as every scipy import of circuits/: importing the package (protocol.environment does, for
+        # circuits.variables) must not cost a light process scipy's second of start-up.
+        from scipy.spatial import cKDTree
+
         self._tree = cKDTree(points)
 
     def __len__(self) -> int:

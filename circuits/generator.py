@@ -41,7 +41,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
 
 from circuits.centreline import Centreline
 from circuits.library import (
@@ -299,6 +298,8 @@ def _checked_and_started(
         return None
     curvature = 1.0 / turn_radii_m(points)
     window = 2 * round(START_WINDOW_M / RESAMPLE_STEP_M) + 1
+    from scipy.ndimage import maximum_filter1d  # lazy: see circuits/centreline.py
+
     worst_nearby = maximum_filter1d(curvature, size=window, mode="wrap")
     start = int(np.argmin(worst_nearby))
     return np.roll(points, -start, axis=0)

@@ -27,11 +27,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import yaml
-from scipy.interpolate import splev, splprep
-from scipy.spatial import cKDTree
 
 from circuits.centreline import Centreline
-from protocol.environment import CIRCUITS_DIR  # stdlib only: the one table of environment variables
+from circuits.variables import CIRCUITS_DIR  # stdlib only; listed in the one table, protocol.environment
 
 RESAMPLE_STEP_M = 0.25
 RANDOM_PREFIX = "random:"
@@ -246,6 +244,8 @@ def circuit_from_file(path: Path, *, check: bool = False) -> Circuit:
 
 def closed_spline(control_points_m: np.ndarray, *, step_m: float) -> np.ndarray:
     """A periodic cubic spline through the control points, resampled at (close to) ``step_m`` arc length."""
+    from scipy.interpolate import splev, splprep  # lazy: see circuits/centreline.py
+
     closed = np.vstack([control_points_m, control_points_m[:1]])  # splprep(per=1) wants the loop closed
     tck, _ = splprep([closed[:, 0], closed[:, 1]], s=0, per=1)
     # Dense enough that the chord lengths measure the arc length well: 1000 samples per control point, capped for
@@ -307,6 +307,8 @@ def find_crossing(points_m: np.ndarray) -> tuple[int, int, float, float] | None:
     lengths = np.hypot(*(q - p).T)
     midpoints = (p + q) / 2
     # Two crossing segments have midpoints within half the sum of their lengths of each other.
+    from scipy.spatial import cKDTree
+
     pairs = cKDTree(midpoints).query_pairs(float(lengths.max()) * 1.0001 + 1e-9, output_type="ndarray")
     if len(pairs) == 0:
         return None
@@ -375,6 +377,8 @@ def _closest_other_part(points: np.ndarray, gap_m: float) -> tuple[float, float,
     if gap_m <= 0:
         return None
     n = len(points)
+    from scipy.spatial import cKDTree
+
     pairs = cKDTree(points).query_pairs(gap_m, output_type="ndarray")
     if len(pairs) == 0:
         return None

@@ -78,6 +78,12 @@ class SeedRun:
         }
 
 
+def manifest_base(*, seeds: tuple[int, ...], recipe: list[str], data: Path) -> dict[str, Any]:
+    """What ``training.json`` says of the whole set, before any seed's entry: the recipe, the dataset and its
+    manifest hash, the seeds."""
+    return {"recipe": recipe, "data": str(data), "data_manifest_sha256": _manifest_hash(data), "seeds": list(seeds)}
+
+
 def train_seeds(
     *,
     seeds: tuple[int, ...],
@@ -85,29 +91,15 @@ def train_seeds(
     recipe: list[str],
     data: Path,
     workers: int,
-    ray_address: str | None = None,
-    ray_resources: dict[str, float] | None = None,
     log=print,
 ) -> list[SeedRun]:
     """Train ``recipe`` (the train command's own options, without seed or output) once per seed into
-    ``output/seed-N``; returns every seed's run and writes ``output/training.json`` after each one ends. With
-    ``ray_address``, each seed is a task on that Ray cluster (``orchestrator.seeds_ray``) instead of a local process."""
+    ``output/seed-N`` as local processes; returns every seed's run and writes ``output/training.json`` after each
+    one ends. On a Ray cluster: :func:`orchestrator.seeds_ray.train_seeds_on_ray` (which builds on this module, so
+    this module never imports it)."""
     output.mkdir(parents=True, exist_ok=True)
     runs: dict[int, SeedRun] = {}
-    base = {"recipe": recipe, "data": str(data), "data_manifest_sha256": _manifest_hash(data), "seeds": list(seeds)}
-    if ray_address is not None:
-        from orchestrator.seeds_ray import train_seeds_on_ray
-
-        return train_seeds_on_ray(
-            seeds=seeds,
-            output=output,
-            recipe=recipe,
-            base=base,
-            address=ray_address,
-            resources=dict(ray_resources or {}),
-            log=log,
-        )
-
+    base = manifest_base(seeds=seeds, recipe=recipe, data=data)
     manifest_lock = threading.Lock()  # two seeds may end at once: one writer of training.json at a time
 
     def one(seed: int) -> SeedRun:

@@ -5,8 +5,9 @@ lives in one place and the docs' table (``docs/environment.md``) is made from th
     python -m protocol.environment           # check: exit 1 when docs/environment.md differs from the table
     python -m protocol.environment --write   # rewrite it
 
-It imports nothing of drivebench's and nothing outside the standard library, so every package may read it, the
-circuit library (the floor the others stand on) included, and a process with no optional extra imports it.
+It imports nothing outside the standard library but :mod:`circuits.variables` (the record type, and the circuit
+library's own variable, which live on the ground floor so that circuits/ never imports upward), so a process with
+no optional extra imports it.
 """
 
 from __future__ import annotations
@@ -15,31 +16,9 @@ import argparse
 import os
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
-
-@dataclass(frozen=True)
-class Variable:
-    """One environment variable.
-
-    name: the variable (``DRIVEBENCH_...``).
-    kind: what its value is, in words ("endpoints", "path", "pybullet, gl or auto", ...).
-    default: what leaving it unset or empty means.
-    meaning: what it sets.
-    read_by: who reads it (processes, commands, compose, scripts).
-    """
-
-    name: str
-    kind: str
-    default: str
-    meaning: str
-    read_by: str
-
-    def value(self) -> str:
-        """The variable's value in this process's environment; "" when it is unset."""
-        return os.environ.get(self.name, "")
-
+from circuits.variables import CIRCUITS_DIR, Variable
 
 # The default renderer of each command that takes --renderer, when neither --renderer nor $DRIVEBENCH_RENDERER
 # says: `run` keeps the reference renderer, the long runs take the faster one where its parity is measured
@@ -127,13 +106,6 @@ RENDERER = Variable(
     + " (auto: gl where EGL works, else pybullet)",
     meaning="the camera renderer where --renderer (or a matrix's `renderer:`) does not say",
     read_by="`drivebench run`, `matrix`, `dataset collect` (compose passes it to the orchestrator)",
-)
-CIRCUITS_DIR = Variable(
-    name="DRIVEBENCH_CIRCUITS_DIR",
-    kind="path to a folder",
-    default="~/.local/share/drivebench/circuits",
-    meaning="where user circuits live (`drivebench circuits import` writes there; every process loads from there)",
-    read_by="every process that loads a circuit by name",
 )
 TRACE_DIR = Variable(
     name="DRIVEBENCH_TRACE_DIR",

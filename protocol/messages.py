@@ -714,6 +714,10 @@ class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Co
     output: str = ""
 
 
+# A message published on a run's keys, with its header: what the recorder records and the live view shows. A
+# static union, so that code taking one reads ``.header`` checked (msgspec decodes the same union by its tags).
+RunMessage = CameraFrame | Pose | Command | EpisodeEvent | LiveMetrics | EpisodeScore
+
 BUS_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     CameraFrame,
     Pose,

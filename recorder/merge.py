@@ -36,7 +36,7 @@ from mcap.writer import CompressionType, Writer
 from protocol import keys
 from protocol.mapping import topics
 from protocol.mapping.views import CAR_FRAME
-from recorder.reading import MCAP_ERRORS, RecordingError, _indexed_reader, _open, describe_error
+from recorder.reading import MCAP_ERRORS, RecordingError, describe_error, indexed_reader, open_recording
 from recorder.writer import CHUNK_SIZE_BYTES, LIBRARY
 
 NAMESPACE_METADATA = topics.NAMESPACE_METADATA
@@ -93,7 +93,7 @@ def merge(
         raise MergeError(f"{output} already exists (remove it or pass --overwrite)")
     temporary = output.with_name(output.name + ".merging")
     with ExitStack() as files:
-        readers = [_indexed_reader(files.enter_context(_open(s)), s) for s in sources]
+        readers = [indexed_reader(files.enter_context(open_recording(s)), s) for s in sources]
         with open(temporary, "wb") as sink:
             try:
                 report = _write(readers, sources, namespaces, sink, output)

@@ -62,8 +62,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
     viewer-only channels are skipped.
     """
     path = Path(path)
-    with _open(path) as stream:
-        reader = _indexed_reader(stream, path)
+    with open_recording(path) as stream:
+        reader = indexed_reader(stream, path)
         summary = reader.get_summary()
         # Selected by bus key (channel metadata), not topic: topics are stable names shared by every run
         # (protocol.mapping.topics), and files recorded before them used the key as topic; both read the same way.
@@ -125,8 +125,8 @@ class RecordingInfo:
 def recording_info(path: Path) -> RecordingInfo:
     """What a recording holds, from its summary (fast: no message is read)."""
     path = Path(path)
-    with _open(path) as stream:
-        reader = _indexed_reader(stream, path)
+    with open_recording(path) as stream:
+        reader = indexed_reader(stream, path)
         summary = reader.get_summary()
         statistics = summary.statistics
         counts = statistics.channel_message_counts if statistics else {}
@@ -179,7 +179,9 @@ def _run_id(metadata: dict[str, str]) -> str:
         return ""
 
 
-def _open(path: Path):
+def open_recording(path: Path):
+    """The recording's file opened for reading; :class:`RecordingError` (one line) for a ``.part``, a missing or an
+    unreadable file."""
     if path.name.endswith(PART_SUFFIX):
         raise RecordingError(f"{path}: an unfinished recording (.part); run `drivebench recorder repair {path}`")
     try:
@@ -190,7 +192,9 @@ def _open(path: Path):
         raise RecordingError(f"{path}: cannot open ({error.strerror})") from None
 
 
-def _indexed_reader(stream, path: Path) -> SeekingReader:
+def indexed_reader(stream, path: Path) -> SeekingReader:
+    """An MCAP reader over ``stream`` that has checked the file's summary; :class:`RecordingError` when it is not
+    an indexed MCAP file."""
     try:
         reader = SeekingReader(stream, validate_crcs=True)
     except MCAP_ERRORS as error:

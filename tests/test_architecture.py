@@ -34,9 +34,9 @@ ONLY_FROM = {
     ("brains", "recorder"): ("brains.training",),
     ("brains", "services"): ("brains.checker", "brains.behavior_metrics"),
 }
-# Below the floor: the one table of environment variables imports nothing (standard library only), so every package
-# may read it, circuits/ included (DRIVEBENCH_CIRCUITS_DIR); imports of it are no arrow in the graph.
-FLOOR = "protocol.environment"
+# The ground floor's record of an environment variable (and the circuit library's own variable): standard library
+# only, so that protocol.environment's table lists it without circuits/ importing upward (issue 41).
+GROUND_VARIABLES = "circuits.variables"
 MAX_MODULES_PER_FOLDER = 15
 MAX_FUNCTION_LINES = 80
 # Every folder of Python code but tests/ (test functions may read as one long scenario).
@@ -89,7 +89,7 @@ def test_no_package_imports_upward():
         top = module.split(".")[0]
         for imported in imports:
             target = imported.split(".")[0]
-            if target not in TOP_LEVEL or target == top or imported == FLOOR:
+            if target not in TOP_LEVEL or target == top:
                 continue
             only = ONLY_FROM.get((top, target), ())
             if target not in MAY_IMPORT[top] or (
@@ -104,8 +104,6 @@ def test_packages_form_no_cycle():
     for module, imports in project_modules().items():
         source = package_of(module)
         for imported in imports:
-            if imported == FLOOR:
-                continue
             if imported.split(".")[0] in TOP_LEVEL and (target := package_of(imported)) != source:
                 # A package reaching into its own subpackages is downward (a registry naming its brains' folders).
                 if not target.startswith(source + "."):
@@ -169,11 +167,39 @@ def test_no_function_outside_tests_is_over_eighty_lines():
     assert not long, "\n".join(long)
 
 
-def test_the_floor_imports_nothing_of_ours():
-    imports = project_modules()[FLOOR]
+def test_the_ground_floors_variables_import_nothing_of_ours():
+    imports = project_modules()[GROUND_VARIABLES]
     ours = sorted(name for name in imports if name.split(".")[0] in TOP_LEVEL)
-    assert not ours, f"{FLOOR} must stay below every package: it imports {ours}"
+    assert not ours, f"{GROUND_VARIABLES} must stay below every package: it imports {ours}"
     assert imports <= set(sys.stdlib_module_names) | {"__future__", "collections.abc"}, imports
+
+
+def module_of(imported: str, modules: set[str]) -> str | None:
+    """The project module an import names (``a.b.Name`` -> ``a.b``), or None for one outside the project."""
+    parts = imported.split(".")
+    for length in range(len(parts), 0, -1):
+        if ".".join(parts[:length]) in modules:
+            return ".".join(parts[:length])
+    return None
+
+
+def test_modules_form_no_cycle():
+    """No two modules import each other, at any depth and lazily or not (issue 41: orchestrator.seeds and
+    seeds_ray, services.simulator.gl_scene and gl_gazebo did): a pair that needs each other is one module, or the
+    part both need moves below them. A package's ``__init__`` re-exporting its modules is no edge back."""
+    graph = project_modules()
+    modules = set(graph)
+    edges: dict[str, set[str]] = defaultdict(set)
+    for module, imports in graph.items():
+        for imported in imports:
+            target = module_of(imported, modules)
+            # A package's __init__ is its front door: a module of the package importing a sibling through it, or
+            # the __init__ importing its modules, is not an arrow between two modules.
+            if target is None or target == module or module.startswith(target + ".") or target.startswith(module + "."):
+                continue
+            edges[module].add(target)
+    cycle = find_cycle(edges)
+    assert cycle is None, " -> ".join(cycle or [])
 
 
 def test_every_noqa_names_a_rule_ruff_runs():
@@ -192,3 +218,16 @@ def test_every_noqa_names_a_rule_ruff_runs():
                         if not any(code.startswith(prefix) for prefix in selected):
                             stray.append(f"{path.relative_to(ROOT)}:{number}: {code}")
     assert not stray, f"noqa for rules ruff does not run ({', '.join(selected)}): {stray}"
+
+
+def test_no_module_imports_another_modules_private_name():
+    """A name with a leading underscore is its module's own: a second module that needs it gets it made public or
+    moved to where both read it (issue 41: the report's modules imported 13 of cells' and trajectories' names)."""
+    wrong = []
+    for top in CODE_FOLDERS:
+        for path in sorted((ROOT / top).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in TOP_LEVEL:
+                    private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                    wrong += [f"{path.relative_to(ROOT)}:{node.lineno}: {node.module}.{name}" for name in private]
+    assert not wrong, "\n".join(wrong)

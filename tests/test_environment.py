@@ -18,7 +18,8 @@ from orchestrator.matrix.load import MATRIX_RENDERER
 from protocol import environment
 
 ROOT = Path(__file__).resolve().parent.parent
-HOME = ROOT / "protocol" / "environment.py"
+# The table, and the record type whose value() is the one read (on the ground floor, with circuits/ own variable).
+HOMES = (ROOT / "protocol" / "environment.py", ROOT / "circuits" / "variables.py")
 SOURCE_FOLDERS = ("circuits", "protocol", "services", "brains", "recorder", "orchestrator", "benchmarks", "tests")
 DRIVEBENCH = "DRIVEBENCH_"
 CLI_PATH = Path(sys.executable).parent / "drivebench"
@@ -29,7 +30,7 @@ def python_files() -> list[Path]:
         path
         for folder in SOURCE_FOLDERS
         for path in sorted((ROOT / folder).rglob("*.py"))
-        if "__pycache__" not in path.parts and path != HOME
+        if "__pycache__" not in path.parts and path not in HOMES
     ]
 
 

@@ -17,9 +17,10 @@ from circuits import load_circuit
 from orchestrator.cli import main
 from orchestrator.matrix.load import parse_matrix
 from orchestrator.matrix.plan import BrainEntry
-from orchestrator.matrix.results import EpisodeResult, ResultStore
+from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStore
 from orchestrator.report.cells import baseline_variation, grid_cell, mean_std
-from orchestrator.report.matrix import BASELINE_FACT, ReportError, write_report
+from orchestrator.report.data import ReportError
+from orchestrator.report.matrix import write_report
 from orchestrator.stack.failures import Failure, FailureKind
 from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
 from services.scorer.metrics import EpisodeScorer
@@ -426,9 +427,9 @@ def test_a_maps_start_arrow_points_the_way_its_episodes_drove(direction):
     from matplotlib.figure import Figure
 
     from orchestrator.report.plots import _draw_track, _map_layout
-    from orchestrator.report.trajectories import _Track
+    from orchestrator.report.trajectories import Track
 
-    track = _Track(load_circuit("simple"))
+    track = Track(load_circuit("simple"))
     data = {"a": (track.points[:, 0], track.points[:, 1], np.ones(len(track.points)), np.zeros(len(track.points)))}
     ax = Figure().add_subplot()
     _draw_track(ax, track, layout=_map_layout(data, track, panels=1), directions=(direction,))

@@ -57,7 +57,7 @@ class BrainLink:
         self._check = check  # raises when the stack no longer stands
         self._inbox = Inbox()
         camera = keys.camera_perturbed(run_id) if perturbed else keys.camera_raw(run_id)
-        self._subscriptions = [
+        self._subscriptions: list[Subscription] = [
             bus.subscribe(camera, CameraFrame, inbox=self._inbox),
             bus.subscribe(keys.pose(run_id), Pose, inbox=self._inbox),
             bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox),

@@ -43,8 +43,10 @@ def export_sb3(model: Any, path: Path, *, speed_range_mps, yaw_rate_range_radps,
         "yaw_rate_range_radps": [float(v) for v in yaw_rate_range_radps],
         "note": note,
     }
-    arrays = {f"w{i}": w.astype(np.float32) for i, (w, _) in enumerate(layers)}
+    # Any: savez_compressed's own keyword (allow_pickle) shares the ** with the arrays' names.
+    arrays: dict[str, Any] = {"meta": np.array(json.dumps(meta))}
+    arrays |= {f"w{i}": w.astype(np.float32) for i, (w, _) in enumerate(layers)}
     arrays |= {f"b{i}": b.astype(np.float32) for i, (_, b) in enumerate(layers)}
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, meta=np.array(json.dumps(meta)), **arrays)
+    np.savez_compressed(path, **arrays)
     return path

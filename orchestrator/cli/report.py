@@ -26,7 +26,8 @@ def add(commands: argparse._SubParsersAction) -> None:
 def run_report(args: argparse.Namespace) -> int:
     """Run ``drivebench report``: 0 with the written paths on stderr; 2 with one error line on stderr."""
     from orchestrator.matrix.results import ResultsError
-    from orchestrator.report.matrix import ReportError, write_report
+    from orchestrator.report.data import ReportError
+    from orchestrator.report.matrix import write_report
 
     try:
         files = write_report(args.dir, output=getattr(args, "output", None))

@@ -172,7 +172,14 @@ def recipe_options(args: argparse.Namespace) -> list[str]:
 
 def run_seeds(args: argparse.Namespace) -> int:
     """``train --seeds``: one run per seed (orchestrator.seeds), each its own ``drivebench train`` process."""
-    from orchestrator.seeds import RecipeChangedError, SeedsError, check_recipe, parse_seeds, train_seeds
+    from orchestrator.seeds import (
+        RecipeChangedError,
+        SeedsError,
+        check_recipe,
+        manifest_base,
+        parse_seeds,
+        train_seeds,
+    )
 
     try:
         seeds = parse_seeds(args.seeds)
@@ -192,16 +199,23 @@ def run_seeds(args: argparse.Namespace) -> int:
         check_recipe(args.output, recipe=recipe, data=args.data)
     except RecipeChangedError as error:
         raise UsageError(str(error)) from None
-    runs = train_seeds(
-        seeds=seeds,
-        output=args.output,
-        recipe=recipe,
-        data=args.data,
-        workers=args.workers,
-        ray_address=args.ray,
-        ray_resources=resources,
-        log=_log,
-    )
+    if args.ray is None:
+        runs = train_seeds(
+            seeds=seeds, output=args.output, recipe=recipe, data=args.data, workers=args.workers, log=_log
+        )
+    else:
+        from orchestrator.seeds_ray import train_seeds_on_ray
+
+        args.output.mkdir(parents=True, exist_ok=True)
+        runs = train_seeds_on_ray(
+            seeds=seeds,
+            output=args.output,
+            recipe=recipe,
+            base=manifest_base(seeds=seeds, recipe=recipe, data=args.data),
+            address=args.ray,
+            resources=resources,
+            log=_log,
+        )
     failed = [run for run in runs if run.status != "done"]
     print(f"{args.output / 'training.json'}: {len(runs) - len(failed)} of {len(runs)} seeds trained")
     for run in failed:

@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.matrix.load import Matrix, PlannedEpisode
+from orchestrator.matrix.ray_items import LiveItem, OutcomeItem, StreamItem, TaskError
 from orchestrator.matrix.ray_options import EPISODE_SLOT, ClusterError, RayOptions, import_ray
 from orchestrator.matrix.results import EpisodeResult, ResultStore
 from orchestrator.matrix.runner import (
@@ -197,7 +198,7 @@ class RayMatrixRunner(MatrixRunner):
         shared = dataclasses.replace(self.matrix, text="", episodes=())
         waiting = collections.deque((episode, ()) for episode in todo)
         slots: list[_Slot] = []
-        running: dict = {}  # ObjectRefGenerator -> (episode, lost attempts so far, lane, slot)
+        running: dict[Any, _Running] = {}  # by its ObjectRefGenerator
         free_lanes = list(range(len(progress.workers)))
         try:
             while waiting or running:
@@ -211,7 +212,7 @@ class RayMatrixRunner(MatrixRunner):
                     episode, lost = self._take(waiting, prefer=slot.brains)
                     lane = free_lanes.pop(0)
                     slot.busy = True
-                    running[slot.actor.drive.remote(episode=episode)] = (episode, lost, lane, slot)
+                    running[slot.actor.drive.remote(episode=episode)] = _Running(episode, lost, lane, slot)
                     with progress.lock:
                         progress.workers[lane].episode, progress.workers[lane].live = episode, None
                 starting = {slot.ready: slot for slot in slots if slot.node is None}
@@ -220,22 +221,18 @@ class RayMatrixRunner(MatrixRunner):
                     if ref in starting:
                         self._slot_up(starting[ref], slots)
                         continue
-                    episode, lost, lane, slot = running[ref]
-                    item = self._next_item(ref)
-                    if "live" in item:
-                        with progress.lock:
-                            progress.workers[lane].live = item["live"]
+                    entry = running[ref]
+                    item = self._ended(ref, entry, running=running, progress=progress, free_lanes=free_lanes)
+                    if item is None:
                         continue
-                    del running[ref]
-                    with progress.lock:
-                        progress.workers[lane].episode, progress.workers[lane].live = None, None
-                    free_lanes.append(lane)
-                    slot.busy = False
-                    if "error" in item:  # its node, its process or the actor itself failed: never used again
-                        self._drop_slot(slot, slots, why=f"{type(item['error']).__name__}")
-                    result = self._collect(item, episode, lost, waiting, node=slot.node)
+                    owner = entry.slot
+                    assert owner is not None  # every episode here runs on a slot
+                    owner.busy = False
+                    if isinstance(item, TaskError):  # its node, its process or the actor failed: never used again
+                        self._drop_slot(owner, slots, why=f"{type(item.error).__name__}")
+                    result = self._collect(item, entry, waiting, node=owner.node)
                     if result is not None:
-                        slot.brains = self._launches(episode) if result.status == "done" else None
+                        owner.brains = self._launches(entry.episode) if result.status == "done" else None
                         self._finish(result, store, progress)
                 self._on_change(progress)
         except BaseException:
@@ -310,7 +307,7 @@ class RayMatrixRunner(MatrixRunner):
         )
         shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a task needs: name and shadows
         waiting = collections.deque((episode, ()) for episode in todo)
-        running: dict = {}  # ObjectRefGenerator -> (episode, lost attempts so far, lane)
+        running: dict[Any, _Running] = {}  # by its ObjectRefGenerator
         free_lanes = list(range(len(progress.workers)))
         try:
             while waiting or running:
@@ -320,22 +317,16 @@ class RayMatrixRunner(MatrixRunner):
                     stream = task.remote(
                         matrix=shared, episode=episode, options=self.options, artifacts=self._artifacts_text()
                     )
-                    running[stream] = (episode, lost, lane)
+                    running[stream] = _Running(episode, lost, lane)
                     with progress.lock:
                         progress.workers[lane].episode, progress.workers[lane].live = episode, None
                 ready, _ = ray.wait(list(running), num_returns=1, timeout=POLL_S)
                 for stream in ready:  # its next item is there: live metrics, the result, or the task's error
-                    episode, lost, lane = running[stream]
-                    item = self._next_item(stream)
-                    if "live" in item:
-                        with progress.lock:
-                            progress.workers[lane].live = item["live"]
+                    entry = running[stream]
+                    item = self._ended(stream, entry, running=running, progress=progress, free_lanes=free_lanes)
+                    if item is None:
                         continue
-                    del running[stream]
-                    with progress.lock:
-                        progress.workers[lane].episode, progress.workers[lane].live = None, None
-                    free_lanes.append(lane)
-                    result = self._collect(item, episode, lost, waiting)
+                    result = self._collect(item, entry, waiting)
                     if result is not None:
                         self._finish(result, store, progress)
                 self._on_change(progress)
@@ -344,6 +335,25 @@ class RayMatrixRunner(MatrixRunner):
             for stream in running:  # Ctrl-C, SIGTERM: stop them now (force: a plain cancel waits for a sleeping task)
                 ray.cancel(stream, force=True)
             raise
+
+    def _ended(
+        self, stream, entry: _Running, *, running: dict, progress: MatrixProgress, free_lanes: list[int]
+    ) -> OutcomeItem | TaskError | None:
+        """Read a ready stream's next item: live metrics go to its lane's display (None: it runs on); an outcome or
+        an error ends it, and its lane is free again."""
+        item = self._next_item(stream)
+        if isinstance(item, LiveItem):
+            from protocol import codec
+            from protocol.messages import LiveMetrics
+
+            with progress.lock:
+                progress.workers[entry.lane].live = codec.decode(item.data, LiveMetrics)
+            return None
+        del running[stream]
+        with progress.lock:
+            progress.workers[entry.lane].episode, progress.workers[entry.lane].live = None, None
+        free_lanes.append(entry.lane)
+        return item
 
     def _window(self) -> int:
         """Tasks in flight: the cluster's slots now (nodes come and go), at least one."""
@@ -356,34 +366,27 @@ class RayMatrixRunner(MatrixRunner):
         return None if self.ray_options.artifacts is None else str(self.ray_options.artifacts)
 
     @staticmethod
-    def _next_item(stream) -> dict:
-        """The next item of a task's stream: ``{"live": LiveMetrics}``, ``{"result", "files"}``, or
-        ``{"error": exception}`` when the task failed (Ray raises it where the item would be)."""
+    def _next_item(stream) -> StreamItem | TaskError:
+        """The next item of a task's stream, or :class:`TaskError` when the task failed (Ray raises it where the
+        item would be)."""
         ray = import_ray()
         try:
-            value = ray.get(next(stream))
+            return ray.get(next(stream))
         except StopIteration:
-            return {"error": RuntimeError("the episode's task ended without a result")}
+            return TaskError(RuntimeError("the episode's task ended without a result"))
         except ray.exceptions.RayError as error:
-            return {"error": error}
-        if "live" in value:
-            from protocol import codec
-            from protocol.messages import LiveMetrics
-
-            return {"live": codec.decode(value["live"], LiveMetrics)}
-        return value
+            return TaskError(error)
 
     def _collect(
-        self, item: dict, episode: PlannedEpisode, lost: tuple, waiting: collections.deque, *, node: str | None = None
+        self, item: OutcomeItem | TaskError, running: _Running, waiting: collections.deque, *, node: str | None = None
     ) -> EpisodeResult | None:
         """The result of a finished task; None when its node (``node`` when known) was lost and it is submitted
         again."""
-        ray = import_ray()
-        try:
-            if "error" in item:
-                raise item["error"]
-            outcome = item
-        except _lost_errors() as error:
+        episode, lost = running.episode, running.lost
+        if isinstance(item, OutcomeItem):
+            return self._land(episode, item, lost)
+        error = item.error
+        if isinstance(error, _lost_errors()):
             attempt = {"node": node or _node_in(error), "error": f"{type(error).__name__}: {_first_line(error)}"}
             lost = (*lost, attempt)
             log.warning("episode %s: attempt %d lost (%s)", episode.key, len(lost), attempt["error"])
@@ -391,20 +394,20 @@ class RayMatrixRunner(MatrixRunner):
                 waiting.appendleft((episode, lost))
                 return None
             return self._lost_result(episode, lost)
-        except (ray.exceptions.RayError, RuntimeError) as error:  # the task itself broke, not the episode: not retried
+        if isinstance(error, (import_ray().exceptions.RayError, RuntimeError)):  # the task broke, not the episode
             return self._lost_result(
                 episode, lost, failure=Failure(FailureKind.ERROR, f"{type(error).__name__}: {_first_line(error)}")
             )
-        return self._land(episode, outcome, lost)
+        raise error
 
-    def _land(self, episode: PlannedEpisode, outcome: dict, lost: tuple) -> EpisodeResult:
+    def _land(self, episode: PlannedEpisode, outcome: OutcomeItem, lost: tuple) -> EpisodeResult:
         """A task's outcome into the output folder: its small files, its row with the node and lost attempts."""
-        result: EpisodeResult = outcome["result"]
+        result = outcome.result
         folder = self.out_dir / "episodes" / f"{episode.index:04d}"
         if not _same_folder(self.ray_options.artifacts, self.out_dir):
             if folder.exists():
                 shutil.rmtree(folder)
-            for relative, data in outcome["files"].items():
+            for relative, data in outcome.files.items():
                 path = folder / relative
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(data)
@@ -480,6 +483,17 @@ def _same_folder(artifacts: Path | None, out_dir: Path) -> bool:
     return artifacts is not None and artifacts.resolve() == out_dir.resolve()
 
 
+@dataclasses.dataclass(frozen=True)
+class _Running:
+    """An episode in flight: its lost attempts so far, its lane of the progress display and, on a warm stack, its
+    slot."""
+
+    episode: PlannedEpisode
+    lost: tuple
+    lane: int
+    slot: _Slot | None = None
+
+
 @dataclasses.dataclass
 class _Slot:
     """The driver's view of one :class:`EpisodeSlot` actor."""
@@ -553,7 +567,7 @@ class EpisodeSlot:
         """This slot's node (:func:`node_label`); the driver gives episodes only to a slot that answered."""
         return self.node
 
-    def drive(self, *, episode: PlannedEpisode) -> Iterator[dict]:
+    def drive(self, *, episode: PlannedEpisode) -> Iterator[StreamItem]:
         """One episode on the warm stack (a streaming method): the items :func:`run_episode_task` yields."""
         if self._stopped:
             raise RuntimeError("the episode slot was stopped")
@@ -571,7 +585,7 @@ class EpisodeSlot:
             cleanup=cleanup,
         )
         for item in items:
-            if "result" in item and self._scratch is not None:  # its files travel in the item
+            if isinstance(item, OutcomeItem) and self._scratch is not None:  # its files travel in the item
                 shutil.rmtree(self._scratch / "episodes" / f"{episode.index:04d}", ignore_errors=True)
             yield item
 
@@ -591,7 +605,7 @@ class EpisodeSlot:
 
 def run_episode_task(
     *, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, artifacts: str | None
-) -> Iterator[dict]:
+) -> Iterator[StreamItem]:
     """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` twice a
     second while it drives (the driver's progress lanes), then ``{"result": EpisodeResult, "files": {path: bytes}}``.
 
@@ -610,7 +624,9 @@ def run_episode_task(
             shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _drive(*, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path) -> Iterator[dict]:
+def _drive(
+    *, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path
+) -> Iterator[StreamItem]:
     """:func:`run_episode_task` in the folder ``work``: a fresh stack in one process group, under a watchdog."""
     from orchestrator.stack.launcher import free_loopback_port
     from protocol.bus import Bus, BusConfig
@@ -638,7 +654,7 @@ def _watched(
     node: str,
     run: Callable[[WorkerState], EpisodeResult | None],
     cleanup: Callable[..., None],
-) -> Iterator[dict]:
+) -> Iterator[StreamItem]:
     """Drive one episode with ``run`` in a thread under a watchdog: its live metrics twice a second, then the result
     and the episode folder's small files. ``cleanup(abandoned=...)`` runs before the result is sent (abandoned: the
     watchdog fired or the stream was closed, so the stack was stopped and its process group killed)."""
@@ -675,7 +691,7 @@ def _watched(
             thread.join(timeout=LIVE_PERIOD_S)
             if state.live is not None and state.live is not sent:
                 sent = state.live
-                yield {"live": codec.encode(sent)}
+                yield LiveItem(data=codec.encode(sent))
     finally:
         timer.cancel()
         abandoned = thread.is_alive() or fired.is_set()
@@ -689,7 +705,7 @@ def _watched(
     result = outcome.get("result")
     if result is None or fired.is_set():
         result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
-    yield {"result": result, "files": _small_files(runner.out_dir / "episodes" / f"{episode.index:04d}")}
+    yield OutcomeItem(result=result, files=_small_files(runner.out_dir / "episodes" / f"{episode.index:04d}"))
 
 
 def _timed_out(

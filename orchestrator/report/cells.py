@@ -17,6 +17,7 @@ from datetime import datetime
 from typing import Any
 
 from orchestrator.matrix.results import EpisodeResult
+from orchestrator.report.columns import first_lap_s
 from orchestrator.report.document import FAIL_MARK
 
 DEFAULT_VARIATION = "default"
@@ -25,7 +26,7 @@ DEFAULT_VARIATION = "default"
 # -- small helpers --------------------------------------------------------------------------------------------------
 
 
-def _ordered(values: Iterable[str]) -> list[str]:
+def ordered(values: Iterable[str]) -> list[str]:
     """Distinct values in order of first appearance."""
     return list(dict.fromkeys(values))
 
@@ -51,14 +52,9 @@ def mean_std(values: Sequence[float], digits: int = 2) -> str:
 
 
 def lap_seconds(result: EpisodeResult) -> float | None:
-    """The episode's first-lap time: BM's ``bm_lap_seconds`` when BM counts the lap, else the first timed lap;
-    None when the episode completed no lap (or was not scored)."""
-    if result.score is None:
-        return None
-    metrics = result.score.metrics
-    if metrics.bm_lap_seconds is not None:
-        return float(metrics.bm_lap_seconds)
-    return float(metrics.lap_times_s[0]) if metrics.lap_times_s else None
+    """The episode's first-lap time (:func:`~orchestrator.report.columns.first_lap_s`); None when the episode completed
+    no lap or was not scored."""
+    return None if result.score is None else first_lap_s(result.score.metrics)
 
 
 def reached_target(result: EpisodeResult) -> bool:
@@ -77,12 +73,12 @@ def outcome(result: EpisodeResult) -> str:
     return str(result.score.reason) if result.score is not None else "not_scored"
 
 
-def _scored(results: Iterable[EpisodeResult]) -> list[EpisodeResult]:
+def scored_only(results: Iterable[EpisodeResult]) -> list[EpisodeResult]:
     """Episodes the brain is judged on: ran and scored (stack failures are not the brain's doing)."""
     return [r for r in results if r.status == "done" and r.score is not None]
 
 
-def _failure_summary(results: Sequence[EpisodeResult]) -> str:
+def failure_summary(results: Sequence[EpisodeResult]) -> str:
     counts = Counter(outcome(r) for r in results if not reached_target(r))
     if not counts:
         return "–"
@@ -108,7 +104,7 @@ def grid_cell(results: Sequence[EpisodeResult], *, with_completion: bool = False
         name, count = counts.most_common(1)[0]
         text = f"{FAIL_MARK} {name} {count}/{len(results)}"
     if with_completion:
-        scored = _scored(results)
+        scored = scored_only(results)
         if scored:
             text += f" · {statistics.fmean(r.score.metrics.percentage_completed for r in scored):.0f} %"
     return text
@@ -118,7 +114,7 @@ def baseline_variation(results: Sequence[EpisodeResult], planned: str | None = N
     """The variation label of the baseline condition: ``"default"`` when present, else ``planned`` (the first planned
     episode's variation, the first value of every axis, which the runner stores as the ``baseline_variation`` fact)
     when some episode has it, else the variation of the first stored episode in matrix order."""
-    labels = _ordered(r.variation for r in sorted(results, key=lambda r: r.index))
+    labels = ordered(r.variation for r in sorted(results, key=lambda r: r.index))
     if not labels:
         return None
     if DEFAULT_VARIATION in labels:
@@ -126,7 +122,7 @@ def baseline_variation(results: Sequence[EpisodeResult], planned: str | None = N
     return planned if planned in labels else labels[0]
 
 
-def _opt(value: Any, digits: int) -> str:
+def optional_number(value: Any, digits: int) -> str:
     if value is None:
         return "–"
     try:
@@ -135,7 +131,7 @@ def _opt(value: Any, digits: int) -> str:
         return str(value)
 
 
-def _brief(items: Sequence[Any], limit: int = 160) -> str:
+def brief(items: Sequence[Any], limit: int = 160) -> str:
     import msgspec
 
     parts = []
@@ -156,7 +152,7 @@ def _short(value: Any) -> str:
     return str(value)
 
 
-def _duration(seconds: float) -> str:
+def duration_text(seconds: float) -> str:
     seconds = max(0.0, float(seconds))
     if seconds < 60:
         return f"{seconds:.1f} s"
@@ -165,7 +161,7 @@ def _duration(seconds: float) -> str:
     return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d} min"
 
 
-def _date(value: Any) -> str:
+def date_text(value: Any) -> str:
     if value is None:
         return ""
     if isinstance(value, (int, float)):
@@ -173,5 +169,5 @@ def _date(value: Any) -> str:
     return str(value)
 
 
-def _slug(name: str) -> str:
+def slug(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "circuit"

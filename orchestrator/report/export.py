@@ -10,13 +10,12 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.matrix.results import EpisodeResult
-from protocol.messages import EpisodeMetrics
-
-METRIC_FIELDS: tuple[str, ...] = EpisodeMetrics.__struct_fields__
+from orchestrator.report.columns import CSV_COLUMNS
 
 
 def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
-    """One flat dict per episode: conditions, status, timings, every scalar of EpisodeMetrics, files."""
+    """One flat dict per episode: conditions, status, timings, every metric column
+    (:data:`~orchestrator.report.columns.CSV_COLUMNS`), files."""
     rows = []
     for r in results:
         row: dict[str, Any] = {
@@ -37,11 +36,8 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
             "wall_s": round(r.wall_s, 3),
         }
         metrics = r.score.metrics if r.score is not None else None
-        for name in METRIC_FIELDS:
-            value = getattr(metrics, name) if metrics is not None else None
-            if name == "lap_times_s":
-                value = ";".join(repr(float(v)) for v in value) if value else ""
-            row[name] = "" if value is None else value
+        for column in CSV_COLUMNS:
+            row[column.field] = column.cell(metrics)
         row.update(
             {
                 "recording": r.recording or "",

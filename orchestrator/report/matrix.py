@@ -15,9 +15,10 @@ Tables (Markdown and HTML carry the same ones):
 
 1. the matrix: name, episodes done / failed / total, wall time, date;
 2. the paper's main table for the *baseline* condition (no perturbation, the first value of every variation
-   axis): per brain and circuit, mean ± sample std over repetitions of the BM lap seconds (episodes that completed
-   the lap only), BM position deviation (mean of 1000^d, not metres), cross-track error mean and max (m), average
-   speed, BM percentage completed, laps completed, and what ended the others;
+   axis): per brain and circuit, mean ± sample std over repetitions of each metric column with a main-table header
+   (:data:`orchestrator.report.columns.MAIN_COLUMNS`: BM lap seconds of the episodes that completed the lap, BM
+   position deviation (mean of 1000^d, not metres), cross-track error mean and max (m), average speed, BM
+   percentage completed), laps completed, and what ended the others;
 3. generalisation: brain x world variation (no perturbation): the mean lap time when every repetition reached its
    lap target, else ``✗ <most common reason> k/n``;
 4. robustness: brain x camera perturbation (baseline variation), the same cell plus the mean BM percentage;
@@ -28,9 +29,11 @@ Tables (Markdown and HTML carry the same ones):
 Everything is pure (no bus): it can run on a copy of an output folder on any machine.
 
 The report's parts have modules of their own: the document model and its Markdown / HTML rendering
-(:mod:`orchestrator.report.document`), the cells' statistics and formatting (:mod:`orchestrator.report.cells`),
+(:mod:`orchestrator.report.document`), the cells' statistics and formatting (:mod:`orchestrator.report.cells`), the
+one table of metric columns the main table, an episode's table and the CSV are made from
+(:mod:`orchestrator.report.columns`), the results and facts read from the folder (:mod:`orchestrator.report.data`),
 trajectory files and circuit drawings (:mod:`orchestrator.report.trajectories`) and the plots
-(:mod:`orchestrator.report.plots`). This module keeps the report itself: its data, tables, episode rows and command.
+(:mod:`orchestrator.report.plots`). This module keeps the report's tables and the command that writes the files.
 """
 
 from __future__ import annotations
@@ -42,76 +45,45 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from orchestrator.matrix.results import BASELINE_FACT, DATABASE_NAME, EpisodeResult, ResultStore
+from orchestrator.matrix.results import DATABASE_NAME, EpisodeResult
 from orchestrator.report.cells import (
-    _brief,
-    _date,
-    _duration,
-    _failure_summary,
-    _opt,
-    _ordered,
-    _scored,
-    baseline_variation,
+    brief,
+    date_text,
+    duration_text,
+    failure_summary,
     grid_cell,
-    lap_seconds,
     mean_std,
+    optional_number,
     outcome,
     reached_target,
+    scored_only,
 )
+from orchestrator.report.columns import MAIN_COLUMNS
 from orchestrator.report.comparison import comparison_section
+from orchestrator.report.data import NO_PERTURBATION, PAPER_FACT, PLOTS_DIR, ReportData, ReportError
 from orchestrator.report.document import FAIL_MARK, Section, Table, render_html, render_markdown
 from orchestrator.report.export import episode_rows, write_csv, write_parquet
-from orchestrator.report.plots import ReportPlots
-from orchestrator.report.trajectories import _Track, load_trajectory
+from orchestrator.report.plots import plot_sections
 
 __all__ = [
-    # this module's own
-    "BASELINE_FACT",
     "CSV_FILE",
     "HTML_FILE",
     "MARKDOWN_FILE",
-    "NO_PERTURBATION",
     "PAPER_FACT",
     "PAPER_MARKDOWN",
     "PARQUET_FILE",
     "PLOTS_DIR",
+    "MatrixReport",
     "ReportError",
     "ReportFiles",
-    "episode_rows",
     "write_report",
-    # re-exported from the modules they moved to, for code that imported them from here
-    "FAIL_MARK",
-    "Section",
-    "Table",
-    "baseline_variation",
-    "grid_cell",
-    "lap_seconds",
-    "mean_std",
-    "outcome",
-    "reached_target",
 ]
 
-HTML_FILE, MARKDOWN_FILE, CSV_FILE, PARQUET_FILE, PLOTS_DIR = (
-    "report.html",
-    "report.md",
-    "episodes.csv",
-    "episodes.parquet",
-    "plots",
-)
+HTML_FILE, MARKDOWN_FILE, CSV_FILE, PARQUET_FILE = ("report.html", "report.md", "episodes.csv", "episodes.parquet")
 
-NO_PERTURBATION = "none"
 COMBINED_COLUMNS = 8  # grids with at most this many circuit x condition columns become one table
 MAX_EARLY_ROWS = 200  # rows of the "ended early" list
 PAPER_MARKDOWN = "paper.md"  # drivebench paper's tables alone
-PAPER_FACT = "paper"  # results-database fact set by drivebench paper: the report then carries the paper's tables
-
-# Order of the EpisodeMetrics scalars in the CSV (the struct's own order; lap_times_s joined with ';').
-
-
-class ReportError(RuntimeError):
-    """The report cannot be made (no results database, an empty one, ...); one line that names the path."""
 
 
 @dataclass(frozen=True)
@@ -129,73 +101,11 @@ class ReportFiles:
 # -- the report -----------------------------------------------------------------------------------------------------
 
 
-class _Report(ReportPlots):
-    def __init__(self, folder: Path, output: Path):
-        self.folder = folder
-        self.output = output
-        self.plots_dir = output / PLOTS_DIR
-        database = folder / DATABASE_NAME
-        if not folder.is_dir():
-            raise ReportError(f"{folder}: no such folder")
-        if not database.is_file():
-            raise ReportError(f"{database}: no results database (run `drivebench matrix FILE -o {folder}` first)")
-        store = ResultStore(folder, create=False)
-        try:
-            self.results = store.results()
-            self.name = store.fact("name") or folder.resolve().name
-            self.source_text = store.fact("source_text")
-            self.planned_baseline = store.fact(BASELINE_FACT)
-            self.variation_keys = store.fact("variation_keys") or []
-            self.created_at = store.fact("created_at")
-            self.is_paper = bool(store.fact(PAPER_FACT))
-        finally:
-            store.close()
-        if not self.results:
-            raise ReportError(f"{database}: no episodes recorded yet (an empty matrix, or one that has not run)")
-        self.brains = _ordered(r.brain for r in self.results)
-        self.circuits = _ordered(r.circuit for r in self.results)
-        self.variations = _ordered(r.variation for r in self.results)
-        perturbations = _ordered(r.perturbation for r in self.results)
-        self.perturbations = ([NO_PERTURBATION] if NO_PERTURBATION in perturbations else []) + [
-            p for p in perturbations if p != NO_PERTURBATION
-        ]
-        self.baseline_variation = baseline_variation(self.results, self.planned_baseline)
-        self.notes: list[str] = []  # problems met while drawing (missing trajectories, unknown circuits)
-        self._tracks: dict[str, _Track | None] = {}
-        self._trajectories: dict[str, dict[str, np.ndarray] | None] = {}
-        self.plots: list[Path] = []
+class MatrixReport:
+    """The report's sections, from one :class:`~orchestrator.report.data.ReportData` (the plots take the same)."""
 
-    # -- data access --
-
-    def track(self, circuit: str) -> _Track | None:
-        if circuit not in self._tracks:
-            from circuits import CircuitError, load_circuit
-
-            try:
-                self._tracks[circuit] = _Track(load_circuit(circuit))
-            except (CircuitError, ValueError, OSError) as error:
-                self.notes.append(f"circuit {circuit!r} not drawn: {error}")
-                self._tracks[circuit] = None
-        return self._tracks[circuit]
-
-    def trajectory(self, result: EpisodeResult) -> dict[str, np.ndarray] | None:
-        if result.key not in self._trajectories:
-            self._trajectories[result.key] = load_trajectory(self.folder, result.trajectory)
-        return self._trajectories[result.key]
-
-    def baseline(self) -> tuple[list[EpisodeResult], str]:
-        """Episodes of the baseline condition and a sentence saying what it is."""
-        chosen = [
-            r for r in self.results if r.perturbation == NO_PERTURBATION and r.variation == self.baseline_variation
-        ]
-        if chosen:
-            return chosen, (
-                f"Baseline condition: variation `{self.baseline_variation}`, perturbation `{NO_PERTURBATION}`."
-            )
-        return list(self.results), (
-            "The matrix has no episode in the baseline condition (first variation, no "
-            "perturbation): every episode is pooled."
-        )
+    def __init__(self, data: ReportData):
+        self.data = data
 
     # -- sections --
 
@@ -203,86 +113,70 @@ class _Report(ReportPlots):
     def paper_sections(self) -> list[Section]:
         """The paper's six tables, ours beside its figures, when ``drivebench paper`` ran this folder (built once:
         they read every checkpoint)."""
-        if not self.is_paper:
+        if not self.data.is_paper:
             return []
         from orchestrator.report.paper import paper_sections
 
-        return paper_sections(self.results, self.folder)
+        return paper_sections(self.data.results, self.data.folder)
 
     def header(self) -> Section:
-        done = sum(r.status == "done" for r in self.results)
-        failed = sum(r.status == "failed" for r in self.results)
-        reached = sum(reached_target(r) for r in self.results)
-        start = min(r.started_at for r in self.results)
-        end = max(r.ended_at for r in self.results)
-        episode_wall = sum(max(0.0, r.wall_s) for r in self.results)
+        done = sum(r.status == "done" for r in self.data.results)
+        failed = sum(r.status == "failed" for r in self.data.results)
+        reached = sum(reached_target(r) for r in self.data.results)
+        start = min(r.started_at for r in self.data.results)
+        end = max(r.ended_at for r in self.data.results)
+        episode_wall = sum(max(0.0, r.wall_s) for r in self.data.results)
+        baseline, created = self.data.baseline_variation, date_text(self.data.created_at) or date_text(start)
         rows = [
-            ["matrix", self.name],
+            ["matrix", self.data.name],
             [
                 "episodes",
-                f"{len(self.results)} recorded: {done} done, {failed} failed (stack); "
+                f"{len(self.data.results)} recorded: {done} done, {failed} failed (stack); "
                 f"{reached} reached their lap target",
             ],
-            ["brains", ", ".join(self.brains)],
-            ["circuits", ", ".join(self.circuits)],
+            ["brains", ", ".join(self.data.brains)],
+            ["circuits", ", ".join(self.data.circuits)],
             [
                 "variations",
-                ", ".join(self.variations)
+                ", ".join(self.data.variations)
                 + (
-                    f" (axes: {', '.join(map(str, self.variation_keys))}; baseline `{self.baseline_variation}`)"
-                    if self.variation_keys
-                    else f" (baseline `{self.baseline_variation}`)"
+                    f" (axes: {', '.join(map(str, self.data.variation_keys))}; baseline `{baseline}`)"
+                    if self.data.variation_keys
+                    else f" (baseline `{baseline}`)"
                 ),
             ],
-            ["perturbations", ", ".join(self.perturbations)],
+            ["perturbations", ", ".join(self.data.perturbations)],
             [
                 "wall time",
-                f"{_duration(end - start)} from first start to last end ({_duration(episode_wall)} of episodes)",
+                f"{duration_text(end - start)} from first start to last end "
+                f"({duration_text(episode_wall)} of episodes)",
             ],
-            ["date", f"{_date(self.created_at) or _date(start)} (matrix created); ran {_date(start)} – {_date(end)}"],
-            ["report", f"{time.strftime('%Y-%m-%d %H:%M:%S')} from `{self.folder / DATABASE_NAME}`"],
+            [
+                "date",
+                f"{created} (matrix created); ran {date_text(start)} – {date_text(end)}",
+            ],
+            ["report", f"{time.strftime('%Y-%m-%d %H:%M:%S')} from `{self.data.folder / DATABASE_NAME}`"],
         ]
-        return Section(f"Matrix {self.name}", [Table(["", ""], rows)])
+        return Section(f"Matrix {self.data.name}", [Table(["", ""], rows)])
 
     def main_table(self) -> Section:
-        episodes, sentence = self.baseline()
-        columns = [
-            "Brain",
-            "Circuit",
-            "Episodes",
-            "Lap (s)",
-            "Position deviation (BM)",
-            "Cross-track mean (m)",
-            "Cross-track max (m)",
-            "Avg speed (m/s)",
-            "Completed (%)",
-            "Laps",
-            "Did not finish",
-        ]
+        episodes, sentence = self.data.baseline()
+        columns = ["Brain", "Circuit", "Episodes", *(c.main for c in MAIN_COLUMNS), "Laps", "Did not finish"]
         rows = []
-        for brain in self.brains:
-            for circuit in self.circuits:
+        for brain in self.data.brains:
+            for circuit in self.data.circuits:
                 group = [r for r in episodes if r.brain == brain and r.circuit == circuit]
                 if not group:
                     continue
-                scored = _scored(group)
+                scored = scored_only(group)
                 metrics = [r.score.metrics for r in scored]
                 laps_done = sum(min(m.completed_laps, r.spec.laps) for r, m in zip(scored, metrics))
-                rows.append(
-                    [
-                        brain,
-                        circuit,
-                        str(len(group)),
-                        mean_std([t for t in (lap_seconds(r) for r in scored) if t is not None], 2),
-                        mean_std([m.position_deviation_mae for m in metrics], 2),
-                        mean_std([m.cross_track_mean_m for m in metrics], 3),
-                        mean_std([m.cross_track_max_m for m in metrics], 3),
-                        mean_std([m.average_speed_mps for m in metrics], 2),
-                        mean_std([m.percentage_completed for m in metrics], 1),
-                        f"{laps_done}/{sum(r.spec.laps for r in group)}",
-                        _failure_summary(group),
-                    ]
-                )
+                figures = [
+                    mean_std([v for v in (c.main_figure(m) for m in metrics) if v is not None], c.main_digits)
+                    for c in MAIN_COLUMNS
+                ]
+                laps = f"{laps_done}/{sum(r.spec.laps for r in group)}"
+                rows.append([brain, circuit, str(len(group)), *figures, laps, failure_summary(group)])
         legend = (
             "Each figure is mean ± sample standard deviation over the repetitions (the mean alone for one). "
             "Lap (s): BM lap seconds (first lap: Behavior Metrics' own lap time, from its 5 m checkpoints, the one "
@@ -299,13 +193,17 @@ class _Report(ReportPlots):
         )
         return Section(
             "Main table (baseline condition)",
-            [sentence, Table(columns, rows, numeric=[False, False] + [True] * 8 + [False]), legend],
+            [
+                sentence,
+                Table(columns, rows, numeric=[False, False] + [True] * (len(MAIN_COLUMNS) + 2) + [False]),
+                legend,
+            ],
         )
 
     def _grid(
         self, episodes: Sequence[EpisodeResult], conditions: Sequence[str], attribute: str, *, with_completion: bool
     ) -> list[Table]:
-        circuits = [c for c in self.circuits if any(r.circuit == c for r in episodes)]
+        circuits = [c for c in self.data.circuits if any(r.circuit == c for r in episodes)]
         present = [v for v in conditions if any(getattr(r, attribute) == v for r in episodes)]
 
         def cell(brain: str, circuit: str, condition: str) -> str:
@@ -323,13 +221,13 @@ class _Report(ReportPlots):
                 columns = ["Brain", *present]
             else:
                 columns = ["Brain", *(f"{c} · {v}" for c in circuits for v in present)]
-            rows = [[brain, *(cell(brain, c, v) for c in circuits for v in present)] for brain in self.brains]
+            rows = [[brain, *(cell(brain, c, v) for c in circuits for v in present)] for brain in self.data.brains]
             caption = f"circuit {circuits[0]}" if len(circuits) == 1 else ""
             return [Table(columns, rows, numeric=[False] + [True] * (len(columns) - 1), caption=caption)]
         return [
             Table(
                 ["Brain", *present],
-                [[brain, *(cell(brain, c, v) for v in present)] for brain in self.brains],
+                [[brain, *(cell(brain, c, v) for v in present)] for brain in self.data.brains],
                 numeric=[False] + [True] * len(present),
                 caption=f"circuit {c}",
             )
@@ -338,33 +236,35 @@ class _Report(ReportPlots):
 
     def generalisation(self) -> Section:
         section = Section("Generalisation (world variations)")
-        if len(self.variations) < 2:
-            section.blocks.append(f"One world variation only (`{self.variations[0]}`): see the main table.")
+        if len(self.data.variations) < 2:
+            section.blocks.append(f"One world variation only (`{self.data.variations[0]}`): see the main table.")
             return section
-        episodes = [r for r in self.results if r.perturbation == NO_PERTURBATION]
+        episodes = [r for r in self.data.results if r.perturbation == NO_PERTURBATION]
         if episodes:
             section.blocks.append(f"Episodes without camera perturbation (`{NO_PERTURBATION}`), per world variation.")
         else:
-            episodes = list(self.results)
+            episodes = list(self.data.results)
             section.blocks.append("The matrix has no unperturbed episode: every perturbation is pooled.")
-        section.blocks.extend(self._grid(episodes, self.variations, "variation", with_completion=False))
+        section.blocks.extend(self._grid(episodes, self.data.variations, "variation", with_completion=False))
         section.blocks.append(_CELL_LEGEND)
         return section
 
     def robustness(self) -> Section:
         section = Section("Robustness (camera perturbations)")
-        if len(self.perturbations) < 2:
-            section.blocks.append(f"One perturbation only (`{self.perturbations[0]}`): see the main table.")
+        if len(self.data.perturbations) < 2:
+            section.blocks.append(f"One perturbation only (`{self.data.perturbations[0]}`): see the main table.")
             return section
-        episodes = [r for r in self.results if r.variation == self.baseline_variation]
-        section.blocks.append(f"Episodes in the baseline variation (`{self.baseline_variation}`), per perturbation.")
-        section.blocks.extend(self._grid(episodes, self.perturbations, "perturbation", with_completion=True))
+        episodes = [r for r in self.data.results if r.variation == self.data.baseline_variation]
+        section.blocks.append(
+            f"Episodes in the baseline variation (`{self.data.baseline_variation}`), per perturbation."
+        )
+        section.blocks.extend(self._grid(episodes, self.data.perturbations, "perturbation", with_completion=True))
         section.blocks.append(_CELL_LEGEND + " After the dot: mean BM percentage completed of the scored episodes.")
         return section
 
     def internal_metrics(self) -> Section | None:
         entries: dict[str, Path] = {}
-        for r in self.results:
+        for r in self.data.results:
             if r.brain_entry.weights is not None and r.brain not in entries:
                 entries[r.brain] = r.brain_entry.weights
         if not entries:
@@ -401,10 +301,10 @@ class _Report(ReportPlots):
                     str(checkpoint.get("model", "?")),
                     f"`{path.name}`",
                     split,
-                    _opt(figures.get("mae_speed_mps"), 3),
-                    _opt(figures.get("mae_yaw_rate_radps"), 3),
-                    _opt(figures.get("mse_normalised"), 4),
-                    _opt(train.get("mse_normalised"), 4),
+                    optional_number(figures.get("mae_speed_mps"), 3),
+                    optional_number(figures.get("mae_yaw_rate_radps"), 3),
+                    optional_number(figures.get("mse_normalised"), 4),
+                    optional_number(train.get("mse_normalised"), 4),
                     str(metrics.get("best_epoch", "–")),
                 ]
             )
@@ -436,19 +336,19 @@ class _Report(ReportPlots):
 
     def _weights_path(self, weights: str) -> Path:
         path = Path(weights).expanduser()
-        if not path.is_absolute() and not path.is_file() and (self.folder / path).is_file():
-            return self.folder / path
+        if not path.is_absolute() and not path.is_file() and (self.data.folder / path).is_file():
+            return self.data.folder / path
         return path
 
     def switches(self) -> Section | None:
         rows = []
-        for r in self.results:
+        for r in self.data.results:
             if r.score is None:
                 continue
             switches = list(getattr(r.score, "switches", None) or [])
             shadows = list(getattr(r.score, "shadows", None) or [])
             if switches or shadows:
-                rows.append([r.key, r.brain, str(len(switches)), _brief(switches), str(len(shadows)), _brief(shadows)])
+                rows.append([r.key, r.brain, str(len(switches)), brief(switches), str(len(shadows)), brief(shadows)])
         if not rows:
             return None
         return Section(
@@ -464,7 +364,7 @@ class _Report(ReportPlots):
 
     def failures(self) -> Section:
         section = Section("Failures")
-        failed = [r for r in self.results if r.status == "failed"]
+        failed = [r for r in self.data.results if r.status == "failed"]
         if failed:
             section.blocks.append(
                 f"{len(failed)} episode(s) failed because of the stack, not the brain (they are "
@@ -488,7 +388,7 @@ class _Report(ReportPlots):
             )
         else:
             section.blocks.append("No stack failure.")
-        early = [r for r in self.results if r.status == "done" and not reached_target(r)]
+        early = [r for r in self.data.results if r.status == "done" and not reached_target(r)]
         if early:
             shown = early[:MAX_EARLY_ROWS]
             section.blocks.append(
@@ -506,8 +406,8 @@ class _Report(ReportPlots):
                             r.circuit,
                             f"{r.variation} / {r.perturbation}",
                             outcome(r),
-                            _opt(r.score.metrics.percentage_completed if r.score else None, 1),
-                            _opt(r.score.metrics.sim_time_s if r.score else None, 1),
+                            optional_number(r.score.metrics.percentage_completed if r.score else None, 1),
+                            optional_number(r.score.metrics.sim_time_s if r.score else None, 1),
                         ]
                         for r in shown
                     ],
@@ -517,9 +417,9 @@ class _Report(ReportPlots):
         return section
 
     def comparison(self) -> Section:
-        section, plot = comparison_section(self.results, plots_dir=self.plots_dir)
+        section, plot = comparison_section(self.data.results, plots_dir=self.data.plots_dir)
         if plot is not None:
-            self.plots.append(plot)
+            self.data.plots.append(plot)
         return section
 
     # -- assembling --
@@ -531,9 +431,9 @@ class _Report(ReportPlots):
             if optional is not None:
                 sections.append(optional)
         sections.append(self.failures())
-        sections.extend(self.plot_sections())
-        if self.notes:
-            sections.append(Section("Notes", list(self.notes)))
+        sections.extend(plot_sections(self.data))
+        if self.data.notes:
+            sections.append(Section("Notes", list(self.data.notes)))
         return sections
 
 
@@ -553,18 +453,23 @@ def write_report(folder: Path, *, output: Path | None = None) -> ReportFiles:
     """
     folder = Path(folder)
     output = Path(output) if output is not None else folder
-    report = _Report(folder, output)
+    report = MatrixReport(ReportData.load(folder, output=output))
     output.mkdir(parents=True, exist_ok=True)
     sections = report.sections()
     markdown_path, html_path, csv_path = output / MARKDOWN_FILE, output / HTML_FILE, output / CSV_FILE
     markdown_path.write_text(render_markdown(sections, output), encoding="utf-8")
-    html_path.write_text(render_html(sections, f"drivebench report: {report.name}"), encoding="utf-8")
-    rows = episode_rows(report.results)
+    html_path.write_text(render_html(sections, f"drivebench report: {report.data.name}"), encoding="utf-8")
+    rows = episode_rows(report.data.results)
     write_csv(rows, csv_path)
     parquet = write_parquet(rows, output / PARQUET_FILE)
-    paper = output / PAPER_MARKDOWN if report.is_paper else None
+    paper = output / PAPER_MARKDOWN if report.data.is_paper else None
     if paper is not None:
         paper.write_text(render_markdown(report.paper_sections, output), encoding="utf-8")
     return ReportFiles(
-        html=html_path, markdown=markdown_path, csv=csv_path, plots=tuple(report.plots), parquet=parquet, paper=paper
+        html=html_path,
+        markdown=markdown_path,
+        csv=csv_path,
+        plots=tuple(report.data.plots),
+        parquet=parquet,
+        paper=paper,
     )

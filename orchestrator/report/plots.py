@@ -2,8 +2,9 @@
 cross-track error, lap-time and position-deviation box plots per brain, lap progress over simulated time.
 
 Separate from the report's tables (:mod:`orchestrator.report.matrix`) because drawing is most of the code and the only
-part that needs matplotlib (imported inside the methods, so that reading this module costs nothing). The plots are a
-mixin, :class:`ReportPlots`, that the report class inherits: they read the report's results and cached trajectories.
+part that needs matplotlib (imported inside the functions, so that reading this module costs nothing). The plots are
+functions of one :class:`~orchestrator.report.data.ReportData`: they read its results and cached trajectories, and
+append the files they write to its ``plots`` and what they could not draw to its ``notes``.
 """
 
 from __future__ import annotations
@@ -19,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from orchestrator.matrix.results import EpisodeResult
-from orchestrator.report.cells import _scored, _slug, lap_seconds, reached_target
+from orchestrator.report.cells import lap_seconds, reached_target, scored_only, slug
+from orchestrator.report.data import ReportData
 from orchestrator.report.document import Plot, Section
-from orchestrator.report.trajectories import _speeds
+from orchestrator.report.trajectories import speeds_mps
 
 MAX_SUBPLOTS = 24  # trajectory subplots per figure (one figure per circuit and colouring)
 MAX_PLOT_POINTS = 1200  # poses drawn per episode (decimated beyond: ~0.4 m apart on a 450 m lap)
@@ -30,291 +32,287 @@ MAX_PROGRESS_CIRCUITS = 12  # circuits (subplots) in the progress figure
 STALE_PLOTS = ("trajectories_*.png", "boxplots.png", "progress.png")  # what the report writes into plots/
 
 
-class ReportPlots:
-    """The plots of :class:`orchestrator.report.matrix._Report`, as a mixin: the methods use what the report's
-    ``__init__`` sets and its data access provides.
+def plot_sections(report: ReportData) -> list[Section]:
+    import matplotlib
 
-    Attributes: ``results`` (the episodes, list of :class:`~orchestrator.matrix.results.EpisodeResult`), ``brains`` and
-    ``circuits`` (their labels in matrix order), ``plots_dir`` (the folder the PNG files go into), ``plots`` (list of
-    :class:`~pathlib.Path`, every file written is appended) and ``notes`` (list of str, problems met while drawing are
-    appended). Methods: ``track(circuit)`` (a :class:`~orchestrator.report.trajectories._Track` or None),
-    ``trajectory(result)`` (the episode's arrays or None) and ``baseline()`` (the baseline episodes and a sentence).
-    """
+    matplotlib.use("Agg", force=True)
+    report.plots_dir.mkdir(parents=True, exist_ok=True)
+    for pattern in STALE_PLOTS:  # a previous report's plots (a circuit since dropped) would mislead
+        for stale in report.plots_dir.glob(pattern):
+            stale.unlink(missing_ok=True)
+    sections = []
+    trajectories = Section(
+        "Trajectories",
+        [
+            "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start line "
+            "and driving direction, small ○: where an episode started along the circuit), one panel per brain "
+            "and condition with the repetitions overlaid; ✕ where an "
+            "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
+            "target. Colours: "
+            "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."
+        ],
+    )
+    for circuit in report.circuits:
+        for plot in _trajectory_figures(report, circuit):
+            trajectories.blocks.append(plot)
+    if not any(isinstance(b, Plot) for b in trajectories.blocks):
+        trajectories.blocks.append("No trajectory file could be read.")
+    sections.append(trajectories)
+    distributions = Section("Distributions")
+    for plot in (_box_plots(report), _progress_plot(report)):
+        if plot is not None:
+            distributions.blocks.append(plot)
+    if distributions.blocks:
+        sections.append(distributions)
+    return sections
 
-    # -- plots --
 
-    def plot_sections(self) -> list[Section]:
-        import matplotlib
+def _save(report: ReportData, fig, name: str) -> Path:
+    import matplotlib.pyplot as plt
 
-        matplotlib.use("Agg", force=True)
-        self.plots_dir.mkdir(parents=True, exist_ok=True)
-        for pattern in STALE_PLOTS:  # a previous report's plots (a circuit since dropped) would mislead
-            for stale in self.plots_dir.glob(pattern):
-                stale.unlink(missing_ok=True)
-        sections = []
-        trajectories = Section(
-            "Trajectories",
-            [
-                "Every episode's path over the road (grey: road edges, dashed: centre line, ○ and arrow: start line "
-                "and driving direction, small ○: where an episode started along the circuit), one panel per brain "
-                "and condition with the repetitions overlaid; ✕ where an "
-                "episode ended short of its lap target; (k/n finished): episodes of the panel that reached their lap "
-                "target. Colours: "
-                "speed from the poses, and |cross-track error| from projecting every pose onto the centre line."
-            ],
+    path = report.plots_dir / name
+    fig.savefig(path, dpi=130)  # figures flow side by side across the page (document.py), at their own size
+    plt.close(fig)
+    report.plots.append(path)
+    return path
+
+
+def _trajectory_figures(report: ReportData, circuit: str) -> list[Plot]:
+    episodes = [r for r in report.results if r.circuit == circuit]
+    loaded = _readable_trajectories(report, circuit, episodes)
+    if not loaded:
+        return []
+    track = report.track(circuit)
+    panels = _trajectory_panels(report, circuit, episodes, loaded)
+    data = _colour_data(panels, track)
+    layout = _map_layout(data, track, panels=len(panels.keys))
+    plots = []
+    for colour_by in ("speed", "xte"):
+        if colour_by == "xte" and track is None:
+            continue
+        plots.append(
+            _trajectory_figure(report, circuit, colour_by, panels=panels, data=data, track=track, layout=layout)
         )
-        for circuit in self.circuits:
-            for plot in self._trajectory_figures(circuit):
-                trajectories.blocks.append(plot)
-        if not any(isinstance(b, Plot) for b in trajectories.blocks):
-            trajectories.blocks.append("No trajectory file could be read.")
-        sections.append(trajectories)
-        distributions = Section("Distributions")
-        for plot in (self._box_plots(), self._progress_plot()):
-            if plot is not None:
-                distributions.blocks.append(plot)
-        if distributions.blocks:
-            sections.append(distributions)
-        return sections
+    return plots
 
-    def _save(self, fig, name: str) -> Path:
-        import matplotlib.pyplot as plt
 
-        path = self.plots_dir / name
-        fig.savefig(path, dpi=130)  # figures flow side by side across the page (document.py), at their own size
-        plt.close(fig)
-        self.plots.append(path)
-        return path
-
-    def _trajectory_figures(self, circuit: str) -> list[Plot]:
-        episodes = [r for r in self.results if r.circuit == circuit]
-        loaded = self._readable_trajectories(circuit, episodes)
-        if not loaded:
-            return []
-        track = self.track(circuit)
-        panels = self._trajectory_panels(circuit, episodes, loaded)
-        data = _colour_data(panels, track)
-        layout = _map_layout(data, track, panels=len(panels.keys))
-        plots = []
-        for colour_by in ("speed", "xte"):
-            if colour_by == "xte" and track is None:
-                continue
-            plots.append(
-                self._trajectory_figure(circuit, colour_by, panels=panels, data=data, track=track, layout=layout)
-            )
-        return plots
-
-    def _readable_trajectories(
-        self, circuit: str, episodes: list[EpisodeResult]
-    ) -> list[tuple[EpisodeResult, dict[str, np.ndarray]]]:
-        """The episodes of ``circuit`` whose trajectory file reads with two poses or more; the others in the notes."""
-        loaded = [(r, self.trajectory(r)) for r in episodes]
-        unreadable = [r for r, t in loaded if r.trajectory and (t is None or len(t["x_m"]) < 2)]
-        unrecorded = [r for r in episodes if r.status == "done" and not r.trajectory]
-        if unreadable:
-            self.notes.append(
-                f"{circuit}: {len(unreadable)} episode(s) have no readable trajectory file (missing, "
-                f"damaged or empty), e.g. `{unreadable[0].trajectory}`"
-            )
-        if unrecorded:
-            self.notes.append(f"{circuit}: {len(unrecorded)} episode(s) ran without a trajectory file")
-        return [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
-
-    def _trajectory_panels(
-        self, circuit: str, episodes: list[EpisodeResult], loaded: list[tuple[EpisodeResult, dict]]
-    ) -> _Panels:
-        """The episodes grouped into panels, at most ``MAX_SUBPLOTS`` (what had to be merged or left out: notes)."""
-        # One panel per brain and condition; when that makes too many panels, coarser groups (conditions overlaid).
-        for fields in (("brain", "variation", "perturbation"), ("brain", "variation"), ("brain",)):
-
-            def group_of(r: EpisodeResult, fields=fields) -> tuple[str, ...]:
-                return tuple(getattr(r, name) for name in fields)
-
-            if len({group_of(r) for r, _ in loaded}) <= MAX_SUBPLOTS:
-                break
-        totals = Counter(group_of(r) for r in episodes)
-        finished = Counter(group_of(r) for r in episodes if reached_target(r))
-        groups: dict[tuple[str, ...], list[tuple[EpisodeResult, dict]]] = {}
-        for r, t in loaded:
-            groups.setdefault(group_of(r), []).append((r, t))
-        keys = list(groups)
-        if len(fields) < 3:
-            self.notes.append(
-                f"{circuit}: trajectories drawn per {', '.join(fields)} (every other condition "
-                f"overlaid), to keep to {MAX_SUBPLOTS} panels"
-            )
-        if len(keys) > MAX_SUBPLOTS:
-            self.notes.append(
-                f"{circuit}: trajectories of {len(keys) - MAX_SUBPLOTS} of {len(keys)} brains not "
-                f"drawn (at most {MAX_SUBPLOTS} panels per figure)"
-            )
-            keys = keys[:MAX_SUBPLOTS]
-        return _Panels(keys=keys, groups=groups, totals=totals, finished=finished)
-
-    def _trajectory_figure(
-        self, circuit: str, colour_by: str, *, panels: _Panels, data: dict, track, layout: _MapLayout
-    ) -> Plot:
-        """One figure of ``circuit``'s panels, coloured by speed or by |cross-track error| ("xte")."""
-        import matplotlib.pyplot as plt
-
-        norm, cmap, label = _colour_scale(colour_by, data=data)
-        fig = plt.figure(figsize=(layout.fig_w, layout.fig_h))
-        grid = fig.add_gridspec(
-            layout.nrows,
-            layout.ncols,
-            left=layout.left / layout.fig_w,
-            right=(layout.left + layout.ncols * layout.panel_w + (layout.ncols - 1) * layout.wgap) / layout.fig_w,
-            bottom=layout.bottom / layout.fig_h,
-            top=1 - layout.top / layout.fig_h,
-            wspace=layout.wgap / layout.panel_w,
-            hspace=layout.hgap / layout.map_h,
+def _readable_trajectories(
+    report: ReportData, circuit: str, episodes: list[EpisodeResult]
+) -> list[tuple[EpisodeResult, dict[str, np.ndarray]]]:
+    """The episodes of ``circuit`` whose trajectory file reads with two poses or more; the others in the notes."""
+    loaded = [(r, report.trajectory(r)) for r in episodes]
+    unreadable = [r for r, t in loaded if r.trajectory and (t is None or len(t["x_m"]) < 2)]
+    unrecorded = [r for r in episodes if r.status == "done" and not r.trajectory]
+    if unreadable:
+        report.notes.append(
+            f"{circuit}: {len(unreadable)} episode(s) have no readable trajectory file (missing, "
+            f"damaged or empty), e.g. `{unreadable[0].trajectory}`"
         )
-        axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
-        for ax, key in zip(axes.flat, panels.keys):
-            if track is not None:
-                directions = sorted({r.spec.direction for r, _ in panels.groups[key]})
-                _draw_track(ax, track, layout=layout, directions=directions or ["forward"])
-            for r, _ in panels.groups[key]:
-                _draw_episode(ax, r, data[r.key], colour_by=colour_by, cmap=cmap, norm=norm)
-            condition = " · ".join(key[1:]) or "all conditions"
-            ax.set_title(f"{key[0]}\n{condition} ({panels.finished[key]}/{panels.totals[key]} finished)", fontsize=8.5)
-            _frame_map(ax, layout)
-        _label_axes(axes, panels=len(panels.keys), ncols=layout.ncols)
-        bar_left = (layout.fig_w - layout.right - layout.bar_w) / layout.fig_w
-        bar_height = min(0.8, 4.0 / layout.fig_h)
-        colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, layout.bar_w / layout.fig_w, bar_height))
-        fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
-        title = "speed" if colour_by == "speed" else "cross-track error"
-        fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / layout.fig_h, va="top")
-        path = self._save(fig, f"trajectories_{colour_by}_{_slug(circuit)}.png")
-        return Plot(path, f"{circuit}, coloured by {title}.")
+    if unrecorded:
+        report.notes.append(f"{circuit}: {len(unrecorded)} episode(s) ran without a trajectory file")
+    return [(r, t) for r, t in loaded if t is not None and len(t["x_m"]) >= 2]
 
-    def _box_plots(self) -> Plot | None:
-        import matplotlib.pyplot as plt
 
-        episodes, _ = self.baseline()
-        scored = _scored(episodes)
-        circuits = [c for c in self.circuits if any(r.circuit == c for r in scored)]
-        if not circuits:
-            return None
-        circuits = self._at_most(circuits, MAX_BOX_CIRCUITS, what="box plots")
-        colours = _brain_colours(self.brains)
-        fig, axes = plt.subplots(
-            2,
-            len(circuits),
-            figsize=(max(3.8, 0.75 * len(self.brains) + 1.8) * len(circuits), 7.0),
-            squeeze=False,
-            layout="constrained",
+def _trajectory_panels(
+    report: ReportData, circuit: str, episodes: list[EpisodeResult], loaded: list[tuple[EpisodeResult, dict]]
+) -> _Panels:
+    """The episodes grouped into panels, at most ``MAX_SUBPLOTS`` (what had to be merged or left out: notes)."""
+    # One panel per brain and condition; when that makes too many panels, coarser groups (conditions overlaid).
+    for fields in (("brain", "variation", "perturbation"), ("brain", "variation"), ("brain",)):
+
+        def group_of(r: EpisodeResult, fields=fields) -> tuple[str, ...]:
+            return tuple(getattr(r, name) for name in fields)
+
+        if len({group_of(r) for r, _ in loaded}) <= MAX_SUBPLOTS:
+            break
+    totals = Counter(group_of(r) for r in episodes)
+    finished = Counter(group_of(r) for r in episodes if reached_target(r))
+    groups: dict[tuple[str, ...], list[tuple[EpisodeResult, dict]]] = {}
+    for r, t in loaded:
+        groups.setdefault(group_of(r), []).append((r, t))
+    keys = list(groups)
+    if len(fields) < 3:
+        report.notes.append(
+            f"{circuit}: trajectories drawn per {', '.join(fields)} (every other condition "
+            f"overlaid), to keep to {MAX_SUBPLOTS} panels"
         )
-        rng = np.random.default_rng(0)
-        for column, circuit in enumerate(circuits):
-            for row, (metric, label) in enumerate(
-                (
-                    (lap_seconds, "BM lap seconds (s)"),
-                    (lambda r: r.score.metrics.position_deviation_mae, "position deviation (BM, mean 1000^d)"),
+    if len(keys) > MAX_SUBPLOTS:
+        report.notes.append(
+            f"{circuit}: trajectories of {len(keys) - MAX_SUBPLOTS} of {len(keys)} brains not "
+            f"drawn (at most {MAX_SUBPLOTS} panels per figure)"
+        )
+        keys = keys[:MAX_SUBPLOTS]
+    return _Panels(keys=keys, groups=groups, totals=totals, finished=finished)
+
+
+def _trajectory_figure(
+    report: ReportData, circuit: str, colour_by: str, *, panels: _Panels, data: dict, track, layout: _MapLayout
+) -> Plot:
+    """One figure of ``circuit``'s panels, coloured by speed or by |cross-track error| ("xte")."""
+    import matplotlib.pyplot as plt
+
+    norm, cmap, label = _colour_scale(colour_by, data=data)
+    fig = plt.figure(figsize=(layout.fig_w, layout.fig_h))
+    grid = fig.add_gridspec(
+        layout.nrows,
+        layout.ncols,
+        left=layout.left / layout.fig_w,
+        right=(layout.left + layout.ncols * layout.panel_w + (layout.ncols - 1) * layout.wgap) / layout.fig_w,
+        bottom=layout.bottom / layout.fig_h,
+        top=1 - layout.top / layout.fig_h,
+        wspace=layout.wgap / layout.panel_w,
+        hspace=layout.hgap / layout.map_h,
+    )
+    axes = grid.subplots(sharex=True, sharey=True, squeeze=False)
+    for ax, key in zip(axes.flat, panels.keys):
+        if track is not None:
+            directions = sorted({r.spec.direction for r, _ in panels.groups[key]})
+            _draw_track(ax, track, layout=layout, directions=directions or ["forward"])
+        for r, _ in panels.groups[key]:
+            _draw_episode(ax, r, data[r.key], colour_by=colour_by, cmap=cmap, norm=norm)
+        condition = " · ".join(key[1:]) or "all conditions"
+        ax.set_title(f"{key[0]}\n{condition} ({panels.finished[key]}/{panels.totals[key]} finished)", fontsize=8.5)
+        _frame_map(ax, layout)
+    _label_axes(axes, panels=len(panels.keys), ncols=layout.ncols)
+    bar_left = (layout.fig_w - layout.right - layout.bar_w) / layout.fig_w
+    bar_height = min(0.8, 4.0 / layout.fig_h)
+    colour_axis = fig.add_axes((bar_left, 0.5 - bar_height / 2, layout.bar_w / layout.fig_w, bar_height))
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=colour_axis, label=label)
+    title = "speed" if colour_by == "speed" else "cross-track error"
+    fig.suptitle(f"{circuit}: trajectories coloured by {title}", fontsize=11, y=1 - 0.12 / layout.fig_h, va="top")
+    path = _save(report, fig, f"trajectories_{colour_by}_{slug(circuit)}.png")
+    return Plot(path, f"{circuit}, coloured by {title}.")
+
+
+def _box_plots(report: ReportData) -> Plot | None:
+    import matplotlib.pyplot as plt
+
+    episodes, _ = report.baseline()
+    scored = scored_only(episodes)
+    circuits = [c for c in report.circuits if any(r.circuit == c for r in scored)]
+    if not circuits:
+        return None
+    circuits = _at_most(report, circuits, MAX_BOX_CIRCUITS, what="box plots")
+    colours = _brain_colours(report.brains)
+    fig, axes = plt.subplots(
+        2,
+        len(circuits),
+        figsize=(max(3.8, 0.75 * len(report.brains) + 1.8) * len(circuits), 7.0),
+        squeeze=False,
+        layout="constrained",
+    )
+    rng = np.random.default_rng(0)
+    for column, circuit in enumerate(circuits):
+        for row, (metric, label) in enumerate(
+            (
+                (lap_seconds, "BM lap seconds (s)"),
+                (lambda r: r.score.metrics.position_deviation_mae, "position deviation (BM, mean 1000^d)"),
+            )
+        ):
+            ax = axes[row][column]
+            series = [
+                [v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit) if v is not None]
+                for b in report.brains
+            ]
+            _draw_boxes(ax, series, brains=report.brains, colours=colours, rng=rng, log_scale=row == 1)
+            _label_boxes(ax, series, brains=report.brains, empty="no lap" if row == 0 else "–")
+            ax.set_ylabel(label, fontsize=8.5)
+            if row == 0:
+                ax.set_title(circuit, fontsize=10)
+    title = "Baseline condition, per brain: BM lap seconds (episodes that completed the lap) and BM position deviation"
+    # Wrapped to the figure's width (about 11 characters an inch at 10.5 pt): one circuit's figure is narrow.
+    fig.suptitle(textwrap.fill(title, width=int(fig.get_figwidth() * 11)), fontsize=10.5)
+    path = _save(report, fig, "boxplots.png")
+    return Plot(
+        path,
+        "Box plots over the repetitions of the baseline condition (dots: single episodes). "
+        "Position deviation is BM's mean of 1000^d, not metres (1 = on the reference path).",
+    )
+
+
+def _progress_plot(report: ReportData) -> Plot | None:
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    curves: dict[str, list[tuple[EpisodeResult, np.ndarray, np.ndarray]]] = {}
+    for r in report.results:
+        t = report.trajectory(r)
+        if t is None:
+            continue
+        time_s, progress = t["live_sim_time_s"], t["live_progress_laps"]
+        if len(time_s) != len(progress) or len(time_s) < 2:
+            time_s, progress = _progress_from_poses(report, r, t)
+        if len(time_s) >= 2:
+            curves.setdefault(r.circuit, []).append((r, *_to_the_finish(r, time_s, progress)))
+    circuits = [c for c in report.circuits if c in curves]
+    if not circuits:
+        return None
+    circuits = _at_most(report, circuits, MAX_PROGRESS_CIRCUITS, what="progress plot")
+    colours = _brain_colours(report.brains)
+    ncols = min(len(circuits), 3)
+    nrows = math.ceil(len(circuits) / ncols)
+    fig, axes = plt.subplots(
+        nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows + 0.6), squeeze=False, layout="constrained"
+    )
+    alpha = 0.85 if max(len(v) for v in curves.values()) <= 20 else 0.45
+    for ax, circuit in zip(axes.flat, circuits):
+        targets = set()
+        for r, time_s, progress in curves[circuit]:
+            ax.plot(time_s, progress, color=colours[r.brain], lw=1.2, alpha=alpha)
+            targets.add(r.spec.laps)
+            if not reached_target(r):
+                ax.plot(
+                    [time_s[-1]],
+                    [progress[-1]],
+                    marker="X",
+                    ms=7,
+                    color=colours[r.brain],
+                    mec="black",
+                    mew=0.6,
+                    zorder=4,
                 )
-            ):
-                ax = axes[row][column]
-                series = [
-                    [v for v in (metric(r) for r in scored if r.brain == b and r.circuit == circuit) if v is not None]
-                    for b in self.brains
-                ]
-                _draw_boxes(ax, series, brains=self.brains, colours=colours, rng=rng, log_scale=row == 1)
-                _label_boxes(ax, series, brains=self.brains, empty="no lap" if row == 0 else "–")
-                ax.set_ylabel(label, fontsize=8.5)
-                if row == 0:
-                    ax.set_title(circuit, fontsize=10)
-        title = (
-            "Baseline condition, per brain: BM lap seconds (episodes that completed the lap) and BM position deviation"
-        )
-        # Wrapped to the figure's width (about 11 characters an inch at 10.5 pt): one circuit's figure is narrow.
-        fig.suptitle(textwrap.fill(title, width=int(fig.get_figwidth() * 11)), fontsize=10.5)
-        path = self._save(fig, "boxplots.png")
-        return Plot(
-            path,
-            "Box plots over the repetitions of the baseline condition (dots: single episodes). "
-            "Position deviation is BM's mean of 1000^d, not metres (1 = on the reference path).",
-        )
+        for target in targets:
+            ax.axhline(target, color="0.6", lw=0.8, ls="--")
+        ax.set_title(circuit, fontsize=10)
+        ax.set_xlabel("simulated time (s)", fontsize=8.5)
+        ax.set_ylabel("progress (laps)", fontsize=8.5)
+        ax.set_xlim(left=0)
+        ax.grid(True, color="0.92")
+        ax.tick_params(labelsize=8)
+    for ax in list(axes.flat)[len(circuits) :]:
+        ax.set_visible(False)
+    handles = [Line2D([], [], color=colours[b], lw=2, label=b) for b in report.brains]
+    handles.append(Line2D([], [], color="0.4", marker="X", ls="", label="ended short of its target"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6), fontsize=8.5, frameon=False)
+    fig.suptitle("Lap progress over simulated time, one line per episode", fontsize=10.5)
+    path = _save(report, fig, "progress.png")
+    return Plot(
+        path,
+        "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
+        "target; ✕: an episode that ended before it.",
+    )
 
-    def _progress_plot(self) -> Plot | None:
-        import matplotlib.pyplot as plt
-        from matplotlib.lines import Line2D
 
-        curves: dict[str, list[tuple[EpisodeResult, np.ndarray, np.ndarray]]] = {}
-        for r in self.results:
-            t = self.trajectory(r)
-            if t is None:
-                continue
-            time_s, progress = t["live_sim_time_s"], t["live_progress_laps"]
-            if len(time_s) != len(progress) or len(time_s) < 2:
-                time_s, progress = self._progress_from_poses(r, t)
-            if len(time_s) >= 2:
-                curves.setdefault(r.circuit, []).append((r, *_to_the_finish(r, time_s, progress)))
-        circuits = [c for c in self.circuits if c in curves]
-        if not circuits:
-            return None
-        circuits = self._at_most(circuits, MAX_PROGRESS_CIRCUITS, what="progress plot")
-        colours = _brain_colours(self.brains)
-        ncols = min(len(circuits), 3)
-        nrows = math.ceil(len(circuits) / ncols)
-        fig, axes = plt.subplots(
-            nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows + 0.6), squeeze=False, layout="constrained"
-        )
-        alpha = 0.85 if max(len(v) for v in curves.values()) <= 20 else 0.45
-        for ax, circuit in zip(axes.flat, circuits):
-            targets = set()
-            for r, time_s, progress in curves[circuit]:
-                ax.plot(time_s, progress, color=colours[r.brain], lw=1.2, alpha=alpha)
-                targets.add(r.spec.laps)
-                if not reached_target(r):
-                    ax.plot(
-                        [time_s[-1]],
-                        [progress[-1]],
-                        marker="X",
-                        ms=7,
-                        color=colours[r.brain],
-                        mec="black",
-                        mew=0.6,
-                        zorder=4,
-                    )
-            for target in targets:
-                ax.axhline(target, color="0.6", lw=0.8, ls="--")
-            ax.set_title(circuit, fontsize=10)
-            ax.set_xlabel("simulated time (s)", fontsize=8.5)
-            ax.set_ylabel("progress (laps)", fontsize=8.5)
-            ax.set_xlim(left=0)
-            ax.grid(True, color="0.92")
-            ax.tick_params(labelsize=8)
-        for ax in list(axes.flat)[len(circuits) :]:
-            ax.set_visible(False)
-        handles = [Line2D([], [], color=colours[b], lw=2, label=b) for b in self.brains]
-        handles.append(Line2D([], [], color="0.4", marker="X", ls="", label="ended short of its target"))
-        fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6), fontsize=8.5, frameon=False)
-        fig.suptitle("Lap progress over simulated time, one line per episode", fontsize=10.5)
-        path = self._save(fig, "progress.png")
-        return Plot(
-            path,
-            "Arc-length progress in laps (live scorer samples) against simulated time; dashed: the lap "
-            "target; ✕: an episode that ended before it.",
-        )
+def _at_most(report: ReportData, circuits: list[str], limit: int, *, what: str) -> list[str]:
+    """The first ``limit`` circuits; a note in the report says how many a figure left out."""
+    if len(circuits) > limit:
+        report.notes.append(f"{what}: {len(circuits) - limit} circuit(s) left out")
+    return circuits[:limit]
 
-    def _at_most(self, circuits: list[str], limit: int, *, what: str) -> list[str]:
-        """The first ``limit`` circuits; a note in the report says how many a figure left out."""
-        if len(circuits) > limit:
-            self.notes.append(f"{what}: {len(circuits) - limit} circuit(s) left out")
-        return circuits[:limit]
 
-    def _progress_from_poses(self, r: EpisodeResult, t: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Progress from the poses when the live samples are missing: unwrapped centreline arc length."""
-        track = self.track(r.circuit)
-        stamps = t["stamp_s"]
-        if track is None or len(stamps) != len(t["x_m"]) or len(stamps) < 2:
-            return np.zeros(0), np.zeros(0)
-        centreline = track.circuit.centreline
-        s, _ = centreline.project_many(t["x_m"], t["y_m"])
-        ds = centreline.wrap_ds(np.diff(s))
-        progress = np.concatenate([[0.0], np.cumsum(ds)]) / centreline.length_m
-        return stamps - stamps[0], progress
+def _progress_from_poses(
+    report: ReportData, r: EpisodeResult, t: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Progress from the poses when the live samples are missing: unwrapped centreline arc length."""
+    track = report.track(r.circuit)
+    stamps = t["stamp_s"]
+    if track is None or len(stamps) != len(t["x_m"]) or len(stamps) < 2:
+        return np.zeros(0), np.zeros(0)
+    centreline = track.circuit.centreline
+    s, _ = centreline.project_many(t["x_m"], t["y_m"])
+    ds = centreline.wrap_ds(np.diff(s))
+    progress = np.concatenate([[0.0], np.cumsum(ds)]) / centreline.length_m
+    return stamps - stamps[0], progress
 
 
 def _to_the_finish(r: EpisodeResult, time_s: np.ndarray, progress: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -380,7 +378,7 @@ def _colour_data(panels: _Panels, track) -> dict:
         for r, t in panels.groups[key]:
             step = max(1, math.ceil(len(t["x_m"]) / MAX_PLOT_POINTS))
             x, y = t["x_m"][::step], t["y_m"][::step]
-            speed = _speeds(t)[::step]
+            speed = speeds_mps(t)[::step]
             xte = np.abs(track.lateral_m(x, y)) if track is not None else None
             data[r.key] = (x, y, speed, xte)
     return data

@@ -1,8 +1,8 @@
 """Episode trajectories and circuit drawings for the report: :func:`load_trajectory` reads an episode's ``.npz``
-file, :class:`_Track` holds a circuit's road edges and extent, :func:`_speeds` the speed at each pose.
+file, :class:`Track` holds a circuit's road edges and extent, :func:`speeds_mps` the speed at each pose.
 
 Separate from the plots (:mod:`orchestrator.report.plots`) so that loading and geometry are not tied to matplotlib:
-the report's data access (:class:`orchestrator.report.matrix._Report`) reads and caches them, the plots only draw.
+the report's data access (:class:`orchestrator.report.data.ReportData`) reads and caches them, the plots only draw.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def load_trajectory(folder: Path, relative: str | None) -> dict[str, np.ndarray]
     return arrays
 
 
-class _Track:
+class Track:
     """A circuit's drawing: its points, road edges and extent (cross-track colours come from its centreline)."""
 
     def __init__(self, circuit):
@@ -71,7 +71,7 @@ class _Track:
         return self.circuit.centreline.project_many(x_m, y_m)[1]
 
 
-def _speeds(trajectory: dict[str, np.ndarray]) -> np.ndarray:
+def speeds_mps(trajectory: dict[str, np.ndarray]) -> np.ndarray:
     """Speed at each pose: the recorded one, else from successive positions and stamps."""
     x, y = trajectory["x_m"], trajectory["y_m"]
     speed = trajectory["speed_mps"]

@@ -20,6 +20,7 @@ bytes (``codec.encode``); JPEG frames are the one lossy case. ``publish_time`` i
 from __future__ import annotations
 
 import functools
+import typing
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +33,12 @@ from google.protobuf.message import DecodeError as ProtobufDecodeError
 from protocol import keys
 from protocol.images import frame_image
 from protocol.mapping.topics import RUN_ID_METADATA, topic_of_key
-from protocol.messages import BUS_MESSAGES, CameraFrame, Command, EpisodeEvent, EpisodeScore, Header, LiveMetrics, Pose
+from protocol.messages import (
+    BUS_MESSAGES,
+    CameraFrame,
+    Header,
+    RunMessage,
+)
 
 FORMAT_VERSION = "2"  # 2: stable topics (protocol.mapping.topics); 1: topics were the bus keys
 KEY_METADATA = "drivebench.key"
@@ -40,14 +46,7 @@ TYPE_METADATA = "drivebench.type"
 IMAGE_FORMATS = ("raw", "jpeg")
 
 # Messages that travel on run keys and are recorded (the control query/reply pair is not published).
-RECORDED_MESSAGES: tuple[type[msgspec.Struct], ...] = (
-    CameraFrame,
-    Pose,
-    Command,
-    EpisodeEvent,
-    LiveMetrics,
-    EpisodeScore,
-)
+RECORDED_MESSAGES: tuple[type[msgspec.Struct], ...] = typing.get_args(RunMessage)
 
 
 class RecordFormatError(ValueError):

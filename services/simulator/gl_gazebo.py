@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from protocol.messages import CameraSpec
-from services.simulator.gl_scene import chunk_runs
 from services.simulator.looks import (
     ASPHALT_TILE_M,
     CLOUD_RGB,
@@ -41,7 +40,7 @@ from services.simulator.looks import (
     cloud_texture,
     grass_texture,
 )
-from services.simulator.world import SceneDescription
+from services.simulator.world import SceneDescription, chunk_runs
 
 SHADOW_MAP_PX = 1024
 SHADOW_BOX_HALF_M = 17.0  # the view frustum to 15 m (90 deg wide) fits in a sphere of 16.8 m around its middle

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 from services.simulator.world import (
     SceneDescription,
     camera_eye_and_axes,
+    chunk_runs,
     describe_world,
     projection_matrix,
     view_matrix,
@@ -243,19 +244,6 @@ class GLScene:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
-
-
-def chunk_runs(draw: np.ndarray, *, first: np.ndarray, count: np.ndarray) -> list[tuple[int, int]]:
-    """(first vertex, vertex count) of each run of consecutive chunks where ``draw`` is set: one draw call each.
-
-    first, count: each chunk's first vertex and vertex count in the vertex buffer (chunks stored consecutively)."""
-    if not draw.any():
-        return []
-    edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    firsts = first[starts]
-    lasts = first[ends - 1] + count[ends - 1]
-    return list(zip(firsts.tolist(), (lasts - firsts).tolist()))
 
 
 def _tinyrenderer_sampling(camera: CameraSpec) -> np.ndarray:

@@ -358,3 +358,16 @@ def projection_matrix(camera: CameraSpec) -> np.ndarray:
     projection[2, 3] = 2.0 * far * near / (near - far)
     projection[3, 2] = -1.0
     return projection
+
+
+def chunk_runs(draw: np.ndarray, *, first: np.ndarray, count: np.ndarray) -> list[tuple[int, int]]:
+    """(first vertex, vertex count) of each run of consecutive chunks where ``draw`` is set: one draw call each.
+
+    first, count: each chunk's first vertex and vertex count in the vertex buffer (chunks stored consecutively)."""
+    if not draw.any():
+        return []
+    edges = np.diff(np.concatenate([[False], draw, [False]]).astype(np.int8))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    firsts = first[starts]
+    lasts = first[ends - 1] + count[ends - 1]
+    return list(zip(firsts.tolist(), (lasts - firsts).tolist()))

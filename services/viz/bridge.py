@@ -41,7 +41,7 @@ from protocol import keys
 from protocol.mapping.recording import EpisodeClock, Schema, channel_layout, to_record
 from protocol.mapping.topics import RUN_ID_METADATA, VIEW_METADATA, VIEW_TOPICS
 from protocol.mapping.views import ViewMaker, ViewMessage, protobuf_schema
-from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose, RunMessage
 from services.viz.gate import ViewerGate
 
 log = logging.getLogger("drivebench.viz")
@@ -268,7 +268,7 @@ class LiveBridge:
             with self._channels_lock:
                 topic = self._ids.pop(channel_id, None)
                 old = self._channels.pop(topic, None) if topic is not None else None
-                if old is None:
+                if topic is None or old is None:
                     continue  # not ours, or already replaced
                 schema, encoding, metadata = old.schema(), old.message_encoding, old.metadata()
                 # Closed first: the SDK hands back the open channel of the same topic and schema, same id and all.
@@ -313,7 +313,7 @@ class LiveBridge:
 
     # -- messages --
 
-    def log_time_ns(self, message: msgspec.Struct) -> int:
+    def log_time_ns(self, message: RunMessage) -> int:
         header = message.header
         with self._clock_lock:
             return self._clock.log_time_ns(header.run_id, header.episode, header.stamp_ns)
@@ -337,7 +337,7 @@ class LiveBridge:
         self.sent[key] += 1
         return True
 
-    def publish(self, key: str, message: msgspec.Struct) -> None:
+    def publish(self, key: str, message: RunMessage) -> None:
         """Send one small bus message (command, metrics, event, score, pose) and the views it implies."""
         log_time = self.log_time_ns(message)
         self._last_log_time_ns = max(self._last_log_time_ns, log_time)
@@ -376,8 +376,9 @@ class LiveBridge:
 
     def close(self) -> None:
         _SDK_LOG.removeHandler(self._lost)
-        if getattr(self, "gate", None) is not None:
-            self.gate.close()
+        gate = getattr(self, "gate", None)  # None too when __init__ failed before setting it
+        if gate is not None:
+            gate.close()
         self._server.stop()
         with self._channels_lock:
             for channel in self._channels.values():

@@ -74,7 +74,9 @@ class ViewerGate:
     # -- one viewer --
 
     async def _on_viewer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._connections.add(asyncio.current_task())
+        task = asyncio.current_task()
+        assert task is not None  # a connection callback runs as a task of its own
+        self._connections.add(task)
         try:
             try:
                 request = await asyncio.wait_for(_read_head(reader), HANDSHAKE_TIMEOUT_S)

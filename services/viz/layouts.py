@@ -59,7 +59,7 @@ class _Builder:
         return panel_id
 
     def three_d(self, name: str, *, namespaces: tuple[str, ...] | None, follow: str) -> str:
-        shown = {}
+        shown: dict[str, dict[str, Any]] = {}
         for ns in namespaces or (None,):
 
             def topic(t: str, ns=ns) -> str:

@@ -26,10 +26,10 @@ import time
 import msgspec
 
 from protocol import keys
-from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
+from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Subscription
 from protocol.deploy.runtime import UserError, stop_requested
 from protocol.episodes import running_spec, start_event
-from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, EventKind, LiveMetrics, Pose
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, EventKind, LiveMetrics, Pose, RunMessage
 from services.viz.bridge import BridgeError, LiveBridge
 
 log = logging.getLogger("drivebench.viz")
@@ -135,7 +135,7 @@ class VizService:
         self._bus = bus
         self._stop = threading.Event()
         self._inbox = Inbox(keep_last=PENDING_LIMIT)
-        self._subscriptions = [
+        self._subscriptions: list[Subscription] = [
             bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._inbox),
             bus.subscribe(keys.pose(run), Pose, inbox=self._inbox),
             bus.subscribe(keys.commands_all(run), Command, inbox=self._inbox),
@@ -207,17 +207,18 @@ class VizService:
             received = self._inbox.try_recv()
         self.bridge.maintain()
 
-    def _handle(self, key: str, message: msgspec.Struct) -> None:
+    def _handle(self, key: str, message: RunMessage) -> None:
         episode = message.header.episode
-        is_start = isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None
+        start = message.spec if isinstance(message, EpisodeEvent) and message.kind == EventKind.START else None
+        is_start = start is not None
         if is_start and episode in self._started:
             return  # recovered from the simulator before it arrived
         if not is_start and episode not in self._started | self._asked:
             self._recover_start(episode)
         self.bridge.publish(key, message)
-        if is_start:
+        if start is not None:
             self._started.add(episode)
-            log.info("episode %d started on %s", episode, message.spec.circuit)
+            log.info("episode %d started on %s", episode, start.circuit)
         if isinstance(message, EpisodeEvent) and message.kind == EventKind.END:
             self._log_episode_end(episode)
 

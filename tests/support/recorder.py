@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
 
-from protocol import keys
 from protocol.bus import Bus
+from recorder import standalone
 from support.processes import ROOT
 
 
@@ -24,26 +23,8 @@ def run_cli(*argv: str, env: dict | None = None, timeout: float = 120) -> subpro
 
 
 def start_recorder(endpoint: str, bus: Bus, run_id: str, output: Path, *extra: str) -> subprocess.Popen:
-    watch = bus.watch_alive(keys.alive(run_id, "recorder", "recorder"))
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "recorder",
-            "--router",
-            endpoint,
-            "--run-id",
-            run_id,
-            "--set",
-            f"output={json.dumps(str(output))}",
-            *extra,
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
+    """A recorder process on the router at ``endpoint``, up (its liveliness token seen); ``extra``: more of its
+    command line (``"--set", "flush_interval_s=0.05"``)."""
+    return standalone.start_recorder(
+        endpoint=endpoint, bus=bus, run_id=run_id, output=output, extra_args=extra, cwd=ROOT, stdout=subprocess.PIPE
     )
-    missing = watch.wait_for({keys.alive(run_id, "recorder", "recorder")}, timeout_s=30)
-    watch.close()
-    assert not missing, f"recorder did not come up: {process.poll()}"
-    return process

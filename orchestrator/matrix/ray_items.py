@@ -1,0 +1,34 @@
+"""What a Ray episode task (or an episode slot's ``drive``) streams back to the driver, and what the driver reads when
+the task failed instead: typed items, decided on by their type (issue 41: they were dicts keyed by strings, and the
+error was raised only to be caught)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from orchestrator.matrix.results import EpisodeResult
+
+
+@dataclasses.dataclass(frozen=True)
+class LiveItem:
+    """A stream item: a running episode's live metrics, encoded (:mod:`protocol.codec`, as on the bus)."""
+
+    data: bytes
+
+
+@dataclasses.dataclass(frozen=True)
+class OutcomeItem:
+    """A stream's last item: the episode's result and its small files (path relative to its folder -> bytes)."""
+
+    result: EpisodeResult
+    files: dict[str, bytes]
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskError:
+    """What the driver reads instead of an item when the task failed (Ray raises it where the item would be)."""
+
+    error: BaseException
+
+
+StreamItem = LiveItem | OutcomeItem
