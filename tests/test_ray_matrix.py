@@ -34,6 +34,7 @@ from mcap_validation import assert_valid_mcap  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
 from support.held_brain import MAX_HOLD_S, TARGET, Hold, pythonpath_with_support  # noqa: E402
 from support.matrices import (  # noqa: E402
+    WALL_CLOCK_METRICS,
     assert_same_trajectory,
     brain_killer,
     finished_rows,
@@ -103,22 +104,11 @@ def drivebench(*args: str) -> subprocess.Popen:
 # The lock-step part of a trajectory (the simulator's poses); the live-progress samples beside them are taken at a
 # wall-clock rate by the scorer, so they differ between any two runs, local or not.
 POSE_ARRAYS = ("stamp_s", "x_m", "y_m", "yaw_rad", "speed_mps")
-# Score metrics measured in wall-clock time (how fast the machine was), not on the road.
-WALL_METRICS = {
-    "wall_time_s",
-    "real_time_factor",
-    "mean_inference_time_s",
-    "command_rate_hz",
-    "command_latency_p50_ms",
-    "command_latency_p95_ms",
-    "inference_p50_ms",
-    "inference_p95_ms",
-}
 
 
 def road_metrics(result) -> dict:
     metrics = msgspec.to_builtins(result.score.metrics)
-    return {name: value for name, value in metrics.items() if name not in WALL_METRICS}
+    return {name: value for name, value in metrics.items() if name not in WALL_CLOCK_METRICS}
 
 
 def trajectories(out: Path) -> dict[str, dict[str, bytes]]:

@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
+from support.matrices import WALL_CLOCK_METRICS
 
 from orchestrator.stack.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
@@ -71,21 +72,6 @@ def test_same_seed_gives_bitwise_identical_trajectory(make_stack):
     assert np.array_equal(a, b)  # bitwise: the brain is reset, rendering and integration are deterministic
     assert np.ptp(a[:, 1]) > 10  # and the car did move
     assert _sim_metrics(first.metrics) == _sim_metrics(second.metrics)
-
-
-WALL_CLOCK_METRICS = {
-    "wall_time_s",
-    "real_time_factor",
-    "command_latency_p50_ms",
-    "command_latency_p95_ms",
-    "inference_p50_ms",
-    "inference_p95_ms",
-    "mean_inference_time_s",
-    "mean_brain_iterations_real_time_s",
-    "brain_iterations_frequency_real_time_hz",
-    "target_brain_iterations_simulated_time_hz",  # BM's: divided by the real-time factor
-    "bm_mean_inference_time_s",
-}
 
 
 def _sim_metrics(metrics) -> dict:

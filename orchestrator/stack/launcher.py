@@ -26,7 +26,7 @@ from brains.registry import bus_name
 from orchestrator.stack import processes
 from orchestrator.stack.failures import Failure, FailureKind
 from protocol import codec, environment, keys
-from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, probe_router
+from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, LivelinessWatch, Subscription, probe_router
 from protocol.deploy import graph
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics, ReplyCode
 
@@ -190,7 +190,7 @@ class LocalStack:
     def _init_state(self, *, busy_wait_s: float) -> None:
         """What a stack knows about itself before it starts (shared with :class:`AttachedStack`)."""
         self.bus: Bus | None = None
-        self._watch = None
+        self._watch: LivelinessWatch | None = None
         self._driver_name = ""  # our driver liveliness token (declared at the first start)
         self.busy_wait_s = busy_wait_s  # how long a start waits for a simulator busy with another episode
         self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
@@ -341,6 +341,7 @@ class LocalStack:
         return self._failure()
 
     def _recorder_argv(self, *, attach: tuple[Path, ...] | None = None) -> list[str]:
+        assert self.record is not None, "a recorder is started for a recording"
         argv = ["--set", f"output={json.dumps(str(Path(self.record).resolve()))}"]
         config = self.run_dir / "config.yaml"
         files = attach if attach is not None else ((config,) if config.is_file() else ())
@@ -523,7 +524,7 @@ class LocalStack:
         """
         assert self.bus is not None, "start the stack first"
         inbox = Inbox()
-        subscriptions = [
+        subscriptions: list[Subscription] = [
             self.bus.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
             self.bus.subscribe(keys.live_metrics(self.run_id), LiveMetrics, inbox=inbox),
         ]
@@ -601,6 +602,7 @@ class LocalStack:
         """The name of this stack's driver liveliness token, declared on first use."""
         if not self._driver_name:
             self._driver_name = f"driver-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+            assert self.bus is not None, "start the stack first"
             self.bus.declare_alive(keys.alive(self.run_id, "driver", self._driver_name))
         return self._driver_name
 

@@ -53,6 +53,26 @@ def results_by_key(out: Path) -> dict:
         return {result.key: result for result in store.results()}
 
 
+# Score metrics measured in wall-clock time (how fast the machine was), not on the road: every comparison of two runs
+# of one episode leaves these out (one list, so a new wall-clock metric is added once).
+WALL_CLOCK_METRICS = frozenset(
+    {
+        "wall_time_s",
+        "real_time_factor",
+        "command_rate_hz",
+        "command_latency_p50_ms",
+        "command_latency_p95_ms",
+        "inference_p50_ms",
+        "inference_p95_ms",
+        "mean_inference_time_s",
+        "mean_brain_iterations_real_time_s",
+        "brain_iterations_frequency_real_time_hz",
+        "target_brain_iterations_simulated_time_hz",  # BM's: divided by the real-time factor
+        "bm_mean_inference_time_s",
+    }
+)
+
+
 # What the simulation alone decides (the rest of EpisodeMetrics measures wall time: latency, inference, rates).
 SIMULATED = (
     "sim_time_s",
