@@ -75,12 +75,14 @@ class BrainEntry:
         return entry
 
     @classmethod
-    def from_dict(cls, entry: dict[str, Any]) -> BrainEntry:
-        """The entry :meth:`to_dict` wrote (results, an episode's config.yaml) read back as the same entry."""
+    def from_dict(cls, entry: dict[str, Any], *, label: str = "") -> BrainEntry:
+        """The entry :meth:`to_dict` wrote (results, an episode's config.yaml) read back as the same entry. ``label``:
+        the episode's brain label, for an entry an older drivebench wrote without one (results files stay
+        readable)."""
         weights = entry.get("weights")
         return cls(
-            label=entry["label"],
-            brain=entry["brain"],
+            label=entry.get("label", label),
+            brain=entry.get("brain", label),
             weights=Path(weights) if weights else None,
             options=tuple((entry.get("options") or {}).items()),
             group=entry.get("group", ""),

@@ -273,7 +273,7 @@ class ResultStore:
             perturbation=perturbation,
             repetition=repetition,
             spec=spec,
-            brain_entry=BrainEntry.from_dict(json.loads(brain_json)),
+            brain_entry=BrainEntry.from_dict(json.loads(brain_json), label=brain),
             status=status,
             run_id=run_id,
             started_at=started_at,
