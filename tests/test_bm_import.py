@@ -186,26 +186,11 @@ def test_bm_perturbations_are_matrix_perturbations_with_their_names_as_labels(tm
 def test_a_bm_brain_calling_every_transform_drives_under_bm_rain_through_the_real_stack(tmp_path):
     """The brain host applies each of BM's perturbations through transform_image (the brain raises if one leaves its
     frame as it was or changes its shape), while the noise injector rains on the frames it gets."""
-    import json
 
-    run = drivebench(
-        "run",
-        "--brain",
-        str(FIXTURES / "brain_f1_every_transform.py"),
-        "--noise",
-        "rain",
-        "--max-sim-seconds",
-        "2",
-        "--camera",
-        "160x120",
-        "--json",
-        "--out",
-        str(tmp_path / "run"),
-        timeout_s=170,
+    score = two_seconds_at_160x120(
+        tmp_path, "--brain", str(FIXTURES / "brain_f1_every_transform.py"), "--noise", "rain"
     )
-    assert run.returncode == 0, run.stderr
-    score = json.loads(run.stdout)
-    assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, run.stderr  # no frame raised
+    assert score["reason"] == "time_limit" and score["metrics"]["steps"] == 40, score  # no frame raised
     assert score["spec"]["noise"] == [{"model": "rain"}]
     assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s for 2 s
 
@@ -249,26 +234,10 @@ def test_bm_s_default_brain_s_imports_load_with_albumentations_1_names_for_bm_fi
 @pytest.mark.slow
 @pytest.mark.integration
 def test_a_brain_with_bm_s_default_brain_s_imports_drives_through_the_cli(bm_checkout, tmp_path):
-    import json
 
     file = bm_checkout / "behavior_metrics/brains/gazebo/f1/brain_f1_opencv_imports.py"
-    run = drivebench(
-        "run",
-        "--brain",
-        str(file),
-        "--brain-option",
-        f"bm_root={bm_checkout}",
-        "--max-sim-seconds",
-        "2",
-        "--camera",
-        "160x120",
-        "--json",
-        "--out",
-        str(tmp_path / "run"),
-        timeout_s=170,
-    )
-    assert run.returncode == 0, run.stderr
-    assert json.loads(run.stdout)["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s, 2 s
+    score = two_seconds_at_160x120(tmp_path, "--brain", str(file), "--brain-option", f"bm_root={bm_checkout}")
+    assert score["metrics"]["completed_distance_m"] == pytest.approx(6.0, abs=0.2)  # 3 m/s, 2 s
 
 
 @pytest.mark.parametrize(("transform", "hint"), [("rainy", "; did you mean 'rain'?"), ("Rain", "'rain'"), ("xyz", "")])
@@ -378,3 +347,23 @@ def test_the_matrix_bm_import_writes_from_a_config_in_the_checkout_starts_withou
     assert run.returncode == 0, run.stderr
     with ResultStore(tmp_path / "runs", create=False) as store:
         assert {result.status for result in store.results()} == {"done"}
+
+
+def two_seconds_at_160x120(tmp_path, *args: str) -> dict:
+    """`drivebench run ARGS` for 2 s of simulated time at 160x120: its score (the run must exit 0)."""
+    import json
+
+    run = drivebench(
+        "run",
+        *args,
+        "--max-sim-seconds",
+        "2",
+        "--camera",
+        "160x120",
+        "--json",
+        "--out",
+        str(tmp_path / "run"),
+        timeout_s=170,
+    )
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout)

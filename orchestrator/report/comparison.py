@@ -255,7 +255,7 @@ def _difference_table(brains: list[BrainScores], *, seed: int) -> Table:
                 _paired_interval([x.success, y.success], difference(mean), seed=seed, conditions=True)[1],
                 _paired_interval([x.progress, y.progress], difference(mean), seed=seed)[1],
                 _paired_interval([x.progress, y.progress], difference(iqm), seed=seed)[1],
-                _difference_reading(rate[0]),
+                _reading(rate[0], no_effect=0.0),
             ]
         )
     return Table(
@@ -285,16 +285,18 @@ def _paired_interval(
     return interval, str(interval)
 
 
-def _difference_reading(interval: Interval | None) -> str:
+def _reading(interval: Interval | None, *, no_effect: float) -> str:
+    """Which brain the interval favours: X when it lies wholly above ``no_effect`` (0 for a difference, 0.5 for
+    P(X > Y)), Y when wholly below, else that the data cannot tell."""
     if interval is None:
         return "cannot tell (no interval)"
     if not interval.has_width:
         return "cannot tell (no spread between runs)"
-    if interval.low > 0.0:
+    if interval.low > no_effect:
         return "X better"
-    if interval.high < 0.0:
+    if interval.high < no_effect:
         return "Y better"
-    return "cannot tell (the interval holds 0)"
+    return "cannot tell (the interval straddles 0.5)" if no_effect == 0.5 else "cannot tell (the interval holds 0)"
 
 
 def separating(x: BrainScores, y: BrainScores) -> np.ndarray:
@@ -315,7 +317,16 @@ def _improvement_table(brains: list[BrainScores], *, seed: int) -> Table:
             )
         else:
             among = "– (no condition separates them)"
-        rows.append([x.brain, y.brain, text, f"{int(columns.sum())} of {columns.size}", among, _verdict(interval)])
+        rows.append(
+            [
+                x.brain,
+                y.brain,
+                text,
+                f"{int(columns.sum())} of {columns.size}",
+                among,
+                _reading(interval, no_effect=0.5),
+            ]
+        )
     return Table(
         [
             "X",
@@ -332,18 +343,6 @@ def _improvement_table(brains: list[BrainScores], *, seed: int) -> Table:
         "0.5. A condition separates two brains when not every run of both reached the same progress; the others "
         "pull P(X > Y) towards 0.5, so it is given over the separating conditions too",
     )
-
-
-def _verdict(interval: Interval | None) -> str:
-    if interval is None:
-        return "cannot tell (no interval)"
-    if not interval.has_width:
-        return "cannot tell (no spread between runs)"
-    if interval.low > 0.5:
-        return "X better"
-    if interval.high < 0.5:
-        return "Y better"
-    return "cannot tell (the interval straddles 0.5)"
 
 
 def _condition_table(brains: list[BrainScores]) -> Table:
