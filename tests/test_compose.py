@@ -81,7 +81,7 @@ def test_the_compose_spec_schema_accepts_the_file():
         (
             (
                 "    depends_on: *needs-router\n    healthcheck:\n      <<: *healthcheck\n"
-                '      test: ["CMD", "drivebench", "health", "scorer"]',
+                '      test: ["CMD", "python", "-m", "orchestrator.stack.health", "scorer"]',
                 "    depends_on: [referee]\n",
             ),
             "depends on undefined service",
@@ -131,7 +131,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
         assert service["environment"]["DRIVEBENCH_RUN_ID"] == "compose", name
         assert {"type": "bind", "target": "/results"}.items() <= services[name]["volumes"][0].items(), name
         if name not in ("run", "orchestrator"):  # one-shot jobs; everything long-running says when it is ready
-            assert service["healthcheck"]["test"][:3] == ["CMD", "drivebench", "health"], name
+            assert service["healthcheck"]["test"][:4] == ["CMD", "python", "-m", "orchestrator.stack.health"], name
     assert "networks" not in resolved() or not resolved()["networks"]
     assert resolved(env={"DRIVEBENCH_UID": "1234", "DRIVEBENCH_GID": "99"})["services"]["run"]["user"] == "1234:99"
     # Safe by default: the router answers on loopback only unless DRIVEBENCH_LISTEN asks for more.
@@ -468,6 +468,7 @@ def test_a_router_restart_under_an_attached_run_ends_it_typed_and_the_next_run_n
 
 def test_every_service_command_names_a_real_module_or_drivebench_command():
     from orchestrator.cli import build_parser
+    from orchestrator.stack import health
 
     for name, service in resolved()["services"].items():
         command = service["command"]
@@ -477,8 +478,8 @@ def test_every_service_command_names_a_real_module_or_drivebench_command():
             assert command[:2] == ["python", "-m"], name
             assert importlib.util.find_spec(command[2]) is not None, f"{name}: no module {command[2]}"
         if "healthcheck" in service:
-            assert service["healthcheck"]["test"][1] == "drivebench", name
-            build_parser().parse_args(service["healthcheck"]["test"][2:])
+            assert service["healthcheck"]["test"][1:4] == ["python", "-m", "orchestrator.stack.health"], name
+            health.build_parser().parse_args(service["healthcheck"]["test"][4:])
 
 
 def test_the_secure_override_validates_and_gives_each_service_its_own_certificate():

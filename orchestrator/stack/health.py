@@ -3,13 +3,20 @@
 The router is healthy when its TCP port accepts connections; any other role when its liveliness token is on the
 bus (``drivebench/alive/<run>/<role>/<name>``), which it declares only once it is ready to serve. Exit code 0 when
 healthy, 1 otherwise, with one line saying why.
+
+Compose runs it as ``python -m orchestrator.stack.health ROLE`` rather than ``drivebench health ROLE``: the full CLI
+imports every subcommand (about three times the CPU), and during start-up seven services are checked each second.
 """
 
 from __future__ import annotations
 
-from protocol import keys
-from protocol.bus import Bus, BusConfig, BusError, probe_router
+import argparse
+import sys
+
+from protocol import environment, keys
+from protocol.bus import ROUTER_ENV, Bus, BusConfig, BusError, probe_router
 from protocol.deploy import graph
+from protocol.deploy.runtime import RUN_ID_ENV
 
 ROLES = graph.health_roles()  # "driver": the orchestrator driving an episode
 CONNECT_TIMEOUT_S = 2.0
@@ -39,3 +46,37 @@ def check_health(role: str, *, endpoint: str, run_id: str, name: str | None = No
         f"no {role}{f' {name!r}' if name else ''} alive on run {run_id!r} (alive: "
         f"{', '.join(f'{r}/{n}' for _, r, n in alive) or 'nothing'})"
     )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments of ``drivebench health`` and of ``python -m orchestrator.stack.health``."""
+    parser.add_argument("role", choices=ROLES, help="which process")
+    parser.add_argument(
+        "--name",
+        help="its name on the bus, or the brain it runs (my_pkg.brain:MyBrain is MyBrain on "
+        "the bus; default: any process of that role)",
+    )
+    parser.add_argument("--run", help=f"run id (default: ${RUN_ID_ENV})")
+    parser.add_argument("--router", metavar="ENDPOINT", help=f"the router (default: ${ROUTER_ENV})")
+
+
+def check_health_args(args: argparse.Namespace) -> int:
+    """Exit code 0 when healthy; else 1, with one line on stderr."""
+    endpoint = args.router or environment.ROUTER.value() or "tcp/127.0.0.1:7447"
+    run_id = args.run or environment.RUN_ID.value() or "default"
+    problem = check_health(args.role, endpoint=endpoint, run_id=run_id, name=args.name)
+    if problem is not None:
+        print(f"drivebench health: {problem}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m orchestrator.stack.health`` (compose's healthchecks)."""
+    parser = argparse.ArgumentParser(prog="drivebench health", description="exit 0 when a process of a stack is up")
+    add_arguments(parser)
+    return parser
+
+
+if __name__ == "__main__":
+    sys.exit(check_health_args(build_parser().parse_args()))
