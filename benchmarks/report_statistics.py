@@ -27,7 +27,7 @@ from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, EpisodeSp
 
 
 def metrics_with(progress_laps: float) -> EpisodeMetrics:
-    fields = {name: 0.0 for name in EpisodeMetrics.__struct_fields__}
+    fields = {field.name: False if field.type is bool else 0.0 for field in msgspec.structs.fields(EpisodeMetrics)}
     fields.update(
         steps=100, completed_laps=int(progress_laps >= 1.0), lap_times_s=[], off_track_events=0,
         bm_lap_seconds=None, progress_laps=progress_laps,
