@@ -136,6 +136,19 @@ def test_performance_profile_and_its_band():
     assert np.all(low <= profile) and np.all(profile <= high)
 
 
+def test_the_profile_band_equals_the_profiles_of_the_resamples_themselves():
+    """profile_bands computes each resample's curve from the runs' own profiles; the same curves drawn the long way
+    (every resampled run x condition score against every tau) give the same band."""
+    scores = np.random.default_rng(5).random((5, 40))
+    taus = np.linspace(0.0, 1.0, 11)
+    rows = np.random.default_rng(9).integers(0, 5, size=(300, 5))
+    direct = performance_profile(scores[rows], taus)
+    levels = percentile_levels(0.95, runs=5)
+    _, low, high = profile_bands(scores, taus, resamples=300, seed=9)
+    assert np.allclose(low, np.percentile(direct, levels, axis=0)[0])
+    assert np.allclose(high, np.percentile(direct, levels, axis=0)[1])
+
+
 def test_aggregates_take_stacks_of_resamples():
     stack = np.random.default_rng(2).random((7, 4, 9))
     assert np.allclose(mean(stack), [mean(s) for s in stack])
