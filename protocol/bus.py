@@ -376,6 +376,13 @@ class LivelinessWatch:
         self._subscriber.undeclare()
 
 
+# How long a control or status query waits for its answer. The answer takes milliseconds; on a loaded machine the
+# answering callback may wait seconds for its process's CPU and GIL, and Zenoh turns an answer later than the
+# timeout into an error reply ("Timeout"), which no retry should follow (a late-accepted start would run twice). A
+# query to a key nobody serves returns at once whatever this is.
+ANSWER_TIMEOUT_S = 15.0
+
+
 class Bus:
     """One process's connection to the bus. Use as a context manager: ``with Bus(config, name="sim") as bus:``.
 

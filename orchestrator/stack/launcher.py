@@ -26,7 +26,17 @@ from brains.registry import bus_name
 from orchestrator.stack import processes
 from orchestrator.stack.failures import Failure, FailureKind
 from protocol import codec, environment, keys
-from protocol.bus import BUS_ENV, Bus, BusConfig, BusError, Inbox, LivelinessWatch, Subscription, probe_router
+from protocol.bus import (
+    ANSWER_TIMEOUT_S,
+    BUS_ENV,
+    Bus,
+    BusConfig,
+    BusError,
+    Inbox,
+    LivelinessWatch,
+    Subscription,
+    probe_router,
+)
 from protocol.deploy import graph
 from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics, ReplyCode
 
@@ -309,7 +319,7 @@ class LocalStack:
     def _recorder_request(self, request: ControlRequest, *, done: Callable[[ControlReply], bool]) -> None:
         assert self.bus is not None
         key = keys.recorder_control(self.run_id)
-        payload = self.bus.request(key, codec.encode(request), timeout_s=2.0)
+        payload = self.bus.request(key, codec.encode(request), timeout_s=ANSWER_TIMEOUT_S)
         reply = None if payload is None else codec.decode(payload, ControlReply)
         if reply is None or not reply.ok:
             why = "no answer" if reply is None else reply.detail
@@ -319,7 +329,7 @@ class LocalStack:
         deadline = time.monotonic() + RECORDER_STOP_GRACE_S
         status = codec.encode(ControlRequest(action="status"))
         while time.monotonic() < deadline:
-            payload = self.bus.request(key, status, timeout_s=2.0)
+            payload = self.bus.request(key, status, timeout_s=ANSWER_TIMEOUT_S)
             if payload is not None and done(codec.decode(payload, ControlReply)):
                 return
             if (dead := self._dead_child_reason()) is not None:
@@ -610,7 +620,7 @@ class LocalStack:
         """A control query to the simulator; retried while its queryable is not yet reachable."""
         assert self.bus is not None
         for _ in range(attempts):
-            payload = self.bus.request(keys.sim_control(self.run_id), codec.encode(request), timeout_s=2.0)
+            payload = self.bus.request(keys.sim_control(self.run_id), codec.encode(request), timeout_s=ANSWER_TIMEOUT_S)
             if payload is not None:
                 return codec.decode(payload, ControlReply)
             time.sleep(0.2)

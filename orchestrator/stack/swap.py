@@ -41,6 +41,7 @@ from orchestrator.stack import processes
 from orchestrator.stack.launcher import STACK_FILE
 from protocol import codec, environment, keys
 from protocol.bus import (
+    ANSWER_TIMEOUT_S,
     PASSWORD_ENV,
     TLS_CERT_ENV,
     TLS_KEY_ENV,
@@ -289,7 +290,11 @@ def _check_name(name: str, *, what: str) -> str:
         raise UsageError(str(error)) from None
 
 
-def _request(bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = 2.0) -> ControlReply | None:
+def _request(
+    bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = ANSWER_TIMEOUT_S
+) -> ControlReply | None:
+    bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = ANSWER_TIMEOUT_S
+) -> ControlReply | None:
     payload = bus.request(key, codec.encode(request), timeout_s=timeout_s)
     return codec.decode(payload, ControlReply) if payload is not None else None
 
