@@ -293,8 +293,6 @@ def _check_name(name: str, *, what: str) -> str:
 def _request(
     bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = ANSWER_TIMEOUT_S
 ) -> ControlReply | None:
-    bus: Bus, key: str, request: ControlRequest, *, timeout_s: float = ANSWER_TIMEOUT_S
-) -> ControlReply | None:
     payload = bus.request(key, codec.encode(request), timeout_s=timeout_s)
     return codec.decode(payload, ControlReply) if payload is not None else None
 
