@@ -32,6 +32,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+# tests/support holds the helpers the tests and the benchmarks share: the attached driver, the environment scrub.
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
+from support.attach import attach_driver
+from support.env import clean_env
+
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusError, Inbox, Traffic, probe_router
@@ -140,10 +145,6 @@ def kill_recorder(folder: Path) -> Row:
     )
 
 
-def clean_env(**variables: str) -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("DRIVEBENCH_")} | variables
-
-
 def drivebench(*args: str, env: dict[str, str], log: Path) -> subprocess.Popen:
     with open(log, "ab") as out:
         return subprocess.Popen(
@@ -248,30 +249,12 @@ def kill_driver(folder: Path) -> Row:
     with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()]) as stack:
         events = Inbox()
         stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=events)
-        env = clean_env()
-        driver = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "orchestrator.cli",
-                "run",
-                "--attach",
-                "--router",
-                stack.endpoint,
-                "--run-id",
-                run_id,
-                "--max-sim-seconds",
-                "600",
-                "--realtime",
-                "--camera",
-                "64x48",
-                "--out",
-                str(folder / f"{run_id}-driver"),
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            env=env,
-            start_new_session=True,
+        driver = attach_driver(
+            endpoint=stack.endpoint,
+            run_id=run_id,
+            out=folder / f"{run_id}-driver",
+            args=("--max-sim-seconds", "600", "--realtime"),
+            output=subprocess.DEVNULL,
         )
         reason, detected = "none", None
         deadline = time.monotonic() + 60

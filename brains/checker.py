@@ -157,16 +157,16 @@ def iter_checks(
         frames = render_frames()
     stage = _check_act(brain, frames, brain_timeout_s=brain_timeout_s, say=say)
     yield from stage.checks
-    if stage.actions is None:
+    if stage.answers is None:
         return
-    yield _check_units(stage.actions)
-    yield _check_answer_time(stage.seconds, brain_timeout_s=brain_timeout_s, total=len(frames))
+    yield _check_units(stage.answers.actions)
+    yield _check_answer_time(stage.answers.seconds, brain_timeout_s=brain_timeout_s, total=len(frames))
     if stage.stopped:
         skipped = f"not run: at over {brain_timeout_s:g} s a frame, the answer-time check failed (see above)"
         yield Check("determinism", "skip", skipped)
         yield Check("memory", "skip", skipped)
         return
-    yield _check_determinism(brain, lambda: make_brain(name, **options), frames, stage.actions, say=say)
+    yield _check_determinism(brain, lambda: make_brain(name, **options), frames, stage.answers.actions, say=say)
     yield _check_memory(brain, frames, steps=memory_steps, say=say)
 
 
@@ -219,11 +219,18 @@ def _check_protocol(brain: Any) -> Check:
     return Check("protocol", "pass", "reset(seed=...) and act(observation)")
 
 
+@dataclass(frozen=True)
+class _Answers:
+    """What a brain answered in order: (speed, yaw rate) per frame and the seconds each answer took."""
+
+    actions: list[tuple[float, float]]
+    seconds: list[float]
+
+
 @dataclass
 class _ActStage:
     checks: list[Check]
-    actions: list[tuple[float, float]] | None = None
-    seconds: list[float] | None = None
+    answers: _Answers | None = None  # None: act failed, so nothing further is checked
     stopped: bool = False  # cut short: the answer times already fail the answer-time check
 
 
@@ -324,9 +331,8 @@ def _check_act(brain: Any, frames: list[Frame], *, brain_timeout_s: float, say: 
             ),
             Check("read-only", "pass", "the camera image was left untouched"),
         ],
-        actions,
-        seconds,
-        stopped,
+        answers=_Answers(actions=actions, seconds=seconds),
+        stopped=stopped,
     )
 
 

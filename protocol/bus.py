@@ -25,7 +25,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import msgspec
 import zenoh
@@ -93,6 +93,9 @@ __all__ = [
 ]
 
 log = logging.getLogger("drivebench.bus")
+
+if TYPE_CHECKING:
+    from typing_extensions import TypeForm  # a struct or a union of tagged structs: see protocol.codec.decode
 
 T = TypeVar("T", bound=msgspec.Struct)
 
@@ -291,7 +294,7 @@ class Subscription(Generic[T]):
         self,
         session: zenoh.Session,
         key: str,
-        message_type: type[T],
+        message_type: TypeForm[T],
         rejects: RejectCounter,
         inbox: Inbox,
         on_message: Callable[[Received[T]], None] | None = None,
@@ -435,7 +438,7 @@ class Bus:
     def subscribe(
         self,
         key: str,
-        message_type: type[T],
+        message_type: TypeForm[T],
         *,
         keep_last: int | None = None,
         inbox: Inbox | None = None,

@@ -11,9 +11,14 @@ passes through arithmetic silently until something (a spline, ``int()``, an expo
 from __future__ import annotations
 
 import math
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
+
+if TYPE_CHECKING:
+    # PEP 747: a type expression as a value, so that a union of tagged structs (``RunMessage``) decodes typed as
+    # well as one struct. typing_extensions is only read by the type checker here (mypy ships its stub).
+    from typing_extensions import TypeForm
 
 T = TypeVar("T")
 
@@ -29,7 +34,7 @@ def encode(message: msgspec.Struct) -> bytes:
     return _encoder.encode(message)
 
 
-def decode(data: bytes | bytearray | memoryview, message_type: type[T]) -> T:
+def decode(data: bytes | bytearray | memoryview, message_type: TypeForm[T]) -> T:
     """Decode ``data`` as ``message_type``; raise :class:`DecodeError` naming the type and the bad field."""
     decoder = _decoders.get(message_type)
     if decoder is None:

@@ -31,12 +31,21 @@ from pathlib import Path
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
+from mcap.reader import SeekingReader
+from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.mapping import topics
 from protocol.mapping.views import CAR_FRAME
-from recorder.reading import MCAP_ERRORS, RecordingError, describe_error, indexed_reader, open_recording
+from recorder.reading import (
+    MCAP_ERRORS,
+    IndexedReader,
+    RecordingError,
+    describe_error,
+    indexed_reader,
+    open_recording,
+)
 from recorder.writer import CHUNK_SIZE_BYTES, LIBRARY
 
 NAMESPACE_METADATA = topics.NAMESPACE_METADATA
@@ -106,7 +115,7 @@ def merge(
     return report
 
 
-def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Path) -> MergeReport:
+def _write(readers: list[IndexedReader], sources: list[Path], namespaces: list[str], sink, output: Path) -> MergeReport:
     writer = Writer(
         sink, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True
     )
@@ -114,8 +123,8 @@ def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Pa
     schema_ids: dict[tuple[str, str, bytes], int] = {}
     channels: dict[tuple[int, int], tuple[int, _Rewrite | None]] = {}  # (source, channel id) -> (new id, rewrite)
     run_ids: dict[str, list[str]] = {}
-    for index, (reader, source, namespace) in enumerate(zip(readers, sources, namespaces, strict=True)):
-        summary = reader.get_summary()
+    for index, (indexed, source, namespace) in enumerate(zip(readers, sources, namespaces, strict=True)):
+        summary = indexed.summary
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
             schema_id = 0
@@ -140,7 +149,7 @@ def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Pa
                 else None
             )
             channels[(index, channel.id)] = (new_id, rewrite)
-        _copy_metadata(reader, source, namespace, writer)
+        _copy_metadata(indexed.reader, source, namespace, writer)
     messages = 0
     for index, channel_id, record in _in_log_time_order(readers, sources):
         new_id, rewrite = channels[(index, channel_id)]
@@ -161,8 +170,8 @@ def _write(readers, sources: list[Path], namespaces: list[str], sink, output: Pa
     merged_topics = sorted(
         {
             _namespaced_topic(c.topic, ns)
-            for reader, ns in zip(readers, namespaces, strict=True)
-            for c in reader.get_summary().channels.values()
+            for indexed, ns in zip(readers, namespaces, strict=True)
+            for c in indexed.summary.channels.values()
         }
     )
     return MergeReport(
@@ -189,7 +198,7 @@ def _channel_run_id(metadata: dict[str, str]) -> str:
         return ""
 
 
-def _copy_metadata(reader, source: Path, namespace: str, writer: Writer) -> None:
+def _copy_metadata(reader: SeekingReader, source: Path, namespace: str, writer: Writer) -> None:
     try:
         for record in reader.iter_metadata():
             writer.add_metadata(f"{namespace}/{record.name}", dict(record.metadata))
@@ -205,12 +214,12 @@ def _copy_metadata(reader, source: Path, namespace: str, writer: Writer) -> None
         raise MergeError(f"{source}: corrupted metadata ({describe_error(error)})") from None
 
 
-def _in_log_time_order(readers, sources: list[Path]) -> Iterator[tuple[int, int, object]]:
+def _in_log_time_order(readers: list[IndexedReader], sources: list[Path]) -> Iterator[tuple[int, int, McapMessage]]:
     """(source index, channel id, message record) of every source, merged by log time."""
 
-    def stream(index: int) -> Iterator[tuple[int, int, int, object]]:
+    def stream(index: int) -> Iterator[tuple[int, int, int, McapMessage]]:
         try:
-            for _, channel, record in readers[index].iter_messages(log_time_order=True):
+            for _, channel, record in readers[index].reader.iter_messages(log_time_order=True):
                 yield record.log_time, index, channel.id, record
         except MCAP_ERRORS as error:
             raise MergeError(

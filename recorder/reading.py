@@ -9,15 +9,16 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import msgspec
 import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.stream_reader import CRCValidationError
+from mcap.summary import Summary
 
 from protocol import keys
 from protocol.mapping.recording import KEY_METADATA, RecordFormatError, from_record, is_bus_channel
 from protocol.mapping.topics import NAMESPACE_METADATA, RUN_ID_METADATA, VIEW_METADATA
+from protocol.messages import RunMessage
 from recorder.writer import PART_SUFFIX
 
 # What the mcap package raises on damaged input (it has no single base class for all of them).
@@ -51,7 +52,7 @@ class Recorded:
     """
 
     key: str
-    message: msgspec.Struct
+    message: RunMessage
     log_time_ns: int
 
 
@@ -63,8 +64,8 @@ def read_messages(path: Path, *, keys_glob: str | None = None) -> Iterator[Recor
     """
     path = Path(path)
     with open_recording(path) as stream:
-        reader = indexed_reader(stream, path)
-        summary = reader.get_summary()
+        indexed = indexed_reader(stream, path)
+        reader, summary = indexed.reader, indexed.summary
         # Selected by bus key (channel metadata), not topic: topics are stable names shared by every run
         # (protocol.mapping.topics), and files recorded before them used the key as topic; both read the same way.
         selected = {
@@ -126,8 +127,8 @@ def recording_info(path: Path) -> RecordingInfo:
     """What a recording holds, from its summary (fast: no message is read)."""
     path = Path(path)
     with open_recording(path) as stream:
-        reader = indexed_reader(stream, path)
-        summary = reader.get_summary()
+        indexed = indexed_reader(stream, path)
+        reader, summary = indexed.reader, indexed.summary
         statistics = summary.statistics
         counts = statistics.channel_message_counts if statistics else {}
         channels = [
@@ -192,7 +193,15 @@ def open_recording(path: Path):
         raise RecordingError(f"{path}: cannot open ({error.strerror})") from None
 
 
-def indexed_reader(stream, path: Path) -> SeekingReader:
+@dataclass(frozen=True)
+class IndexedReader:
+    """An MCAP reader with the summary it checked (the reader's own ``get_summary()`` may say None)."""
+
+    reader: SeekingReader
+    summary: Summary
+
+
+def indexed_reader(stream, path: Path) -> IndexedReader:
     """An MCAP reader over ``stream`` that has checked the file's summary; :class:`RecordingError` when it is not
     an indexed MCAP file."""
     try:
@@ -211,7 +220,7 @@ def indexed_reader(stream, path: Path) -> SeekingReader:
         raise RecordingError(
             f"{path}: incomplete or truncated ({detail}); recover it with `drivebench recorder repair {path}`"
         )
-    return reader
+    return IndexedReader(reader=reader, summary=summary)
 
 
 def _decode(data: bytes, schema, channel, path: Path, sequence: int):

@@ -18,6 +18,7 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import Bus, Publisher, Traffic
+from protocol.messages import RunMessage
 from recorder.reading import read_messages, recording_info
 
 
@@ -32,7 +33,7 @@ class ReplayReport:
         return sum(self.counts.values())
 
 
-def rebased(message: msgspec.Struct, run_id: str) -> msgspec.Struct:
+def rebased(message: RunMessage, run_id: str) -> RunMessage:
     """The same message in another run."""
     return msgspec.structs.replace(message, header=msgspec.structs.replace(message.header, run_id=run_id))
 
@@ -66,7 +67,8 @@ def replay(
     counts: Counter[str] = Counter()
     bar = _progress_bar(sum(c.messages for c in info.channels if c.bus_key), enabled=progress)
     started = time.monotonic()
-    first_ns = last_ns = None
+    first_ns: int | None = None  # the first message's log time; None until one is read
+    last_ns = 0
     for recorded in read_messages(path, keys_glob=keys_glob):
         first_ns = recorded.log_time_ns if first_ns is None else first_ns
         last_ns = recorded.log_time_ns

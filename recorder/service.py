@@ -14,7 +14,6 @@ import queue
 import subprocess
 import time
 from pathlib import Path
-from typing import Union
 
 import msgspec
 
@@ -24,7 +23,6 @@ from protocol.deploy.runtime import UserError, stop_on_signals, stop_requested
 from protocol.episodes import running_spec, start_event
 from protocol.mapping.recording import (
     FORMAT_VERSION,
-    RECORDED_MESSAGES,
     RecordFormatError,
     check_image_format,
     check_recordable,
@@ -37,6 +35,7 @@ from protocol.messages import (
     EventKind,
     Pose,
     ReplyCode,
+    RunMessage,
     ServerState,
 )
 from recorder.repair import repair_leftovers
@@ -48,7 +47,6 @@ STARTED_AT = time.strftime("%Y%m%d-%H%M%S")  # the {time} of output file names: 
 STOP_QUIET_S = 0.2  # on a stop, record until nothing has arrived for this long ...
 STOP_DRAIN_MAX_S = 3.0  # ... but no longer than this: a publisher that never pauses must not keep it open
 STOP_COMPLETE_MAX_S = 10.0  # and, for a lock-step episode that ended, until its last frames and pose are in
-RecordedMessage = Union[RECORDED_MESSAGES]  # a runtime union of the tagged structs for msgspec
 
 
 class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -96,7 +94,7 @@ class RecorderService:
         # Control requests ("open", "close"), carried out by the writing thread: the writer is not thread-safe.
         self._requests: queue.Queue[ControlRequest] = queue.Queue()
         self._closed_through = -1  # episodes up to this one went into closed files: their stragglers are dropped
-        self._subscription = bus.subscribe(keys.run_all(config.run_id), RecordedMessage, inbox=self._inbox)
+        self._subscription = bus.subscribe(keys.run_all(config.run_id), RunMessage, inbox=self._inbox)
         bus.serve(keys.recorder_control(config.run_id), self._on_control)
         bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
 
@@ -220,7 +218,7 @@ class RecorderService:
             self.writer.flush_if_due()
         return written
 
-    def _write(self, key: str, message: msgspec.Struct) -> None:
+    def _write(self, key: str, message: RunMessage) -> None:
         try:
             check_recordable(message)
         except RecordFormatError as error:
@@ -229,20 +227,20 @@ class RecorderService:
             self._bus.rejects.reject(key, error)
             return
         assert self.writer is not None
-        is_start = isinstance(message, EpisodeEvent) and message.kind == EventKind.START and message.spec is not None
-        episode = getattr(getattr(message, "header", None), "episode", None)
-        if episode is not None and episode <= self._closed_through:
+        start_spec = message.spec if isinstance(message, EpisodeEvent) and message.kind == EventKind.START else None
+        episode = message.header.episode
+        if episode <= self._closed_through:
             return  # a straggler of an episode whose file is finished
-        if is_start and episode in self._started:
+        if start_spec is not None and episode in self._started:
             return  # recovered from the simulator before it arrived: the same message, already written
-        if not is_start and episode is not None and episode not in self._started | self._asked:
+        if start_spec is None and episode not in self._started | self._asked:
             self._recover_start(episode)
         self.writer.write(key, message)
         self._ends.note(key, message)
-        if is_start:
+        if start_spec is not None:
             self._started.add(episode)
             self.writer.add_metadata(
-                f"episode:{episode}", {"run_id": message.header.run_id, "spec": codec.to_json(message.spec)}
+                f"episode:{episode}", {"run_id": message.header.run_id, "spec": codec.to_json(start_spec)}
             )
 
     def _recover_start(self, episode: int) -> None:
@@ -276,7 +274,7 @@ class EpisodeEnds:
         self._last_pose_seq: dict[int, int] = {}  # ended episodes
         self._highest: dict[tuple[int, str], tuple[bool, int]] = {}  # (episode, key) -> (is a frame, highest seq)
 
-    def note(self, key: str, message: msgspec.Struct) -> None:
+    def note(self, key: str, message: RunMessage) -> None:
         if isinstance(message, EpisodeEvent):
             episode = message.header.episode
             if message.kind == EventKind.START and message.spec is not None and not message.spec.realtime:

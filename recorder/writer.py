@@ -22,7 +22,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import msgspec
 from mcap.writer import CompressionType, Writer
 
 from protocol.mapping.recording import (
@@ -38,6 +37,7 @@ from protocol.mapping.recording import (
 )
 from protocol.mapping.topics import RUN_ID_METADATA, VIEW_METADATA
 from protocol.mapping.views import ViewMaker, ViewMessage
+from protocol.messages import RunMessage
 
 log = logging.getLogger("drivebench.recorder")
 
@@ -115,7 +115,7 @@ class RecordingWriter:
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
 
-    def write(self, key: str, message: msgspec.Struct) -> int:
+    def write(self, key: str, message: RunMessage) -> int:
         """Write one bus message published on ``key``; returns its log time (ns). A message the file cannot hold
         raises :class:`~protocol.mapping.recording.RecordFormatError` before anything is written (the file stays
         whole)."""

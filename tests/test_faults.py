@@ -14,6 +14,7 @@ import sys
 import time
 
 import pytest
+from support.attach import attach_driver
 from support.env import clean_env
 from support.waits import wait_for
 
@@ -27,31 +28,8 @@ pytestmark = pytest.mark.integration
 
 
 def attach(stack, out, *args: str) -> subprocess.Popen:
-    env = clean_env()
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "orchestrator.cli",
-            "run",
-            "--attach",
-            "--router",
-            stack.endpoint,
-            "--run-id",
-            stack.run_id,
-            "--camera",
-            "64x48",
-            "--json",
-            "--out",
-            str(out),
-            *args,
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        start_new_session=True,
-    )
+    """A driver attached to ``stack`` that prints its score as JSON on stdout."""
+    return attach_driver(endpoint=stack.endpoint, run_id=stack.run_id, out=out, args=("--json", *args))
 
 
 def next_event(inbox: Inbox, kind: EventKind, *, timeout_s: float) -> EpisodeEvent:

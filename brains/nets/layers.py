@@ -39,32 +39,40 @@ def keras_same_pad(x: torch.Tensor, kernel: Sequence[int], stride: Sequence[int]
     return F.pad(x, pads) if any(pads) else x
 
 
-class _KerasSame:
-    """Mixin for ``nn.ConvNd``: Keras "same" padding, output size ceil(size / stride) per spatial dim."""
-
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1, bias: bool = True):
-        # Stride 1 with an odd kernel pads k // 2 on both sides: let the conv do it (no extra F.pad op).
-        symmetric = stride == 1 and kernel_size % 2 == 1
-        super().__init__(
-            in_channels,
-            out_channels,
-            kernel_size,
-            stride=stride,
-            padding=kernel_size // 2 if symmetric else 0,
-            bias=bias,
-        )
-        self._symmetric = symmetric
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return super().forward(x if self._symmetric else keras_same_pad(x, self.kernel_size, self.stride))
+def _conv_padding(kernel_size: int, stride: int) -> int | None:
+    """The padding a Keras "same" conv leaves to the conv itself, or None when ``forward`` pads first. Stride 1 with
+    an odd kernel pads k // 2 on both sides: the conv does it (no extra F.pad op)."""
+    return kernel_size // 2 if stride == 1 and kernel_size % 2 == 1 else None
 
 
-class KerasSameConv2d(_KerasSame, nn.Conv2d):
+class _KerasSameForward(nn.Module):
+    """Keras "same" padding in ``forward`` for the ``nn.ConvNd`` that comes after this class in a subclass's bases
+    (each subclass's ``__init__`` builds its conv: ``super().__init__`` in a mixin would be object's to mypy)."""
+
+    kernel_size: tuple[int, ...]
+    stride: tuple[int, ...]
+    _symmetric: bool  # the conv pads itself (see _conv_padding)
+
+    def forward(self, input: torch.Tensor) -> torch.Tensor:
+        return super().forward(input if self._symmetric else keras_same_pad(input, self.kernel_size, self.stride))
+
+
+class KerasSameConv2d(_KerasSameForward, nn.Conv2d):
     """``nn.Conv2d`` with Keras "same" padding; input (B, C, H, W) -> (B, F, ceil(H/s), ceil(W/s))."""
 
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1, bias: bool = True):
+        padding = _conv_padding(kernel_size, stride)
+        super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=padding or 0, bias=bias)
+        self._symmetric = padding is not None
 
-class KerasSameConv3d(_KerasSame, nn.Conv3d):
+
+class KerasSameConv3d(_KerasSameForward, nn.Conv3d):
     """``nn.Conv3d`` with Keras "same" padding; input (B, C, T, H, W) -> (B, F, ceil(T/s), ceil(H/s), ceil(W/s))."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1, bias: bool = True):
+        padding = _conv_padding(kernel_size, stride)
+        super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=padding or 0, bias=bias)
+        self._symmetric = padding is not None
 
 
 def keras_hard_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -98,9 +106,11 @@ class ConvLSTM2d(nn.Module):
         """Keras defaults: Glorot-uniform kernel, orthogonal recurrent kernel, zero bias with forget gate at 1."""
         nn.init.xavier_uniform_(self.input_conv.weight)
         nn.init.orthogonal_(self.recurrent_conv.weight)
+        bias = self.input_conv.bias
+        assert bias is not None  # built with bias=True
         with torch.no_grad():
-            self.input_conv.bias.zero_()
-            self.input_conv.bias[self.filters : 2 * self.filters] = 1.0  # unit_forget_bias=True
+            bias.zero_()
+            bias[self.filters : 2 * self.filters] = 1.0  # unit_forget_bias=True
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, t, c, h, w = x.shape
@@ -116,6 +126,8 @@ class ConvLSTM2d(nn.Module):
             cell = cell_in if cell is None else keras_hard_sigmoid(f) * cell + cell_in
             hidden = keras_hard_sigmoid(o) * torch.tanh(cell)
             outputs.append(hidden)
+        if hidden is None:
+            raise ValueError(f"ConvLSTM2d needs at least one time step, got input of shape {tuple(x.shape)}")
         return torch.stack(outputs, dim=1) if self.return_sequences else hidden
 
 
@@ -157,6 +169,8 @@ class KerasLSTM(nn.Module):
             cell = cell_in if cell is None else torch.sigmoid(f) * cell + cell_in
             hidden = torch.sigmoid(o) * torch.tanh(cell)
             outputs.append(hidden)
+        if hidden is None:
+            raise ValueError(f"KerasLSTM needs at least one time step, got input of shape {tuple(x.shape)}")
         return torch.stack(outputs, dim=1) if self.return_sequences else hidden
 
 
@@ -217,6 +231,7 @@ def keras_param_count(model: nn.Module) -> int:
     """
     n = sum(p.numel() for p in model.parameters())
     for m in model.modules():
-        if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.track_running_stats:
+        # Without track_running_stats the statistics are None: Keras would have none to count either.
+        if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.running_mean is not None and m.running_var is not None:
             n += m.running_mean.numel() + m.running_var.numel()
     return n

@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import tempfile
 from collections import deque
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -207,46 +206,51 @@ def _backend(ckpt: Checkpoint, *, backend: str, threads: int, onnx_path: str | N
 # -- registry factories ----------------------------------------------------------------------------------------------
 
 
-def _factory(brain: str, model: str | None):
-    def default_weights(weights: str | None) -> str:
-        if not weights and (shipped := shipped_weights(brain)) is not None:
+class _Factory:
+    """The registry's factory for brain ``brain``: ``NeuralBrain`` over any network (``model`` None) or one network
+    (``model``: its name, which a checkpoint must hold). A class rather than a function with attributes, so that
+    ``preflight`` (``brains.registry.preflight`` calls it) is part of its type."""
+
+    def __init__(self, brain: str, model: str | None):
+        self._brain = brain
+        self._model = model
+        self.__name__ = self.__qualname__ = brain
+        self.__doc__ = f"Brain {brain!r}: NeuralBrain(weights=..., ...)" + (
+            f" serving a {model} checkpoint." if model else " serving any network."
+        )
+
+    def _weights(self, weights: str | None) -> str:
+        if not weights and (shipped := shipped_weights(self._brain)) is not None:
             return str(shipped)  # the network drivebench ships weights for
         if not weights:
-            raise BrainOptionsError(f"brain {brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
+            raise BrainOptionsError(f"brain {self._brain!r} needs --weights CKPT (or --set options.weights=CKPT)")
         return weights
 
-    def make(*, weights: str | None = None, **options: Any) -> NeuralBrain:
+    def __call__(self, *, weights: str | None = None, **options: Any) -> NeuralBrain:
         if not weights:
-            weights = default_weights(weights)
+            weights = self._weights(weights)
             log.info("no weights given: serving the shipped %s", weights)
-        if model is not None:
-            options["model"] = model
+        if self._model is not None:
+            options["model"] = self._model
         return NeuralBrain(weights=weights, **options)
 
-    def preflight(*, weights: str | None = None, **options: Any) -> None:
+    def preflight(self, *, weights: str | None = None, **options: Any) -> None:
         """Check the weights before any process starts, the shipped ones too (their shards are read and verified):
         loadable, the right network (CheckpointError or BrainOptionsError, one line)."""
-        path = Path(default_weights(weights))
+        path = Path(self._weights(weights))
         if path.suffix.lower() == ".onnx":  # the same rule and checks as NeuralBrain's; one thread is enough here
-            _serve_onnx_file(path, backend=options.get("backend", "onnx"), threads=1, model=model)
+            _serve_onnx_file(path, backend=options.get("backend", "onnx"), threads=1, model=self._model)
         else:
-            _check_model(load_checkpoint(path), model)
-
-    make.preflight = preflight
-    make.__name__ = make.__qualname__ = brain
-    make.__doc__ = f"Brain {brain!r}: NeuralBrain(weights=..., ...)" + (
-        f" serving a {model} checkpoint." if model else " serving any network."
-    )
-    return make
+            _check_model(load_checkpoint(path), self._model)
 
 
-neural = _factory("neural", None)
-_NETWORK_FACTORIES: dict[str, Callable[..., NeuralBrain]] = {}
+neural = _Factory("neural", None)
+_NETWORK_FACTORIES: dict[str, _Factory] = {}
 
 
-def __getattr__(name: str) -> Callable[..., NeuralBrain]:
+def __getattr__(name: str) -> _Factory:
     """``brains.neural.brain.<network>``: the brain factory of every network in ``brains.nets.MODELS``, made on
     first use, so that a new network folder is a brain with no line here (PEP 562 module attribute)."""
     if name not in MODELS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return _NETWORK_FACTORIES.setdefault(name, _factory(name, name))
+    return _NETWORK_FACTORIES.setdefault(name, _Factory(name, name))

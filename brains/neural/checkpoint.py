@@ -278,11 +278,11 @@ def _input_spec(d: dict[str, Any]) -> InputSpec:
 
 def _normalisation(d: dict[str, Any]) -> Normalisation:
     norm = Normalisation(
-        image_mean=_floats(d["image_mean"], 3),
-        image_std=_floats(d["image_std"], 3),
+        image_mean=_rgb(d["image_mean"]),
+        image_std=_rgb(d["image_std"]),
         labels=str(d["labels"]),
-        label_mean=_floats(d["label_mean"], 2),
-        label_std=_floats(d["label_std"], 2),
+        label_mean=_pair(d["label_mean"]),
+        label_std=_pair(d["label_std"]),
     )
     if norm.labels not in LABEL_MODES:
         raise ValueError(f"labels {norm.labels!r}, expected one of {', '.join(LABEL_MODES)}")
@@ -296,6 +296,18 @@ def _floats(values: Any, n: int) -> tuple[float, ...]:
     if len(out) != n or not all(math.isfinite(v) for v in out):
         raise ValueError(f"expected {n} finite numbers, got {values!r}")
     return out
+
+
+def _rgb(values: Any) -> tuple[float, float, float]:
+    """Three finite numbers, one per RGB channel."""
+    red, green, blue = _floats(values, 3)
+    return red, green, blue
+
+
+def _pair(values: Any) -> tuple[float, float]:
+    """Two finite numbers, one per label (v, w)."""
+    speed, yaw_rate = _floats(values, 2)
+    return speed, yaw_rate
 
 
 def _first_line(error: BaseException) -> str:

@@ -108,7 +108,10 @@ def gaussian_blur(x: torch.Tensor, sigma: float, radius: int = 2) -> torch.Tenso
     height, width = x.shape[-2:]
     taps = torch.arange(-radius, radius + 1, dtype=torch.float64)
     kernel = torch.exp(-(taps**2) / (2 * sigma**2))
-    kernel = (kernel / kernel.sum()).tolist()
+    weights: list[float] = (kernel / kernel.sum()).tolist()
     padded = F.pad(x.reshape(-1, 1, height, width), (radius,) * 4, mode="replicate")
-    rows = sum(k * padded[..., i : i + width] for i, k in enumerate(kernel))
-    return sum(k * rows[..., i : i + height, :] for i, k in enumerate(kernel)).view(x.shape)
+    # A tensor zero to start from (sum's default is the int 0, which types the sum as Tensor | int); 0.0 + v is
+    # 0 + v for every float, so the result is bit for bit what it was.
+    zero = x.new_zeros(())
+    rows = sum((k * padded[..., i : i + width] for i, k in enumerate(weights)), zero)
+    return sum((k * rows[..., i : i + height, :] for i, k in enumerate(weights)), zero).view(x.shape)

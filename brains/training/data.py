@@ -41,12 +41,12 @@ class Split:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Inputs (B, 3, H, W) or (B, T, 3, H, W) float32 and normalised labels (B, 2); augmented iff generator."""
         frames, labels = self.dataset.batch(positions)
-        frames = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
+        pixels = torch.from_numpy(frames).to(self.device)  # uint8 to the device (4x smaller), convert there
         y = torch.from_numpy(labels).to(self.device)
         if generator is not None:
-            x, y = augment_batch(frames, y, generator, noise_max=self.noise_max)
+            x, y = augment_batch(pixels, y, generator, noise_max=self.noise_max)
         else:
-            x = to_unit_float(frames)
+            x = to_unit_float(pixels)
         x = (x - self._mean) / self._std
         return (x[:, -1] if self.frames == 1 else x).contiguous(), norm.normalise(y)
 
@@ -73,10 +73,10 @@ def _check_compatible(options: TrainOptions, info: ModelInfo, manifest: dict[str
     height = options.hyper.get("input_height_px", info.input_height_px)
     got = (manifest["image_width_px"], manifest["image_height_px"])
     if got != (width, height):
-        crop = f" --crop {info.crop_top_fraction:g}:1" if info.crop_top_fraction else ""
+        crop_flag = f" --crop {info.crop_top_fraction:g}:1" if info.crop_top_fraction else ""
         raise TrainError(
             f"model {info.name} takes {width}x{height} images (WxH) but dataset {options.data} holds "
-            f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop}"
+            f"{got[0]}x{got[1]}; build it with --size {width}x{height}{crop_flag}"
         )
     offsets = manifest["offsets_frames"]
     if info.frames > 1 and len(offsets) != info.frames:

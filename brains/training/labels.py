@@ -55,7 +55,8 @@ def label_norm(kind: str, train_labels: np.ndarray, *, mirrored: bool = False) -
         values = np.concatenate([values, values * np.array([1.0, -1.0])])
     std = values.std(axis=0)
     std = np.where(std > 1e-6, std, 1.0)  # a constant label (e.g. a fixed speed) would divide by zero
-    return LabelNorm("zscore", tuple(float(v) for v in values.mean(axis=0)), tuple(float(v) for v in std))
+    mean = values.mean(axis=0)
+    return LabelNorm("zscore", (float(mean[0]), float(mean[1])), (float(std[0]), float(std[1])))
 
 
 def balance_weights(

@@ -233,8 +233,9 @@ class _Trainer:
     # -- loop
 
     def run(self) -> TrainResult:
-        for note in self._metrics()["notes"] if self.log is not None else ():
-            self.log(f"note: {note}")
+        if self.log is not None:
+            for note in self._metrics()["notes"]:
+                self.log(f"note: {note}")
         with _sigint_flag() as stop:
             self.stop = stop
             for epoch in range(self.state.epoch + 1, self.options.epochs + 1):

@@ -34,7 +34,6 @@ from protocol import keys
 from protocol.images import frame_image
 from protocol.mapping.topics import RUN_ID_METADATA, topic_of_key
 from protocol.messages import (
-    BUS_MESSAGES,
     CameraFrame,
     Header,
     RunMessage,
@@ -46,7 +45,7 @@ TYPE_METADATA = "drivebench.type"
 IMAGE_FORMATS = ("raw", "jpeg")
 
 # Messages that travel on run keys and are recorded (the control query/reply pair is not published).
-RECORDED_MESSAGES: tuple[type[msgspec.Struct], ...] = typing.get_args(RunMessage)
+RECORDED_MESSAGES: tuple[type[RunMessage], ...] = typing.get_args(RunMessage)
 
 
 class RecordFormatError(ValueError):
@@ -74,7 +73,9 @@ def type_tag(message_type: type[msgspec.Struct]) -> str:
     return str(message_type.__struct_config__.tag)
 
 
-_TYPES_BY_TAG = {type_tag(t): t for t in BUS_MESSAGES}
+# What a channel's type tag may name: a recording holds only what the recorder records (the control pair has no
+# header, and no recording ever held one), so a message read back is a RunMessage, header and all.
+_TYPES_BY_TAG = {type_tag(t): t for t in RECORDED_MESSAGES}
 
 
 def channel_layout(key: str, message_type: type[msgspec.Struct], *, image_format: str = "raw") -> ChannelLayout:
@@ -132,7 +133,7 @@ def record_stamps(message: msgspec.Struct) -> tuple[int, int]:
     return header.stamp_ns, header.seq & 0xFFFFFFFF
 
 
-def from_record(data: bytes, *, schema_name: str, metadata: dict[str, str]) -> msgspec.Struct:
+def from_record(data: bytes, *, schema_name: str, metadata: dict[str, str]) -> RunMessage:
     """The bus message stored in one MCAP message of a channel with ``metadata`` (from :func:`channel_layout`)."""
     tag = metadata.get(TYPE_METADATA)
     message_type = _TYPES_BY_TAG.get(tag or "")

@@ -37,10 +37,12 @@ from recorder.dataset.format import (
     INDEX_FILES,
     LABEL_NAMES,
     MANIFEST_FILE,
+    CircuitSplit,
     DatasetError,
     DatasetManifest,
     DatasetOptions,
     EpisodeInfo,
+    EpisodeSplit,
     Histogram,
     LabelStats,
     SourceInfo,
@@ -64,20 +66,20 @@ if TYPE_CHECKING:  # only for annotations: reading.py may pull in the MCAP libra
 
 def _choose_val_episodes(options: DatasetOptions, used: list[dict[str, Any]]) -> set[int]:
     """Dataset episode indices that go to validation; DatasetError when the rule leaves a side empty."""
-    kind, value = parse_split(options.split)
+    rule = parse_split(options.split)
     indices = [info["index"] for info in used]
-    if kind == "none" or (kind == "episode" and value == 0.0):
+    if rule is None or (isinstance(rule, EpisodeSplit) and rule.fraction == 0.0):
         return set()
-    if kind == "circuit":
+    if isinstance(rule, CircuitSplit):
         circuits = {info["circuit"] for info in used}
-        if missing := [name for name in value if name not in circuits]:
+        if missing := [name for name in rule.circuits if name not in circuits]:
             raise DatasetError(
                 f"split {options.split!r}: no episode with samples on circuit(s) {', '.join(missing)} "
                 f"(circuits present: {', '.join(sorted(circuits))})"
             )
-        val = {info["index"] for info in used if info["circuit"] in value}
+        val = {info["index"] for info in used if info["circuit"] in rule.circuits}
     else:
-        n_val = max(1, round(value * len(indices)))
+        n_val = max(1, round(rule.fraction * len(indices)))
         if n_val >= len(indices):
             raise DatasetError(
                 f"split {options.split!r}: {len(indices)} episode(s) with samples cannot be split into "

@@ -35,10 +35,11 @@ class DatasetError(RuntimeError):
 
 
 class _Struct(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    pass
+    """The manifest's base. msgspec passes ``frozen`` on to subclasses, but mypy's dataclass_transform does not: each
+    subclass says ``frozen=True`` again, as ``protocol/messages.py``'s noise models do."""
 
 
-class EpisodeInfo(_Struct):
+class EpisodeInfo(_Struct, frozen=True):
     """One episode of one source. ``index`` is its dataset-wide episode index (``episode.npy``)."""
 
     index: int
@@ -62,7 +63,7 @@ class EpisodeInfo(_Struct):
     split: str  # "train", "val" or "unused" (no sample kept)
 
 
-class SourceInfo(_Struct):
+class SourceInfo(_Struct, frozen=True):
     name: str
     run_ids: list[str]
     messages: int
@@ -70,7 +71,7 @@ class SourceInfo(_Struct):
     episodes: list[EpisodeInfo]
 
 
-class LabelStats(_Struct):
+class LabelStats(_Struct, frozen=True):
     mean: float
     std: float
     min: float
@@ -82,14 +83,14 @@ class LabelStats(_Struct):
     q99: float
 
 
-class Histogram(_Struct):
+class Histogram(_Struct, frozen=True):
     """counts[i]: samples with edges[i] <= |w| < edges[i + 1]; the last bin is open-ended (>= edges[-1])."""
 
     edges_radps: list[float]
     counts: list[int]
 
 
-class TrainStats(_Struct):
+class TrainStats(_Struct, frozen=True):
     """Label statistics of the TRAIN split only (the labels at ``train_index``), raw physical units."""
 
     samples: int
@@ -98,7 +99,7 @@ class TrainStats(_Struct):
     abs_yaw_rate_histogram: Histogram
 
 
-class SplitInfo(_Struct):
+class SplitInfo(_Struct, frozen=True):
     rule: str
     seed: int
     train_episodes: list[int]
@@ -107,13 +108,13 @@ class SplitInfo(_Struct):
     val_samples: int
 
 
-class Totals(_Struct):
+class Totals(_Struct, frozen=True):
     samples: int
     episodes: int
     frames_skipped: dict[str, int]
 
 
-class DatasetManifest(_Struct):
+class DatasetManifest(_Struct, frozen=True):
     """Everything about a dataset folder, as written to ``manifest.json``.
 
     offsets_s: offsets_frames x step_s, or None when the episodes have different step_s (then only offsets (0,) are
@@ -233,8 +234,22 @@ class DatasetOptions:
         return {**dataclasses.asdict(self), "offsets_frames": list(self.offsets_frames)}
 
 
-def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
-    """("none", None), ("episode", fraction) or ("circuit", names); DatasetError for anything else."""
+@dataclass(frozen=True)
+class EpisodeSplit:
+    """``episode:FRACTION``: this fraction of the episodes with samples, drawn with the dataset's seed, validates."""
+
+    fraction: float
+
+
+@dataclass(frozen=True)
+class CircuitSplit:
+    """``circuit:NAME,NAME``: the episodes on these circuits validate."""
+
+    circuits: tuple[str, ...]
+
+
+def parse_split(split: str) -> EpisodeSplit | CircuitSplit | None:
+    """The rule ``split`` names (None for ``none``: no validation); DatasetError for anything else."""
     match = _SPLIT.match(split)
     if match is None:
         raise DatasetError(
@@ -247,7 +262,7 @@ def parse_split(split: str) -> tuple[str, float | tuple[str, ...] | None]:
             fraction = -1.0
         if not 0.0 <= fraction < 1.0:
             raise DatasetError(f"bad options: split fraction must be within 0 <= f < 1, got {split!r}")
-        return "episode", fraction
+        return EpisodeSplit(fraction=fraction)
     if match["circuits"] is not None:
-        return "circuit", tuple(match["circuits"].split(","))
-    return "none", None
+        return CircuitSplit(circuits=tuple(match["circuits"].split(",")))
+    return None

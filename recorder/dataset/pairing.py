@@ -226,10 +226,10 @@ class SourcePairer:
             if (previous := self._current.pop(run_id, None)) is not None:
                 previous.close(None)
             brain = self._options.brain or event.spec.active_brain
-            episode = _Episode(self._next_index, run_id, event.header.episode, event.spec, brain)
+            started = _Episode(self._next_index, run_id, event.header.episode, event.spec, brain)
             self._next_index += 1
-            self._current[run_id] = episode
-            self.episodes.append(episode)
+            self._current[run_id] = started
+            self.episodes.append(started)
             if run_id not in self.run_ids:
                 self.run_ids.append(run_id)
         elif (episode := self._episode_of(event.header)) is not None:
