@@ -341,9 +341,16 @@ ROLES: tuple[Role, ...] = (
         summary="ROS 2 bridge",
         module="services.ros2_bridge",
         source="`services/ros2_bridge` (`drivebench run --ros2`)",
-        consumes="camera frames, poses, commands",
+        consumes="camera frames, poses, commands, episode events, live metrics, scores",
         produces="the same as ROS 2 messages on rmw_zenoh's keys, with its node's liveliness tokens",
-        subscribes=(keys.camera_raw(RUN), keys.pose(RUN), keys.commands_all(RUN)),
+        subscribes=(
+            keys.camera_raw(RUN),
+            keys.pose(RUN),
+            keys.commands_all(RUN),
+            keys.events(RUN),
+            keys.live_metrics(RUN),
+            keys.score(RUN),
+        ),
         token="ros2_bridge",
         bus_mode="client",
         compose=(

@@ -8,7 +8,12 @@ ROS 2 topic (default)      type                            from
 ``/odom``                  ``nav_msgs/msg/Odometry``       the ground-truth pose (``world`` -> ``car``)
 ``/clock``                 ``rosgraph_msgs/msg/Clock``     the simulated time of each pose
 ``/brain/<name>/cmd_vel``  ``geometry_msgs/msg/Twist``     each brain's commands
+``/episode/events``        ``std_msgs/msg/String`` (JSON)  start, laps, brain switches, end
+``/metrics/live``          ``std_msgs/msg/String`` (JSON)  the scorer's live metrics
+``/episode/score``         ``std_msgs/msg/String`` (JSON)  the score of each episode
 =========================  ==============================  ===================================================
+
+Events, metrics and scores are the JSON drivebench records, as in the bags (``protocol.ros2.messages``).
 
 Stamps are the episode's simulated time (ns since its start, as on drivebench's bus): a ROS 2 node with
 ``use_sim_time`` follows ``/clock``, which starts again at 0 with each episode. The bridge only watches: it drives
@@ -24,7 +29,7 @@ import msgspec
 from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox
 from protocol.deploy.runtime import stop_requested
-from protocol.messages import CameraFrame, Command, Pose
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, LiveMetrics, Pose
 from protocol.ros2 import messages
 from protocol.ros2.rmw_zenoh import MAX_DOMAIN_ID, RosNode, RosPublisher
 
@@ -67,11 +72,16 @@ class Ros2Bridge:
         self._camera = self._node.publisher(config.camera_topic, messages.IMAGE)
         self._odom = self._node.publisher(config.odom_topic, messages.ODOMETRY)
         self._clock = self._node.publisher(config.clock_topic, messages.CLOCK)
-        self._commands: dict[str, RosPublisher] = {}  # by brain: its publisher and token appear with its first command
+        # By topic: a brain's command publisher (and its token) appears with its first command, the JSON topics'
+        # with their first message.
+        self._lazy: dict[str, RosPublisher] = {}
         self._inbox = Inbox()
         bus.subscribe(keys.camera_raw(run), CameraFrame, inbox=self._inbox)
         bus.subscribe(keys.pose(run), Pose, inbox=self._inbox)
         bus.subscribe(keys.commands_all(run), Command, inbox=self._inbox)
+        bus.subscribe(keys.events(run), EpisodeEvent, inbox=self._inbox)
+        bus.subscribe(keys.live_metrics(run), LiveMetrics, inbox=self._inbox)
+        bus.subscribe(keys.score(run), EpisodeScore, inbox=self._inbox)
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, ROLE, config.name))
 
@@ -92,13 +102,16 @@ class Ros2Bridge:
             self._odom.publish(messages.ODOMETRY, messages.odometry(message, stamp_ns=stamp_ns))
             self._clock.publish(messages.CLOCK, {"clock": messages.time(stamp_ns)})
         elif isinstance(message, Command):
-            self._command_publisher(message.brain).publish(messages.TWIST, messages.twist(message))
+            topic = self.config.command_topic.replace("{brain}", message.brain)
+            self._publisher(topic, messages.TWIST).publish(messages.TWIST, messages.twist(message))
+        else:  # events, live metrics, scores: JSON in std_msgs/msg/String, as the bags carry them
+            for ros in messages.ros_messages("", message, stamp_ns=stamp_ns):
+                self._publisher(ros.topic, ros.type_name).publish(ros.type_name, ros.message)
 
-    def _command_publisher(self, brain: str) -> RosPublisher:
-        if brain not in self._commands:
-            topic = self.config.command_topic.replace("{brain}", brain)
-            self._commands[brain] = self._node.publisher(topic, messages.TWIST)
-        return self._commands[brain]
+    def _publisher(self, topic: str, type_name: str) -> RosPublisher:
+        if topic not in self._lazy:
+            self._lazy[topic] = self._node.publisher(topic, type_name)
+        return self._lazy[topic]
 
 
 def main(argv: list[str] | None = None) -> int:
