@@ -121,38 +121,54 @@ def test_ros2_mistakes_are_one_line_before_anything_starts(argv, env, message, t
     assert not (tmp_path / "run" / "logs").exists()  # nothing started
 
 
-@pytest.fixture(scope="module")
-def ros2_run(tmp_path_factory) -> Ros2Run:
-    zenoh = require("zenoh")
-    typesys = require("rosbags.typesys")
-    typestore = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
-    out = tmp_path_factory.mktemp("ros2") / "run"
-    argv = [sys.executable, "-m", "orchestrator.cli", "run", "--ros2", "--ros-domain-id", str(DOMAIN)]
-    argv += ["--brain", "ros2", "--camera", f"{WIDTH_PX}x{HEIGHT_PX}", "--max-sim-seconds", str(SIM_SECONDS)]
-    argv += ["--brain-timeout", "60", "--out", str(out), "--json"]
-    env = {**os.environ, "ROS_DOMAIN_ID": "3"}  # the flag wins over the variable
-    run = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _start_run(argv: list[str], *, out: Path, env: dict[str, str]) -> subprocess.Popen:
+    command = [sys.executable, "-m", "orchestrator.cli", "run", *argv, "--out", str(out), "--json"]
+    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _join(zenoh, run: subprocess.Popen, *, out: Path):
+    """A plain Zenoh client session on the router of the run writing to ``out``, once its stack is up."""
+    stack = wait_for_file(out / "stack.json", timeout_s=120, alive=lambda: _exited(run))
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([json.loads(stack)["router"]]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+def _finish(run: subprocess.Popen) -> dict:
+    """The run's score, once it exits (killed if it does not within a minute)."""
     try:
-        stack = wait_for_file(out / "stack.json", timeout_s=120, alive=lambda: _exited(run))
-        config = zenoh.Config()
-        config.insert_json5("mode", '"client"')
-        config.insert_json5("connect/endpoints", json.dumps([json.loads(stack)["router"]]))
-        config.insert_json5("scouting/multicast/enabled", "false")
-        seen = Seen()
-        with zenoh.open(config) as session:
-            # History: the tokens declared before the test joined (the bridge's and the brain's, at start-up).
-            tokens = session.liveliness().declare_subscriber(f"@ros2_lv/{DOMAIN}/**", seen.on_token, history=True)
-            data = session.declare_subscriber(f"{DOMAIN}/**", seen.on_sample)
-            answered = _answer_images(session, seen, run, _twist_cdr(typestore))
-            tokens.undeclare()
-            data.undeclare()
         stdout, stderr = run.communicate(timeout=60)
     finally:
         if run.poll() is None:
             run.kill()
             run.wait()
     assert run.returncode == 0, stderr[-3000:]
-    return Ros2Run(seen=seen, score=json.loads(stdout), answered=answered, typestore=typestore)
+    return json.loads(stdout)
+
+
+@pytest.fixture(scope="module")
+def ros2_run(tmp_path_factory) -> Ros2Run:
+    zenoh = require("zenoh")
+    typesys = require("rosbags.typesys")
+    typestore = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    out = tmp_path_factory.mktemp("ros2") / "run"
+    argv = ["--ros2", "--ros-domain-id", str(DOMAIN), "--brain", "ros2", "--camera", f"{WIDTH_PX}x{HEIGHT_PX}"]
+    argv += ["--max-sim-seconds", str(SIM_SECONDS), "--brain-timeout", "60"]
+    run = _start_run(argv, out=out, env={**os.environ, "ROS_DOMAIN_ID": "3"})  # the flag wins over the variable
+    try:
+        seen = Seen()
+        with _join(zenoh, run, out=out) as session:
+            # History: the tokens declared before the test joined (the bridge's and the brain's, at start-up).
+            tokens = session.liveliness().declare_subscriber(f"@ros2_lv/{DOMAIN}/**", seen.on_token, history=True)
+            data = session.declare_subscriber(f"{DOMAIN}/**", seen.on_sample)
+            answered = _answer_images(session, seen, run, _twist_cdr(typestore))
+            tokens.undeclare()
+            data.undeclare()
+    finally:
+        score = _finish(run)
+    return Ros2Run(seen=seen, score=score, answered=answered, typestore=typestore)
 
 
 def _exited(run: subprocess.Popen) -> str | None:
@@ -235,3 +251,22 @@ def test_liveliness_tokens_announce_the_nodes_and_every_topic(ros2_run):
     # Beyond those, only the JSON topics whose first message may or may not come before the run stops.
     later = {("MP", "drivebench_bridge", topic, STRING_DDS) for topic in ("%metrics%live", "%episode%score")}
     assert {endpoint[:4] for endpoint in endpoints - expected} <= later
+
+
+@pytest.mark.integration
+def test_a_ros2_node_that_does_not_answer_ends_the_episode_with_the_brain_timeout(tmp_path):
+    zenoh = require("zenoh")
+    env = {key: value for key, value in os.environ.items() if key != "ROS_DOMAIN_ID"}  # ROS 2's default: domain 0
+    argv = ["--brain", "ros2", "--camera", "64x48", "--max-sim-seconds", "5", "--brain-timeout", "1"]
+    run = _start_run(argv, out=tmp_path / "run", env=env)
+    images: queue.Queue = queue.Queue()
+    try:
+        with _join(zenoh, run, out=tmp_path / "run") as session:
+            image_key = f"0/camera/brain/image_raw/{IMAGE_DDS}/{ROS2_HASHES['sensor_msgs/msg/Image']}"
+            subscriber = session.declare_subscriber(image_key, lambda sample: images.put(str(sample.key_expr)))
+            run.wait(timeout=120)  # the test never answers: the simulator's brain timeout ends the episode
+            subscriber.undeclare()
+    finally:
+        score = _finish(run)
+    assert score["reason"] == "brain_timeout" and score["metrics"]["steps"] == 0
+    assert images.qsize() == 1  # frame 0 went out, and nothing after it: lock-step waited for its answer

@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from brains.base import Action, Observation
 from protocol.bus import Bus
+from protocol.deploy.runtime import stop_requested
 from protocol.ros2 import messages
 from protocol.ros2.rmw_zenoh import Latest, RosNode, RosPublisher, check_domain_id, domain_id_from_env
 
@@ -27,6 +29,9 @@ log = logging.getLogger("drivebench.brains.ros2")
 
 DEFAULT_IMAGE_TOPIC = "/camera/brain/image_raw"  # the frames brains see, as the ROS 2 bags name them
 DEFAULT_CMD_VEL_TOPIC = "/cmd_vel"
+WAIT_SLICE_S = 0.25  # how often a wait for the ROS 2 side looks at the host's stop flag
+STOP = Action(0.0, 0.0)  # the answer when no Twist came: the simulator has ended the episode by then
+T = TypeVar("T")
 
 
 class Ros2Brain:
@@ -66,19 +71,29 @@ class Ros2Brain:
     def act(self, observation: Observation) -> Action:
         if self._image is None:
             raise RuntimeError("the ros2 brain drives through a bus: run it in a brain host (python -m brains)")
-        started = time.monotonic()
-        if not self._image.wait_for_subscribers(timeout_s=self.answer_timeout_s):
+        image = self._image
+        deadline = time.monotonic() + self.answer_timeout_s
+        if not _until(lambda: image.wait_for_subscribers(timeout_s=WAIT_SLICE_S), deadline=deadline):
             log.warning("no ROS 2 subscriber on %s for %.0f s: stopping", self.image_topic, self.answer_timeout_s)
-            return Action(0.0, 0.0)
+            return STOP
         self._twists.clear()  # a late answer to an earlier frame is not this frame's
-        self._image.publish(messages.IMAGE, _image(observation))
-        left_s = self.answer_timeout_s - (time.monotonic() - started)
-        twist = self._twists.next(timeout_s=max(0.0, left_s))
+        image.publish(messages.IMAGE, _image(observation))
+        twist = _until(lambda: self._twists.next(timeout_s=WAIT_SLICE_S), deadline=deadline)
         if twist is None:
             log.warning("no Twist on %s within %.0f s: stopping", self.cmd_vel_topic, self.answer_timeout_s)
-            return Action(0.0, 0.0)
+            return STOP
         speed_mps, yaw_rate_radps = messages.speeds_of_twist(twist)
         return Action(speed_mps, yaw_rate_radps)
+
+
+def _until(condition: Callable[[], T | None], *, deadline: float) -> T | None:
+    """The first truthy value of ``condition`` (which waits up to :data:`WAIT_SLICE_S` itself) before ``deadline``
+    (monotonic s); None at the deadline, or once the host is asked to stop: a host stopping mid-frame must not wait
+    for a ROS 2 node that may never answer (service loops check the stop flag every half second)."""
+    while not stop_requested() and time.monotonic() < deadline:
+        if value := condition():
+            return value
+    return None
 
 
 def _image(observation: Observation) -> dict[str, Any]:
