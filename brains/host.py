@@ -334,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
         except TypeError as error:
             raise UserError(f"bad options for brain {config.brain!r}: {error}") from None
         with Bus(config.bus, name=f"brain-{config.bus_name}") as bus:
+            join_bus = getattr(brain, "join_bus", None)
+            if callable(join_bus):  # a brain that talks on the bus itself (ros2: a ROS 2 node)
+                join_bus(bus)
             BrainHost(config, bus, brain).serve_forever()
         return 0
 

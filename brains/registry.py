@@ -40,6 +40,7 @@ _REGISTRY: dict[str, str] = {
     "noisy": "brains.noisy.brain:NoisyBrain",
     "expert": "brains.expert.brain:ExpertBrain",  # privileged: pure pursuit on the ground-truth pose
     "lane_policy": "brains.lane_policy.brain:LanePolicyBrain",  # an RL policy (examples/rl), from line features
+    "ros2": "brains.ros2.brain:Ros2Brain",  # a ROS 2 node drives, through rmw_zenoh's keys (needs the host's bus)
     # Every network of brains.nets is a brain of its name, served from a checkpoint (``--weights CKPT``) that must
     # hold that network (brains.neural.brain makes the factory); "neural" serves whatever the checkpoint holds.
     **{name: f"brains.neural.brain:{name}" for name in MODELS},

@@ -52,7 +52,12 @@ def frames():
     return render_frames()
 
 
-@pytest.mark.parametrize("name", brain_names())
+# Brains that drive through the bus themselves (ros2: a ROS 2 node answers each frame) have nobody to answer them
+# here; tests/test_ros2_bridge.py drives one with a real Zenoh peer publishing the Twists.
+BUS_BRAINS = {"ros2"}
+
+
+@pytest.mark.parametrize("name", [name for name in brain_names() if name not in BUS_BRAINS])
 def test_every_registered_brain_meets_the_contract(name, frames, brain_options):
     results = check_brain(name, options=brain_options(name), frames=frames, memory_steps=120)
     assert [r.name for r in results] == [

@@ -54,7 +54,17 @@ def test_every_role_has_a_runnable_module_and_every_health_role_a_token():
     for row in graph.ROLES:
         assert not row.module or importlib.util.find_spec(row.module) is not None, row.name
         assert row.bus_mode in ("peer", "client", "router"), row.name
-    assert set(graph.health_roles()) == {"router", "simulator", "noise", "brain", "scorer", "driver", "recorder", "viz"}
+    assert set(graph.health_roles()) == {
+        "router",
+        "simulator",
+        "noise",
+        "brain",
+        "scorer",
+        "driver",
+        "recorder",
+        "viz",
+        "ros2_bridge",
+    }
     with pytest.raises(KeyError, match="no process role 'referee'"):
         graph.role("referee")
 

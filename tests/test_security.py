@@ -664,7 +664,7 @@ def _matches(pattern: str, key: str) -> bool:
 
 
 def test_unknown_roles_and_unusable_settings_are_one_line(tmp_path):
-    known = "brain, noise, observer, orchestrator, recorder, replay, scorer, service, simulator, viz"
+    known = "brain, noise, observer, orchestrator, recorder, replay, ros2_bridge, scorer, service, simulator, viz"
     with pytest.raises(ConfigError, match=f"roles: unknown role\\(s\\) 'pilot' \\(roles: {known}\\)"):
         build_access_control({"pilot": ["x"]})
     with pytest.raises(ValueError, match="an identity needs a cert_common_name, a username or both"):

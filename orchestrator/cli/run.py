@@ -158,6 +158,7 @@ def add(commands: argparse._SubParsersAction) -> None:
     output = run.add_argument_group("output", "the run folder, what is printed and recorded")
     _add_run_folder_options(output)
     _add_output_options(output)
+    _add_ros2_options(run.add_argument_group("ROS 2", "the run on rmw_zenoh's keys (docs/guides/ros2.md)"))
     _add_attach_options(run.add_argument_group("attach", "drive on a stack that is already running"))
     run.set_defaults(func=command_run)
 
@@ -288,6 +289,59 @@ def _add_attach_options(run: argparse._ActionsContainer) -> None:
         metavar="SECONDS",
         help="with --attach: how long to wait for the stack's processes to be alive (default: 120)",
     )
+
+
+def _add_ros2_options(run: argparse._ActionsContainer) -> None:
+    """The ROS 2 bridge: its domain and topics."""
+    run.add_argument(
+        "--ros2",
+        action="store_true",
+        help="start a ROS 2 bridge: ROS 2 tools (RMW_IMPLEMENTATION=rmw_zenoh_cpp) on this run's router see its "
+        "camera, odometry, clock and commands; --brain ros2 lets a ROS 2 node drive",
+    )
+    run.add_argument(
+        "--ros-domain-id",
+        type=int,
+        metavar="N",
+        help="ROS 2 domain of the bridge and of the ros2 brain (default: $ROS_DOMAIN_ID, else 0)",
+    )
+    run.add_argument(
+        "--ros2-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="ROS 2 bridge option, e.g. camera_topic=/front/image_raw, odom_topic, clock_topic, "
+        "command_topic=/brain/{brain}/cmd_vel, node (repeatable)",
+    )
+
+
+def ros2_domain_id(args: argparse.Namespace) -> int:
+    """The ROS 2 domain: ``--ros-domain-id``, else ``ROS_DOMAIN_ID``, else 0 (one line naming a bad value)."""
+    from protocol.ros2.rmw_zenoh import check_domain_id, domain_id_from_env
+
+    try:
+        if args.ros_domain_id is not None:
+            return check_domain_id(args.ros_domain_id, where=f"--ros-domain-id {args.ros_domain_id}")
+        return domain_id_from_env()
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+
+
+def ros2_bridge_options(args: argparse.Namespace) -> tuple[str, ...] | None:
+    """The ROS 2 bridge's config overrides (None: no bridge); ``--ros2-option`` without ``--ros2`` is refused."""
+    if not args.ros2:
+        if args.ros2_option:
+            raise UsageError("--ros2-option needs --ros2 (it configures the ROS 2 bridge)")
+        return None
+    from protocol.deploy.config import ConfigError, load_config
+    from services.ros2_bridge.service import Ros2BridgeConfig
+
+    options = (f"domain_id={ros2_domain_id(args)}", *args.ros2_option)
+    try:  # the bridge's own config check, now: a typo'd option is one line, not a bridge dead after start-up
+        load_config(Ros2BridgeConfig, overrides=options)
+    except (ConfigError, ValueError) as error:
+        raise UsageError(f"--ros2-option: {error}") from None
+    return options
 
 
 def _add_output_options(run: argparse._ActionsContainer) -> None:
@@ -433,6 +487,7 @@ def command_run(args: argparse.Namespace) -> int:
     if args.router is not None:
         raise UsageError("--router needs --attach (without it, drivebench run starts its own router)")
     refuse_replaced_options(args)
+    ros2_options = ros2_bridge_options(args)  # a bad --ros2-option or domain: one line before anything starts
     spec, brains = run_from_config(args.config) if args.config else run_from_options(args)
     try:
         preflight_launches(brains)  # bad weights or options: one line now, not a dead brain after start-up
@@ -464,6 +519,7 @@ def command_run(args: argparse.Namespace) -> int:
             brains=brains,
             record=args.record,
             record_options=(f"image_format={args.record_images}",),
+            ros2=ros2_options,
             render_threads=render_threads_for(stacks=1),
         ) as stack:
             stack.write_stack_file()  # drivebench swap finds the running stack through it
@@ -495,6 +551,8 @@ def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainL
     if args.weights is not None:
         require_file(args.weights, option="--weights")
         options += (f"weights={json.dumps(str(args.weights.resolve()))}",)
+    if args.brain == "ros2" and not any(option.startswith("domain_id=") for option in options):
+        options += (f"domain_id={ros2_domain_id(args)}",)  # the node joins the bridge's domain
     brains = [BrainLaunch(args.brain, options=options)]
     brains += shadow_launches(args.shadow, taken={bus_name(args.brain)})
     return spec, brains
@@ -613,6 +671,7 @@ def command_run_attached(args: argparse.Namespace) -> int:
         ("--brain-option", args.brain_option),
         ("--shadow", args.shadow),
         ("--record", args.record),
+        ("--ros2", args.ros2),
     ):
         if given:
             raise UsageError(

@@ -22,6 +22,7 @@ class FailureKind(StrEnum):
     RECORDER_DIED = "recorder_died"  # the recorder exited (the episode is still scored; its recording is incomplete)
     ROUTER_DIED = "router_died"  # the router went away: every process lost its link at once
     VIZ_DIED = "viz_died"  # the live view exited
+    ROS2_BRIDGE_DIED = "ros2_bridge_died"  # the ROS 2 bridge exited (drivebench run --ros2)
     START_FAILED = "start_failed"  # the stack did not come up, or the simulator refused the episode
     WALL_TIMEOUT = "wall_timeout"  # no score within the wall-clock guard (a hung episode)
     NODE_DIED = "node_died"  # (--ray) the cluster node running it died, more often than the retries allow

@@ -182,6 +182,9 @@ class LocalStack:
     router_endpoint: str | None = None  # join this running router instead (a matrix's workers share one)
     record: Path | None = None  # an MCAP file: a recorder process records the whole run to it
     record_options: tuple[str, ...] = ()  # recorder config overrides, e.g. ("image_format=jpeg",)
+    # ROS 2 bridge config overrides, e.g. ("domain_id=3",): a bridge process publishes the run on rmw_zenoh's keys
+    # (services.ros2_bridge); None: no bridge.
+    ros2: tuple[str, ...] | None = None
     # True: every child joins one new process group (``process_group``, the first child's pid) instead of a session
     # each, so that its owner can kill the whole stack, grandchildren included, with one killpg (a Ray task does).
     one_group: bool = False
@@ -243,6 +246,8 @@ class LocalStack:
             wanted.add(self._spawn_role(graph.role("recorder"), self._recorder_argv()))
         for row in graph.local_stack_roles():
             wanted.add(self._spawn_role(row, []))
+        if self.ros2 is not None:
+            wanted.add(self._spawn_role(graph.role("ros2_bridge"), [a for o in self.ros2 for a in ("--set", o)]))
         wanted |= {self._spawn_brain(launch) for launch in self.brains}
         self._wait_alive(wanted)
         self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}

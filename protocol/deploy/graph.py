@@ -337,6 +337,42 @@ ROLES: tuple[Role, ...] = (
         ),
     ),
     Role(
+        name="ros2_bridge",
+        summary="ROS 2 bridge",
+        module="services.ros2_bridge",
+        source="`services/ros2_bridge` (`drivebench run --ros2`)",
+        consumes="camera frames, poses, commands, episode events, live metrics, scores",
+        produces="the same as ROS 2 messages on rmw_zenoh's keys, with its node's liveliness tokens",
+        subscribes=(
+            keys.camera_raw(RUN),
+            keys.pose(RUN),
+            keys.commands_all(RUN),
+            keys.events(RUN),
+            keys.live_metrics(RUN),
+            keys.score(RUN),
+        ),
+        token="ros2_bridge",
+        bus_mode="client",
+        compose=(
+            ComposeService(
+                name="ros2-bridge",
+                profiles=("ros2",),
+                comment="ROS 2 tools (RMW_IMPLEMENTATION=rmw_zenoh_cpp) on this router see the run: "
+                "docs/guides/ros2.md.\nIts keys are ROS 2's, outside drivebench's access rules: not in "
+                "compose.secure.yaml.",
+                command=(
+                    "python",
+                    "-m",
+                    "services.ros2_bridge",
+                    "--set",
+                    "domain_id=${ROS_DOMAIN_ID:-0}",
+                ),
+                healthcheck=("ros2_bridge",),
+                secure=False,
+            ),
+        ),
+    ),
+    Role(
         name="replay",
         summary="replay of a recording",
         module="",
