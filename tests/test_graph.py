@@ -17,8 +17,7 @@ from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.bus import Inbox
 from protocol.deploy import graph, security
-from protocol.messages import CameraSpec, EpisodeSpec
-from recorder.service import RecordedMessage
+from protocol.messages import CameraSpec, EpisodeSpec, RunMessage
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -93,9 +92,12 @@ def _put_allowed(role: str, key: str) -> bool:
 def test_every_key_a_stack_puts_is_published_by_one_row_that_its_access_rules_allow(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     inbox = Inbox()
-    stack.bus.subscribe(keys.run_all(stack.run_id), RecordedMessage, inbox=inbox)
+    stack.bus.subscribe(keys.run_all(stack.run_id), RunMessage, inbox=inbox)
     stack.run_episode(EpisodeSpec(max_sim_seconds=1.0, camera=CameraSpec(width_px=64, height_px=48)))
-    seen = {item.key for item in inbox.drain()}
+    # The stack returns once its own subscription has the score; this one may get it a moment later.
+    seen, score_key = set(), keys.score(stack.run_id)
+    while score_key not in seen and (item := inbox.recv(timeout_s=30.0)) is not None:
+        seen |= {item.key, *(other.key for other in inbox.drain())}
     for key in seen:
         (owner,) = graph.publishers_of(key)  # exactly one row publishes each key
         assert _put_allowed(owner.name, key), f"{owner.name} puts {key}, which its access rules do not allow"
