@@ -12,8 +12,7 @@ import sys
 
 import pytest
 
-from orchestrator.matrix.ray_options import EPISODE_SLOT
-from orchestrator.matrix.ray_runner import slots_of
+from orchestrator.matrix.ray_options import EPISODE_SLOT, slots_of
 from orchestrator.matrix.results import ResultStore
 
 
