@@ -58,7 +58,7 @@ class RunOptions:
     resume: skip episodes the results database already holds (``retry_failed``: except failed ones).
     startup_timeout_s: per stack, how long its processes may take to come up.
     fresh_stacks: a new stack for every episode (``--fresh-stacks``); default: each worker keeps a warm stack
-        across episodes (``orchestrator.matrix.warm``), meant to give the same results (docs/warm-stacks.md).
+        across episodes (``orchestrator.matrix.executor``), meant to give the same results (docs/warm-stacks.md).
     facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
     """
 
