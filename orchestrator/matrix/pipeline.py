@@ -90,6 +90,7 @@ class MatrixRun:
 
         chosen: dict[str, str] = {}
         episodes = []
+        stages = []  # every episode's noise stages, for the extras they need
         for episode in matrix.episodes:
             spec = msgspec.structs.replace(episode.spec, renderer=self._choose(episode.spec.renderer, chosen))
             try:
@@ -97,8 +98,9 @@ class MatrixRun:
             except VariationError as error:
                 raise RunRefused(f"{matrix.name}: {error}") from None
             episodes.append(dataclasses.replace(episode, spec=spec))
+            stages.extend(spec.noise)
         try:
-            require_extras([stage for episode in episodes for stage in episode.spec.noise])
+            require_extras(stages)
         except MissingExtra as error:
             raise RunRefused(f"{matrix.name}: {error}") from None
         return dataclasses.replace(matrix, episodes=tuple(episodes))
