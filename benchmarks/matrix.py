@@ -6,7 +6,7 @@ what starting and stopping a stack costs against the episode itself.
 
 Each renderer (``--renderers``) runs four cases one after another: fresh stacks (``--fresh-stacks``: every episode
 starts its own processes under its own run id) and warm stacks (each worker keeps its stack across episodes,
-``orchestrator.matrix.warm``), each with 1 and with ``--workers`` workers. "rest per episode" is an episode's wall
+``orchestrator.matrix.executor``), each with 1 and with ``--workers`` workers. "rest per episode" is an episode's wall
 time in the matrix less its simulation loop: for fresh stacks mostly starting and stopping the stack, for warm ones
 the start request, the score's trip and writing the episode's files. Lock-step episodes are CPU-bound, so more
 workers than cores buys nothing.

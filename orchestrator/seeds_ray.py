@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from orchestrator.matrix.ray_options import import_ray
+from orchestrator.matrix.ray_options import connect, import_ray, task_resources
 from orchestrator.seeds import SeedRun, done_run, finished, seed_folder, write_manifest
 
 NODE_RETRIES = 2
@@ -35,7 +35,6 @@ def train_seeds_on_ray(
     log=print,
 ) -> list[SeedRun]:
     """Train every seed of ``seeds`` not finished in ``output`` as a task on the cluster at ``address``."""
-    from orchestrator.matrix.ray_runner import connect, task_resources
 
     ray = import_ray()
     connect(address)

@@ -288,10 +288,10 @@ camera: 96x72
     assert len(lost) == 1, [(r.key, r.lost_attempts) for r in results]
     second_label = f"{LOOPBACK}/{second.node_id[:8]}"
     assert lost[0].node != second_label  # it ran again on the node that lives
-    assert lost[0].lost_attempts[0]["node"] == second_label
+    assert lost[0].lost_attempts[0].node == second_label
     # An episode slot's stream says so first (ActorUnavailableError); a task's (--fresh-stacks) names the node.
     lost_errors = ("ActorUnavailableError", "ActorDiedError", "NodeDiedError", "WorkerCrashedError")
-    assert lost[0].lost_attempts[0]["error"].startswith(lost_errors)
+    assert lost[0].lost_attempts[0].error.startswith(lost_errors)
     assert {r.node for r in results} == {lost[0].node}
     # The report's episode table says where each ran and what was lost on the way.
     from orchestrator.report.matrix import write_report
@@ -343,7 +343,7 @@ camera: 96x72
     with ResultStore(tmp_path / "out", create=False) as store:
         failed = [r for r in store.results() if r.status == "failed"]
     assert len(failed) == 1 and failed[0].failure_kind == "node_died", failed
-    assert failed[0].node == failed[0].lost_attempts[0]["node"] == f"{LOOPBACK}/{second.node_id[:8]}"
+    assert failed[0].node == failed[0].lost_attempts[0].node == f"{LOOPBACK}/{second.node_id[:8]}"
     assert failed[0].score is None  # never counted as a driven episode
     from orchestrator.report.matrix import write_report
 

@@ -12,9 +12,8 @@ import sys
 
 import pytest
 
-from orchestrator.matrix.ray_options import EPISODE_SLOT
-from orchestrator.matrix.ray_runner import slots_of
-from orchestrator.matrix.results import ResultStore
+from orchestrator.matrix.ray_options import EPISODE_SLOT, slots_of
+from orchestrator.matrix.results import LostAttempt, ResultStore
 
 
 def run_matrix(tmp_path, *args: str) -> subprocess.CompletedProcess:
@@ -77,10 +76,13 @@ def test_a_results_file_from_before_the_node_column_reads_and_takes_new_rows(tmp
     with ResultStore(tmp_path, create=False) as store:
         (old,) = store.results()
         assert (old.key, old.node, old.lost_attempts) == ("explicit/simple/default/none/r0", None, ())
-        lost = ({"node": "10.0.0.7/abcdef12", "error": "NodeDiedError: gone"},)
+        lost = (LostAttempt(node="10.0.0.7/abcdef12", error="NodeDiedError: gone"),)
         store.record(dataclasses.replace(old, key="k2", index=1, node="10.0.0.8/12345678", lost_attempts=lost))
         new = store.results()[1]
     assert (new.node, new.lost_attempts) == ("10.0.0.8/12345678", lost)
+    with sqlite3.connect(tmp_path / "results.sqlite") as db:  # the row keeps the file's format: {node, error}
+        (stored,) = db.execute("SELECT lost_attempts FROM episodes WHERE key = 'k2'").fetchone()
+    assert json.loads(stored) == [{"node": "10.0.0.7/abcdef12", "error": "NodeDiedError: gone"}]
 
 
 def test_compose_ray_file_resolves_and_its_worker_declares_episode_slots(tmp_path):

@@ -332,7 +332,7 @@ def test_stacks_side_by_side_share_the_cores_for_rendering(tmp_path):
     matrix = parse_matrix("brains: [explicit]\ncircuits: [simple]\n")
     for workers in (1, 2, 3):
         runner = MatrixRunner(matrix, tmp_path, RunOptions(workers=workers))
-        stack = runner._make_stack(run_id="threads", run_dir=tmp_path / "threads")  # not started
+        stack = runner.executor.make_stack(run_id="threads", run_dir=tmp_path / "threads")  # not started
         assert stack.render_threads == render_threads_for(stacks=workers)
 
 

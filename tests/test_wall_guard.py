@@ -50,5 +50,6 @@ def test_only_the_launcher_rule_scales_max_sim_seconds_into_a_guard():
 
 
 def test_the_matrix_runner_leaves_the_guard_to_the_launcher():
-    source = (ROOT / "orchestrator" / "matrix" / "runner.py").read_text()
-    assert "wall_timeout_s=" not in source
+    for module in ("runner.py", "executor.py"):  # the executor is where a matrix episode runs on its stack
+        source = (ROOT / "orchestrator" / "matrix" / module).read_text()
+        assert "wall_timeout_s=" not in source, module

@@ -14,9 +14,11 @@ import pytest
 from support.matrices import assert_same_trajectory, processes_with, results_by_key, simulated, trajectory
 from support.waits import wait_for
 
+from orchestrator.matrix.executor import brain_launch
 from orchestrator.matrix.load import parse_matrix
-from orchestrator.matrix.runner import MatrixRunner, RunOptions, Trace, brain_launch
+from orchestrator.matrix.runner import MatrixRunner, RunOptions
 from orchestrator.stack.launcher import LocalStack
+from orchestrator.stack.trace import Trace
 from protocol.bus import Received
 from protocol.messages import CameraFrame, EpisodeEvent, EpisodeScore, EventKind, Header, Pose
 from recorder.reading import read_messages, recording_info

@@ -77,11 +77,11 @@ class SuggestingParser(argparse.ArgumentParser):
 
     parsing: SuggestingParser | None = None  # the deepest parser of the current parse (one parse per process)
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def, override]
+    def parse_known_args(self, args=None, namespace=None):
         SuggestingParser.parsing = self
         return super().parse_known_args(args, namespace)
 
-    def error(self, message: str):  # type: ignore[no-untyped-def, override]
+    def error(self, message: str):
         super().error(message + _suggestion(message, SuggestingParser.parsing or self))
 
 

@@ -85,17 +85,17 @@ def _list(*, as_json: bool) -> int:
     sources = brain_sources()
     extras = {source.name: needs(source) for source in sources}
     if as_json:
-        rows = [
+        listed = [
             {
                 "name": source.name,
                 "origin": source.origin,
                 "target": source.target,
-                "needs": None if extras[source.name] is None else extras[source.name][1],
-                "extra": None if extras[source.name] is None else extras[source.name][0],
+                "needs": None if (pair := extras[source.name]) is None else pair[1],
+                "extra": None if pair is None else pair[0],
             }
             for source in sources
         ]
-        print(json.dumps(rows, indent=2))
+        print(json.dumps(listed, indent=2))
         return 0
     rows = [("name", "from", "needs", "made by")]
     rows += [(s.name, s.origin, _needs_words(extras[s.name]), s.target) for s in sources]

@@ -14,10 +14,17 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, UsageError
 from orchestrator.cli.ray import add_ray_options, ray_options_from
 from orchestrator.cli.run import add_scene_options
+
+if TYPE_CHECKING:
+    from orchestrator.matrix.plan import PlannedEpisode
+    from orchestrator.matrix.results import EpisodeResult
+    from orchestrator.matrix.runner import MatrixProgress
+    from protocol.messages import LiveMetrics
 
 MATRIX_EXAMPLES = """examples:
   drivebench matrix experiments/smoke.yaml -o runs/smoke                  eight short episodes, then the report
@@ -143,58 +150,6 @@ def run_matrix_command(args: argparse.Namespace) -> int:
     )
 
 
-def _preflight(matrix) -> None:
-    """Every brain of the matrix checked before the first episode (weights load and fit, options are taken)."""
-    from orchestrator.matrix.runner import brain_launch
-    from orchestrator.stack.launcher import preflight_launches
-    from services.noise.models import MissingExtra, require_extras
-
-    try:
-        require_extras([stage for episode in matrix.episodes for stage in episode.spec.noise])
-    except MissingExtra as error:
-        raise UsageError(f"{matrix.name}: {error}") from None
-    for entry in matrix.brains + matrix.shadows:
-        try:
-            preflight_launches([brain_launch(entry)])
-        except ValueError as error:
-            raise UsageError(f"{matrix.name}: brain {entry.label!r}: {error}") from None
-
-
-def _resolve_renderers(matrix, requested: str | None, *, here: bool = True):
-    """Every episode's renderer: ``requested`` (--renderer) over the file's, with "auto" resolved here, where the
-    matrix's stacks run (one notice on stderr when it falls back), and "gl" checked before the first episode."""
-    from orchestrator.matrix.load import with_renderer
-    from services.simulator.renderers import choose_renderer
-
-    chosen: dict[str, str] = {}
-
-    def choose(renderer: str) -> str:
-        wanted = requested or renderer
-        if not here and wanted == "auto":
-            return wanted
-        if wanted not in chosen:
-            try:
-                chosen[wanted] = choose_renderer(wanted)
-            except ValueError as error:
-                raise UsageError(f"{matrix.name}: {error}") from None
-        return chosen[wanted]
-
-    matrix = with_renderer(matrix, choose)
-    _check_looks(matrix)
-    return matrix
-
-
-def _check_looks(matrix) -> None:
-    """Every episode's look drawable by its renderer, before the first episode (one line naming the choices)."""
-    from protocol.variations import VariationError, check_look
-
-    for episode in matrix.episodes:
-        try:
-            check_look(episode.spec)
-        except VariationError as error:
-            raise UsageError(f"{matrix.name}: {error}") from None
-
-
 def run_matrix_args(
     matrix,
     args: argparse.Namespace,
@@ -212,15 +167,10 @@ def run_matrix_args(
     ``-o``; command: the command line that ran it, less ``-o`` (printed with ``--resume`` after an interruption);
     facts: extra results-database facts (``drivebench paper`` marks its runs).
     """
-    from orchestrator.matrix.runner import (
-        MatrixRunner,
-        ProgressDisplay,
-        RunOptions,
-        never_moved,
-        plan_json,
-        plan_table,
-        summary_line,
-    )
+    from orchestrator.matrix.executor import RunOptions
+    from orchestrator.matrix.pipeline import MatrixRun, RunRefused
+    from orchestrator.matrix.plan import plan_json, plan_table
+    from orchestrator.matrix.runner import never_moved
 
     sizing = getattr(args, "power", None) is not None or getattr(args, "run_spread", None) is not None
     if sizing and not args.plan:
@@ -234,10 +184,7 @@ def run_matrix_args(
         raise UsageError("--json goes with --plan (a matrix's results are in DIR/results.sqlite and episodes.csv)")
     _check_run_options(args, what=what)
     ray_options = _ray_options(args)
-    # On a cluster, "auto" is resolved by each node's simulator: this machine's EGL says nothing about theirs.
-    matrix = _resolve_renderers(matrix, getattr(args, "renderer", None), here=ray_options is None)
-    _preflight(matrix)
-    matrix, out_dir = _prepare_out_dir(matrix, args, default_folder=default_folder)
+    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
     options = RunOptions(
         workers=args.workers,
         record=args.record,
@@ -247,19 +194,29 @@ def run_matrix_args(
         facts=dict(facts or {}),
         fresh_stacks=args.fresh_stacks,
     )
+    run = MatrixRun(
+        matrix,
+        out_dir=out_dir,
+        options=options,
+        ray_options=ray_options,
+        renderer=getattr(args, "renderer", None),
+        notify=lambda line: print(f"drivebench: {line}", file=sys.stderr),
+    )
+    try:
+        matrix = run.prepare()
+    except RunRefused as error:
+        raise UsageError(str(error)) from None
+    logging.basicConfig(
+        filename=out_dir / "matrix.log",
+        level=logging.INFO,
+        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s",
+    )
     where = f"{args.workers} worker(s)" if ray_options is None else f"Ray cluster {ray_options.address}"
     print(
         f"drivebench: {what} {matrix.name}: {len(matrix.episodes)} episode(s), {where}; output {out_dir}",
         file=sys.stderr,
     )
-    display = ProgressDisplay()
-    if ray_options is None:
-        runner = MatrixRunner(matrix, out_dir, options, on_change=display.update)
-    else:
-        from orchestrator.matrix.ray_runner import RayMatrixRunner
-
-        runner = RayMatrixRunner(matrix, out_dir, options, ray_options=ray_options, on_change=display.update)
-    progress = _run_to_the_end(runner, display, out_dir=out_dir, command=command)
+    progress = _run_to_the_end(run, out_dir=out_dir, command=command)
     if progress is None:
         return EXIT_INTERRUPTED
     print(summary_line(progress, out_dir), file=sys.stderr)
@@ -304,32 +261,14 @@ def _check_run_options(args: argparse.Namespace, *, what: str) -> None:
         raise UsageError("--retry-failed goes with --resume")
 
 
-def _prepare_out_dir(matrix, args: argparse.Namespace, *, default_folder: str):
-    """The output folder, made, with the log going there; ``matrix`` fitted to its results with ``--resume``, and a
-    folder that already holds results refused without it (never mix two runs' results)."""
-    out_dir = args.out or Path("runs") / f"{default_folder}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if not args.resume and (out_dir / "results.sqlite").exists():
-        raise UsageError(
-            f"{out_dir} already holds matrix results: add --resume to finish that run, or choose another -o folder"
-        )
-    if args.resume:
-        matrix = _fit_to_results(matrix, out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(
-        filename=out_dir / "matrix.log",
-        level=logging.INFO,
-        format="%(asctime)s %(threadName)s %(name)s %(levelname)s %(message)s",
-    )
-    return matrix, out_dir
-
-
-def _run_to_the_end(runner, display, *, out_dir: Path, command: str):
-    """``runner.run()``'s progress, or None after Ctrl-C (with the command that resumes it on stderr); a results
-    database that does not fit is a usage error."""
+def _run_to_the_end(run, *, out_dir: Path, command: str):
+    """``run.run()``'s progress, shown on stderr, or None after Ctrl-C (with the command that resumes it on stderr);
+    a results database that does not fit is a usage error."""
     from orchestrator.matrix.results import ResultsError
 
+    display = ProgressDisplay()
     try:
-        return runner.run()
+        return run.run(on_change=display.update)
     except ResultsError as error:
         raise UsageError(str(error)) from None
     except KeyboardInterrupt:
@@ -342,24 +281,6 @@ def _run_to_the_end(runner, display, *, out_dir: Path, command: str):
         return None
     finally:
         display.close()
-
-
-def _fit_to_results(matrix, out_dir: Path):
-    """``--resume``: ``matrix`` fitted to the folder's results; refused in one line when it changed what they ran,
-    said on stderr when it adds episodes to them."""
-    from orchestrator.matrix.results import DATABASE_NAME, ResultsError, ResultStore
-    from orchestrator.matrix.resume import resume_matrix
-
-    if not (out_dir / DATABASE_NAME).is_file():
-        return matrix
-    try:
-        with ResultStore(out_dir, create=False) as store:
-            resumed = resume_matrix(matrix, store)
-    except ResultsError as error:
-        raise UsageError(str(error)) from None
-    if (note := resumed.note()) is not None:
-        print(f"drivebench: resume: {note}", file=sys.stderr)
-    return resumed.matrix
 
 
 def _ray_options(args: argparse.Namespace):
@@ -382,3 +303,115 @@ def _write_report(out_dir: Path) -> None:
     print(f"report: {files.html} and {files.markdown}", file=sys.stderr)
     if files.paper is not None:
         print(f"paper tables: {files.paper}", file=sys.stderr)
+
+
+# -- the progress on stderr --
+
+
+class ProgressDisplay:
+    """Progress on stderr: one line per finished episode, and on a terminal live bars: episodes done / running /
+    failed with an ETA, and each worker's lap progress.
+
+    The bars are made on the first update, when the number of episodes a resume skips is known (the ETA counts
+    only the episodes run in this session).
+    """
+
+    def __init__(self, *, enabled: bool = True):
+        self._enabled = enabled
+        self._tty = sys.stderr.isatty()
+        self._main: Any = None  # a tqdm bar, made at the first update
+        self._lanes: list = []
+        self._reported = 0
+
+    def _make(self, progress: MatrixProgress) -> None:
+        from tqdm import tqdm
+
+        bars = self._enabled and self._tty
+        self._main = tqdm(
+            total=progress.total,
+            initial=progress.skipped,
+            unit="episode",
+            file=sys.stderr,
+            disable=not bars,
+            dynamic_ncols=True,
+            smoothing=0.0,
+            desc="matrix",
+        )
+        self._lanes = [
+            tqdm(
+                total=100,
+                file=sys.stderr,
+                position=i + 1,
+                leave=False,
+                dynamic_ncols=True,
+                disable=not bars,
+                bar_format="  {desc} {percentage:3.0f}%|{bar}|",
+            )
+            for i in range(len(progress.workers))
+        ]
+
+    def update(self, progress: MatrixProgress) -> None:
+        if self._main is None:
+            self._make(progress)
+        with progress.lock:
+            finished = progress.skipped + progress.done + progress.failed
+            new_results = progress.finished[self._reported :]
+            self._reported = len(progress.finished)
+            lanes = [(worker.episode, worker.live) for worker in progress.workers]
+            counts = f"done {progress.done}, running {progress.running}, failed {progress.failed}" + (
+                f", resumed past {progress.skipped}" if progress.skipped else ""
+            )
+        for number, result in enumerate(new_results, start=finished - len(new_results) + 1):
+            if self._enabled:
+                self._main.write(f"[{number}/{progress.total}] {_result_line(result)}", file=sys.stderr)
+        self._main.update(finished - self._main.n)
+        self._main.set_postfix_str(counts, refresh=False)
+        self._main.refresh()
+        for lane, (episode, live) in zip(self._lanes, lanes):
+            lane.n = 0 if episode is None else self._lap_percent(live)
+            lane.set_description_str("idle" if episode is None else self._lane_text(episode, live), refresh=False)
+            lane.refresh()
+
+    @staticmethod
+    def _lap_percent(live: LiveMetrics | None) -> int:
+        if live is None:
+            return 0
+        return min(100, round(100 * live.progress_laps / max(1, live.laps_target)))
+
+    @staticmethod
+    def _lane_text(episode: PlannedEpisode, live: LiveMetrics | None) -> str:
+        status = f"sim {live.sim_time_s:5.1f} s" if live is not None else "starting"
+        return f"{episode.key[:60]:<60} {status}"
+
+    def close(self) -> None:
+        for lane in self._lanes:
+            lane.close()
+        if self._main is not None:
+            self._main.close()
+
+
+def _result_line(result: EpisodeResult) -> str:
+    """``explicit/simple/default/none/r0: laps_completed, BM lap 57.20 s (21.3 s wall)`` or the failure: the lap
+    time the report's tables give (BM lap seconds; the arc-length lap when BM counts no lap), named as there."""
+    wall = f"({result.wall_s:.1f} s wall)"
+    if result.status == "failed":
+        return f"{result.key}: FAILED {result.failure} {wall}"
+    assert result.score is not None  # a done episode was scored
+    metrics = result.score.metrics
+    if metrics.bm_lap_seconds is not None:
+        lap = f", BM lap {metrics.bm_lap_seconds:.2f} s"
+    else:
+        lap = f", lap (arc length) {metrics.lap_times_s[0]:.2f} s" if metrics.lap_times_s else ""
+    return (
+        f"{result.key}: {result.reason}{lap}, {metrics.percentage_completed:.0f} % of a lap in "
+        f"{metrics.sim_time_s:.1f} s sim {wall}"
+    )
+
+
+def summary_line(progress: MatrixProgress, out_dir: Path) -> str:
+    ran = progress.done + progress.failed
+    return (
+        f"{ran} episode(s) run ({progress.done} done, {progress.failed} failed)"
+        + (f", {progress.skipped} already in the results" if progress.skipped else "")
+        + f"; results in {out_dir / 'results.sqlite'}"
+    )

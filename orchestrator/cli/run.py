@@ -169,7 +169,7 @@ class _Given:
 
     def __call__(self, parser, namespace, values, option_string=None):
         namespace.config_replaced = [*getattr(namespace, "config_replaced", []), option_string]
-        super().__call__(parser, namespace, values, option_string)  # type: ignore[misc]
+        super().__call__(parser, namespace, values, option_string)
 
 
 def record_given(actions) -> None:

@@ -171,7 +171,7 @@ def _key_paths(data: Any, prefix: str = "") -> list[str]:
 
 def dropped_keys(data: dict[str, Any]) -> list[str]:
     """Each key of the config drivebench does not honour, once (the outermost), with why."""
-    dropped = []
+    dropped: list[str] = []
     for path in _key_paths(data):
         if path in _READ or any(path.startswith(read + ".") for read in _READ) or path in ("Behaviors",):
             continue

@@ -33,7 +33,7 @@ from protocol.variations import (
 
 VARIATION_KEYS = (*WORLD_KEYS, *CAMERA_KEYS, *ROUTE_KEYS)
 CAMERA_PERTURBATION_KEYS = CAMERA_KEYS
-NOISE_MODEL_NAMES = tuple(model.__struct_config__.tag for model in NOISE_MODELS)
+NOISE_MODEL_NAMES = tuple(str(model.__struct_config__.tag) for model in NOISE_MODELS)  # every model has a str tag
 # An item of a perturbation string: "model", "model=value", "model:key=value,..." or "camera_key=value".
 _STRING_ITEM = re.compile(r"\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:([=:])(.*))?", re.S)
 # "+" joins items; one followed by a digit or sign belongs to a number ("1e+5", "brightness=+0.2").

@@ -97,7 +97,7 @@ from orchestrator.matrix.plan import (
 )
 from orchestrator.matrix.schema import MatrixFile, Part, items, read_matrix_file, text_at, written
 from protocol import environment
-from protocol.deploy.typed_yaml import Document, compose, convert
+from protocol.deploy.typed_yaml import Document, FileError, compose, convert
 from protocol.deploy.typed_yaml import Path as At
 from protocol.keys import check_name
 from protocol.messages import CameraSpec, EpisodeSpec
@@ -183,7 +183,7 @@ def _brains(document: Document, matrix: MatrixFile, *, base_dir: Path) -> Brains
     """The brains and the shadows of the matrix, or None once a mistake in them is noted."""
     before = document.noted
     brains = read_brain_entries(document, matrix.brains, ("brains",), base_dir=base_dir)
-    shadows = []
+    shadows: list[tuple[BrainEntry, At]] = []
     if not isinstance(matrix.shadows, UnsetType):
         shadows = read_brain_entries(document, matrix.shadows, ("shadows",), base_dir=base_dir)
     check_unique_labels(document, brains + shadows)
@@ -192,7 +192,7 @@ def _brains(document: Document, matrix: MatrixFile, *, base_dir: Path) -> Brains
     return tuple(entry for entry, _ in brains), tuple(entry for entry, _ in shadows)
 
 
-def _world_form_mistake(document: Document, entries: Entries) -> MatrixError | None:
+def _world_form_mistake(document: Document, entries: Entries) -> FileError | None:
     """The mistake of giving two ways to pick worlds (variations, worlds, draw), if there is one."""
     if "variations" in entries and "worlds" in entries:
         return document.error(
@@ -209,7 +209,7 @@ def _world_form_mistake(document: Document, entries: Entries) -> MatrixError | N
 def _parts(document: Document, matrix: MatrixFile) -> list[tuple[str, Entries]]:
     """(part name, the keys it expands with) of each part; one nameless part for a matrix without ``parts``. A part
     whose keys do not fit together is left out, its mistake noted."""
-    top = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
+    top: Entries = {key: (value, (key,)) for key, value in written(matrix).items() if key != "parts"}
     if (mistake := _world_form_mistake(document, top)) is not None:
         document.note(mistake)
         return []
@@ -234,7 +234,7 @@ def _part(document: Document, top: Entries, name: str, part: Part) -> Entries | 
         check_name(name, what="part name")
     except ValueError as error:
         document.note(document.error(where, str(error), at_key=True))  # its keys are still worth checking
-    entries = {key: (value, (*where, key)) for key, value in written(part).items()}
+    entries: Entries = {key: (value, (*where, key)) for key, value in written(part).items()}
     if (mistake := _world_form_mistake(document, entries)) is not None:
         document.note(mistake)
         return None

@@ -216,3 +216,19 @@ def with_renderer(matrix: Matrix, choose: Callable[[str], str]) -> Matrix:
         for episode in matrix.episodes
     )
     return dataclasses.replace(matrix, episodes=episodes)
+
+
+def plan_table(matrix: Matrix) -> str:
+    """The planned episodes, one per line (``drivebench matrix FILE --plan``)."""
+    lines = [f"{matrix.name}: {len(matrix.episodes)} episode(s)"]
+    lines += [f"{episode.index:4d}  {episode.key}  seed {episode.spec.seed}" for episode in matrix.episodes]
+    return "\n".join(lines)
+
+
+def plan_json(matrix: Matrix) -> str:
+    """The planned episodes as one JSON array (``drivebench matrix FILE --plan --json``)."""
+    episodes = [
+        {"index": episode.index, "key": episode.key, "spec": msgspec.to_builtins(episode.spec)}
+        for episode in matrix.episodes
+    ]
+    return json.dumps(episodes, indent=2)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from orchestrator.matrix.ray_options import import_ray
 from orchestrator.matrix.results import EpisodeResult
 
 
@@ -32,3 +33,15 @@ class TaskError:
 
 
 StreamItem = LiveItem | OutcomeItem
+
+
+def next_item(stream) -> StreamItem | TaskError:
+    """The next item of a task's stream, or :class:`TaskError` when the task failed (Ray raises it where the item
+    would be)."""
+    ray = import_ray()
+    try:
+        return ray.get(next(stream))
+    except StopIteration:
+        return TaskError(RuntimeError("the episode's task ended without a result"))
+    except ray.exceptions.RayError as error:
+        return TaskError(error)

@@ -1,13 +1,15 @@
 """Matrices on a Ray cluster: ``drivebench matrix FILE --ray ADDRESS``.
 
 The driver (this process) plans the matrix, keeps ``results.sqlite``, the resume semantics, the progress display and
-the report exactly as a local run (:class:`orchestrator.matrix.runner.MatrixRunner`); only the dispatch differs.
+the report exactly as a local run (:class:`orchestrator.matrix.runner.MatrixRunner`); only the dispatch differs: one
+loop (:meth:`RayMatrixRunner._dispatch`) over a pool of episode slots or of tasks.
 
 Warm stacks (the default): each episode slot of the cluster is one long-lived Ray actor (:class:`EpisodeSlot`) that
 keeps a stack alive across the episodes the driver gives it, one at a time, as a local worker's warm lane does
-(:mod:`orchestrator.matrix.warm`: brain hosts replaced only when an episode names other brains, a stack that failed an
-episode replaced). The driver gives a slot, when one is waiting, an episode with the brains its stack runs. Each
-episode is a streaming call on the actor (:meth:`EpisodeSlot.drive`) that yields what a task does (below).
+(:mod:`orchestrator.matrix.executor`, whose episode executor both run: brain hosts replaced only when an episode
+names other brains, a stack that failed an episode replaced). The driver gives a slot, when one is waiting, an
+episode with the brains its stack runs. Each episode is a streaming call on the actor (:meth:`EpisodeSlot.drive`)
+that yields what a task does (below).
 
 ``--fresh-stacks``: every pending episode becomes one Ray task (:func:`run_episode_task`) that, on whichever node Ray
 places it:
@@ -44,7 +46,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import tempfile
 import threading
 import time
@@ -52,17 +53,22 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from orchestrator.matrix.executor import EpisodeExecutor, RunOptions, WorkerState
 from orchestrator.matrix.load import Matrix, PlannedEpisode
-from orchestrator.matrix.ray_items import LiveItem, OutcomeItem, StreamItem, TaskError
-from orchestrator.matrix.ray_options import EPISODE_SLOT, ClusterError, RayOptions, import_ray
-from orchestrator.matrix.results import EpisodeResult, ResultStore
-from orchestrator.matrix.runner import (
-    MatrixProgress,
-    MatrixRunner,
-    RunOptions,
-    WorkerState,
+from orchestrator.matrix.ray_items import LiveItem, OutcomeItem, StreamItem, TaskError, next_item
+from orchestrator.matrix.ray_options import (
+    ClusterError,
+    RayOptions,
+    alive_nodes,
+    capacity,
+    connect,
+    import_ray,
+    node_label,
+    slots_of,
+    task_resources,
 )
-from orchestrator.matrix.warm import WarmLane
+from orchestrator.matrix.results import EpisodeResult, LostAttempt, ResultStore
+from orchestrator.matrix.runner import MatrixProgress, MatrixRunner
 from orchestrator.stack.failures import Failure, FailureKind
 
 log = logging.getLogger("drivebench.ray")
@@ -76,88 +82,6 @@ SLOT_CLOSE_S = 30.0  # how long the driver waits for episode slots to close thei
 SLOT_START_FAILURES = 5  # slots that die starting, in a row, before the matrix ends with the reason
 
 
-# -- the cluster --
-
-
-def connect(address: str) -> None:
-    """Join the cluster at ``address`` as a driver (nothing when this process already is one)."""
-    ray = import_ray()
-    if ray.is_initialized():
-        return
-    _probe(address)
-    try:
-        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
-    except ImportError as error:  # ray:// without Ray Client's packages
-        raise ClusterError(f"{address!r} needs Ray Client: pip install 'ray[client]' ({error})") from None
-    except (ConnectionError, RuntimeError, ValueError) as error:
-        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise ClusterError(f"no Ray cluster at {address!r}: {first}") from None
-
-
-def _probe(address: str, *, timeout_s: float = 5.0) -> None:
-    """A ``HOST:PORT`` where nothing listens, as one line at once (Ray itself would retry for minutes)."""
-    if address == "auto" or "://" in address:
-        return
-    host, _, port = address.rpartition(":")
-    if not host or not port.isdigit():
-        raise ClusterError(f"--ray {address!r}: expected auto, HOST:PORT or ray://HOST:10001")
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
-    except OSError as error:
-        raise ClusterError(
-            f"no Ray cluster at {address!r}: nothing answers there ({error.strerror or error})"
-        ) from None
-
-
-def alive_nodes() -> list[dict]:
-    return [node for node in import_ray().nodes() if node.get("Alive")]
-
-
-def slots_of(node: dict, resources: dict) -> int:
-    """How many episodes asking for ``resources`` fit on ``node`` at once."""
-    offered = node.get("Resources", {})
-    return int(min(offered.get(name, 0.0) / amount for name, amount in resources.items()) + 1e-9)
-
-
-def capacity(resources: dict) -> int:
-    """Episodes the cluster can run at once; :class:`ClusterError` (one line) when no node can run one."""
-    nodes = alive_nodes()
-    total = sum(slots_of(node, resources) for node in nodes)
-    if total < 1:
-        wanted = ", ".join(f"{name}={amount:g}" for name, amount in resources.items())
-        offered = "; ".join(_offer(node) for node in nodes) or "no node alive"
-        raise ClusterError(
-            f"no node of the Ray cluster has what one episode asks for ({wanted}); the nodes offer: "
-            f"{offered} (start workers with `ray start --address HEAD:6379 --resources "
-            f"'{{\"{EPISODE_SLOT}\": N}}'`)"
-        )
-    return total
-
-
-def _offer(node: dict) -> str:
-    shown = {
-        name: amount
-        for name, amount in node.get("Resources", {}).items()
-        if not name.startswith(("node:", "memory", "object_store_memory", "accelerator_type"))
-    }
-    return f"{node.get('NodeManagerAddress', '?')} " + (
-        ", ".join(f"{name}={amount:g}" for name, amount in sorted(shown.items())) or "nothing"
-    )
-
-
-def task_resources(resources: dict) -> dict:
-    """Ray task options for what one episode asks for: CPU and GPU are Ray's own fields (Ray refuses them among
-    custom resources); the rest, episode_slot first, are custom resources. No CPU unless asked: the slot is the cap.
-    A GPU share makes Ray set CUDA_VISIBLE_DEVICES for the task, which the stack's brain inherits."""
-    custom = dict(resources)
-    return {"num_cpus": custom.pop("CPU", 0), "num_gpus": custom.pop("GPU", 0), "resources": custom}
-
-
-def node_label(*, ip: str, node_id: str) -> str:
-    """How a results row names a Ray node: ``<ip>/<first 8 hex of its node id>`` (several nodes may share a host)."""
-    return f"{ip}/{node_id[:8]}"
-
-
 # -- the driver --
 
 
@@ -168,7 +92,6 @@ class RayMatrixRunner(MatrixRunner):
         super().__init__(matrix, out_dir, options, on_change=on_change)
         self.ray_options = ray_options
         self._capacity = 1
-        self._slot_failures = 0  # slots that died starting, in a row
 
     def run(self) -> MatrixProgress:
         connect(self.ray_options.address)
@@ -179,169 +102,61 @@ class RayMatrixRunner(MatrixRunner):
         return self._capacity
 
     def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
-        if self.options.fresh_stacks:
-            self._dispatch_tasks(todo, store, progress)
-        else:
-            self._dispatch_slots(todo, store, progress)
-
-    def _dispatch_slots(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
-        """Warm stacks: episodes go to long-lived :class:`EpisodeSlot` actors, one at a time each, an episode with
-        the brains a slot's stack runs first. A slot lost with its node is dropped (its episode retried as a task's
-        is) and another started when the cluster has room."""
+        """Run ``todo`` on the cluster, each result through :meth:`_finish`: one loop for both kinds of worker, an
+        episode slot per warm stack (:class:`_Slots`) or, with ``--fresh-stacks``, a task per episode
+        (:class:`_Tasks`). A lost episode goes back to ``waiting`` (:meth:`_collect`)."""
         ray = import_ray()
-        # stop() runs in its own group, beside a running drive() (Ray takes the groups here, not in options()).
-        make = ray.remote(concurrency_groups={"control": 1})(EpisodeSlot).options(
-            **task_resources(self.ray_options.resources),
-            max_restarts=0,  # node deaths: its episode is retried here, recorded; a new slot replaces it
-            max_task_retries=0,
-        )
-        shared = dataclasses.replace(self.matrix, text="", episodes=())
+        shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a node needs: name and shadows
+        pool: _Slots | _Tasks = (_Tasks if self.options.fresh_stacks else _Slots)(driver=self, shared=shared)
         waiting = collections.deque((episode, ()) for episode in todo)
-        slots: list[_Slot] = []
         running: dict[Any, _Running] = {}  # by its ObjectRefGenerator
         free_lanes = list(range(len(progress.workers)))
         try:
             while waiting or running:
-                if waiting and free_lanes and len(waiting) > sum(1 for slot in slots if not slot.busy):
-                    self._add_slots(slots, make=make, shared=shared, wanted=len(waiting) + len(running))
-                for slot in slots:
-                    if not (waiting and free_lanes):
-                        break
-                    if slot.node is None or slot.busy:
-                        continue
-                    episode, lost = self._take(waiting, prefer=slot.brains)
-                    lane = free_lanes.pop(0)
-                    slot.busy = True
-                    running[slot.actor.drive.remote(episode=episode)] = _Running(episode, lost, lane, slot)
-                    with progress.lock:
-                        progress.workers[lane].episode, progress.workers[lane].live = episode, None
-                starting = {slot.ready: slot for slot in slots if slot.node is None}
+                self._submit(pool, waiting=waiting, running=running, free_lanes=free_lanes, progress=progress)
+                starting = pool.starting()
                 ready, _ = ray.wait([*running, *starting], num_returns=1, timeout=POLL_S)
-                for ref in ready:
+                for ref in ready:  # a slot that came up, or a stream's next item: live metrics, outcome or error
                     if ref in starting:
-                        self._slot_up(starting[ref], slots)
+                        pool.started(starting[ref])
                         continue
                     entry = running[ref]
                     item = self._ended(ref, entry, running=running, progress=progress, free_lanes=free_lanes)
                     if item is None:
                         continue
-                    owner = entry.slot
-                    assert owner is not None  # every episode here runs on a slot
-                    owner.busy = False
-                    if isinstance(item, TaskError):  # its node, its process or the actor failed: never used again
-                        self._drop_slot(owner, slots, why=f"{type(item.error).__name__}")
-                    result = self._collect(item, entry, waiting, node=owner.node)
+                    result = self._collect(item, entry, waiting, node=pool.ended(entry, item))
                     if result is not None:
-                        owner.brains = self._launches(entry.episode) if result.status == "done" else None
+                        pool.landed(entry, result)
                         self._finish(result, store, progress)
                 self._on_change(progress)
         except BaseException:
             self.stop()
-            self._stop_slots(slots)  # Ctrl-C, SIGTERM: kill each slot's stack, then the actors
+            pool.abort(running)  # Ctrl-C, SIGTERM: stop every episode and kill its processes
             raise
-        self._close_slots(slots)
+        pool.close()
 
-    def _add_slots(self, slots: list[_Slot], *, make, shared: Matrix, wanted: int) -> None:
-        """Start slots up to the cluster's slots now (nodes come and go), no more than ``wanted`` episodes."""
-        target = min(self._window(), wanted)
-        while len(slots) < target:
-            actor = make.remote(matrix=shared, options=self.options, artifacts=self._artifacts_text())
-            slots.append(_Slot(actor=actor, ready=actor.where.remote()))
-
-    def _slot_up(self, slot: _Slot, slots: list[_Slot]) -> None:
-        """A slot answered: it takes episodes from now on; one that died starting is dropped (a few in a row: the
-        slots cannot start at all, which ends the matrix with the reason)."""
-        ray = import_ray()
-        try:
-            slot.node = ray.get(slot.ready)
-            self._slot_failures = 0
-        except ray.exceptions.RayError as error:
-            self._slot_failures += 1
-            self._drop_slot(slot, slots, why=f"it did not start: {type(error).__name__}: {_first_line(error)}")
-            if self._slot_failures > SLOT_START_FAILURES:
-                raise ClusterError(f"episode slots do not start on the Ray cluster: {_first_line(error)}") from None
-
-    def _take(self, waiting: collections.deque, *, prefer: list | None) -> tuple[PlannedEpisode, tuple]:
-        """The next waiting episode for a slot whose stack runs ``prefer``: one with the same launches first (as
-        :meth:`JobQueue.take`); results do not depend on the order."""
-        index = 0
-        if prefer is not None:
-            index = next((i for i, (episode, _) in enumerate(waiting) if self._launches(episode) == prefer), 0)
-        item = waiting[index]
-        del waiting[index]
-        return item
-
-    @staticmethod
-    def _drop_slot(slot: _Slot, slots: list[_Slot], *, why: str) -> None:
-        log.warning("episode slot on %s dropped (%s)", slot.node or "a node", why)
-        slots.remove(slot)
-        _kill(slot.actor)
-
-    @staticmethod
-    def _stop_slots(slots: list[_Slot]) -> None:
-        """Stop every slot's episode and kill its stack's process group, then the actors themselves."""
-        ray = import_ray()
-        stops = [slot.actor.stop.options(concurrency_group="control").remote() for slot in slots if slot.node]
-        if stops:
-            ray.wait(stops, num_returns=len(stops), timeout=SLOT_CLOSE_S)
-        for slot in slots:
-            _kill(slot.actor)
-
-    @staticmethod
-    def _close_slots(slots: list[_Slot]) -> None:
-        """The matrix is done: each slot closes its stack, then the actors go (their resources free at once)."""
-        ray = import_ray()
-        closes = [slot.actor.close.remote() for slot in slots if slot.node]
-        if closes:
-            ray.wait(closes, num_returns=len(closes), timeout=SLOT_CLOSE_S)
-        for slot in slots:
-            _kill(slot.actor)
-
-    def _dispatch_tasks(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
-        """``--fresh-stacks``: one Ray task, on a fresh stack, per episode."""
-        ray = import_ray()
-        task = ray.remote(run_episode_task).options(
-            **task_resources(self.ray_options.resources),
-            max_retries=0,  # node deaths: retried here, recorded
-            name="drivebench-episode",
-        )
-        shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a task needs: name and shadows
-        waiting = collections.deque((episode, ()) for episode in todo)
-        running: dict[Any, _Running] = {}  # by its ObjectRefGenerator
-        free_lanes = list(range(len(progress.workers)))
-        try:
-            while waiting or running:
-                while waiting and free_lanes and len(running) < self._window():
-                    episode, lost = waiting.popleft()
-                    lane = free_lanes.pop(0)
-                    stream = task.remote(
-                        matrix=shared, episode=episode, options=self.options, artifacts=self._artifacts_text()
-                    )
-                    running[stream] = _Running(episode, lost, lane)
-                    with progress.lock:
-                        progress.workers[lane].episode, progress.workers[lane].live = episode, None
-                ready, _ = ray.wait(list(running), num_returns=1, timeout=POLL_S)
-                for stream in ready:  # its next item is there: live metrics, the result, or the task's error
-                    entry = running[stream]
-                    item = self._ended(stream, entry, running=running, progress=progress, free_lanes=free_lanes)
-                    if item is None:
-                        continue
-                    result = self._collect(item, entry, waiting)
-                    if result is not None:
-                        self._finish(result, store, progress)
-                self._on_change(progress)
-        except BaseException:
-            self.stop()
-            for stream in running:  # Ctrl-C, SIGTERM: stop them now (force: a plain cancel waits for a sleeping task)
-                ray.cancel(stream, force=True)
-            raise
+    def _submit(
+        self, pool: _Slots | _Tasks, *, waiting: collections.deque, running: dict, free_lanes: list, progress
+    ) -> None:
+        """Waiting episodes to the pool, while a lane of the display is free and the pool has room."""
+        if waiting and free_lanes:
+            pool.grow(waiting=len(waiting), in_flight=len(running))
+        while waiting and free_lanes:
+            submitted = pool.submit(waiting, in_flight=len(running), lane=free_lanes[0])
+            if submitted is None:
+                return
+            stream, entry = submitted
+            running[stream] = entry
+            free_lanes.pop(0)
+            with progress.lock:
+                progress.workers[entry.lane].episode, progress.workers[entry.lane].live = entry.episode, None
 
     def _ended(
         self, stream, entry: _Running, *, running: dict, progress: MatrixProgress, free_lanes: list[int]
     ) -> OutcomeItem | TaskError | None:
         """Read a ready stream's next item: live metrics go to its lane's display (None: it runs on); an outcome or
         an error ends it, and its lane is free again."""
-        item = self._next_item(stream)
+        item = next_item(stream)
         if isinstance(item, LiveItem):
             from protocol import codec
             from protocol.messages import LiveMetrics
@@ -355,27 +170,15 @@ class RayMatrixRunner(MatrixRunner):
         free_lanes.append(entry.lane)
         return item
 
-    def _window(self) -> int:
+    def window(self) -> int:
         """Tasks in flight: the cluster's slots now (nodes come and go), at least one."""
         try:
             return max(1, sum(slots_of(node, self.ray_options.resources) for node in alive_nodes()))
         except Exception:  # a GCS hiccup must not end the matrix; keep going one at a time
             return 1
 
-    def _artifacts_text(self) -> str | None:
+    def artifacts_text(self) -> str | None:
         return None if self.ray_options.artifacts is None else str(self.ray_options.artifacts)
-
-    @staticmethod
-    def _next_item(stream) -> StreamItem | TaskError:
-        """The next item of a task's stream, or :class:`TaskError` when the task failed (Ray raises it where the
-        item would be)."""
-        ray = import_ray()
-        try:
-            return ray.get(next(stream))
-        except StopIteration:
-            return TaskError(RuntimeError("the episode's task ended without a result"))
-        except ray.exceptions.RayError as error:
-            return TaskError(error)
 
     def _collect(
         self, item: OutcomeItem | TaskError, running: _Running, waiting: collections.deque, *, node: str | None = None
@@ -387,9 +190,9 @@ class RayMatrixRunner(MatrixRunner):
             return self._land(episode, item, lost)
         error = item.error
         if isinstance(error, _lost_errors()):
-            attempt = {"node": node or _node_in(error), "error": f"{type(error).__name__}: {_first_line(error)}"}
+            attempt = LostAttempt(node=node or _node_in(error), error=f"{type(error).__name__}: {_first_line(error)}")
             lost = (*lost, attempt)
-            log.warning("episode %s: attempt %d lost (%s)", episode.key, len(lost), attempt["error"])
+            log.warning("episode %s: attempt %d lost (%s)", episode.key, len(lost), attempt.error)
             if len(lost) <= self.ray_options.node_retries:
                 waiting.appendleft((episode, lost))
                 return None
@@ -400,7 +203,7 @@ class RayMatrixRunner(MatrixRunner):
             )
         raise error
 
-    def _land(self, episode: PlannedEpisode, outcome: OutcomeItem, lost: tuple) -> EpisodeResult:
+    def _land(self, episode: PlannedEpisode, outcome: OutcomeItem, lost: tuple[LostAttempt, ...]) -> EpisodeResult:
         """A task's outcome into the output folder: its small files, its row with the node and lost attempts."""
         result = outcome.result
         folder = self.out_dir / "episodes" / f"{episode.index:04d}"
@@ -422,10 +225,12 @@ class RayMatrixRunner(MatrixRunner):
         except ValueError:
             return str(path.resolve())
 
-    def _lost_result(self, episode: PlannedEpisode, lost: tuple, *, failure: Failure | None = None) -> EpisodeResult:
+    def _lost_result(
+        self, episode: PlannedEpisode, lost: tuple[LostAttempt, ...], *, failure: Failure | None = None
+    ) -> EpisodeResult:
         now = time.time()
         if failure is None:
-            failure = Failure(FailureKind.NODE_DIED, f"lost {len(lost)} time(s), last: {lost[-1]['error']}")
+            failure = Failure(FailureKind.NODE_DIED, f"lost {len(lost)} time(s), last: {lost[-1].error}")
         return EpisodeResult.of(
             episode,
             status="failed",
@@ -433,7 +238,7 @@ class RayMatrixRunner(MatrixRunner):
             started_at=now,
             ended_at=now,
             failure=failure,
-            node=lost[-1]["node"] if lost else None,
+            node=lost[-1].node if lost else None,
             lost_attempts=lost,
         )
 
@@ -489,7 +294,7 @@ class _Running:
     slot."""
 
     episode: PlannedEpisode
-    lost: tuple
+    lost: tuple[LostAttempt, ...]
     lane: int
     slot: _Slot | None = None
 
@@ -505,39 +310,183 @@ class _Slot:
     busy: bool = False
 
 
+class _Tasks:
+    """``--fresh-stacks``: one Ray task, on a fresh stack, per episode; as many in flight as the cluster has slots."""
+
+    def __init__(self, *, driver: RayMatrixRunner, shared: Matrix):
+        ray = import_ray()
+        self._driver, self._shared = driver, shared
+        self._task = ray.remote(run_episode_task).options(
+            **task_resources(driver.ray_options.resources),
+            max_retries=0,  # node deaths: retried by the driver, recorded
+            name="drivebench-episode",
+        )
+
+    def grow(self, *, waiting: int, in_flight: int) -> None:
+        """Tasks need no workers started beforehand."""
+
+    def submit(self, waiting: collections.deque, *, in_flight: int, lane: int) -> tuple[Any, _Running] | None:
+        """The next waiting episode as a task, in ``lane``: its stream and its entry (None: the cluster is full)."""
+        if in_flight >= self._driver.window():
+            return None
+        episode, lost = waiting.popleft()
+        options, artifacts = self._driver.options, self._driver.artifacts_text()
+        stream = self._task.remote(matrix=self._shared, episode=episode, options=options, artifacts=artifacts)
+        return stream, _Running(episode, lost, lane)
+
+    def starting(self) -> dict:
+        return {}
+
+    def started(self, slot: _Slot) -> None:
+        raise AssertionError("tasks have no slots")
+
+    def ended(self, entry: _Running, item: OutcomeItem | TaskError) -> str | None:
+        return None  # the node of a lost task: what its error names
+
+    def landed(self, entry: _Running, result: EpisodeResult) -> None:
+        pass
+
+    def abort(self, running: dict) -> None:
+        for stream in running:  # stop them now (force: a plain cancel waits for a sleeping task)
+            import_ray().cancel(stream, force=True)
+
+    def close(self) -> None:
+        pass
+
+
+class _Slots:
+    """Warm stacks: episodes go to long-lived :class:`EpisodeSlot` actors, one at a time each, an episode with the
+    brains a slot's stack runs first. A slot lost with its node is dropped (its episode retried as a task's is) and
+    another started when the cluster has room."""
+
+    def __init__(self, *, driver: RayMatrixRunner, shared: Matrix):
+        ray = import_ray()
+        self._driver, self._shared = driver, shared
+        # stop() runs in its own group, beside a running drive() (Ray takes the groups here, not in options()).
+        self._make = ray.remote(concurrency_groups={"control": 1})(EpisodeSlot).options(
+            **task_resources(driver.ray_options.resources),
+            max_restarts=0,  # node deaths: its episode is retried by the driver, recorded; a new slot replaces it
+            max_task_retries=0,
+        )
+        self.slots: list[_Slot] = []
+        self._start_failures = 0  # slots that died starting, in a row
+
+    def grow(self, *, waiting: int, in_flight: int) -> None:
+        """Start slots up to the cluster's slots now (nodes come and go), no more than the episodes left."""
+        if waiting <= sum(1 for slot in self.slots if not slot.busy):
+            return
+        target = min(self._driver.window(), waiting + in_flight)
+        while len(self.slots) < target:
+            actor = self._make.remote(
+                matrix=self._shared, options=self._driver.options, artifacts=self._driver.artifacts_text()
+            )
+            self.slots.append(_Slot(actor=actor, ready=actor.where.remote()))
+
+    def submit(self, waiting: collections.deque, *, in_flight: int, lane: int) -> tuple[Any, _Running] | None:
+        """An episode for the first idle slot, in ``lane``: its stream and its entry (None: no slot is idle)."""
+        slot = next((slot for slot in self.slots if slot.node is not None and not slot.busy), None)
+        if slot is None:
+            return None
+        episode, lost = self._take(waiting, prefer=slot.brains)
+        slot.busy = True
+        return slot.actor.drive.remote(episode=episode), _Running(episode, lost, lane, slot)
+
+    def _take(self, waiting: collections.deque, *, prefer: list | None) -> tuple[PlannedEpisode, tuple]:
+        """The next waiting episode for a slot whose stack runs ``prefer``: one with the same launches first (as
+        :meth:`JobQueue.take`); results do not depend on the order."""
+        index = 0
+        if prefer is not None:
+            launches = self._driver.executor.launches
+            index = next((i for i, (episode, _) in enumerate(waiting) if launches(episode) == prefer), 0)
+        item = waiting[index]
+        del waiting[index]
+        return item
+
+    def starting(self) -> dict:
+        return {slot.ready: slot for slot in self.slots if slot.node is None}
+
+    def started(self, slot: _Slot) -> None:
+        """A slot answered: it takes episodes from now on; one that died starting is dropped (a few in a row: the
+        slots cannot start at all, which ends the matrix with the reason)."""
+        ray = import_ray()
+        try:
+            slot.node = ray.get(slot.ready)
+            self._start_failures = 0
+        except ray.exceptions.RayError as error:
+            self._start_failures += 1
+            self._drop(slot, why=f"it did not start: {type(error).__name__}: {_first_line(error)}")
+            if self._start_failures > SLOT_START_FAILURES:
+                raise ClusterError(f"episode slots do not start on the Ray cluster: {_first_line(error)}") from None
+
+    def ended(self, entry: _Running, item: OutcomeItem | TaskError) -> str | None:
+        """The slot is free again; one whose node, process or actor failed is never used again. Its node."""
+        owner = entry.slot
+        assert owner is not None  # every episode here runs on a slot
+        owner.busy = False
+        if isinstance(item, TaskError):
+            self._drop(owner, why=f"{type(item.error).__name__}")
+        return owner.node
+
+    def landed(self, entry: _Running, result: EpisodeResult) -> None:
+        assert entry.slot is not None
+        entry.slot.brains = self._driver.executor.launches(entry.episode) if result.status == "done" else None
+
+    def _drop(self, slot: _Slot, *, why: str) -> None:
+        log.warning("episode slot on %s dropped (%s)", slot.node or "a node", why)
+        self.slots.remove(slot)
+        _kill(slot.actor)
+
+    def abort(self, running: dict) -> None:
+        """Stop every slot's episode and kill its stack's process group, then the actors themselves."""
+        self._end_slots([slot.actor.stop.options(concurrency_group="control").remote() for slot in self._up()])
+
+    def close(self) -> None:
+        """The matrix is done: each slot closes its stack, then the actors go (their resources free at once)."""
+        self._end_slots([slot.actor.close.remote() for slot in self._up()])
+
+    def _up(self) -> list[_Slot]:
+        return [slot for slot in self.slots if slot.node]
+
+    def _end_slots(self, calls: list) -> None:
+        if calls:
+            import_ray().wait(calls, num_returns=len(calls), timeout=SLOT_CLOSE_S)
+        for slot in self.slots:
+            _kill(slot.actor)
+
+
 # -- one episode, on a node --
 
 
-class _NodeRunner(MatrixRunner):
-    """The local runner's episode code (:meth:`MatrixRunner._run_one`), run inside a Ray task: the stack in one
-    process group, rows naming this node."""
+class _GroupStacks:
+    """How a node's executor makes stacks: every process of one in a new process group, the last one kept so that
+    whatever of its group is left can be killed (grandchildren included)."""
 
-    def __init__(self, matrix: Matrix, out_dir: Path, options: RunOptions, *, node: str):
-        super().__init__(matrix, out_dir, options)
-        self.node = node
+    def __init__(self) -> None:
         self.stack = None
 
-    def _make_stack(self, **settings):
+    def make(self, **settings):
         from orchestrator.stack.launcher import LocalStack
 
         self.stack = LocalStack(one_group=True, **settings)
         return self.stack
 
-    def _node_name(self) -> str:
-        return self.node
-
-    def go_on(self) -> None:
-        """Run episodes again after a stop (a slot's watchdog stopped the episode before; the slot itself goes on)."""
-        self._stopping.clear()
-
     def kill_group(self) -> None:
-        """SIGKILL whatever of the stack's process group is left (grandchildren included)."""
+        """SIGKILL whatever of the last stack's process group is left."""
         group = None if self.stack is None else self.stack.process_group
         if group is not None:
             try:
                 os.killpg(group, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass  # every member already gone
+
+
+def _node_executor(
+    *, matrix: Matrix, work: Path, options: RunOptions, node: str
+) -> tuple[EpisodeExecutor, _GroupStacks]:
+    """The episode executor of a Ray slot or task: its stacks in one process group each, rows naming ``node``."""
+    stacks = _GroupStacks()
+    executor = EpisodeExecutor(matrix=matrix, out_dir=work, options=options, node=node, make_stack=stacks.make)
+    return executor, stacks
 
 
 class EpisodeSlot:
@@ -553,14 +502,11 @@ class EpisodeSlot:
 
         context = ray.get_runtime_context()
         self.node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
-        self._scratch = None if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-slot-"))
-        work = Path(artifacts or self._scratch)
-        self._runner = _NodeRunner(matrix, work, options, node=self.node)
+        work = Path(artifacts) if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-slot-"))
+        self._scratch = None if artifacts is not None else work
+        self._executor, self._stacks = _node_executor(matrix=matrix, work=work, options=options, node=self.node)
         self._router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="slot")
-        settings = {"router_endpoint": self._router.config.listen[0], "startup_timeout_s": options.startup_timeout_s}
-        self._lane = WarmLane(
-            lane=0, stacks_dir=work / "stacks", make_stack=self._runner._make_stack, settings=settings
-        )
+        self._lane = self._executor.warm_lane(lane=0, router_endpoint=self._router.config.listen[0])
         self._stopped = False
 
     def where(self) -> str:
@@ -571,17 +517,18 @@ class EpisodeSlot:
         """One episode on the warm stack (a streaming method): the items :func:`run_episode_task` yields."""
         if self._stopped:
             raise RuntimeError("the episode slot was stopped")
-        self._runner.go_on()  # a watchdog that stopped the episode before stopped that episode only
+        self._executor.go_on()  # a watchdog that stopped the episode before stopped that episode only
 
         def cleanup(*, abandoned: bool) -> None:
             if abandoned:  # its processes were killed: the next episode starts a new stack
                 self._lane.retire("its episode was abandoned")
 
         items = _watched(
-            runner=self._runner,
+            executor=self._executor,
+            stacks=self._stacks,
             episode=episode,
             node=self.node,
-            run=lambda state: self._runner._run_warm(episode, self._lane, state),
+            run=lambda state: self._executor.run_warm(episode, lane=self._lane, state=state),
             cleanup=cleanup,
         )
         for item in items:
@@ -592,8 +539,8 @@ class EpisodeSlot:
     def stop(self) -> None:
         """Ctrl-C on the driver (called beside a running ``drive``): abandon the episode, kill the stack's group."""
         self._stopped = True
-        self._runner.stop()
-        self._runner.kill_group()
+        self._executor.stop()
+        self._stacks.kill_group()
 
     def close(self) -> None:
         """The matrix is done: close the stack (after any running episode), the router and the scratch folder."""
@@ -616,9 +563,10 @@ def run_episode_task(
 
     context = ray.get_runtime_context()
     node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
-    scratch = None if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-episode-"))
+    work = Path(artifacts) if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-episode-"))
+    scratch = None if artifacts is not None else work
     try:
-        yield from _drive(matrix=matrix, episode=episode, options=options, node=node, work=Path(artifacts or scratch))
+        yield from _drive(matrix=matrix, episode=episode, options=options, node=node, work=work)
     finally:
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
@@ -631,25 +579,27 @@ def _drive(
     from orchestrator.stack.launcher import free_loopback_port
     from protocol.bus import Bus, BusConfig
 
-    runner = _NodeRunner(matrix, work, options, node=node)
+    executor, stacks = _node_executor(matrix=matrix, work=work, options=options, node=node)
     router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="episode-router")
 
     def cleanup(*, abandoned: bool) -> None:  # the stack is closed or abandoned: kill whatever of its group is left
-        runner.kill_group()
+        stacks.kill_group()
         router.close()
 
     yield from _watched(
-        runner=runner,
+        executor=executor,
+        stacks=stacks,
         episode=episode,
         node=node,
-        run=lambda state: runner._run_one(episode, router.config.listen[0], state),
+        run=lambda state: executor.run_fresh(episode, router_endpoint=router.config.listen[0], state=state),
         cleanup=cleanup,
     )
 
 
 def _watched(
     *,
-    runner: _NodeRunner,
+    executor: EpisodeExecutor,
+    stacks: _GroupStacks,
     episode: PlannedEpisode,
     node: str,
     run: Callable[[WorkerState], EpisodeResult | None],
@@ -661,14 +611,14 @@ def _watched(
     from orchestrator.stack.launcher import wall_guard_s
     from protocol import codec
 
-    guard_s = runner.options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds)
+    guard_s = executor.options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds)
     guard_s += WATCHDOG_SLACK_S
     fired = threading.Event()
 
     def watchdog() -> None:  # the stack's own guards failed to end it: abandon it and kill its processes
         fired.set()
-        runner.stop()
-        runner.kill_group()
+        executor.stop()
+        stacks.kill_group()
 
     timer = threading.Timer(guard_s, watchdog)
     timer.daemon = True
@@ -696,8 +646,8 @@ def _watched(
         timer.cancel()
         abandoned = thread.is_alive() or fired.is_set()
         if thread.is_alive():  # the stream was closed (the task cancelled): abandon the episode
-            runner.stop()
-            runner.kill_group()
+            executor.stop()
+            stacks.kill_group()
         thread.join(timeout=10.0)
         cleanup(abandoned=abandoned)
     if "error" in outcome:
@@ -705,7 +655,7 @@ def _watched(
     result = outcome.get("result")
     if result is None or fired.is_set():
         result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
-    yield OutcomeItem(result=result, files=_small_files(runner.out_dir / "episodes" / f"{episode.index:04d}"))
+    yield OutcomeItem(result=result, files=_small_files(executor.out_dir / "episodes" / f"{episode.index:04d}"))
 
 
 def _timed_out(
@@ -741,4 +691,4 @@ def _small_files(folder: Path) -> dict[str, bytes]:
     return files
 
 
-__all__ = ["EpisodeSlot", "RayMatrixRunner", "capacity", "connect", "run_episode_task", "slots_of", "task_resources"]
+__all__ = ["EpisodeSlot", "RayMatrixRunner", "run_episode_task"]

@@ -85,6 +85,22 @@ _COLUMNS = (
 )
 
 
+@dataclass(frozen=True, kw_only=True)
+class LostAttempt:
+    """An attempt at an episode lost with its node or worker process (Ray): where (``node``, None when the error
+    does not say) and the error, in one line. Stored in the row as ``{"node", "error"}``."""
+
+    node: str | None
+    error: str
+
+    def to_dict(self) -> dict[str, str | None]:
+        return {"node": self.node, "error": self.error}
+
+    @classmethod
+    def from_dict(cls, row: dict) -> LostAttempt:
+        return cls(node=row.get("node"), error=row["error"])
+
+
 @dataclass(frozen=True)
 class EpisodeResult:
     """One finished episode as stored. Paths are relative to the output folder."""
@@ -109,7 +125,7 @@ class EpisodeResult:
     trajectory: str | None = None
     logs: str | None = None
     node: str | None = None  # where it ran (None in results written before this was recorded)
-    lost_attempts: tuple[dict, ...] = ()  # earlier attempts whose node died ({"node", "error"}), never results
+    lost_attempts: tuple[LostAttempt, ...] = ()  # earlier attempts whose node died, never results
 
     @classmethod
     def of(cls, episode: PlannedEpisode, **outcome: Any) -> EpisodeResult:
@@ -222,7 +238,7 @@ class ResultStore:
                 result.trajectory,
                 result.logs,
                 result.node,
-                json.dumps(list(result.lost_attempts)) if result.lost_attempts else None,
+                json.dumps([attempt.to_dict() for attempt in result.lost_attempts]) if result.lost_attempts else None,
             ),
         )
 
@@ -285,7 +301,7 @@ class ResultStore:
             trajectory=trajectory,
             logs=logs,
             node=node,
-            lost_attempts=tuple(json.loads(lost_attempts)) if lost_attempts else (),
+            lost_attempts=tuple(map(LostAttempt.from_dict, json.loads(lost_attempts))) if lost_attempts else (),
         )
 
 

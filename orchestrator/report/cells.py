@@ -19,6 +19,7 @@ from typing import Any
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.report.columns import first_lap_s
 from orchestrator.report.document import FAIL_MARK
+from protocol.messages import EpisodeMetrics
 
 DEFAULT_VARIATION = "default"
 
@@ -78,6 +79,12 @@ def scored_only(results: Iterable[EpisodeResult]) -> list[EpisodeResult]:
     return [r for r in results if r.status == "done" and r.score is not None]
 
 
+def metrics_of(result: EpisodeResult) -> EpisodeMetrics:
+    """The metrics of an episode known to be scored (one of :func:`scored_only`, or one that reached its target)."""
+    assert result.score is not None, f"{result.key} has no score"
+    return result.score.metrics
+
+
 def failure_summary(results: Sequence[EpisodeResult]) -> str:
     counts = Counter(outcome(r) for r in results if not reached_target(r))
     if not counts:
@@ -106,7 +113,7 @@ def grid_cell(results: Sequence[EpisodeResult], *, with_completion: bool = False
     if with_completion:
         scored = scored_only(results)
         if scored:
-            text += f" · {statistics.fmean(r.score.metrics.percentage_completed for r in scored):.0f} %"
+            text += f" · {statistics.fmean(metrics_of(r).percentage_completed for r in scored):.0f} %"
     return text
 
 

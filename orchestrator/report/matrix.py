@@ -53,6 +53,7 @@ from orchestrator.report.cells import (
     failure_summary,
     grid_cell,
     mean_std,
+    metrics_of,
     optional_number,
     outcome,
     reached_target,
@@ -161,7 +162,7 @@ class MatrixReport:
 
     def main_table(self) -> Section:
         episodes, sentence = self.data.baseline()
-        columns = ["Brain", "Circuit", "Episodes", *(c.main for c in MAIN_COLUMNS), "Laps", "Did not finish"]
+        columns = ["Brain", "Circuit", "Episodes", *(c.main or c.field for c in MAIN_COLUMNS), "Laps", "Did not finish"]
         rows = []
         for brain in self.data.brains:
             for circuit in self.data.circuits:
@@ -169,7 +170,7 @@ class MatrixReport:
                 if not group:
                     continue
                 scored = scored_only(group)
-                metrics = [r.score.metrics for r in scored]
+                metrics = [metrics_of(r) for r in scored]
                 laps_done = sum(min(m.completed_laps, r.spec.laps) for r, m in zip(scored, metrics))
                 figures = [
                     mean_std([v for v in (c.main_figure(m) for m in metrics) if v is not None], c.main_digits)
@@ -291,7 +292,7 @@ class MatrixReport:
             metrics = checkpoint.get("metrics") or {}
             split = "val" if isinstance(metrics.get("val"), dict) else "train"
             figures = metrics.get(split) if isinstance(metrics.get(split), dict) else {}
-            train = metrics.get("train") if isinstance(metrics.get("train"), dict) else {}
+            train: dict = metrics["train"] if isinstance(metrics.get("train"), dict) else {}
             if not figures:
                 notes.append(f"{brain}: {path}: the checkpoint carries no MAE/MSE metrics")
                 continue

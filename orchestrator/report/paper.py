@@ -30,7 +30,7 @@ from typing import Any
 import msgspec
 
 from orchestrator.matrix.results import EpisodeResult
-from orchestrator.report.cells import lap_seconds, outcome, reached_target
+from orchestrator.report.cells import lap_seconds, metrics_of, outcome, reached_target
 from orchestrator.report.document import FAIL_MARK, Section, Table
 
 # orchestrator/experiments links to the top-level experiments/ in a checkout and holds the files in a wheel.
@@ -139,7 +139,7 @@ def our_lap_cell(results: Sequence[EpisodeResult], *, with_deviation: bool = Fal
     laps = [t for t in (lap_seconds(r) for r in results) if t is not None]
     text = f"{statistics.fmean(laps):.1f} s" if laps else "✓"
     if with_deviation:
-        text += f", {statistics.fmean(r.score.metrics.position_deviation_mae for r in results):.2f}"
+        text += f", {statistics.fmean(metrics_of(r).position_deviation_mae for r in results):.2f}"
     return text
 
 
@@ -175,7 +175,7 @@ def table3(results: Sequence[EpisodeResult]) -> Table:
         lapped = [r for r in group if reached_target(r)]
         paper = TABLE3.get(brain, (None, None, None))
         if lapped:
-            metrics = [r.score.metrics for r in lapped]
+            metrics = [metrics_of(r) for r in lapped]
             ours = [
                 f"{statistics.fmean(t for t in map(lap_seconds, lapped) if t is not None):.1f}",
                 f"{statistics.fmean(m.position_deviation_mae for m in metrics):.2f}",

@@ -59,9 +59,9 @@ def plot_sections(report: ReportData) -> list[Section]:
         trajectories.blocks.append("No trajectory file could be read.")
     sections.append(trajectories)
     distributions = Section("Distributions")
-    for plot in (_box_plots(report), _progress_plot(report)):
-        if plot is not None:
-            distributions.blocks.append(plot)
+    for figure in (_box_plots(report), _progress_plot(report)):
+        if figure is not None:
+            distributions.blocks.append(figure)
     if distributions.blocks:
         sections.append(distributions)
     return sections
@@ -472,7 +472,7 @@ def _draw_episode(ax, r: EpisodeResult, episode_data: tuple, *, colour_by: str, 
     colours = speed if colour_by == "speed" else xte
     points = np.column_stack([x, y]).reshape(-1, 1, 2)
     segments = np.concatenate([points[:-1], points[1:]], axis=1)
-    lines = LineCollection(segments, cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
+    lines = LineCollection(list(segments), cmap=cmap, norm=norm, linewidths=1.6, zorder=2)
     lines.set_array(colours[1:])
     ax.add_collection(lines)
     if r.spec.start_m > 0 and len(x):  # started along the circuit, not at the track's start (the arrow)

@@ -273,7 +273,7 @@ class LocalStack:
                 f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})"
             )
 
-    # -- a warm stack: what changes from one episode to the next (orchestrator.matrix.warm) --
+    # -- a warm stack: what changes from one episode to the next (orchestrator.matrix.executor) --
 
     def set_brains(self, launches: list[BrainLaunch]) -> tuple[int, int]:
         """Make ``launches`` this running stack's brain hosts: a host started with the same launch (brain, bus name,
