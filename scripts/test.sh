@@ -9,7 +9,7 @@ if command -v node >/dev/null 2>&1; then export DRIVEBENCH_REQUIRE_MCAP_VALIDATO
 # Lint first: a minute of tests is not worth spending on a file that does not pass it.
 .venv/bin/ruff check --quiet . || { echo "scripts/test.sh: ruff found the problems above" >&2; exit 1; }
 .venv/bin/ruff format --check --quiet . || { echo "scripts/test.sh: run .venv/bin/ruff format . (files above)" >&2; exit 1; }
-# Types of the packages pyproject's [tool.mypy] names (all but orchestrator/, which is still to come).
+# Types of every package ([tool.mypy] in pyproject.toml names them).
 .venv/bin/mypy --no-error-summary || { echo "scripts/test.sh: mypy found the problems above" >&2; exit 1; }
 # The documentation site, strict: a broken link, anchor or a page a hook cannot generate fails here (seconds).
 if ! docs_log=$(NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict 2>&1); then
