@@ -22,7 +22,7 @@ pytestmark = pytest.mark.integration
 
 TESTS = Path(__file__).resolve().parent
 SMALL_LIMITS = (
-    "memory_bytes=536870912",  # 512 MiB of address space: the brain host maps ~250 MiB, thread stacks included
+    "memory_bytes=536870912",  # 256 MiB of address space was seen to fail the host's own thread starts
     "max_processes=64",
     "cpu_seconds=4",
     "file_size_bytes=1048576",
@@ -95,7 +95,7 @@ def test_a_secret_in_a_path_outside_the_sandbox_is_not_there(tmp_path):
     secret.parent.mkdir()
     secret.write_text("s3cr3t-0451\n")
     record, out = run_sandboxed(tmp_path, "secret:SecretBrain", f"path={json.dumps(str(secret))}")
-    # Not there, so the brain crashed: typed as a brain death (the sandbox cannot tell a missing file from a hidden one).
+    # Not there, so the brain crashed: a brain death (the sandbox cannot tell a missing file from a hidden one).
     assert record["failure"] == "brain_died" and "FileNotFoundError" in record["detail"], record
     assert "s3cr3t" not in (out / "logs" / "brain-SecretBrain.log").read_text()
 
