@@ -185,3 +185,39 @@ def test_without_bubblewrap_run_sandbox_is_one_line_and_exit_2(tmp_path):
         result.stderr.strip().splitlines()[-1].startswith("drivebench: error: --sandbox: bubblewrap is not installed")
     )
     assert "Traceback" not in result.stderr
+
+
+def test_a_sandboxed_brain_on_a_matrix_worker_gets_a_router_of_its_own(tmp_path):
+    """A matrix's workers join one shared router; a stack with a sandboxed brain has its own instead (the router's
+    access control is made for its brain), and its episode is scored."""
+    from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
+    from protocol.bus import Bus, BusConfig
+    from protocol.messages import CameraSpec, EpisodeSpec
+
+    shared = f"tcp/127.0.0.1:{free_loopback_port()}"
+    launch = BrainLaunch("explicit", sandbox=Sandbox.default(scratch_dir=tmp_path / "scratch"))
+    spec = EpisodeSpec(circuit="simple", max_sim_seconds=1.0, camera=CameraSpec(width_px=64, height_px=48))
+    with (
+        Bus(BusConfig(mode="router", listen=[shared]), name="matrix-router"),
+        LocalStack(run_id="sandboxed", run_dir=tmp_path / "run", brains=[launch], router_endpoint=shared) as stack,
+    ):
+        assert stack.endpoint != shared
+        score = stack.run_episode(spec)
+    assert score.reason == "time_limit" and score.metrics.steps == 20
+
+
+def test_a_warm_lane_gives_a_new_sandboxed_brain_a_new_stack(tmp_path):
+    """A warm lane keeps its stack and swaps brain hosts; a sandboxed brain instead gets a fresh stack, since the
+    router only lets the brains it started with publish commands."""
+    from orchestrator.matrix.warm import WarmLane
+    from orchestrator.stack.launcher import BrainLaunch, LocalStack
+
+    lane = WarmLane(lane=0, stacks_dir=tmp_path / "stacks", make_stack=LocalStack, settings={})
+    try:
+        first = lane.stack_for([BrainLaunch("explicit", sandbox=Sandbox.default(scratch_dir=tmp_path / "a"))])
+        second = lane.stack_for([BrainLaunch("constant", sandbox=Sandbox.default(scratch_dir=tmp_path / "b"))])
+        assert second is not first and second.run_id != first.run_id
+        assert [child.name for child in second.children if child.role == "brain"] == ["constant"]
+        assert second.failure_now() is None
+    finally:
+        lane.close()

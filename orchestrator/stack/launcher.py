@@ -203,6 +203,11 @@ class LocalStack:
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        if self.sandboxed and self.router_endpoint is not None:
+            # A sandboxed brain's stack has its own router, whose access control is made for that brain: a shared
+            # router (a matrix's) would let it publish on every other stack's keys.
+            log.info("run %s has a sandboxed brain: its own router, not the shared %s", self.run_id, self.endpoint)
+            self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
         self.process_group: int | None = None  # with one_group, once the first child is started
         self._init_state(busy_wait_s=OWN_SIMULATOR_BUSY_WAIT_S)
 
@@ -221,6 +226,11 @@ class LocalStack:
         self._sandboxed_names: frozenset[str] = frozenset()  # the brains the router lets publish over it
         self._start_deadlines: dict[str, float] = {}  # a sandboxed brain's token: when its start timeout ends
 
+    @property
+    def sandboxed(self) -> bool:
+        """Whether a brain of this stack runs in a sandbox (the stack then has its own router, always)."""
+        return any(launch.sandbox is not None for launch in self.brains)
+
     def __enter__(self) -> LocalStack:
         try:
             self.start()
@@ -238,7 +248,7 @@ class LocalStack:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         # A local stack is configured by its own arguments alone (LOCAL_ENV): bus variables meant for a stack spread
         # over machines (router, mode, TLS, credentials) must not leak into it.
-        if any(launch.sandbox is not None for launch in self.brains):
+        if self.sandboxed:
             self._open_sandboxed_router()
         elif self.router_endpoint is not None:
             self.bus = Bus(
@@ -264,9 +274,8 @@ class LocalStack:
 
     def _open_sandboxed_router(self) -> None:
         """The stack's own router, listening on its TCP endpoint and on a Unix socket for the sandboxed brains,
-        with the access control that lets a Unix-socket link publish only their command keys."""
-        if self.router_endpoint is not None or not self.embed_router:
-            raise StackError("a sandboxed brain needs the stack's own embedded router (not --router, not a shared one)")
+        with the access control that lets a Unix-socket link publish only their command keys (embedded, whatever
+        ``embed_router`` and ``router_endpoint`` say)."""
         try:
             sandbox.require_bubblewrap()
         except sandbox.SandboxUnavailable as error:
