@@ -107,11 +107,21 @@ def test_a_path_to_hide_inside_a_bound_folder_is_covered(tmp_path):
     hidden.mkdir(parents=True)
     (hidden / "secret-seed").write_text("s3cr3t-0451\n")
     (visible / "code.txt").write_text("readable\n")
+    (visible / "seed.txt").write_text("s3cr3t-0451\n")  # a hidden file, beside the folder
     bus_socket = tmp_path / "bus.sock"
     with socket.socket(socket.AF_UNIX) as listener:
         listener.bind(str(bus_socket))
-        box = Sandbox(scratch_dir=tmp_path / "scratch", hidden_paths=(hidden,))
-        script = f"import os; print(open({str(visible / 'code.txt')!r}).read().strip(), os.listdir({str(hidden)!r}))"
+        box = Sandbox(scratch_dir=tmp_path / "scratch", hidden_paths=(hidden, visible / "seed.txt"))
+        script = "\n".join(
+            [
+                "import os",
+                f"print(open({str(visible / 'code.txt')!r}).read().strip(), os.listdir({str(hidden)!r}))",
+                "try:",
+                f"    print(open({str(visible / 'seed.txt')!r}).read())",
+                "except PermissionError:",
+                "    print('no seed')",  # a hidden file is /dev/null on a mount without devices: not even empty
+            ]
+        )
         confined = sandbox.spawn(
             box,
             command=[sandbox.interpreter(), "-c", script],
@@ -121,7 +131,7 @@ def test_a_path_to_hide_inside_a_bound_folder_is_covered(tmp_path):
         )
         assert confined.process.wait(timeout=60) == 0, (tmp_path / "log.txt").read_text()
     confined.failure()  # joins the output thread
-    assert (tmp_path / "log.txt").read_text().strip() == "readable []"
+    assert (tmp_path / "log.txt").read_text().split() == ["readable", "[]", "no", "seed"]
 
 
 def test_a_write_outside_the_scratch_is_refused(tmp_path):

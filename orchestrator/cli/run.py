@@ -38,7 +38,7 @@ from orchestrator.stack.launcher import (
     render_threads_for,
 )
 from orchestrator.stack.progress import EpisodeProgress
-from orchestrator.stack.sandbox import Sandbox, SandboxUnavailable, require_bubblewrap
+from orchestrator.stack.sandbox import Sandbox, SandboxUnavailable, limits_in_force, require_bubblewrap
 from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.deploy import typed_yaml
@@ -531,17 +531,14 @@ def sandboxed(brains: list[BrainLaunch], args: argparse.Namespace, *, run_dir: P
         except ValueError:
             raise UsageError(f"--sandbox-limit {setting}: {value!r} is not a number") from None
     try:
-        return [
-            dataclasses.replace(
-                launch,
-                sandbox=dataclasses.replace(
-                    Sandbox.default(scratch_dir=run_dir / "scratch" / launch.bus_name), **limits
-                ),
-            )
+        boxes = [
+            dataclasses.replace(Sandbox.default(scratch_dir=run_dir / "scratch" / launch.bus_name), **limits)
             for launch in brains
         ]
     except ValueError as error:
         raise UsageError(f"--sandbox-limit: {error}") from None
+    print(f"drivebench: sandbox limits: {limits_in_force(boxes[0])}", file=sys.stderr)
+    return [dataclasses.replace(launch, sandbox=box) for launch, box in zip(brains, boxes, strict=True)]
 
 
 def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainLaunch]]:

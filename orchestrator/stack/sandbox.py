@@ -281,9 +281,14 @@ def bwrap_argv(
     for path in binds:
         if not path.is_relative_to("/usr"):
             argv += ["--ro-bind", str(path), str(path)]
-    for path in hidden:  # a hidden folder inside a bound one: an empty tmpfs over it
-        if any(path.is_relative_to(bound) for bound in binds) and path.is_dir():
-            argv += ["--tmpfs", str(path)]
+    # A hidden path inside a bound folder: an empty tmpfs over a folder; over a file, /dev/null, which its bind
+    # (no devices) makes unreadable.
+    for path in hidden:
+        if any(path.is_relative_to(bound) for bound in binds):
+            if path.is_dir():
+                argv += ["--tmpfs", str(path)]
+            elif path.exists():
+                argv += ["--ro-bind", "/dev/null", str(path)]
     argv += ["--bind", str(sandbox.scratch_dir.resolve()), SCRATCH_INSIDE, "--chdir", SCRATCH_INSIDE]
     argv += ["--bind", str(socket_path), SOCKET_INSIDE, "--clearenv"]
     inside = {
