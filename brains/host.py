@@ -31,6 +31,7 @@ import msgspec
 
 from brains.base import Brain, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, brain_names, bus_name, make_brain
+from brains.sandbox_exit import exit_for
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.deploy.runtime import stop_requested
@@ -75,6 +76,9 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
         starts outlives its stack. 0 (default): wait for a simulator forever (services started by hand, compose).
     shadow: started as a shadow (``drivebench run --shadow``, a matrix's ``shadows:``): its commands say so, and the
         score reports how far they were from the driver's. A brain that drives, or waits to be swapped in, is not.
+    sandboxed: runs inside the launcher's sandbox (``orchestrator.stack.sandbox``): an error of the brain's that is
+        the sandbox's wall (a limit, a refused write or connection) exits with its ``brains.sandbox_exit`` code, so
+        that the launcher types the failure by the code.
     """
 
     bus: BusConfig = BusConfig()
@@ -85,6 +89,7 @@ class BrainHostConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_
     camera: str = "auto"
     orphan_timeout_s: float = 0.0
     shadow: bool = False
+    sandboxed: bool = False
 
     def __post_init__(self) -> None:
         if self.orphan_timeout_s < 0:
@@ -307,7 +312,7 @@ def source_of(spec: EpisodeSpec | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from protocol.deploy.runtime import UserError, load_service_config, log_config, run_service, service_parser
+    from protocol.deploy.runtime import load_service_config, log_config, run_service, service_parser
 
     parser = service_parser("drivebench brain host: camera frames in, driving commands out")
     parser.add_argument("--brain", help=f"brain to run ({', '.join(brain_names())})")
@@ -328,19 +333,34 @@ def main(argv: list[str] | None = None) -> int:
         )
         log_config(config)
         try:
-            brain = make_brain(config.brain, **config.options)
-        except (UnknownBrainError, BrainOptionsError) as error:
-            raise UserError(str(error)) from None
-        except TypeError as error:
-            raise UserError(f"bad options for brain {config.brain!r}: {error}") from None
-        with Bus(config.bus, name=f"brain-{config.bus_name}") as bus:
-            join_bus = getattr(brain, "join_bus", None)
-            if callable(join_bus):  # a brain that talks on the bus itself (ros2: a ROS 2 node)
-                join_bus(bus)
-            BrainHost(config, bus, brain).serve_forever()
-        return 0
+            return _host(config)
+        except Exception as error:
+            wall = exit_for(error) if config.sandboxed else None
+            if wall is None:
+                raise
+            # The brain's own code met the sandbox's wall: say which by the exit code, the traceback in the log.
+            log.error("brain %s stopped by the sandbox (%s)", config.bus_name, wall.name.lower(), exc_info=error)
+            return int(wall)
 
     return run_service("brain", run)
+
+
+def _host(config: BrainHostConfig) -> int:
+    """Make the brain, then serve it on the bus until stopped (exit code 0)."""
+    from protocol.deploy.runtime import UserError
+
+    try:
+        brain = make_brain(config.brain, **config.options)
+    except (UnknownBrainError, BrainOptionsError) as error:
+        raise UserError(str(error)) from None
+    except TypeError as error:
+        raise UserError(f"bad options for brain {config.brain!r}: {error}") from None
+    with Bus(config.bus, name=f"brain-{config.bus_name}") as bus:
+        join_bus = getattr(brain, "join_bus", None)
+        if callable(join_bus):  # a brain that talks on the bus itself (ros2: a ROS 2 node)
+            join_bus(bus)
+        BrainHost(config, bus, brain).serve_forever()
+    return 0
 
 
 def _own_measures(action: Any) -> dict[str, Any]:

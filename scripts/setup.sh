@@ -85,5 +85,9 @@ if command -v npm >/dev/null 2>&1; then
 else
   echo "npm not found: the MCAP validator tests will be skipped (install Node >= 18 and run scripts/setup.sh again)"
 fi
+# A sandboxed brain host (drivebench run --sandbox, a challenge server) runs inside bubblewrap, a system package.
+if ! command -v bwrap >/dev/null 2>&1; then
+  echo "bwrap not found: --sandbox and its tests need bubblewrap (Debian: apt-get install bubblewrap; .ci/run installs it)"
+fi
 echo "$wanted full" >"$STAMP"
 echo "set up .venv: done" >&2

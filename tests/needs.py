@@ -42,3 +42,14 @@ def require_gl() -> None:
 
     if (reason := egl_unavailable_reason()) is not None:
         missing(f"no EGL context for the gl renderer: {reason}")
+
+
+def require_bubblewrap() -> None:
+    """Skip (developer's machine) or fail (CI) unless brain hosts can be sandboxed here (bubblewrap and util-linux's
+    prlimit/setpriv, and namespaces it may create): ``orchestrator.stack.sandbox``."""
+    from orchestrator.stack.sandbox import SandboxUnavailable, require_bubblewrap
+
+    try:
+        require_bubblewrap()
+    except SandboxUnavailable as error:
+        missing(str(error))

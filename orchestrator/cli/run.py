@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import logging
 import sys
@@ -24,7 +25,7 @@ from typing import Any
 import msgspec
 import yaml
 
-from brains.registry import BEHAVIOR_METRICS, UnknownBrainError, bus_name, is_brain_file, require_brain
+from brains.registry import BEHAVIOR_METRICS, UnknownBrainError, bus_name, is_brain_file, require_brain, resolve
 from circuits import Circuit, CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError, require_file
 from orchestrator.report.episode import episode_words, metrics_table
@@ -37,6 +38,7 @@ from orchestrator.stack.launcher import (
     render_threads_for,
 )
 from orchestrator.stack.progress import EpisodeProgress
+from orchestrator.stack.sandbox import Sandbox, SandboxUnavailable, limits_in_force, require_bubblewrap
 from protocol import codec, environment
 from protocol.bus import BusError
 from protocol.deploy import typed_yaml
@@ -217,6 +219,21 @@ def _add_brain_options(run: argparse._ActionsContainer) -> None:
         metavar="BRAIN[=CKPT]",
         help="a shadow brain: sees the same frames, drives nothing; the score says how far its commands "
         "were from the driver's (repeatable; bus name BRAIN, or BRAIN-shadowN when taken)",
+    )
+    run.add_argument(
+        "--sandbox",
+        action="store_true",
+        help="run every brain host inside bubblewrap, as a challenge server does: no network but the bus over a "
+        "Unix socket, a read-only file system but its scratch (RUN_FOLDER/scratch/NAME), resource limits "
+        "(docs/guides/sandbox.md); needs bubblewrap",
+    )
+    run.add_argument(
+        "--sandbox-limit",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="with --sandbox: one of its limits, e.g. memory_bytes=268435456 "
+        f"(repeatable; keys: {', '.join(LIMIT_KEYS)})",
     )
 
 
@@ -489,12 +506,13 @@ def command_run(args: argparse.Namespace) -> int:
     refuse_replaced_options(args)
     ros2_options = ros2_bridge_options(args)  # a bad --ros2-option or domain: one line before anything starts
     spec, brains = run_from_config(args.config) if args.config else run_from_options(args)
+    run_id = args.run_id or uuid.uuid4().hex[:8]
+    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
+    brains = sandboxed(brains, args, run_dir=run_dir)
     try:
         preflight_launches(brains)  # bad weights or options: one line now, not a dead brain after start-up
     except ValueError as error:
         raise UsageError(str(error)) from None
-    run_id = args.run_id or uuid.uuid4().hex[:8]
-    run_dir = args.out or args.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{run_id}"
     run_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(
         filename=run_dir / "launcher.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
@@ -513,18 +531,21 @@ def command_run(args: argparse.Namespace) -> int:
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
     try:
-        with LocalStack(
-            run_id=run_id,
-            run_dir=run_dir,
-            brains=brains,
-            record=args.record,
-            record_options=(f"image_format={args.record_images}",),
-            ros2=ros2_options,
-            render_threads=render_threads_for(stacks=1),
-        ) as stack:
+        # A failure while the stack comes up is recorded too: a sandboxed brain's is typed (its limit, its start).
+        with (
+            recorded_failure(run_dir, run_id=run_id, as_json=args.json),
+            LocalStack(
+                run_id=run_id,
+                run_dir=run_dir,
+                brains=brains,
+                record=args.record,
+                record_options=(f"image_format={args.record_images}",),
+                ros2=ros2_options,
+                render_threads=render_threads_for(stacks=1),
+            ) as stack,
+        ):
             stack.write_stack_file()  # drivebench swap finds the running stack through it
-            with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
-                score = stack.run_episode(spec, on_live=progress.update)
+            score = stack.run_episode(spec, on_live=progress.update)
             if score.reason == EndReason.BRAIN_LOST:  # scored up to its death: say what killed it (its last line)
                 dead = stack.dead_child_reason(wait_s=5.0) or "the brain lost its liveliness token"
                 print(f"drivebench: brain_died: {dead}", file=sys.stderr)
@@ -542,10 +563,45 @@ def command_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+LIMIT_KEYS = ("memory_bytes", "max_processes", "cpu_seconds", "file_size_bytes", "output_bytes", "start_timeout_s")
+
+
+def sandboxed(brains: list[BrainLaunch], args: argparse.Namespace, *, run_dir: Path) -> list[BrainLaunch]:
+    """``brains`` each in its own sandbox with ``--sandbox`` (its limits from ``--sandbox-limit``), else as they
+    are. UsageError (one line) without bubblewrap, or for a bad limit."""
+    if not args.sandbox:
+        if args.sandbox_limit:
+            raise UsageError("--sandbox-limit needs --sandbox")
+        return brains
+    try:
+        require_bubblewrap()
+    except SandboxUnavailable as error:
+        raise UsageError(f"--sandbox: {error}") from None
+    limits: dict[str, Any] = {}  # Sandbox field -> int, or float for start_timeout_s
+    for setting in args.sandbox_limit:
+        key, equals, value = setting.partition("=")
+        if not equals or key not in LIMIT_KEYS:
+            raise UsageError(f"--sandbox-limit {setting}: expected KEY=VALUE with KEY one of {', '.join(LIMIT_KEYS)}")
+        try:
+            limits[key] = float(value) if key == "start_timeout_s" else int(value)
+        except ValueError:
+            raise UsageError(f"--sandbox-limit {setting}: {value!r} is not a number") from None
+    try:
+        boxes = [
+            dataclasses.replace(Sandbox.default(scratch_dir=run_dir / "scratch" / launch.bus_name), **limits)
+            for launch in brains
+        ]
+    except ValueError as error:
+        raise UsageError(f"--sandbox-limit: {error}") from None
+    print(f"drivebench: sandbox limits: {limits_in_force(boxes[0])}", file=sys.stderr)
+    return [dataclasses.replace(launch, sandbox=box) for launch, box in zip(brains, boxes, strict=True)]
+
+
 def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainLaunch]]:
     args.brain = args.brain or "explicit"
     with flag(f"--brain {args.brain}"):
-        require_brain(args.brain)
+        # A brain to sandbox is not imported out here: its module's code may be anything.
+        (resolve if args.sandbox else require_brain)(args.brain)
     spec = episode_spec(args)
     options = tuple(args.brain_option)
     if args.weights is not None:
@@ -663,6 +719,8 @@ def recorded_failure(run_dir: Path, *, run_id: str, as_json: bool):
 
 
 def command_run_attached(args: argparse.Namespace) -> int:
+    if args.sandbox:
+        raise UsageError("--sandbox starts its own stack: it cannot be used with --attach")
     """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
     from orchestrator.stack.launcher import AttachedStack
 

@@ -351,6 +351,12 @@ class WarmLane:
                 self.retire("it did not come up")
                 raise
             return stack
+        if self.stack.brains != launches and any(
+            launch.sandbox is not None for launch in [*self.stack.brains, *launches]
+        ):
+            # A sandboxed brain's router lets only the brains it started with publish commands: a stack of its own.
+            self.retire("its brain hosts change, and a sandboxed one has a stack of its own")
+            return self.stack_for(launches)
         if self.stack.brains != launches:
             try:
                 kept, started = self.stack.set_brains(launches)

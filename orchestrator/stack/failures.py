@@ -25,6 +25,12 @@ class FailureKind(StrEnum):
     ROS2_BRIDGE_DIED = "ros2_bridge_died"  # the ROS 2 bridge exited (drivebench run --ros2)
     START_FAILED = "start_failed"  # the stack did not come up, or the simulator refused the episode
     WALL_TIMEOUT = "wall_timeout"  # no score within the wall-clock guard (a hung episode)
+    # A sandboxed brain (orchestrator.stack.sandbox) that met its sandbox: a resource limit it went past (memory,
+    # processes, CPU seconds, file size, output), an operation the sandbox refused (a write outside its scratch,
+    # the network), or a host that did not come up within its start timeout (a brain slow in __init__).
+    LIMIT_EXCEEDED = "limit_exceeded"
+    SANDBOX_VIOLATION = "sandbox_violation"
+    BRAIN_START_TIMEOUT = "brain_start_timeout"
     NODE_DIED = "node_died"  # (--ray) the cluster node running it died, more often than the retries allow
     ERROR = "error"  # anything else, with its message
 

@@ -12,8 +12,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import socket
 import subprocess
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
@@ -23,8 +25,9 @@ from pathlib import Path
 import msgspec
 
 from brains.registry import bus_name
-from orchestrator.stack import processes
+from orchestrator.stack import processes, sandbox
 from orchestrator.stack.failures import Failure, FailureKind
+from orchestrator.stack.sandbox import Sandbox, SandboxedProcess
 from protocol import codec, environment, keys
 from protocol.bus import (
     ANSWER_TIMEOUT_S,
@@ -38,7 +41,15 @@ from protocol.bus import (
     probe_router,
 )
 from protocol.deploy import graph
-from protocol.messages import ControlReply, ControlRequest, EpisodeScore, EpisodeSpec, LiveMetrics, ReplyCode
+from protocol.messages import (
+    ControlReply,
+    ControlRequest,
+    EndReason,
+    EpisodeScore,
+    EpisodeSpec,
+    LiveMetrics,
+    ReplyCode,
+)
 
 log = logging.getLogger("drivebench.launcher")
 
@@ -115,12 +126,15 @@ def free_loopback_port() -> int:
 @dataclass(frozen=True)
 class BrainLaunch:
     """A brain host to start: registered brain, its bus name, constructor options as ``key=value`` YAML overrides,
-    and overrides of the host's own config (``brains.host.BrainHostConfig``, e.g. ``("camera=perturbed",)``)."""
+    and overrides of the host's own config (``brains.host.BrainHostConfig``, e.g. ``("camera=perturbed",)``).
+    ``sandbox``: run this host inside bubblewrap with these limits (``orchestrator.stack.sandbox``), joined to the
+    stack's router only through a Unix socket; None: an ordinary child process."""
 
     brain: str
     name: str = ""
     options: tuple[str, ...] = ()
     host: tuple[str, ...] = ()
+    sandbox: Sandbox | None = None
 
     @property
     def bus_name(self) -> str:
@@ -129,8 +143,9 @@ class BrainLaunch:
 
 def preflight_launches(launches: list[BrainLaunch]) -> None:
     """Check every brain launch before anything starts (``brains.registry.preflight``): UnknownBrainError or
-    BrainOptionsError, one line, naming the brain and what is wrong."""
-    from brains.registry import preflight
+    BrainOptionsError, one line, naming the brain and what is wrong. A sandboxed brain's code is not imported here,
+    outside its sandbox: only its name is resolved."""
+    from brains.registry import preflight, resolve
     from protocol.deploy.config import ConfigError, apply_overrides
 
     for launch in launches:
@@ -138,7 +153,10 @@ def preflight_launches(launches: list[BrainLaunch]) -> None:
             options = apply_overrides({}, launch.options)
         except ConfigError as error:
             raise ConfigError(f"brain {launch.brain!r}: {error}") from None
-        preflight(launch.brain, options)
+        if launch.sandbox is not None:
+            resolve(launch.brain)
+        else:
+            preflight(launch.brain, options)
 
 
 @dataclass
@@ -147,6 +165,7 @@ class Child:
     name: str
     process: subprocess.Popen
     log_path: Path
+    sandboxed: SandboxedProcess | None = None
 
     def last_log_line(self) -> str:
         return processes.last_log_line(self.log_path)
@@ -197,6 +216,11 @@ class LocalStack:
     def __post_init__(self) -> None:
         keys.check_name(self.run_id, what="run id")
         self.endpoint = self.router_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        if self.sandboxed and self.router_endpoint is not None:
+            # A sandboxed brain's stack has its own router, whose access control is made for that brain: a shared
+            # router (a matrix's) would let it publish on every other stack's keys.
+            log.info("run %s has a sandboxed brain: its own router, not the shared %s", self.run_id, self.endpoint)
+            self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
         self.process_group: int | None = None  # with one_group, once the first child is started
         self._init_state(busy_wait_s=OWN_SIMULATOR_BUSY_WAIT_S)
 
@@ -211,6 +235,14 @@ class LocalStack:
         self.last_episode: int | None = None  # the simulator's number of the episode run last (a warm stack runs many)
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
         # the simulator itself ends the episode with brain_lost when the active brain's token goes)
+        self._bus_socket: Path | None = None  # the router's Unix socket, the only way in of sandboxed brains
+        self._sandboxed_names: frozenset[str] = frozenset()  # the brains the router lets publish over it
+        self._start_deadlines: dict[str, float] = {}  # a sandboxed brain's token: when its start timeout ends
+
+    @property
+    def sandboxed(self) -> bool:
+        """Whether a brain of this stack runs in a sandbox (the stack then has its own router, always)."""
+        return any(launch.sandbox is not None for launch in self.brains)
 
     def __enter__(self) -> LocalStack:
         try:
@@ -229,7 +261,9 @@ class LocalStack:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         # A local stack is configured by its own arguments alone (LOCAL_ENV): bus variables meant for a stack spread
         # over machines (router, mode, TLS, credentials) must not leak into it.
-        if self.router_endpoint is not None:
+        if self.sandboxed:
+            self._open_sandboxed_router()
+        elif self.router_endpoint is not None:
             self.bus = Bus(
                 BusConfig(mode="peer", connect=[self.endpoint]), name=f"launcher-{self.run_id}", env=LOCAL_ENV
             )
@@ -239,6 +273,7 @@ class LocalStack:
             self._spawn("router", "router", "services.router", ["--listen", self.endpoint], connect=False)
             self._wait_for_router()
             self.bus = Bus(BusConfig(mode="peer", connect=[self.endpoint]), name="launcher", env=LOCAL_ENV)
+        assert self.bus is not None, "every branch above opens the stack's bus"
         self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
         wanted: set[str] = set()
         if self.record is not None:
@@ -253,25 +288,114 @@ class LocalStack:
         self._required = {key for key in wanted if keys.parse_alive(key)[1] != "brain"}
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
+    def _open_sandboxed_router(self) -> None:
+        """The stack's own router, listening on its TCP endpoint and on a Unix socket for the sandboxed brains,
+        with the access control that lets a Unix-socket link publish only their command keys (embedded, whatever
+        ``embed_router`` and ``router_endpoint`` say)."""
+        try:
+            sandbox.require_bubblewrap()
+        except sandbox.SandboxUnavailable as error:
+            raise StackError(str(error)) from None
+        # A short path of our own: a Unix socket's path is at most 107 bytes, and a run folder may be longer.
+        self._bus_socket = Path(tempfile.mkdtemp(prefix="drivebench-bus-")) / "bus.sock"
+        self._sandboxed_names = frozenset(launch.bus_name for launch in self.brains if launch.sandbox is not None)
+        control = sandbox.access_control(run_id=self.run_id, brain_names=self._sandboxed_names)
+        listen = [self.endpoint, f"unixsock-stream/{self._bus_socket}"]
+        self.bus = Bus(
+            BusConfig(mode="router", listen=listen), name="launcher", env=LOCAL_ENV, extra={"access_control": control}
+        )
+        self._bus_socket.parent.chmod(0o755)  # the sandbox's own uid connects through it
+        self._bus_socket.chmod(0o666)
+
     def _spawn_brain(self, launch: BrainLaunch) -> str:
         argv = ["--brain", launch.brain, "--name", launch.bus_name]
         for option in launch.options:
             argv += ["--set", f"options.{option}"]
         for setting in launch.host:
             argv += ["--set", setting]
+        if launch.sandbox is not None:
+            return self._spawn_sandboxed(launch, argv)
         return self._spawn_role(graph.role("brain"), argv, name=launch.bus_name)
 
+    def _spawn_sandboxed(self, launch: BrainLaunch, argv: list[str]) -> str:
+        """Start one brain host inside its sandbox, a client of the router through the Unix socket only."""
+        assert launch.sandbox is not None
+        if self._bus_socket is None or launch.bus_name not in self._sandboxed_names:
+            raise StackError(f"brain {launch.bus_name!r}: a sandboxed brain is started with its stack, not added later")
+        joins = ["--router", f"unixsock-stream/{sandbox.SOCKET_INSIDE}", "--run-id", self.run_id]
+        # A client with no listener and no shared memory: the socket is its one link (nothing is shared with it).
+        confined = ["--set", "bus.mode=client", "--set", "bus.shared_memory=false", "--set", "sandboxed=true"]
+        readable, importable = sandbox.brain_paths(launch.brain, launch.options)
+        project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
+        log_path = self.run_dir / "logs" / f"brain-{launch.bus_name}.log"
+        env = {k: v for k, v in os.environ.items() if k.startswith("DRIVEBENCH_") and k not in BUS_ENV}
+        for name in (environment.RUN_ID.name, environment.PARENT_PID.name):  # bubblewrap dies with us instead
+            env.pop(name, None)
+        confined_process = sandbox.spawn(
+            launch.sandbox,
+            command=[sandbox.interpreter(), *processes.python_module("brains")[1:], *joins, *argv, *confined],
+            log_path=log_path,
+            socket_path=self._bus_socket,
+            readable=[*sandbox.python_paths(), project, *readable],
+            importable=[project, *importable],
+            env=env,
+        )
+        child = Child(
+            role="brain",
+            name=launch.bus_name,
+            process=confined_process.process,
+            log_path=log_path,
+            sandboxed=confined_process,
+        )
+        self.children.append(child)
+        token = graph.role("brain").token_key(self.run_id, launch.bus_name)
+        self._start_deadlines[token] = time.monotonic() + launch.sandbox.start_timeout_s
+        return token
+
     def _wait_alive(self, wanted: set[str]) -> None:
-        """Until every liveliness key in ``wanted`` is alive; StackError (one line) when a child dies or time is up."""
+        """Until every liveliness key in ``wanted`` is alive; StackError (one line) when a child dies or time is up
+        (a typed StackFailure for a sandboxed brain: how it died, or ``brain_start_timeout``)."""
         assert self._watch is not None
-        missing = self._watch.wait_for(wanted, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason)
-        if (dead := self._dead_child_reason()) is not None:
-            raise StackError(dead)
+        confined = {token for token in wanted if token in self._start_deadlines}
+        missing = self._watch.wait_for(
+            wanted - confined, timeout_s=self.startup_timeout_s, abort=self._dead_child_reason
+        )
+        self._raise_if_dead()
         if missing:
             names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
             raise StackError(
                 f"not alive after {self.startup_timeout_s:.0f} s: {names} (logs in {self.run_dir / 'logs'})"
             )
+        for token in sorted(confined):
+            left_s = max(0.0, self._start_deadlines[token] - time.monotonic())
+            missing = self._watch.wait_for({token}, timeout_s=left_s, abort=self._dead_child_reason)
+            self._raise_if_dead()
+            if missing:
+                name = keys.parse_alive(token)[2]
+                raise StackFailure(
+                    FailureKind.BRAIN_START_TIMEOUT,
+                    f"sandboxed brain {name!r} not alive within its start timeout "
+                    f"({self.child('brain', name).sandboxed.sandbox.start_timeout_s:.0f} s)",  # type: ignore[union-attr]
+                )
+
+    def _raise_if_dead(self) -> None:
+        """StackError for a child that died while the stack came up; a sandboxed brain's death is typed."""
+        if (dead := self._dead_child_reason()) is None:
+            return
+        child = self._dead_child()
+        if child is not None and child.sandboxed is not None:
+            raise self._sandboxed_failure(child)
+        raise StackError(dead)
+
+    def _sandboxed_failure(self, child: Child) -> StackFailure:
+        """A dead sandboxed brain's failure: the sandbox's reason (a limit, a refused operation), else its death."""
+        assert child.sandboxed is not None
+        reason = processes.exit_reason(child.process, what=f"brain {child.name!r}", log_path=child.log_path)
+        typed = child.sandboxed.failure()
+        if typed is None:
+            return StackFailure(FailureKind.BRAIN_DIED, reason or f"brain {child.name!r} exited")
+        kind, detail = typed
+        return StackFailure(kind, f"sandboxed brain {child.name!r}: {detail} ({reason})")
 
     # -- a warm stack: what changes from one episode to the next (orchestrator.matrix.executor) --
 
@@ -429,6 +553,8 @@ class LocalStack:
     def _failure(self) -> StackFailure | None:
         """A process of this stack that died, or a required liveliness token that vanished, as a typed failure."""
         if (dead := self._dead_child()) is not None:
+            if dead.sandboxed is not None:
+                return self._sandboxed_failure(dead)
             reason = processes.exit_reason(dead.process, what=f"{dead.role} {dead.name!r}", log_path=dead.log_path)
             return StackFailure(FailureKind.died(dead.role), reason or f"{dead.role} {dead.name!r} exited")
         if self._watch is not None and (gone := self._required - self._watch.alive()):
@@ -473,6 +599,9 @@ class LocalStack:
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+        if self._bus_socket is not None:
+            shutil.rmtree(self._bus_socket.parent, ignore_errors=True)  # our own folder of the router's socket
+            self._bus_socket = None
         self._remove_stack_file()
 
     def write_stack_file(self) -> Path:
@@ -585,9 +714,26 @@ class LocalStack:
             if message.header.episode != episode:
                 continue
             if isinstance(message, EpisodeScore):
+                if message.reason == EndReason.BRAIN_LOST and (typed := self._sandbox_ended(message)) is not None:
+                    raise typed
                 return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
             if on_live is not None:
                 on_live(message)
+
+    def _sandbox_ended(self, score: EpisodeScore) -> StackFailure | None:
+        """A brain_lost episode whose sandboxed brain its sandbox stopped: that failure, with the score (the score
+        may come before the process is reaped: wait a moment for it)."""
+        deadline = time.monotonic() + SCORE_AFTER_DEATH_S
+        while True:
+            for child in self.children:
+                if child.sandboxed is not None and child.process.poll() is not None:
+                    failure = self._sandboxed_failure(child)
+                    if failure.kind != FailureKind.BRAIN_DIED:
+                        failure.score = score
+                        return failure
+            if time.monotonic() > deadline or not any(c.sandboxed is not None for c in self.children):
+                return None
+            time.sleep(0.05)
 
     def _tolerate_recorder(self, failure: StackFailure) -> None:
         log.warning("the recorder died; the episode goes on: %s", failure)
