@@ -107,9 +107,11 @@ def _check_conditions(text: str, *, source: str) -> None:
         raise MatrixError(f"a conditions file has exactly two parts, {PUBLIC} and {HIDDEN}", source=source, line=1)
     draw = parts[HIDDEN].get("draw")
     if not isinstance(draw, dict):
-        raise MatrixError("the hidden part draws its conditions (draw: {count: ..., circuits: ...})", source=source)
+        what = "the hidden part draws its conditions (draw: {count: ..., circuits: ...})"
+        raise MatrixError(what, source=source, line=None)
     if "seed" in draw:
-        raise MatrixError("the hidden draw takes no seed: it comes from the data folder's secret", source=source)
+        what = "the hidden draw takes no seed: it comes from the data folder's secret"
+        raise MatrixError(what, source=source, line=None)
 
 
 def secret_seed(data_dir: Path) -> int:

@@ -11,7 +11,6 @@ Every brain launch goes through :func:`brain_launch_of`, the one place a submiss
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
