@@ -288,3 +288,24 @@ def _submissions(data: Path) -> list[dict]:
         return [{"id": s.id} for s in store.all()]
     finally:
         store.close()
+
+
+@pytest.mark.slow
+def test_the_page_shows_the_ranking_and_a_submissions_cells_in_chromium(board, tmp_path):
+    import shutil
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("no chromium on PATH (Debian: apt-get install chromium)")
+    final = last_json(submit(board, brain_file(tmp_path, "good.py", GOOD_BRAIN), name="pilot-one", wait=True))
+    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=3000", "--dump-dom"]
+
+    def dom(path: str) -> str:
+        done = subprocess.run([*flags, board.url + path], capture_output=True, text=True, timeout=90)
+        return done.stdout
+
+    index = dom("/")
+    assert 'class="entry"' in index and "pilot-one" in index and 'id="unsandboxed"' in index
+    page = dom(f"/submissions/{final['id']}")
+    assert '<strong id="state" data-final="true">scored</strong>' in page
+    assert 'id="public-cells"' in page and "<td>simple</td>" in page and "over conditions" in page
