@@ -261,6 +261,7 @@ def _evaluations_of(data: Path) -> list[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # twenty evaluations on two workers: minutes on a 2-core machine
 def test_twenty_submissions_at_once_all_end_scored_or_rejected(tmp_path):
     require("starlette")
     conditions = tmp_path / "tiny.yaml"

@@ -181,11 +181,20 @@ _COLUMNS = (
 
 
 def _submission(row: tuple) -> Submission:
-    *head, scores_json, config_sha256 = row
+    (submission_id, seq, name, kind, filename, state, attempt, created_at, updated_at, reason, detail) = row[:11]
+    scores_json, config_sha256 = row[11:]
     return Submission(
-        *head[:5],
-        State(head[5]),
-        *head[6:],
+        id=submission_id,
+        seq=seq,
+        name=name,
+        kind=kind,
+        filename=filename,
+        state=State(state),
+        attempt=attempt,
+        created_at=created_at,
+        updated_at=updated_at,
+        reason=reason,
+        detail=detail,
         scores=json.loads(scores_json) if scores_json else None,
         config_sha256=config_sha256,
     )

@@ -80,7 +80,7 @@ def run_serve(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _open_board(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def _open_board(args: argparse.Namespace) -> Any:
     try:
         from orchestrator.board.challenge import Redactor, load_challenge
         from orchestrator.board.store import BoardStore, StoreError
