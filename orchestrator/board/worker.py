@@ -29,6 +29,9 @@ CHECK_TIMEOUT_S = 120.0  # the contract's ~700 frames; a brain that needs longer
 CHECK_MEMORY_STEPS = 50  # frames of the checker's memory-growth check: enough for a leak that keeps every frame
 EVALUATION_TIMEOUT_S = 1800.0  # a wall guard over the whole matrix (each episode has its own guard too)
 IDLE_POLL_S = 0.5
+# A stack that failed on the server's side (a start timeout on a loaded machine) is not the brain's fault: the
+# evaluation runs again, from scratch, up to this many attempts in all, before the submission ends ``error``.
+MAX_ATTEMPTS = 3
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,8 @@ class Workers:
             state, fields = State.SCORED, {"scores": outcome.scores, "config_sha256": digest(config_text)}
         elif outcome.rejection is not None:
             state, fields = State.REJECTED, {"reason": outcome.rejection, "detail": outcome.detail}
+        elif submission.attempt < MAX_ATTEMPTS:
+            state, fields = State.QUEUED, {"detail": f"attempt {submission.attempt}: {outcome.detail}; again"}
         else:
             state, fields = State.ERROR, {"detail": outcome.detail}
         if self.store.advance(submission, state, **fields):
