@@ -57,8 +57,8 @@ def brain_of(submission: Submission, *, folders: Folders) -> Brain:
 class Workers:
     """``count`` worker threads over the store's queue; :meth:`stop` ends them (children too) and waits."""
 
-    def __init__(self, *, store: BoardStore, challenge: Challenge, folders: Folders, count: int):
-        self.store, self.challenge, self.folders = store, challenge, folders
+    def __init__(self, *, store: BoardStore, challenge: Challenge, folders: Folders, count: int, sandboxed: bool):
+        self.store, self.challenge, self.folders, self.sandboxed = store, challenge, folders, sandboxed
         self._stopping = threading.Event()
         self._children: set[subprocess.Popen] = set()
         self._lock = threading.Lock()
@@ -125,7 +125,7 @@ class Workers:
         text = self.challenge.matrix_text(brain=brain.entry)
         (folder / "evaluation.yaml").write_text(text)  # the exact config of the scores (secret: it names the seed)
         argv = [*processes.python_module("orchestrator.board.evaluate"), "--matrix", str(folder / "evaluation.yaml")]
-        argv += ["--out", str(folder / "matrix")]
+        argv += ["--out", str(folder / "matrix"), *([] if self.sandboxed else ["--unsafe-no-sandbox"])]
         try:
             self._child(argv, cwd=brain.code_dir, log_path=folder / "evaluate.log", timeout_s=EVALUATION_TIMEOUT_S)
         except subprocess.TimeoutExpired:

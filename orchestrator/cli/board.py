@@ -26,8 +26,8 @@ from orchestrator.cli.errors import EXIT_FAILED, EXIT_OK, CommandFailed, UsageEr
 
 WAIT_POLL_S = 1.0
 NOT_SANDBOXED = (
-    "drivebench board serve: this drivebench has no brain sandbox yet; start with --unsafe-no-sandbox to run "
-    "submitted brains unsandboxed (trusted local use only)"
+    "drivebench board serve: no sandbox for submitted brains (install Debian's bubblewrap), or start with "
+    "--unsafe-no-sandbox to run them unsandboxed (trusted local use only)"
 )
 
 
@@ -60,7 +60,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if not args.unsafe_no_sandbox:
-        raise UsageError(NOT_SANDBOXED)
+        _require_sandbox()
     board = _open_board(args)
     from orchestrator.board.web import make_app
     from protocol.deploy.runtime import setup_logging
@@ -70,7 +70,13 @@ def run_serve(args: argparse.Namespace) -> int:
 
     requeued = board.store.requeue_interrupted()
     print(f"drivebench board: {requeued} interrupted submission(s) back in the queue", file=sys.stderr)
-    workers = Workers(store=board.store, challenge=board.challenge, folders=board.folders, count=args.workers)
+    workers = Workers(
+        store=board.store,
+        challenge=board.challenge,
+        folders=board.folders,
+        count=args.workers,
+        sandboxed=board.sandboxed,
+    )
     workers.start()
     try:
         _serve(make_app(board), host=args.host, port=args.port)
@@ -78,6 +84,16 @@ def run_serve(args: argparse.Namespace) -> int:
         workers.stop()
         board.store.close()
     return EXIT_OK
+
+
+def _require_sandbox() -> None:
+    """bubblewrap must be there: without it the server refuses to start unless told --unsafe-no-sandbox."""
+    from orchestrator.stack.sandbox import SandboxUnavailable, require_bubblewrap
+
+    try:
+        require_bubblewrap()
+    except SandboxUnavailable as error:
+        raise UsageError(f"{NOT_SANDBOXED}: {error}") from None
 
 
 def _open_board(args: argparse.Namespace) -> Any:
