@@ -72,7 +72,7 @@ fi
 if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   pip_install "torch==${DRIVEBENCH_TORCH_VERSION:-2.13.0}"
 fi
-pip_install -e ".[stack,test,docs,ml,gl,cluster,bm,rl]"  # cluster: Ray, for --ray; docs: mkdocs --strict; bm, rl
+pip_install -e ".[stack,test,docs,ml,gl,cluster,bm,rl,board]"  # cluster: Ray, for --ray; docs: mkdocs --strict; bm, rl; board
 # The out-of-tree brain example (its own package, found through the drivebench.brains entry point); its tests and
 # CI's smoke run of examples/my_brain/compare.yaml need it installed, as a user's package would be.
 pip_install -e examples/my_brain

@@ -6,6 +6,7 @@
     drivebench run --attach [--router EP]; drivebench view [--run RUN]; drivebench health ROLE
     drivebench recorder info|repair, replay, dataset build|collect, train, export, pack, brains list|check|schema,
     circuits list|show|import, bm import (a Behavior Metrics config as a matrix)
+    drivebench board serve --data DIR --port N; drivebench board submit FILE --server URL --name NAME [--wait]
 
 Each module of :data:`COMMANDS` has ``add(commands)``, which adds its subcommand(s) with ``set_defaults(func=...)``;
 ``main`` calls that function and turns the errors of ``orchestrator.cli.errors`` (and a stack that could not run)
@@ -22,6 +23,7 @@ import sys
 
 from orchestrator.cli import (
     bm,
+    board,
     brains,
     circuits,
     export,
@@ -56,7 +58,7 @@ EXTRA_OF_MODULE = {
     "foxglove": "view",
 }
 
-COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits, bm)
+COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits, bm, board)
 
 
 EXAMPLES = """examples:
