@@ -1,13 +1,15 @@
 """drivebench board: a real server process (uvicorn), real submissions over HTTP, real evaluations (the brain
 contract in its own process, then real stacks through the matrix runner).
 
-Unsandboxed (``--unsafe-no-sandbox``) until the sandbox half of issue 42 lands; the conditions are tiny (a public
-condition and two drawn hidden ones, 2 s of driving each) so that a submission takes seconds.
+Most tests run unsandboxed (``--unsafe-no-sandbox``: the server's own logic); ``sandboxed_board`` runs brains in
+bubblewrap as a real challenge does. The conditions are tiny (a public condition and two drawn hidden ones, 2 s of
+driving each) so that a submission takes seconds.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -15,6 +17,7 @@ import sys
 import urllib.request
 from pathlib import Path
 
+import needs
 import pytest
 from needs import require
 from support.waits import wait_for
@@ -59,8 +62,8 @@ def free_port() -> int:
 class Server:
     """``drivebench board serve`` as a child process; every body it answers is kept (the leak test reads them)."""
 
-    def __init__(self, data: Path, conditions: Path, *, workers: int = 1):
-        self.data, self.conditions, self.workers = data, conditions, workers
+    def __init__(self, data: Path, conditions: Path, *, workers: int = 1, sandboxed: bool = False):
+        self.data, self.conditions, self.workers, self.sandboxed = data, conditions, workers, sandboxed
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.bodies: list[str] = []
@@ -71,7 +74,8 @@ class Server:
         argv = [sys.executable, "-m", "orchestrator.cli", "board", "serve", "--data", str(self.data)]
         argv += ["--port", str(self.port), "--conditions", str(self.conditions), "--workers", str(self.workers)]
         with open(self.log, "ab") as log:
-            self.process = subprocess.Popen([*argv, "--unsafe-no-sandbox"], stdout=log, stderr=subprocess.STDOUT)
+            unsafe = [] if self.sandboxed else ["--unsafe-no-sandbox"]
+            self.process = subprocess.Popen([*argv, *unsafe], stdout=log, stderr=subprocess.STDOUT)
         wait_for(self._answers, timeout_s=60, what="the server to answer", alive=self._dead)
         return self
 
@@ -129,6 +133,17 @@ def board(tmp_path):
     conditions = tmp_path / "tiny.yaml"
     conditions.write_text(TINY_CONDITIONS)
     server = Server(tmp_path / "data", conditions).start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def sandboxed_board(tmp_path):
+    require("starlette")
+    needs.require_bubblewrap()
+    conditions = tmp_path / "tiny.yaml"
+    conditions.write_text(TINY_CONDITIONS)
+    server = Server(tmp_path / "data", conditions, sandboxed=True).start()
     yield server
     server.stop()
 
@@ -194,13 +209,51 @@ def test_no_answer_and_no_log_line_holds_the_seed_or_a_hidden_circuit(board, tmp
 
 
 def test_serve_refuses_to_run_brains_unsandboxed_unless_told(tmp_path):
+    empty = tmp_path / "no-bwrap"
+    empty.mkdir()
     result = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "board", "serve", "--data", str(tmp_path), "--port", "1"],
+        [sys.executable, "-m", "orchestrator.cli", "board", "serve", "--data", str(tmp_path / "d"), "--port", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PATH": str(empty)},  # no bubblewrap
+    )
+    assert result.returncode == 2 and "--unsafe-no-sandbox" in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+
+
+def test_serve_refuses_a_data_folder_every_sandbox_could_read(tmp_path):
+    needs.require_bubblewrap()
+    inside = Path(__file__).resolve().parents[1] / "build" / f"board-{tmp_path.name}"
+    result = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "board", "serve", "--data", str(inside), "--port", "1"],
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert result.returncode == 2 and "--unsafe-no-sandbox" in result.stderr, result.stderr
+    assert result.returncode == 2 and "which every sandbox reads" in result.stderr, result.stderr
+    assert not inside.exists()
+
+
+def test_a_sandboxed_brain_that_reads_the_secret_seed_cannot_and_is_scored(sandboxed_board, tmp_path):
+    """The brain tries to read the server's secret seed, in the contract check and in every episode; it raises,
+    and so would be rejected, if it ever could. Sandboxed, it cannot: it is scored, and the seed is nowhere."""
+    seed_file = sandboxed_board.data / "secret_seed"
+    peek = GOOD_BRAIN.replace(
+        "    def reset(self, *, seed: int) -> None:\n        pass\n",
+        "    def reset(self, *, seed: int) -> None:\n"
+        "        try:\n"
+        f"            secret = open({str(seed_file)!r}).read()\n"
+        "        except OSError:\n"
+        "            return\n"
+        "        raise RuntimeError('read the secret seed: ' + secret)\n",
+    )
+    result = submit(sandboxed_board, brain_file(tmp_path, "peek.py", peek), name="peek", wait=True)
+    final = last_json(result)
+    assert final["state"] == "scored", final
+    secret = seed_file.read_text().strip()
+    page = sandboxed_board.get(f"/submissions/{final['id']}")
+    assert secret not in page and secret not in result.stdout
 
 
 def test_a_bad_conditions_file_is_one_line_at_its_line(tmp_path):

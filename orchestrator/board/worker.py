@@ -21,7 +21,8 @@ from orchestrator.board.intake import Brain, Kind
 from orchestrator.board.scoring import verdict
 from orchestrator.board.store import BoardStore, Rejection, State, Submission
 from orchestrator.matrix.results import ResultStore
-from orchestrator.stack import processes
+from orchestrator.stack import processes, sandbox
+from orchestrator.stack.sandbox import Sandbox
 from protocol import environment
 
 log = logging.getLogger("drivebench.board")
@@ -45,6 +46,16 @@ class Folders:
 
     def evaluation(self, submission: Submission) -> Path:
         return self.submission(submission.id) / f"attempt-{submission.attempt}"
+
+    def hidden_from(self, submission_id: str) -> tuple[Path, ...]:
+        """Everything in ``DIR`` but the way to this submission's code: the store, the secret seed, the other
+        submissions, this one's evaluations (they name the hidden conditions). A second wall: ``serve`` already
+        refuses a ``DIR`` inside a folder the sandbox binds in, where nothing of ``DIR`` but the code is seen."""
+        folder, hidden = self.data_dir, []
+        for part in (Path("submissions") / submission_id / "code").parts:
+            hidden += [entry for entry in sorted(folder.iterdir()) if entry.name != part]
+            folder = folder / part
+        return tuple(hidden)
 
 
 def brain_of(submission: Submission, *, folders: Folders) -> Brain:
@@ -95,7 +106,7 @@ class Workers:
         brain = brain_of(submission, folders=self.folders)
         folder = self.folders.evaluation(submission)
         folder.mkdir(parents=True, exist_ok=True)
-        rejection = self._check(brain, folder=folder)
+        rejection = self._check(brain, folder=folder, submission_id=submission.id)
         if self._stopping.is_set():
             return  # left checking: the next start puts it back in the queue
         if rejection is not None:
@@ -107,12 +118,12 @@ class Workers:
         log.info("submission %s: running", submission.id)
         self._run(submission, brain, folder=folder)
 
-    def _check(self, brain: Brain, *, folder: Path) -> tuple[Rejection, str] | None:
+    def _check(self, brain: Brain, *, folder: Path, submission_id: str) -> tuple[Rejection, str] | None:
         """The brain contract, in a process of its own: None when it passes, else (reason, one line)."""
-        argv = [*processes.python_module("orchestrator.cli"), "brains", "check", brain.entry["name"], "--json"]
-        argv += ["--memory-steps", str(CHECK_MEMORY_STEPS)]
+        argv = ["brains", "check", brain.entry["name"], "--json", "--memory-steps", str(CHECK_MEMORY_STEPS)]
         if "weights" in brain.entry:
             argv += ["--weights", brain.entry["weights"]]
+        argv = self._confined(argv, brain=brain, scratch_dir=folder / "check-scratch", submission_id=submission_id)
         try:
             code = self._child(
                 argv, cwd=brain.code_dir, log_path=folder / "check.log", timeout_s=CHECK_TIMEOUT_S, stdout="check.json"
@@ -126,6 +137,7 @@ class Workers:
         (folder / "evaluation.yaml").write_text(text)  # the exact config of the scores (secret: it names the seed)
         argv = [*processes.python_module("orchestrator.board.evaluate"), "--matrix", str(folder / "evaluation.yaml")]
         argv += ["--out", str(folder / "matrix"), *([] if self.sandboxed else ["--unsafe-no-sandbox"])]
+        argv += [f"--hide={path}" for path in self.folders.hidden_from(submission.id)]
         try:
             self._child(argv, cwd=brain.code_dir, log_path=folder / "evaluate.log", timeout_s=EVALUATION_TIMEOUT_S)
         except subprocess.TimeoutExpired:
@@ -167,6 +179,15 @@ class Workers:
         finally:
             with self._lock:
                 self._children.discard(child)
+
+    def _confined(self, argv: list[str], *, brain: Brain, scratch_dir: Path, submission_id: str) -> list[str]:
+        """``drivebench ARGV`` as a process of its own: in the sandbox (no bus, no network; the submission's code
+        readable and importable), or as it is behind ``--unsafe-no-sandbox``."""
+        if not self.sandboxed:
+            return [*processes.python_module("orchestrator.cli"), *argv]
+        box = Sandbox.default(scratch_dir=scratch_dir, hidden_paths=self.folders.hidden_from(submission_id))
+        command = [sandbox.interpreter(), "-m", "orchestrator.cli", *argv]
+        return sandbox.command_argv(box, command=command, readable=[brain.code_dir], importable=[brain.code_dir])
 
 
 def _check_outcome(json_path: Path, *, code: int) -> tuple[Rejection, str] | None:

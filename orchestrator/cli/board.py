@@ -60,7 +60,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if not args.unsafe_no_sandbox:
-        _require_sandbox()
+        _require_sandbox(data_dir=args.data)
     board = _open_board(args)
     from orchestrator.board.web import make_app
     from protocol.deploy.runtime import setup_logging
@@ -86,14 +86,23 @@ def run_serve(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _require_sandbox() -> None:
-    """bubblewrap must be there: without it the server refuses to start unless told --unsafe-no-sandbox."""
-    from orchestrator.stack.sandbox import SandboxUnavailable, require_bubblewrap
+def _require_sandbox(*, data_dir: Path) -> None:
+    """bubblewrap must be there: without it the server refuses to start unless told --unsafe-no-sandbox. And the
+    data folder must lie outside what every sandbox binds in (this Python, the project): a brain would see it."""
+    from orchestrator.stack.sandbox import SandboxUnavailable, python_paths, require_bubblewrap
 
     try:
         require_bubblewrap()
     except SandboxUnavailable as error:
         raise UsageError(f"{NOT_SANDBOXED}: {error}") from None
+    data = data_dir.resolve()
+    project = Path(__file__).resolve().parents[2]
+    for bound in [project, *python_paths()]:
+        if data.is_relative_to(bound):
+            raise UsageError(
+                f"--data {data_dir}: inside {bound}, which every sandbox reads; a submitted brain could read the "
+                "secret seed there: give a folder outside it"
+            )
 
 
 def _open_board(args: argparse.Namespace) -> Any:

@@ -21,6 +21,7 @@ turns all of this off (one new stack per episode, as before warm stacks).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -38,6 +39,7 @@ from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.stack.failures import Failure, FailureKind
 from orchestrator.stack.launcher import BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure
+from orchestrator.stack.sandbox import Sandbox
 from orchestrator.stack.trace import Trace
 from protocol import codec
 from protocol.messages import EndReason, EpisodeScore, LiveMetrics
@@ -60,6 +62,8 @@ class RunOptions:
     fresh_stacks: a new stack for every episode (``--fresh-stacks``); default: each worker keeps a warm stack
         across episodes (``orchestrator.matrix.executor``), meant to give the same results (docs/warm-stacks.md).
     facts: extra facts stored in the results database (``{"paper": True}`` for ``drivebench paper``).
+    sandbox: every brain host in bubblewrap with these limits (``orchestrator.stack.sandbox``; a challenge's
+        evaluations), each with a scratch folder of its own under ``out_dir/scratch/<episode>/<brain>``; None: none.
     """
 
     workers: int = 1
@@ -70,6 +74,7 @@ class RunOptions:
     startup_timeout_s: float = 90.0
     facts: dict = field(default_factory=dict)
     fresh_stacks: bool = False
+    sandbox: Sandbox | None = None
 
 
 @dataclass
@@ -130,7 +135,16 @@ class EpisodeExecutor:
 
     def launches(self, episode: PlannedEpisode) -> list[BrainLaunch]:
         """The brain hosts ``episode`` runs: its brain, then the matrix's shadows."""
-        return [brain_launch(episode.brain), *(brain_launch(shadow, shadow=True) for shadow in self.matrix.shadows)]
+        launches = [brain_launch(episode.brain), *(brain_launch(shadow, shadow=True) for shadow in self.matrix.shadows)]
+        if self.options.sandbox is None:
+            return launches
+        scratch = self.out_dir / "scratch" / f"{episode.index:04d}"
+        return [
+            dataclasses.replace(
+                launch, sandbox=dataclasses.replace(self.options.sandbox, scratch_dir=scratch / launch.bus_name)
+            )
+            for launch in launches
+        ]
 
     def warm_lane(self, *, lane: int, router_endpoint: str) -> WarmLane:
         """A warm stack for one lane (a worker, a slot): its stacks' logs under ``out_dir/stacks/``."""

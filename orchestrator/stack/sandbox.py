@@ -262,12 +262,13 @@ def bwrap_argv(
     sandbox: Sandbox,
     *,
     command: Sequence[str],
-    socket_path: Path,
+    socket_path: Path | None,
     readable: Iterable[Path],
     importable: Iterable[Path] = (),
     env: Mapping[str, str] = {},
 ) -> list[str]:
-    """The command line that runs ``command`` in ``sandbox``: bubblewrap, then (as root) setpriv to its uid."""
+    """The command line that runs ``command`` in ``sandbox``: bubblewrap, then (as root) setpriv to its uid.
+    ``socket_path``: the bus's Unix socket, bound in as its only way out (None: no bus, no way out at all)."""
     bwrap = shutil.which("bwrap")
     if bwrap is None:
         raise SandboxUnavailable("bubblewrap is not installed (Debian: apt-get install bubblewrap)")
@@ -291,7 +292,9 @@ def bwrap_argv(
             elif path.exists():
                 argv += ["--ro-bind", "/dev/null", str(path)]
     argv += ["--bind", str(sandbox.scratch_dir.resolve()), SCRATCH_INSIDE, "--chdir", SCRATCH_INSIDE]
-    argv += ["--bind", str(socket_path), SOCKET_INSIDE, "--clearenv"]
+    if socket_path is not None:
+        argv += ["--bind", str(socket_path), SOCKET_INSIDE]
+    argv += ["--clearenv"]
     inside = {
         "PATH": "/usr/bin:/bin",
         "HOME": SCRATCH_INSIDE,
@@ -423,6 +426,21 @@ def spawn(
         start_new_session=True,
     )
     return SandboxedProcess(sandbox=sandbox, process=process, log_path=log_path)
+
+
+def command_argv(
+    sandbox: Sandbox, *, command: Sequence[str], readable: Iterable[Path], importable: Iterable[Path] = ()
+) -> list[str]:
+    """The limits and bubblewrap around a Python ``command`` that needs no bus (a submitted brain's contract
+    check): the project and this Python readable, ``readable`` too, ``importable`` on its path; the scratch
+    created. ``command`` starts with :func:`interpreter`."""
+    prepare_scratch(sandbox)
+    project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
+    readable = [*python_paths(), project, *readable]
+    inside = bwrap_argv(
+        sandbox, command=command, socket_path=None, readable=readable, importable=[project, *importable]
+    )
+    return [*limits_argv(sandbox), *inside]
 
 
 def access_control(*, run_id: str, brain_names: Iterable[str]) -> dict[str, Any]:
