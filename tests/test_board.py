@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -276,42 +277,77 @@ def test_the_secret_seed_is_made_once_and_readable_by_its_owner_only(tmp_path):
 
 
 def test_a_killed_server_resumes_its_queue_and_scores_nothing_twice(tmp_path):
+    """kill -9 of the server while the first evaluation's matrix runs, then ``serve`` again: what the killed server
+    left behind stops and writes nothing more, the queue resumes, every submission is scored exactly once."""
     require("starlette")
     conditions = tmp_path / "tiny.yaml"
     conditions.write_text(TINY_CONDITIONS)
     good = brain_file(tmp_path, "good.py", GOOD_BRAIN)
-    server = Server(tmp_path / "data", conditions).start()
+    data = tmp_path / "data"
+    server = Server(data, conditions).start()
     ids = [last_json(submit(server, good, name=f"s{i}"))["id"] for i in range(3)]
-    wait_for(lambda: server.state(ids[0])["state"] == "running", timeout_s=60, what="the first evaluation to run")
+    killed = data / "submissions" / ids[0] / "attempt-1"
+    wait_for(
+        lambda: server.state(ids[0])["state"] == "running" and (killed / "matrix" / "results.sqlite").exists(),
+        timeout_s=LOADED_S,
+        what="the first evaluation's matrix to run",
+        alive=server._dead,
+    )
     server.stop(signal.SIGKILL)
-    # The evaluation it left behind stops by itself (it watches its parent): nothing of it is written afterwards.
-    wait_for(lambda: not _evaluations_of(tmp_path / "data"), timeout_s=30, what="the orphaned evaluation to stop")
-    again = Server(tmp_path / "data", conditions).start()
+    # What it left behind stops by itself (each process watches its parent), down to the stacks' processes.
+    wait_for(lambda: not _processes_of(data), timeout_s=LOADED_S, what="the orphaned evaluation to stop")
+    left = _snapshot(killed)
+    again = Server(data, conditions).start()
     try:
-        finals = [again.final(submission_id) for submission_id in ids]
+        finals = [again.final(submission_id, timeout_s=LOADED_S) for submission_id in ids]
     finally:
         again.stop()
-    assert [final["state"] for final in finals] == ["scored"] * 3
+    assert [final["state"] for final in finals] == ["scored"] * 3, finals
     assert finals[0]["scores"] == finals[1]["scores"] == finals[2]["scores"]
+    assert _snapshot(killed) == left  # nothing of the killed evaluation was written after the kill
+    logs = server.log.read_text() + again.log.read_text()
+    for submission_id in ids:  # scored once; every claim a new attempt, one after another, none lost
+        assert logs.count(f"submission {submission_id}: scored") == 1, logs
+        claims = [int(n) for n in re.findall(rf"submission {submission_id}: checking \(attempt (\d+)\)", logs)]
+        assert claims == list(range(1, len(claims) + 1)), claims
+    resumed = re.findall(rf"submission {ids[0]}: checking \(attempt (\d+)\)", again.log.read_text())
+    assert resumed and resumed[0] == "2", again.log.read_text()  # the killed attempt claimed again, at once
+    retries = again.log.read_text().count(f"submission {ids[0]}: queued")  # a stack that failed on a loaded machine
     from orchestrator.board.store import BoardStore
 
-    store = BoardStore(tmp_path / "data")
-    # Claimed again after the kill (more than once when a loaded machine's stack failed an attempt); nothing lost.
-    assert store.all()[0].attempt >= 2 and len(store.all()) == 3
-    store.close()
+    store = BoardStore(data)
+    try:
+        assert [s.attempt for s in store.all()][0] == 2 + retries and len(store.all()) == 3
+    finally:
+        store.close()
 
 
-def _evaluations_of(data: Path) -> list[int]:
-    """Pids of live evaluation processes of ``data`` (from /proc: their command lines name the data folder)."""
+# Deadline of one wait for an evaluation on a loaded 2-core machine (tiny conditions: seconds when idle).
+LOADED_S = 300
+
+
+def _processes_of(data: Path) -> list[int]:
+    """Pids of live processes of ``data``'s evaluations (from /proc: a command line naming the data folder, or a
+    working directory inside it: the brain's code folder, which every process of an evaluation inherits)."""
     found = []
     for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
         try:
             argv = (entry / "cmdline").read_bytes().split(b"\0")
+            cwd = os.readlink(entry / "cwd")
         except OSError:
             continue
-        if b"orchestrator.board.evaluate" in argv and any(str(data).encode() in arg for arg in argv):
+        if b"board" in argv and b"serve" in argv:
+            continue  # a server is no evaluation
+        if any(str(data).encode() in arg for arg in argv) or Path(cwd).is_relative_to(data):
             found.append(int(entry.name))
     return found
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``folder`` with its size and modification time (ns)."""
+    return {str(p): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.mark.slow
