@@ -257,6 +257,29 @@ def test_a_sandboxed_brain_that_reads_the_secret_seed_cannot_and_is_scored(sandb
     assert secret not in page and secret not in result.stdout
 
 
+# Passes the contract (its check forks nothing), then forks hundreds of processes in the brain host of an episode.
+FORKING_BRAIN = GOOD_BRAIN.replace(
+    "    def reset(self, *, seed: int) -> None:\n",
+    "    def __init__(self):\n        import os, sys, time\n"
+    "        if 'brains.host' in sys.modules:\n"
+    "            for _ in range(500):\n"
+    "                if os.fork() == 0:\n"
+    "                    time.sleep(600)\n"
+    "                    os._exit(0)\n\n"
+    "    def reset(self, *, seed: int) -> None:\n",
+)
+
+
+def test_a_sandboxed_brain_that_forks_hundreds_is_rejected_typed_and_the_next_one_scored(sandboxed_board, tmp_path):
+    """Through the board, in bubblewrap: the process limit stops the forker, its submission ends rejected
+    ``exceeded_limit``, and the server carries on (a good brain submitted after it is scored)."""
+    forker = last_json(submit(sandboxed_board, brain_file(tmp_path, "forker.py", FORKING_BRAIN), name="forker"))
+    good = last_json(submit(sandboxed_board, brain_file(tmp_path, "good.py", GOOD_BRAIN), name="good"))
+    rejected = sandboxed_board.final(forker["id"], timeout_s=LOADED_S)
+    assert (rejected["state"], rejected["reason"]) == ("rejected", "exceeded_limit"), rejected
+    assert sandboxed_board.final(good["id"], timeout_s=LOADED_S)["state"] == "scored"
+
+
 def test_a_bad_conditions_file_is_one_line_at_its_line(tmp_path):
     conditions = tmp_path / "c.yaml"
     conditions.write_text(TINY_CONDITIONS.replace("hidden: {draw: {count: 2,", "hidden: {draw: {seed: 3, count: 2,"))
@@ -405,16 +428,18 @@ def _submissions(data: Path) -> list[dict]:
 
 @pytest.mark.slow
 def test_the_page_shows_the_ranking_and_a_submissions_cells_in_chromium(board, tmp_path):
-    import shutil
+    from test_browser import browser_check
 
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    module = browser_check()  # the project's way to drive Chromium (scripts/browser_check.py): same flags
+    browser = module.chromium()
     if browser is None:
-        pytest.skip("no chromium on PATH (Debian: apt-get install chromium)")
+        needs.missing("no chromium on PATH (Debian: apt-get install chromium)")  # a failure in CI, not a skip
     final = last_json(submit(board, brain_file(tmp_path, "good.py", GOOD_BRAIN), name="pilot-one", wait=True))
-    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=3000", "--dump-dom"]
 
     def dom(path: str) -> str:
-        done = subprocess.run([*flags, board.url + path], capture_output=True, text=True, timeout=90)
+        argv = [*module._flags(browser), "--dump-dom", board.url + path]
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=module.CHROMIUM_TIMEOUT_S)
+        assert done.returncode == 0 and "</html>" in done.stdout, done.stderr[-2000:]
         return done.stdout
 
     index = dom("/")
