@@ -31,7 +31,6 @@ from orchestrator.cli import (
     matrix,
     paper,
     recording,
-    report,
     run,
     swap,
     train,
@@ -58,7 +57,7 @@ EXTRA_OF_MODULE = {
     "foxglove": "view",
 }
 
-COMMANDS = (run, swap, recording, train, export, matrix, report, brains, paper, health, view, circuits, bm, board)
+COMMANDS = (run, swap, recording, train, export, matrix, brains, paper, health, view, circuits, bm, board)
 
 
 EXAMPLES = """examples:
