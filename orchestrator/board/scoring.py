@@ -22,17 +22,19 @@ from orchestrator.board.store import Rejection
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.report.comparison import progress_of, success_of
 from orchestrator.report.statistics import clopper_pearson, iqm, run_bootstrap
+from orchestrator.stack.failures import FailureKind
 from protocol.messages import EndReason
 
 OVER_CONDITIONS = "over the hidden conditions (one submission is one training run: the interval is over conditions)"
 _BOOTSTRAP_SEED = 0
 
-# A stack failure or an episode ending that the brain caused, by its stored name (the sandbox's kinds included).
+# A stack failure or an episode ending that the brain caused, by its kind (the sandbox's kinds included); every
+# other kind is the server's side (the evaluation runs again).
 REJECTION_OF_FAILURE = {
-    "brain_died": Rejection.CRASHED,
-    "sandbox_violation": Rejection.SANDBOX_VIOLATION,
-    "limit_exceeded": Rejection.EXCEEDED_LIMIT,
-    "exceeded_limit": Rejection.EXCEEDED_LIMIT,
+    FailureKind.BRAIN_DIED: Rejection.CRASHED,
+    FailureKind.SANDBOX_VIOLATION: Rejection.SANDBOX_VIOLATION,
+    FailureKind.LIMIT_EXCEEDED: Rejection.EXCEEDED_LIMIT,
+    FailureKind.BRAIN_START_TIMEOUT: Rejection.TOO_SLOW,
 }
 REJECTION_OF_END = {
     EndReason.BRAIN_LOST: Rejection.CRASHED,
@@ -66,7 +68,7 @@ def verdict(results: list[EpisodeResult]) -> Verdict:
 
 def _brain_fault(result: EpisodeResult) -> Rejection | None:
     if result.failure is not None:
-        return REJECTION_OF_FAILURE.get(str(result.failure).partition(": ")[0])
+        return REJECTION_OF_FAILURE.get(result.failure.kind)
     if result.score is not None:
         return REJECTION_OF_END.get(result.score.reason)
     return None
@@ -97,10 +99,11 @@ def hidden_scores(results: list[EpisodeResult]) -> dict[str, Any]:
 
 def _progress_interval(progress: np.ndarray) -> dict[str, float]:
     """IQM of normalised progress with a 95 % bootstrap interval over conditions: each condition a row, so the
-    bootstrap that resamples runs resamples conditions (plain percentiles: conditions are not few runs)."""
+    bootstrap that resamples runs resamples conditions (plain percentiles: conditions are not few runs). One
+    condition says nothing of the others: the interval is then the whole scale, never of zero width."""
     if len(progress) < 2:
         value = float(progress.mean()) if len(progress) else 0.0
-        return {"estimate": value, "low": value, "high": value}
+        return {"estimate": value, "low": 0.0, "high": 1.0}
     interval = run_bootstrap([progress.reshape(-1, 1)], iqm, seed=_BOOTSTRAP_SEED, expanded=False)
     return {"estimate": interval.estimate, "low": interval.low, "high": interval.high}
 
