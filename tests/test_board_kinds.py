@@ -1,0 +1,114 @@
+"""drivebench board, the kinds of submission (issue 42, item 2): a wheel with a ``drivebench.brains`` entry point, an
+ONNX network from ``drivebench export`` and a Behavior Metrics brain file are each submitted with ``board submit
+--wait --json`` to a real sandboxed server and end scored with intervals; anything else is refused at once with a
+reason. And a brain that meets a limit of the sandbox in its contract check ends ``exceeded_limit``.
+
+One sandboxed server serves the module (its start costs seconds); the conditions are the least an evaluation with
+intervals can be (a public condition and two hidden ones, 1 s of driving each).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import needs
+import pytest
+from needs import require
+from test_board import GOOD_BRAIN, LOADED_S, Server, last_json, submit
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[1]
+CHECKPOINT = ROOT / "brains" / "weights" / "deepest_lstm_tiny_pilotnet.ckpt"
+BM_BRAIN = ROOT / "examples" / "behavior_metrics" / "brain_f1_follow_line.py"
+SMALL_CONDITIONS = """\
+name: small
+limits: {laps: 1, max_sim_seconds: 1}
+camera: 160x120
+parts:
+  public: {circuits: [simple]}
+  hidden: {draw: {count: 2, circuits: [random, twisty]}}
+"""
+WHEEL_PROJECT = """\
+[build-system]
+requires = ["setuptools"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "tinybrain"
+version = "0.1"
+
+[project.entry-points."drivebench.brains"]
+tiny = "tinybrain.brain:Ahead"
+
+[tool.setuptools]
+packages = ["tinybrain"]
+"""
+
+
+@pytest.fixture(scope="module")
+def board(tmp_path_factory):
+    require("starlette")
+    needs.require_bubblewrap()
+    folder = tmp_path_factory.mktemp("board")
+    conditions = folder / "small.yaml"
+    conditions.write_text(SMALL_CONDITIONS)
+    server = Server(folder / "data", conditions, sandboxed=True).start()
+    yield server
+    server.stop()
+
+
+def build_wheel(folder: Path) -> Path:
+    """A tiny brain package built into a wheel by pip, offline (setuptools from this Python's install)."""
+    project = folder / "tinybrain-src"
+    (project / "tinybrain").mkdir(parents=True)
+    (project / "pyproject.toml").write_text(WHEEL_PROJECT)
+    (project / "tinybrain" / "__init__.py").write_text("")
+    (project / "tinybrain" / "brain.py").write_text(GOOD_BRAIN)
+    argv = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index"]
+    built = subprocess.run(
+        [*argv, "-w", str(folder / "dist"), str(project)], capture_output=True, text=True, timeout=300
+    )
+    assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-2000:]
+    (wheel,) = (folder / "dist").glob("tinybrain-*.whl")
+    return wheel
+
+
+def export_onnx(folder: Path) -> Path:
+    """The shipped DeepestLSTMTinyPilotNet checkpoint, exported by ``drivebench export``."""
+    require("torch")
+    require("onnxruntime")
+    path = folder / "tiny.onnx"
+    argv = [sys.executable, "-m", "orchestrator.cli", "export", str(CHECKPOINT), "-o", str(path)]
+    exported = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    return path
+
+
+def behavior_metrics_brain(folder: Path) -> Path:
+    """The shipped Behavior Metrics example brain (a ``Brain`` class with ``execute``), under a name of its own."""
+    path = folder / "brain_f1_follow_line.py"
+    path.write_bytes(BM_BRAIN.read_bytes())
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2 * LOADED_S)
+@pytest.mark.parametrize(
+    ("make", "kind"),
+    [(build_wheel, "wheel"), (export_onnx, "onnx"), (behavior_metrics_brain, "behavior_metrics")],
+    ids=["wheel", "onnx", "behavior-metrics"],
+)
+def test_each_kind_of_submission_is_scored_with_intervals_in_the_sandbox(board, tmp_path, make, kind):
+    result = submit(board, make(tmp_path), name=kind, wait=True)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    final = last_json(result)
+    assert (final["state"], final["kind"]) == ("scored", kind), final
+    hidden = final["scores"]["hidden"]
+    assert hidden["conditions"] == 2 and "over conditions" in hidden["interval"]
+    progress = hidden["progress_iqm"]
+    assert progress["low"] <= progress["estimate"] <= progress["high"] and progress["low"] < progress["high"]
+    assert [cell["circuit"] for cell in final["scores"]["public"]] == ["simple"]
+
