@@ -112,3 +112,47 @@ def test_each_kind_of_submission_is_scored_with_intervals_in_the_sandbox(board, 
     assert progress["low"] <= progress["estimate"] <= progress["high"] and progress["low"] < progress["high"]
     assert [cell["circuit"] for cell in final["scores"]["public"]] == ["simple"]
 
+
+def hostile_in_init(code: str) -> str:
+    """GOOD_BRAIN whose constructor runs ``code`` (one statement per line) everywhere: in the contract check too."""
+    lines = "".join(f"        {line}\n" for line in code.splitlines())
+    return GOOD_BRAIN.replace(
+        "    def reset(self, *, seed: int) -> None:\n",
+        f"    def __init__(self):\n        import os, sys\n{lines}\n    def reset(self, *, seed: int) -> None:\n",
+    )
+
+
+OUTSIDE_SCRATCH = ROOT / "tests" / "support" / "hostile" / "written-by-the-board-check.txt"  # bound read-only
+HOSTILE_IN_CHECK = {
+    "allocates-40-gb": (hostile_in_init("self.kept = bytearray(40 * 2**30)"), "exceeded_limit"),
+    "forks-500": (
+        hostile_in_init(
+            "for _ in range(500):\n    if os.fork() == 0:\n        os.execv('/bin/sleep', ['sleep', '600'])"
+        ),
+        "exceeded_limit",
+    ),
+    "prints-a-gigabyte": (
+        hostile_in_init("for _ in range(1024):\n    sys.stdout.write('x' * (2**20 - 1) + '\\n')\nsys.stdout.flush()"),
+        "exceeded_limit",
+    ),
+    "writes-outside-its-scratch": (
+        hostile_in_init(f"open({str(OUTSIDE_SCRATCH)!r}, 'w').write('escaped')"),
+        "sandbox_violation",
+    ),
+}
+
+
+@pytest.mark.timeout(2 * LOADED_S)
+@pytest.mark.parametrize("hostile", sorted(HOSTILE_IN_CHECK))
+def test_a_brain_that_meets_a_wall_in_its_contract_check_is_typed_by_the_wall(board, tmp_path, hostile):
+    """Each attack runs in the constructor, so it meets the sandbox in the contract check, before any episode: the
+    submission ends with the wall's reason (a limit, or a refused operation), not ``does_not_load``."""
+    text, reason = HOSTILE_IN_CHECK[hostile]
+    brain = tmp_path / f"{hostile.replace('-', '_')}.py"
+    brain.write_text(text)
+    result = submit(board, brain, name=hostile, wait=True)
+    final = last_json(result)
+    assert (final["state"], final["reason"]) == ("rejected", reason), final
+    assert not OUTSIDE_SCRATCH.exists()
+    check = board.data / "submissions" / final["id"] / "attempt-1" / "check.json"
+    assert check.stat().st_size < 2**30  # the gigabyte never reached the server's disk whole
