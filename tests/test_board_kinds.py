@@ -156,3 +156,45 @@ def test_a_brain_that_meets_a_wall_in_its_contract_check_is_typed_by_the_wall(bo
     assert not OUTSIDE_SCRATCH.exists()
     check = board.data / "submissions" / final["id"] / "attempt-1" / "check.json"
     assert check.stat().st_size < 2**30  # the gigabyte never reached the server's disk whole
+
+
+def _zip(entries: dict[str, str]) -> bytes:
+    import io
+    import zipfile
+
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name, text in entries.items():
+            archive.writestr(name, text)
+    return buffer.getvalue()
+
+
+REFUSED = {
+    "brain.zip": (_zip({"brain.py": GOOD_BRAIN}), "not a brain this server takes"),
+    "notes.txt": (b"hello", "not a brain this server takes"),
+    "empty.py": (b"x = 1\n", "no brain class"),
+    "broken.py": (b"class Ahead(:\n", "not a Python file"),
+    "fake.onnx": (b"not a network", "not an ONNX model"),
+    "fake.whl": (b"not a zip", "not a wheel"),
+    "no-entry-0.1-py3-none-any.whl": (_zip({"tinybrain/brain.py": GOOD_BRAIN}), "0 drivebench.brains entry points"),
+    "huge.py": (GOOD_BRAIN.encode() + b"#" * (50 * 2**20), "over the limit"),
+}
+
+
+@pytest.mark.parametrize("filename", sorted(REFUSED))
+def test_anything_else_is_refused_at_once_with_one_line_naming_why(board, tmp_path, filename):
+    from orchestrator.board.store import BoardStore
+
+    content, why = REFUSED[filename]
+    path = tmp_path / filename
+    path.write_bytes(content)
+    store = BoardStore(board.data)
+    try:
+        before = len(store.all())
+        result = submit(board, path, name="refused")
+        assert result.returncode == 2, result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1 and why in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr
+        assert len(store.all()) == before  # nothing queued
+    finally:
+        store.close()
