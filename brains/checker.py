@@ -35,6 +35,7 @@ import numpy as np
 
 from brains.base import Action, GroundTruth, Observation
 from brains.registry import BrainOptionsError, UnknownBrainError, make_brain, resolve
+from brains.sandbox_exit import exit_for
 
 REALTIME_BUDGET_S = 0.05  # one frame at 20 Hz (Behavior Metrics' control period)
 LOCKSTEP_TIMEOUT_S = 10.0  # EpisodeSpec.brain_timeout_s's default: slower answers end lock-step episodes
@@ -59,12 +60,15 @@ CHECK_WORLDS: tuple[dict[str, Any], ...] = (
 @dataclass(frozen=True)
 class Check:
     """One check's outcome. status: "pass", "warn" (works, with a caveat), "fail" (the host will misbehave) or "skip"
-    (not run: an earlier check already failed)."""
+    (not run: an earlier check already failed). wall: when the brain's own error is what a sandbox's wall raises
+    (``brains.sandbox_exit``: ``memory``, ``processes``, ``file_size``, ``refused``), its name, else empty; a check
+    run inside a sandbox (a challenge's) is typed by it, never by the detail's words."""
 
     name: str
     status: str
     detail: str
     fix: str = ""
+    wall: str = ""
 
     def line(self) -> str:
         text = f"{self.status.upper():4}  {self.name:<12} {self.detail}"
@@ -146,6 +150,7 @@ def iter_checks(
             "fail",
             f"building it raised {type(error).__name__}: {error}",
             "the constructor must accept the options given (keyword arguments) and load what it needs",
+            wall=_wall(error),
         )
         return
     yield Check("make", "pass", f"{type(brain).__name__} from {name} ({origin})")
@@ -215,6 +220,7 @@ def _check_protocol(brain: Any) -> Check:
             "fail",
             f"reset(seed=0) raised {type(error).__name__}: {error}",
             "reset must put the brain back to its start state without failing",
+            wall=_wall(error),
         )
     return Check("protocol", "pass", "reset(seed=...) and act(observation)")
 
@@ -342,7 +348,14 @@ def _raised(name: str, error: Exception) -> Check:
         "fail",
         f"act raised {type(error).__name__}: {error}",
         "act must answer any 320x240 RGB frame (uint8, H x W x 3) without raising",
+        wall=_wall(error),
     )
+
+
+def _wall(error: BaseException) -> str:
+    """The sandbox wall ``error`` is (a name of ``brains.sandbox_exit.SandboxExit``, lower case), or empty."""
+    wall = exit_for(error)
+    return wall.name.lower() if wall is not None else ""
 
 
 def _check_units(actions: list[tuple[float, float]]) -> Check:
@@ -402,7 +415,8 @@ def _check_determinism(
         again, _ = _drive(brain, frames, seed=1, say=say, what="determinism, run 2 of 3 (seed 1 again)")
         fresh, _ = _drive(make_new(), frames, seed=1, say=say, what="determinism, run 3 of 3 (a new brain)")
     except Exception as error:
-        return Check("determinism", "fail", f"a second run raised {type(error).__name__}: {error}", fix)
+        detail = f"a second run raised {type(error).__name__}: {error}"
+        return Check("determinism", "fail", detail, fix, wall=_wall(error))
     if again != first:
         return Check(
             "determinism",
@@ -446,6 +460,7 @@ def _check_memory(brain: Any, frames: list[Frame], *, steps: int, say: Callable[
             "fail",
             f"act raised {type(error).__name__} on frame {steps} frames long: {error}",
             "act must keep answering through a long episode",
+            wall=_wall(error),
         )
     finally:
         tracemalloc.stop()

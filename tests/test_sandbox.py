@@ -180,6 +180,18 @@ def test_publishing_on_the_simulators_and_scorers_keys_is_dropped_by_the_router(
     assert "forged 30" in (out / "logs" / "brain-ForgerBrain.log").read_text()  # it did try, every frame
 
 
+def test_run_control_queries_for_the_conditions_get_no_answer(tmp_path):
+    """The brain asks the simulator's run control for the episode's spec ("status") and to "stop" it, on frames 5
+    to 7: the router drops both queries, so it learns nothing and the episode runs to its time limit."""
+    record, out = run_sandboxed(
+        tmp_path, "querier:QuerierBrain", "run_id=queried", extra=("--run-id", "queried", "--brain-timeout", "30")
+    )
+    assert record["reason"] == "time_limit" and record["metrics"]["steps"] == 40, record
+    log = (out / "logs" / "brain-QuerierBrain.log").read_text()
+    assert "run control status: no answer" in log and "run control stop: no answer" in log  # it did ask
+    assert "run control status: answered" not in log and "run control stop: answered" not in log
+
+
 def test_without_bubblewrap_run_sandbox_is_one_line_and_exit_2(tmp_path):
     empty = tmp_path / "bin"
     empty.mkdir()

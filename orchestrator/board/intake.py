@@ -9,6 +9,8 @@
 The file is only read here (``ast`` for Python, the zip's listing for a wheel, the header for ONNX): nothing of it
 runs in the server's process. Each submission gets ``DIR/submissions/<id>/``: the file as uploaded, and ``code/``,
 the folder its evaluation runs in (its brain module is importable from there, as from ``drivebench run``'s folder).
+``code/`` is all of the data folder the sandbox lets a brain read, so everything the brain loads is written there:
+a Behavior Metrics brain file and an ONNX network too.
 """
 
 from __future__ import annotations
@@ -75,8 +77,9 @@ def unpack(*, folder: Path, filename: str, content: bytes) -> Brain:
     if kind is Kind.PYTHON:
         (code / "submission.py").write_bytes(content)
         return Brain(kind, {"name": f"submission:{_python_classes(filename, content)[0]}"}, code)
+    # Every file the brain reads lies in code/: the sandbox hides the rest of the submission's folder.
     if kind is Kind.BEHAVIOR_METRICS:
-        path = folder / "bm_brain.py"
+        path = code / "bm_brain.py"
         path.write_bytes(content)
         return Brain(kind, {"name": str(path.resolve())}, code)
     if kind is Kind.WHEEL:
@@ -85,7 +88,7 @@ def unpack(*, folder: Path, filename: str, content: bytes) -> Brain:
         with zipfile.ZipFile(folder / "upload.whl") as wheel:
             wheel.extractall(code)  # zipfile drops absolute paths and ".." parts of member names
         return Brain(kind, {"name": target}, code)
-    path = folder / "network.onnx"
+    path = code / "network.onnx"
     path.write_bytes(content)
     return Brain(kind, {"name": "neural", "weights": str(path.resolve())}, code)
 

@@ -16,9 +16,10 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from brains.sandbox_exit import SandboxExit
 from orchestrator.board.challenge import Challenge, digest
 from orchestrator.board.intake import Brain, Kind
-from orchestrator.board.scoring import verdict
+from orchestrator.board.scoring import REJECTION_OF_FAILURE, verdict
 from orchestrator.board.store import BoardStore, Rejection, State, Submission
 from orchestrator.matrix.results import ResultStore
 from orchestrator.stack import processes, sandbox
@@ -123,14 +124,19 @@ class Workers:
         argv = ["brains", "check", brain.entry["name"], "--json", "--memory-steps", str(CHECK_MEMORY_STEPS)]
         if "weights" in brain.entry:
             argv += ["--weights", brain.entry["weights"]]
-        argv = self._confined(argv, brain=brain, scratch_dir=folder / "check-scratch", submission_id=submission_id)
+        box = None
+        if self.sandboxed:
+            box = Sandbox.default(
+                scratch_dir=folder / "check-scratch", hidden_paths=self.folders.hidden_from(submission_id)
+            )
+        argv = self._confined(argv, brain=brain, box=box)
         try:
             code = self._child(
                 argv, cwd=brain.code_dir, log_path=folder / "check.log", timeout_s=CHECK_TIMEOUT_S, stdout="check.json"
             )
         except subprocess.TimeoutExpired:
             return Rejection.TOO_SLOW, f"the brain contract's checks took over {CHECK_TIMEOUT_S:g} s"
-        return _check_outcome(folder / "check.json", code=code)
+        return _check_outcome(folder / "check.json", code=code, box=box)
 
     def _run(self, submission: Submission, brain: Brain, *, folder: Path) -> None:
         text = self.challenge.matrix_text(brain=brain.entry)
@@ -180,19 +186,19 @@ class Workers:
             with self._lock:
                 self._children.discard(child)
 
-    def _confined(self, argv: list[str], *, brain: Brain, scratch_dir: Path, submission_id: str) -> list[str]:
-        """``drivebench ARGV`` as a process of its own: in the sandbox (no bus, no network; the submission's code
-        readable and importable), or as it is behind ``--unsafe-no-sandbox``."""
-        if not self.sandboxed:
+    def _confined(self, argv: list[str], *, brain: Brain, box: Sandbox | None) -> list[str]:
+        """``drivebench ARGV`` as a process of its own: in ``box`` (no bus, no network; the submission's code
+        readable and importable), or as it is without one (``--unsafe-no-sandbox``)."""
+        if box is None:
             return [*processes.python_module("orchestrator.cli"), *argv]
-        box = Sandbox.default(scratch_dir=scratch_dir, hidden_paths=self.folders.hidden_from(submission_id))
         command = [sandbox.interpreter(), "-m", "orchestrator.cli", *argv]
         return sandbox.command_argv(box, command=command, readable=[brain.code_dir], importable=[brain.code_dir])
 
 
-def _check_outcome(json_path: Path, *, code: int) -> tuple[Rejection, str] | None:
+def _check_outcome(json_path: Path, *, code: int, box: Sandbox | None) -> tuple[Rejection, str] | None:
     """The checker's JSON array (its stdout; a brain that prints puts lines before it) as a rejection, or None
-    when it passed."""
+    when it passed. In a sandbox (``box``), a check the brain failed by meeting one of its walls (its error's
+    ``wall``, or the signal of a limit that ended the checker) is that wall's rejection, whatever the check."""
     text = json_path.read_text(errors="replace")
     start = text.find("[\n")
     try:
@@ -200,12 +206,18 @@ def _check_outcome(json_path: Path, *, code: int) -> tuple[Rejection, str] | Non
     except json.JSONDecodeError:
         checks = None
     if checks is None:
+        ended = sandbox.classify_exit(code, sandbox=box) if box is not None else None
+        if ended is not None:
+            return REJECTION_OF_FAILURE[ended[0]], f"the brain contract's check: {ended[1]}"
         return Rejection.DOES_NOT_LOAD, f"the brain contract's check did not finish (exit code {code})"
     failed = [check for check in checks if check["status"] == "fail"]
     if not failed:
         return None
     first = failed[0]
     line = f"{first['name']}: {first['detail']}"
+    if box is not None and first.get("wall"):
+        wall = SandboxExit[first["wall"].upper()]
+        return (Rejection.EXCEEDED_LIMIT if wall.is_limit else Rejection.SANDBOX_VIOLATION), line
     if first["name"] == "make":
         return Rejection.DOES_NOT_LOAD, line
     if first["name"] == "answer time":
