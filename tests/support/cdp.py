@@ -15,8 +15,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from support.waits import wait_for
 from websockets.sync.client import ClientConnection, connect
+
+from support.waits import wait_for
 
 START_TIMEOUT_S = 60
 CALL_TIMEOUT_S = 60
