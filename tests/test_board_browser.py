@@ -14,7 +14,7 @@ import needs
 import pytest
 from support.cdp import Browser
 from support.waits import wait_for
-from test_board import GOOD_BRAIN, LOADED_S, board, brain_file  # noqa: F401  (board: the fixture)
+from test_board import GOOD_BRAIN, LOADED_S, Server, board, brain_file  # noqa: F401  (board: the fixture)
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
@@ -109,3 +109,27 @@ def test_an_upload_through_the_form_shows_its_state_live_and_ranks_by_iqm(board,
         iqm = entry["progress_iqm"]
         assert row[3] == f"{iqm['estimate']:.2f} [{iqm['low']:.2f}, {iqm['high']:.2f}]", row
         assert re.fullmatch(r"\d+ / 2\s+\[\d\.\d\d, \d\.\d\d\]", row[4]), row
+
+
+@pytest.mark.timeout(3 * LOADED_S)
+def test_a_submissions_page_follows_it_across_a_server_restart(board, browser, tmp_path):  # noqa: F811
+    """The server stops while a submission's page is open: the page says the server is not answering, keeps asking,
+    and follows the restarted server's queue to the final state, with nobody reloading it."""
+    submission = upload(browser, board.url, brain_file(tmp_path, "good.py", GOOD_BRAIN), name="patient")
+    board.stop()
+    wait_for(
+        lambda: _current(browser, "!document.getElementById('server-away').hidden"),
+        timeout_s=60,
+        what="the page to say the server is not answering",
+    )
+    again = Server(board.data, board.conditions)
+    again.port, again.url = board.port, board.url  # the same address: the page's own
+    again.start()
+    try:
+        seen = watch_states(browser, server_final=lambda: again.state(submission)["final"], timeout_s=2 * LOADED_S)
+    finally:
+        again.stop()
+    assert seen[-1] == (False, "scored"), seen  # reloaded by the page itself once final
+    assert _current(
+        browser, "document.getElementById('server-away') === null || document.getElementById('server-away').hidden"
+    )
