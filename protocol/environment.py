@@ -149,6 +149,13 @@ REQUIRE_MCAP_VALIDATOR = Variable(
     meaning="a missing MCAP validator fails the tests instead of skipping (scripts/test.sh sets it where node is)",
     read_by="the tests",
 )
+BOARD_RAY = Variable(
+    name="DRIVEBENCH_BOARD_RAY",
+    kind="a Ray address (auto, HOST:PORT)",
+    default="none: a challenge's evaluations run on the server's machine",
+    meaning="the Ray cluster a challenge's evaluations run their episodes on",
+    read_by="a challenge's evaluations (set by `drivebench board serve --ray`, not by users)",
+)
 BM_ROOT = Variable(
     name="DRIVEBENCH_BM_ROOT",
     kind="path to a folder",
@@ -177,6 +184,7 @@ VARIABLES = (
     GID,
     TORCH_VERSION,
     REQUIRE_MCAP_VALIDATOR,
+    BOARD_RAY,
     BM_ROOT,
 )
 # How a process joins the bus; a local stack's children get none of them (they are meant for a standing stack).

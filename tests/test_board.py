@@ -63,8 +63,10 @@ def free_port() -> int:
 class Server:
     """``drivebench board serve`` as a child process; every body it answers is kept (the leak test reads them)."""
 
-    def __init__(self, data: Path, conditions: Path, *, workers: int = 1, sandboxed: bool = False):
-        self.data, self.conditions, self.workers, self.sandboxed = data, conditions, workers, sandboxed
+    def __init__(
+        self, data: Path, conditions: Path, *, workers: int = 1, sandboxed: bool = False, ray: str | None = None
+    ):
+        self.data, self.conditions, self.workers, self.sandboxed, self.ray = data, conditions, workers, sandboxed, ray
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.bodies: list[str] = []
@@ -73,7 +75,8 @@ class Server:
 
     def start(self) -> Server:
         argv = [sys.executable, "-m", "orchestrator.cli", "board", "serve", "--data", str(self.data)]
-        argv += ["--port", str(self.port), "--conditions", str(self.conditions), "--workers", str(self.workers)]
+        argv += ["--port", str(self.port), "--conditions", str(self.conditions)]
+        argv += ["--ray", self.ray] if self.ray else ["--workers", str(self.workers)]
         with open(self.log, "ab") as log:
             unsafe = [] if self.sandboxed else ["--unsafe-no-sandbox"]
             self.process = subprocess.Popen([*argv, *unsafe], stdout=log, stderr=subprocess.STDOUT)

@@ -1,19 +1,21 @@
 """``drivebench board``: serve a challenge, and submit a brain to one.
 
-    drivebench board serve --data DIR --port N [--host 127.0.0.1] [--conditions FILE] [--workers N]
+    drivebench board serve --data DIR --port N [--host 127.0.0.1] [--conditions FILE] [--workers N | --ray ADDRESS]
                            [--unsafe-no-sandbox]
     drivebench board submit FILE --server URL --name NAME [--wait] [--json]
 
 ``serve`` keeps its state in ``DIR`` (``board.sqlite``, the secret seed, each submission's files) and resumes the
-queue where a stopped server left it. ``submit --wait --json`` prints the submission's final state as JSON on its
-last stdout line: its scores with intervals, or its typed reason. Needs the ``board`` extra (Starlette, uvicorn,
-python-multipart).
+queue where a stopped server left it. With ``--ray``, each evaluation's episodes run on that Ray cluster (the
+``cluster`` extra), every brain host sandboxed on its node. ``submit --wait --json`` prints the submission's final
+state as JSON on its last stdout line: its scores with intervals, or its typed reason. Needs the ``board`` extra
+(Starlette, uvicorn, python-multipart).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import urllib.error
@@ -25,6 +27,9 @@ from typing import Any
 from orchestrator.cli.errors import EXIT_FAILED, EXIT_OK, CommandFailed, UsageError, require_file
 
 WAIT_POLL_S = 1.0
+# With --ray, evaluations at once: the cluster runs each one's episodes side by side; a second one lets the next
+# submission's contract check (on this machine) overlap the cluster's episodes.
+RAY_EVALUATIONS = 2
 NOT_SANDBOXED = (
     "drivebench board serve: no sandbox for submitted brains (install Debian's bubblewrap), or start with "
     "--unsafe-no-sandbox to run them unsandboxed (trusted local use only)"
@@ -41,7 +46,10 @@ def add(commands: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--conditions", type=Path, metavar="FILE", help="matrix-style file: parts public and hidden (default: built in)"
     )
-    serve.add_argument("--workers", type=int, default=1, metavar="N", help="evaluations at once (default 1)")
+    serve.add_argument("--workers", type=int, metavar="N", help="evaluations at once on this machine (default 1)")
+    serve.add_argument(
+        "--ray", metavar="ADDRESS", help="run the evaluations' episodes on this Ray cluster (auto, HOST:PORT)"
+    )
     serve.add_argument(
         "--unsafe-no-sandbox", action="store_true", help="run submitted brains without a sandbox (trusted use only)"
     )
@@ -57,10 +65,15 @@ def add(commands: argparse._SubParsersAction) -> None:
 
 def run_serve(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C or SIGTERM; the queue's workers stop with the server."""
-    if args.workers < 1:
+    if args.ray is not None and args.workers is not None:
+        raise UsageError("--workers and --ray: one or the other (with --ray the cluster runs the episodes)")
+    count = RAY_EVALUATIONS if args.ray is not None else 1 if args.workers is None else args.workers
+    if count < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if not args.unsafe_no_sandbox:
         _require_sandbox(data_dir=args.data)
+    if args.ray is not None:
+        _require_cluster(args.ray, sandboxed=not args.unsafe_no_sandbox)
     board = _open_board(args)
     from orchestrator.board.web import make_app
     from protocol.deploy.runtime import setup_logging
@@ -74,7 +87,7 @@ def run_serve(args: argparse.Namespace) -> int:
         store=board.store,
         challenge=board.challenge,
         folders=board.folders,
-        count=args.workers,
+        count=count,
         sandboxed=board.sandboxed,
     )
     workers.start()
@@ -103,6 +116,21 @@ def _require_sandbox(*, data_dir: Path) -> None:
                 f"--data {data_dir}: inside {bound}, which every sandbox reads; a submitted brain could read the "
                 "secret seed there: give a folder outside it"
             )
+
+
+def _require_cluster(address: str, *, sandboxed: bool) -> None:
+    """The cluster can evaluate (one line otherwise); then every evaluation, a child process of this server, runs
+    its episodes there (it reads the address from the environment it inherits)."""
+    from orchestrator.matrix.ray_options import ClusterError
+    from protocol import environment
+
+    try:
+        from orchestrator.board.cluster import check_cluster
+
+        check_cluster(address, sandboxed=sandboxed)
+    except ClusterError as error:
+        raise UsageError(str(error)) from None
+    os.environ[environment.BOARD_RAY.name] = address
 
 
 def _open_board(args: argparse.Namespace) -> Any:
