@@ -25,6 +25,9 @@ from support.waits import wait_for
 
 pytestmark = pytest.mark.integration
 
+# Deadline of one wait for an evaluation on a loaded 2-core machine (tiny conditions: seconds when idle).
+LOADED_S = 300
+
 TINY_CONDITIONS = """\
 name: tiny
 limits: {laps: 1, max_sim_seconds: 2}
@@ -273,6 +276,7 @@ FORKING_BRAIN = GOOD_BRAIN.replace(
 )
 
 
+@pytest.mark.timeout(2 * LOADED_S)  # its waits allow LOADED_S each: pytest's 180 s default cut it at load 16
 def test_a_sandboxed_brain_that_forks_hundreds_is_rejected_typed_and_the_next_one_scored(sandboxed_board, tmp_path):
     """Through the board, in bubblewrap: the process limit stops the forker, its submission ends rejected
     ``exceeded_limit``, and the server carries on (a good brain submitted after it is scored)."""
@@ -302,6 +306,7 @@ def test_the_secret_seed_is_made_once_and_readable_by_its_owner_only(tmp_path):
     assert (tmp_path / SECRET_FILE).stat().st_mode & 0o777 == 0o600
 
 
+@pytest.mark.timeout(2 * LOADED_S)  # its waits allow LOADED_S each: pytest's 180 s default cut it at load 16
 def test_a_killed_server_resumes_its_queue_and_scores_nothing_twice(tmp_path):
     """kill -9 of the server while the first evaluation's matrix runs, then ``serve`` again: what the killed server
     left behind stops and writes nothing more, the queue resumes, every submission is scored exactly once."""
@@ -346,10 +351,6 @@ def test_a_killed_server_resumes_its_queue_and_scores_nothing_twice(tmp_path):
         assert [s.attempt for s in store.all()][0] == 2 + retries and len(store.all()) == 3
     finally:
         store.close()
-
-
-# Deadline of one wait for an evaluation on a loaded 2-core machine (tiny conditions: seconds when idle).
-LOADED_S = 300
 
 
 def _processes_of(data: Path) -> list[int]:
