@@ -226,6 +226,30 @@ def test_the_check_script_builds_the_gl_extra_when_the_renderer_is_gl(env, extra
     assert services["simulator"]["environment"]["DRIVEBENCH_RENDERER"] == env.get("DRIVEBENCH_RENDERER", "")
 
 
+@pytest.mark.parametrize(
+    "env, extras", [({"DRIVEBENCH_BOARD": "1"}, "board"), ({"DRIVEBENCH_BOARD": "1", "DRIVEBENCH_RENDERER": "gl"}, "gl,board")]
+)
+def test_the_check_script_checks_the_board_on_an_image_with_its_extra(env, extras):
+    """DRIVEBENCH_BOARD=1: the challenge server's check. The image must have the board extra (Starlette, uvicorn,
+    bubblewrap), as the gl check's has gl; the board runs in its profile, the episode's services do not."""
+    services = check_script_plan(env)
+    assert builders(services) == ["router"]
+    assert services["router"]["build"]["args"]["EXTRAS"] == extras
+    assert "board" in services and not {"recorder", "viz"} & set(services)
+
+
+def test_the_check_script_refuses_an_unknown_board_setting_in_one_line():
+    result = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--plan"],
+        capture_output=True,
+        text=True,
+        env=clean_env(DRIVEBENCH_BOARD="yes"),
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip() == "scripts/docker-check.sh: DRIVEBENCH_BOARD='yes' (1 or empty)"
+
+
 def test_the_check_script_refuses_an_unknown_argument_in_one_line():
     result = subprocess.run(
         ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--gl"], capture_output=True, text=True, timeout=30
