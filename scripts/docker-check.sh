@@ -26,8 +26,8 @@
 # With DRIVEBENCH_BOARD=1, 3 and 4 are the challenge server's instead: the image is built with the board extra
 # (Starlette, uvicorn, bubblewrap), `docker compose --profile board up --wait board` on a tiny challenge, a brain file
 # submitted from this machine with `drivebench board submit --wait --json` must end `scored`, and the brain's own log
-# must show it ran in bubblewrap (PID 1 of its namespace is bwrap, no /results, the board's port unreachable, a user
-# namespace of its own), in its contract check and in its episodes; then `docker compose down`.
+# must show it ran in bubblewrap (PID 1 of its namespace is bwrap, the secret seed not there, the board's port
+# unreachable, a user namespace of its own), in its contract check and in its episodes; then `docker compose down`.
 # Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
 # under $CACHE/results), EXTRAS (empty; gl is added to it when DRIVEBENCH_RENDERER=gl), PORT (7447, or a free one
 # when taken), DOCKERD (a dockerd to use), DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own
@@ -283,7 +283,9 @@ def _confinement() -> str:
     with socket.socket() as probe:
         probe.settimeout(2.0)
         board = probe.connect_ex(("127.0.0.1", $BOARD_PORT)) == 0
-    return f"pid1={pid1} results={os.path.exists('/results')} board_reachable={board} uid_map={uid_map}"
+    seed = os.path.exists("/results/board/secret_seed")
+    userns = uid_map not in ("0 0 4294967295", "?")  # the container's own: every uid, unmapped
+    return f"pid1={pid1} seed_visible={seed} board_reachable={board} own_userns={userns} uid_map={uid_map}"
 
 
 class Probe:
@@ -318,11 +320,12 @@ PY
   "$PYTHON" -c 'import sys, urllib.request as u; sys.stdout.write(u.build_opener(u.ProxyHandler({})).open(sys.argv[1]).read().decode())' \
     "http://127.0.0.1:$BOARD_PORT/api/submissions/$id/log" >"$RESULTS_DIR/brain-log.txt"
   { grep '^CONFINEMENT' "$RESULTS_DIR/brain-log.txt" || true; } | sort | uniq -c | tee -a "$LOG" >&2
-  # Sandboxed: bubblewrap is PID 1 of its PID namespace, nothing of the container but what it binds (no /results),
-  # its own network namespace (the board's port on the container's loopback is not there), its own user namespace
-  # (one uid mapped, not the container's whole range). Unsandboxed, every one of these would read otherwise.
+  # Sandboxed: bubblewrap is PID 1 of its PID namespace; the board's data is not there (of /results it binds only
+  # the submission's own code: no secret seed); its own network namespace (the board's port on the container's
+  # loopback is not there); its own user namespace (bubblewrap's: one uid mapped, not the container's whole range).
+  # Unsandboxed, in the board's container, every one of these would read otherwise.
   probes=$(grep -c '^CONFINEMENT' "$RESULTS_DIR/brain-log.txt" || true)
-  confined=$(grep -c "^CONFINEMENT pid1=bwrap results=False board_reachable=False uid_map=$DRIVEBENCH_UID $DRIVEBENCH_UID 1$" \
+  confined=$(grep -c "^CONFINEMENT pid1=bwrap seed_visible=False board_reachable=False own_userns=True " \
     "$RESULTS_DIR/brain-log.txt" || true)
   [ "$probes" -ge 2 ] || die "the brain's log holds $probes confinement line(s); expected its check's and its episodes'"
   [ "$probes" = "$confined" ] || die "$((probes - confined)) of $probes brain runs were not in bubblewrap: see $RESULTS_DIR/brain-log.txt"

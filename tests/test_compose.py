@@ -227,7 +227,8 @@ def test_the_check_script_builds_the_gl_extra_when_the_renderer_is_gl(env, extra
 
 
 @pytest.mark.parametrize(
-    "env, extras", [({"DRIVEBENCH_BOARD": "1"}, "board"), ({"DRIVEBENCH_BOARD": "1", "DRIVEBENCH_RENDERER": "gl"}, "gl,board")]
+    "env, extras",
+    [({"DRIVEBENCH_BOARD": "1"}, "board"), ({"DRIVEBENCH_BOARD": "1", "DRIVEBENCH_RENDERER": "gl"}, "gl,board")],
 )
 def test_the_check_script_checks_the_board_on_an_image_with_its_extra(env, extras):
     """DRIVEBENCH_BOARD=1: the challenge server's check. The image must have the board extra (Starlette, uvicorn,
@@ -262,7 +263,13 @@ def test_profiles_gpu_reservation_and_ordering():
     services = resolved()["services"]
     default = resolved(profiles=())["services"]
     assert set(default) == {"router", "simulator", "noise", "brain", "scorer", "run"}
-    profiled = (("brain-gpu", "gpu"), ("recorder", "record"), ("viz", "viz"), ("orchestrator", "matrix"), ("board", "board"))
+    profiled = (
+        ("brain-gpu", "gpu"),
+        ("recorder", "record"),
+        ("viz", "viz"),
+        ("orchestrator", "matrix"),
+        ("board", "board"),
+    )
     for name, profile in profiled:
         assert services[name]["profiles"] == [profile]
     devices = services["brain-gpu"]["deploy"]["resources"]["reservations"]["devices"]
@@ -579,7 +586,7 @@ def test_secure_compose_services_drive_an_episode_and_refuse_a_viewer_driver(tmp
     assert score["reason"] == "time_limit" and score["metrics"]["progress_m"] > 15, score
 
 
-# -- the challenge server (profile board) -------------------------------------------------------------------------------
+# -- the challenge server (profile board) ------------------------------------------------------------------------------
 
 SECCOMP_PROFILE = ROOT / "deploy" / "board" / "seccomp.json"
 # What bubblewrap calls to make its sandbox as an unprivileged user: a user namespace and the rest (clone, unshare),

@@ -1,8 +1,9 @@
 """Is this process of a running stack up? (compose healthchecks, scripts).
 
 The router is healthy when its TCP port accepts connections; a role served over HTTP (the challenge server) when
-``--url`` answers 200; any other role when its liveliness token is on the bus (``drivebench/alive/<run>/<role>/<name>``),
-which it declares only once it is ready to serve. Exit code 0 when healthy, 1 otherwise, with one line saying why.
+``--url`` answers 200; any other role when its liveliness token is on the bus
+(``drivebench/alive/<run>/<role>/<name>``), which it declares only once it is ready to serve. Exit code 0 when
+healthy, 1 otherwise, with one line saying why.
 
 Compose runs it as ``python -m orchestrator.stack.health ROLE`` rather than ``drivebench health ROLE``: the full CLI
 imports every subcommand (about three times the CPU), and during start-up seven services are checked each second.

@@ -387,10 +387,14 @@ ROLES: tuple[Role, ...] = (
             ComposeService(
                 name="board",
                 profiles=("board",),
-                comment="The challenge server (docs/guides/challenge.md): its state in ./results/board (keep it private: it "
-                "holds the\nsecret seed). Loopback unless asked (BOARD_HOST=0.0.0.0). Each evaluation runs its own "
-                "local stack; every\nsubmitted brain runs in bubblewrap, which needs namespaces that Docker's defaults "
-                "refuse: security_opt\nlets them in (what each option grants: docs/guides/deployment.md).",
+                comment=(
+                    "The challenge server (docs/guides/challenge.md): its state in ./results/board "
+                    "(keep it private: it holds the\nsecret seed). "
+                    "Loopback unless asked (BOARD_HOST=0.0.0.0). "
+                    "Each evaluation runs its own local stack; every\n"
+                    "submitted brain runs in bubblewrap, which needs namespaces that Docker's defaults refuse: "
+                    "security_opt\nlets them in (what each option grants: docs/guides/deployment.md)."
+                ),
                 command=(
                     "drivebench",
                     "board",
@@ -453,9 +457,7 @@ def local_stack_roles() -> tuple[Role, ...]:
 def health_roles() -> tuple[str, ...]:
     """The roles ``drivebench health`` can check: the router, every role with a liveliness token, and every role
     served over HTTP."""
-    return tuple(
-        row.token_role for row in ROLES if row.name == "router" or row.token is not None or row.http_health
-    )
+    return tuple(row.token_role for row in ROLES if row.name == "router" or row.token is not None or row.http_health)
 
 
 def key_matches(expression: str, key: str) -> bool:
