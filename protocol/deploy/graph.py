@@ -69,6 +69,7 @@ class Role:
     group: str = ""  # a group role of the access rules that has every grant of its members ("service")
     local_stack: bool = False  # a local stack (``drivebench run``, each matrix episode) always starts it
     http_health: bool = False  # healthy when its HTTP server answers (``drivebench health ROLE --url URL``)
+    on_bus: bool = True  # False: it never joins a stack's bus itself, so it has no access-control role
     compose: tuple[ComposeService, ...] = ()
 
     @property
@@ -383,6 +384,7 @@ ROLES: tuple[Role, ...] = (
         "bubblewrap",
         token=None,
         http_health=True,
+        on_bus=False,  # each evaluation starts local stacks of its own, with their own routers
         compose=(
             ComposeService(
                 name="board",
