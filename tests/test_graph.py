@@ -47,7 +47,7 @@ def test_make_certs_makes_a_certificate_for_every_identity_of_the_graph():
     assert names == identities | {graph.OBSERVER_IDENTITY}
 
 
-def test_every_role_has_a_runnable_module_and_every_health_role_a_token():
+def test_every_role_has_a_runnable_module_and_every_health_role_a_token_or_an_http_check():
     import importlib.util
 
     for row in graph.ROLES:
@@ -63,7 +63,11 @@ def test_every_role_has_a_runnable_module_and_every_health_role_a_token():
         "recorder",
         "viz",
         "ros2_bridge",
+        "board",
     }
+    for name in graph.health_roles():
+        row = graph.role("orchestrator" if name == "driver" else name)
+        assert row.token is not None or row.name == "router" or row.http_health, name
     with pytest.raises(KeyError, match="no process role 'referee'"):
         graph.role("referee")
 

@@ -44,7 +44,10 @@ def add(commands: argparse._SubParsersAction) -> None:
     serve.add_argument("--port", type=int, required=True, metavar="N")
     serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     serve.add_argument(
-        "--conditions", type=Path, metavar="FILE", help="matrix-style file: parts public and hidden (default: built in)"
+        "--conditions",
+        type=_optional_path,
+        metavar="FILE",
+        help="matrix-style file: parts public and hidden (default, or empty: built in)",
     )
     serve.add_argument("--workers", type=int, metavar="N", help="evaluations at once on this machine (default 1)")
     serve.add_argument(
@@ -61,6 +64,11 @@ def add(commands: argparse._SubParsersAction) -> None:
     submit.add_argument("--wait", action="store_true", help="wait for the final state (scored or rejected)")
     submit.add_argument("--json", action="store_true", help="the final state as one JSON line on stdout")
     submit.set_defaults(func=run_submit)
+
+
+def _optional_path(text: str) -> Path | None:
+    """A path, or None for an empty value: compose passes ``--conditions "${BOARD_CONDITIONS:-}"``."""
+    return Path(text) if text else None
 
 
 def run_serve(args: argparse.Namespace) -> int:

@@ -68,6 +68,8 @@ class Role:
     identity: str = ""  # the certificate common name of its process in a secure stack ("": no certificate)
     group: str = ""  # a group role of the access rules that has every grant of its members ("service")
     local_stack: bool = False  # a local stack (``drivebench run``, each matrix episode) always starts it
+    http_health: bool = False  # healthy when its HTTP server answers (``drivebench health ROLE --url URL``)
+    on_bus: bool = True  # False: it never joins a stack's bus itself, so it has no access-control role
     compose: tuple[ComposeService, ...] = ()
 
     @property
@@ -373,6 +375,58 @@ ROLES: tuple[Role, ...] = (
         ),
     ),
     Role(
+        name="board",
+        summary="challenge server",
+        module="",
+        source="`orchestrator/board/` (`drivebench board serve`)",
+        consumes="uploaded brains (HTTP)",
+        produces="a leaderboard page and API; each submission's evaluation on local stacks of its own, its brains in "
+        "bubblewrap",
+        token=None,
+        http_health=True,
+        on_bus=False,  # each evaluation starts local stacks of its own, with their own routers
+        compose=(
+            ComposeService(
+                name="board",
+                profiles=("board",),
+                comment=(
+                    "The challenge server (docs/guides/challenge.md): its state in ./results/board "
+                    "(keep it private: it holds the\nsecret seed). "
+                    "Loopback unless asked (BOARD_HOST=0.0.0.0). "
+                    "Each evaluation runs its own local stack; every\n"
+                    "submitted brain runs in bubblewrap, which needs namespaces that Docker's defaults refuse: "
+                    "security_opt\nlets them in (what each option grants: docs/guides/deployment.md)."
+                ),
+                command=(
+                    "drivebench",
+                    "board",
+                    "serve",
+                    "--data",
+                    "/results/board",
+                    "--host",
+                    "${BOARD_HOST:-127.0.0.1}",
+                    "--port",
+                    "${BOARD_PORT:-8000}",
+                    "--conditions",
+                    "${BOARD_CONDITIONS:-}",
+                    "--workers",
+                    "${BOARD_WORKERS:-1}",
+                ),
+                depends_on={},
+                healthcheck=("board", "--url", "http://${BOARD_HOST:-127.0.0.1}:${BOARD_PORT:-8000}/api/leaderboard"),
+                extra={
+                    "security_opt": [
+                        "no-new-privileges:true",
+                        "seccomp=deploy/board/seccomp.json",
+                        "systempaths=unconfined",
+                    ],
+                    "stop_grace_period": "60s",
+                },
+                secure=False,
+            ),
+        ),
+    ),
+    Role(
         name="replay",
         summary="replay of a recording",
         module="",
@@ -403,8 +457,9 @@ def local_stack_roles() -> tuple[Role, ...]:
 
 
 def health_roles() -> tuple[str, ...]:
-    """The roles ``drivebench health`` can check: the router, and every role with a liveliness token."""
-    return tuple(row.token_role for row in ROLES if row.name == "router" or row.token is not None)
+    """The roles ``drivebench health`` can check: the router, every role with a liveliness token, and every role
+    served over HTTP."""
+    return tuple(row.token_role for row in ROLES if row.name == "router" or row.token is not None or row.http_health)
 
 
 def key_matches(expression: str, key: str) -> bool:

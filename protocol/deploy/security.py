@@ -73,7 +73,7 @@ def grants_of(row: graph.Role) -> tuple[Grant, ...]:
 
 
 def _roles_from_graph() -> dict[str, tuple[Grant, ...]]:
-    roles = {row.name: grants_of(row) for row in graph.ROLES if row.name != "router"}
+    roles = {row.name: grants_of(row) for row in graph.ROLES if row.name != "router" and row.on_bus}
     for group in sorted({row.group for row in graph.ROLES if row.group}):
         roles[group] = tuple(grant for row in graph.ROLES if row.group == group for grant in grants_of(row))
     roles["observer"] = ()  # read-only: what every identity may do, and nothing more

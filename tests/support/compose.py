@@ -10,7 +10,7 @@ from support.env import clean_env
 from support.processes import ROOT
 
 COMPOSE_FILE = ROOT / "compose.yaml"
-PROFILES = ("gpu", "record", "viz", "matrix")
+PROFILES = ("gpu", "record", "viz", "matrix", "board")
 
 
 def compose_binary() -> Path:
@@ -31,7 +31,7 @@ def compose(
     profile_args = [arg for profile in profiles for arg in ("--profile", profile)]
     profile_args += [arg for override in overrides for arg in ("-f", str(override))]
     # A clean environment: the user's own DRIVEBENCH_* variables must not change what the file says.
-    base = clean_env(drop=("BRAIN", "TAG"))
+    base = clean_env(drop=("BRAIN", "TAG", "BOARD_HOST", "BOARD_PORT", "BOARD_CONDITIONS", "BOARD_WORKERS"))
     return subprocess.run(
         [str(compose_binary()), "-f", str(file), "--project-directory", str(file.parent), *profile_args, *args],
         capture_output=True,
