@@ -25,11 +25,11 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from support.env import child_env as clean_env
 from support.processes import Processes
-from support.waits import wait_for_subscribers
+from support.waits import wait_for, wait_for_subscribers
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
-from protocol.bus import Bus, BusConfig, BusError, Inbox, Received, Traffic
+from protocol.bus import ANSWER_TIMEOUT_S, Bus, BusConfig, BusError, Inbox, Received, Traffic
 from protocol.deploy.config import ConfigError
 from protocol.deploy.security import ROLES, Identity, build_access_control, check_users_file, router_settings
 from protocol.messages import (
@@ -53,6 +53,9 @@ INTRUDER_YAW_RATE = 4.321  # rad/s: absurd, and recognisable in the poses (they 
 # the machine (in lock-step a fast one could drive its lap while the new brain's process started).
 SPEC_LONG = EpisodeSpec(circuit="simple", laps=100, max_sim_seconds=600.0, realtime=True, seed=5, camera=SPEC.camera)
 FAILED_OPEN_MS = 1500  # connect timeout of the buses that must fail to open
+# How long a test that expects no answer (a query the router drops) waits: a slow answer would pass as a refusal,
+# which the positive controls beside each such check (the same query answered for a role allowed it) rule out.
+REFUSED_WAIT_S = 2.0
 
 
 # -- certificates --
@@ -169,9 +172,18 @@ class SecureStack:
     def bus(self, identity: str | None, *, name: str, **config) -> Bus:
         return client_bus(self.pki, self.endpoint, identity, name=name, **config)
 
-    def control(self, bus: Bus, request: ControlRequest, *, key: str | None = None) -> ControlReply | None:
-        payload = bus.request(key or keys.sim_control(self.run_id), codec.encode(request), timeout_s=2.0)
+    def control(
+        self, bus: Bus, request: ControlRequest, *, key: str | None = None, timeout_s: float = ANSWER_TIMEOUT_S
+    ) -> ControlReply | None:
+        """The simulator's answer, or None. Where an answer is expected, wait as long as the product does (a loaded
+        machine answered after the 2 s this used to wait); a test expecting None passes :data:`REFUSED_WAIT_S`."""
+        payload = bus.request(key or keys.sim_control(self.run_id), codec.encode(request), timeout_s=timeout_s)
         return None if payload is None else codec.decode(payload, ControlReply)
+
+    def wait_idle(self) -> None:
+        """Until the simulator says idle: it publishes an episode's score before it leaves the episode, so a start
+        sent the moment a score arrives could be refused busy (seen at load 8-20)."""
+        wait_for(lambda: self.status().state == "idle", timeout_s=60, what="the simulator to be idle")
 
     def status(self) -> ControlReply:
         reply = self.control(self.orchestrator, ControlRequest(action="status"), key=keys.sim_status(self.run_id))
@@ -186,6 +198,7 @@ class SecureStack:
             self.orchestrator.subscribe(keys.score(self.run_id), EpisodeScore, inbox=inbox),
         ]
         try:
+            self.wait_idle()
             reply = self.control(self.orchestrator, ControlRequest(action="start", spec=spec))
             assert reply is not None and reply.ok, reply
             episode, poses = reply.episode, []
@@ -304,6 +317,18 @@ class Intruder:
         bus.declare_alive(keys.alive(run_id, "brain", "intruder"))
 
 
+def wait_until_alive_seen(stack, name: str) -> None:
+    """Until the orchestrator sees the intruder's brain token. The intruder declares it after its camera
+    subscription, on the same session, so the router has taken (and passed to the simulator) the subscription
+    before the orchestrator's next start can reach the simulator: an event, not a guess of how long that takes."""
+    key = keys.alive(stack.run_id, "brain", name)
+    watch = stack.orchestrator.watch_alive(key)
+    try:
+        assert not watch.wait_for({key}, timeout_s=60), f"the intruder's token {key} never reached the orchestrator"
+    finally:
+        watch.close()
+
+
 # -- the secure stack --
 
 
@@ -353,10 +378,7 @@ def test_an_intruder_without_the_brain_role_changes_nothing_and_the_same_one_wit
     # Positive control: the same intruder code with a brain's certificate is obeyed.
     with stack.bus("brain", name="rogue-brain") as rogue:
         intruder = Intruder(rogue, stack.run_id)
-        watch = stack.orchestrator.watch_alive(keys.alive(stack.run_id, "brain", "intruder"))
-        assert not watch.wait_for({keys.alive(stack.run_id, "brain", "intruder")}, timeout_s=5)
-        watch.close()
-        time.sleep(0.5)  # its camera subscription reaches the simulator's session
+        wait_until_alive_seen(stack, "intruder")
         score, poses = stack.run_episode()
     assert intruder.sent > 0
     applied = int(np.count_nonzero(poses[:, 4] == INTRUDER_YAW_RATE))
@@ -401,7 +423,7 @@ def test_a_brain_cannot_answer_for_another_brain_by_naming_it(secure_stack):
     _, baseline = stack.run_episode()
     with stack.bus("brain", name="impostor") as impostor:
         intruder = Intruder(impostor, stack.run_id, key_brain="impostor")
-        time.sleep(0.5)  # its camera subscription reaches the simulator's session
+        wait_until_alive_seen(stack, "intruder")
         _, poses = stack.run_episode()
     assert intruder.sent >= 60
     assert np.array_equal(poses, baseline)
@@ -418,8 +440,9 @@ def test_only_the_orchestrator_may_start_an_episode(secure_stack):
             status = stack.control(bus, ControlRequest(action="status"), key=keys.sim_status(stack.run_id))
             assert status is not None and status.state == "idle"
             # ... but its start is dropped by the router: no reply at all, and nothing starts.
-            assert stack.control(bus, ControlRequest(action="start", spec=SPEC)) is None
-            assert stack.control(bus, ControlRequest(action="status")) is None  # sim/control entirely
+            assert stack.control(bus, ControlRequest(action="start", spec=SPEC), timeout_s=REFUSED_WAIT_S) is None
+            # sim/control entirely
+            assert stack.control(bus, ControlRequest(action="status"), timeout_s=REFUSED_WAIT_S) is None
     time.sleep(0.5)
     after = stack.status()
     assert (after.state, after.episode) == ("idle", before.episode)
