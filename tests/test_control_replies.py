@@ -14,6 +14,7 @@ import pytest
 
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import codec, keys
+from protocol.bus import ANSWER_TIMEOUT_S
 from protocol.messages import ControlReply, ControlRequest, EpisodeSpec, ReplyCode, ServerState
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,7 +61,7 @@ def test_the_check_sees_a_match_on_wording(tmp_path):
 
 
 def request(stack, key: str, control: ControlRequest) -> ControlReply:
-    payload = stack.bus.request(key, codec.encode(control), timeout_s=5.0)
+    payload = stack.bus.request(key, codec.encode(control), timeout_s=ANSWER_TIMEOUT_S)
     assert payload is not None, f"nobody answered on {key}"
     return codec.decode(payload, ControlReply)
 

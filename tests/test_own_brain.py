@@ -20,6 +20,7 @@ from support.env import clean_env
 
 from orchestrator.stack.launcher import LocalStack
 from protocol import keys
+from protocol.bus import ANSWER_TIMEOUT_S
 from protocol.messages import EndReason, EpisodeSpec
 
 pytestmark = pytest.mark.integration
@@ -209,7 +210,7 @@ def test_a_standalone_zenoh_brain_without_project_code_drives_a_lap(tmp_path):
             assert score.reason == EndReason.LAPS_COMPLETED, score.reason
             assert score.metrics.completed_laps == 1 and score.metrics.command_rate_hz > 19
             reply = stack.bus.request(
-                keys.brain_control(stack.run_id, "line_follower"), b"\x81\xa6action\xa4stop", timeout_s=5
+                keys.brain_control(stack.run_id, "line_follower"), b"\x81\xa6action\xa4stop", timeout_s=ANSWER_TIMEOUT_S
             )  # msgpack {"action": "stop"}
             assert reply is not None
             assert brain.wait(timeout=10) == 0  # stopped over its control key, cleanly

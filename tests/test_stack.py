@@ -18,7 +18,7 @@ from support.matrices import WALL_CLOCK_METRICS
 
 from orchestrator.stack.launcher import BrainLaunch, StackFailure
 from protocol import codec, keys
-from protocol.bus import BusError, Inbox, Traffic
+from protocol.bus import ANSWER_TIMEOUT_S, BusError, Inbox, Traffic
 from protocol.messages import (
     CameraFrame,
     CameraSpec,
@@ -216,7 +216,7 @@ def test_garbage_on_every_subscribed_key_crashes_nothing(make_stack):
 
     spray()  # before the episode: nothing is listening for an episode yet
     with pytest.raises(BusError, match="not a valid ControlRequest"):
-        stack.bus.request(keys.sim_control(run), b"garbage", timeout_s=2.0)
+        stack.bus.request(keys.sim_control(run), b"garbage", timeout_s=ANSWER_TIMEOUT_S)
     sprayer = threading.Thread(target=spray, daemon=True)
     sprayer.start()
     score = stack.run_episode(spec)

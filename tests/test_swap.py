@@ -16,7 +16,7 @@ from support.waits import wait_for
 from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.swap import SwapError, swap_brain
 from protocol import codec, keys
-from protocol.bus import Inbox
+from protocol.bus import ANSWER_TIMEOUT_S, Inbox
 from protocol.messages import (
     CameraSpec,
     ControlReply,
@@ -53,9 +53,8 @@ def run_in_thread(stack, spec: EpisodeSpec) -> tuple[threading.Thread, dict]:
 
 
 def control(stack, request: ControlRequest) -> ControlReply:
-    return codec.decode(
-        stack.bus.request(keys.sim_control(stack.run_id), codec.encode(request), timeout_s=2.0), ControlReply
-    )
+    payload = stack.bus.request(keys.sim_control(stack.run_id), codec.encode(request), timeout_s=ANSWER_TIMEOUT_S)
+    return codec.decode(payload, ControlReply)
 
 
 def test_a_swap_mid_episode_loses_no_step_and_is_scored(make_stack, tmp_path, monkeypatch):
