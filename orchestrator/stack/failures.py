@@ -13,7 +13,7 @@ from enum import StrEnum
 
 
 class FailureKind(StrEnum):
-    """Why the stack failed an episode. The value is what results store (``<kind>: <detail>``) and tables show."""
+    """Why the stack failed an episode. The value is what results store (in their own column) and tables show."""
 
     BRAIN_DIED = "brain_died"  # a brain process exited or lost its liveliness token during the episode
     SIMULATOR_DIED = "simulator_died"  # the simulator process exited or lost its token
@@ -52,11 +52,4 @@ class Failure:
     detail: str
 
     def __str__(self) -> str:
-        return f"{self.kind}: {self.detail}"  # the form results store and print
-
-    @classmethod
-    def parse(cls, stored: str) -> Failure:
-        """A failure as results stored it (``<kind>: <detail>``); a kind this drivebench does not know is ``error``."""
-        kind, _, detail = stored.partition(": ")
-        known = kind in FailureKind._value2member_map_
-        return cls(FailureKind(kind), detail) if known else cls(FailureKind.ERROR, stored)
+        return f"{self.kind}: {self.detail}"  # the form a person reads (results store kind and detail apart)
