@@ -722,7 +722,7 @@ def command_run_attached(args: argparse.Namespace) -> int:
     if args.sandbox:
         raise UsageError("--sandbox starts its own stack: it cannot be used with --attach")
     """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
-    from orchestrator.stack.launcher import AttachedStack
+    from orchestrator.stack.attached import AttachedStack
 
     for flag, given in (
         ("--weights", args.weights),

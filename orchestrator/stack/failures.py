@@ -8,8 +8,13 @@ on the text of a message.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from enum import StrEnum
+
+import msgspec
+
+from protocol.messages import EpisodeScore
 
 
 class FailureKind(StrEnum):
@@ -53,3 +58,40 @@ class Failure:
 
     def __str__(self) -> str:
         return f"{self.kind}: {self.detail}"  # the form a person reads (results store kind and detail apart)
+
+
+class StackError(RuntimeError):
+    """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
+
+
+class StackFailure(StackError):
+    """An episode the stack failed, typed for results (``kind``, a :class:`FailureKind`).
+
+    ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
+    ``brain_lost`` and is scored), else None.
+    """
+
+    def __init__(self, kind: FailureKind, detail: str, *, score: EpisodeScore | None = None):
+        super().__init__(detail)
+        self.kind = kind
+        self.score = score
+        self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
+
+    @property
+    def failure(self) -> Failure:
+        return Failure(self.kind, str(self))
+
+    def record(self, *, run_id: str, episode: int | None = None) -> dict:
+        """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
+        return {
+            "run_id": run_id,
+            "episode": episode,
+            "failure": self.kind,
+            "detail": str(self),
+            "detected_at_s": round(self.detected_at_s, 3),
+            "score": None if self.score is None else msgspec.to_builtins(self.score),
+        }
+
+
+class EpisodeAborted(StackError):
+    """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
