@@ -8,9 +8,10 @@ from pathlib import Path
 import msgspec
 import yaml
 
-from orchestrator.cli.run import LaunchedBrain, RunConfig, run_from_config
+from orchestrator.cli.run import run_from_config
 from orchestrator.matrix.plan import BrainEntry
 from orchestrator.stack.launcher import BrainLaunch
+from orchestrator.stack.run_folder import LaunchedBrain, RunConfig
 from protocol.messages import CameraSpec, EpisodeSpec
 
 

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 from orchestrator.stack.failures import StackError
 from orchestrator.stack.launcher import LocalStack
 from protocol import environment, keys
-from protocol.bus import Bus, BusConfig
+from protocol.bus import Bus, BusConfig, BusError, probe_router, router_address
 from protocol.deploy import graph
+from protocol.deploy.runtime import UsageError
 
 log = logging.getLogger("drivebench.launcher")
 
@@ -79,3 +80,37 @@ class AttachedStack(LocalStack):
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+
+
+def wait_for_router(endpoint: str, *, wait_s: float) -> None:
+    """Until the router's port answers (a Zenoh client would wait for an absent router forever, silently)."""
+    first = endpoint.split(",")[0].strip()
+    try:
+        router_address(first)  # an endpoint without a port is refused at once: no wait makes it one
+    except ValueError as error:
+        raise StackError(str(error)) from None
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return probe_router(first)
+        except BusError as error:
+            if time.monotonic() > deadline:
+                raise StackError(f"{error} (waited {wait_s:.0f} s)") from None
+            time.sleep(0.5)
+
+
+def only_running_run(router: str | None, *, wait_s: float) -> str:
+    """The run id of the only run with a simulator alive on the router (waiting up to ``wait_s`` for one)."""
+    from protocol.episodes import running_runs
+
+    endpoint = router or environment.ROUTER.value()
+    if not endpoint:
+        raise UsageError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
+    with Bus(BusConfig(mode="client", connect=endpoint.split(",")), name="driver-discovery") as bus:
+        deadline = time.monotonic() + wait_s
+        while not (runs := running_runs(bus)) and time.monotonic() < deadline:
+            time.sleep(0.5)
+    if len(runs) != 1:
+        found = f"runs {', '.join(sorted(runs))}" if runs else "no run"
+        raise UsageError(f"{found} alive on {endpoint}: choose one with --run-id or {environment.RUN_ID.name}")
+    return runs.pop()

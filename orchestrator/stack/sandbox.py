@@ -107,6 +107,25 @@ class Sandbox:
         return cls(scratch_dir=Path(scratch_dir), hidden_paths=tuple(Path(p) for p in hidden_paths))
 
 
+# The limits a user may set (``drivebench run --sandbox-limit KEY=VALUE``): Sandbox fields.
+LIMIT_KEYS = ("memory_bytes", "max_processes", "cpu_seconds", "file_size_bytes", "output_bytes", "start_timeout_s")
+
+
+def parse_limits(settings: Iterable[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` settings as Sandbox fields (an int each, a float for ``start_timeout_s``); ValueError naming the
+    setting for a key not in :data:`LIMIT_KEYS` or a value that is not a number."""
+    limits: dict[str, Any] = {}
+    for setting in settings:
+        key, equals, value = setting.partition("=")
+        if not equals or key not in LIMIT_KEYS:
+            raise ValueError(f"{setting}: expected KEY=VALUE with KEY one of {', '.join(LIMIT_KEYS)}")
+        try:
+            limits[key] = float(value) if key == "start_timeout_s" else int(value)
+        except ValueError:
+            raise ValueError(f"{setting}: {value!r} is not a number") from None
+    return limits
+
+
 def _as_root() -> bool:
     return os.geteuid() == 0
 
