@@ -3,7 +3,8 @@
 One enum, :class:`FailureKind`, for the launcher, the runners and the results. Its ``<role>_died`` members follow
 the process graph: every role of ``protocol/deploy/graph.py`` that runs a process has one (``tests/test_failures.py``
 fails when a role is added without it), and :meth:`FailureKind.died` maps a role to its member, so nothing decides
-on the text of a message.
+on the text of a message. What the stack raises carries it: :class:`StackFailure` (an episode the stack failed, with
+its kind), beside :class:`StackError` (the stack could not run) and :class:`EpisodeAborted` (the caller gave up).
 """
 
 from __future__ import annotations
