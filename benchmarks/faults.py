@@ -37,7 +37,8 @@ sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
 from support.attach import attach_driver
 from support.env import clean_env
 
-from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackFailure, free_loopback_port
+from orchestrator.stack.failures import StackFailure
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusError, Inbox, Traffic, probe_router
 from protocol.messages import (

@@ -92,22 +92,22 @@ def main() -> int:
     marks = {args.early: None, args.episodes: None}
     text = matrix_text(episodes=args.episodes + 1, renderer=args.renderer, noise=args.noise)
 
-    class SoakRunner(MatrixRunner):
-        """Measures in the worker thread, right after an episode's result is counted: its stack is still up."""
-
-        def _finish(self, result, store, progress: MatrixProgress) -> None:
-            super()._finish(result, store, progress)
-            finished = progress.done + progress.failed
-            if finished in marks or finished % args.early == 0:
-                rows = snapshot()
-                if finished in marks:
-                    marks[finished] = (finished, rows)
-                line = ", ".join(f"{role} {mb:.1f} MB {fds} fds" for role, (_, mb, fds) in rows.items())
-                print(f"after episode {finished} ({time.monotonic() - started:.0f} s): {line}", flush=True)
+    def measure(result, progress: MatrixProgress) -> None:
+        """In the worker thread, right after an episode's result is counted: its stack is still up."""
+        finished = progress.done + progress.failed
+        if finished in marks or finished % args.early == 0:
+            rows = snapshot()
+            if finished in marks:
+                marks[finished] = (finished, rows)
+            line = ", ".join(f"{role} {mb:.1f} MB {fds} fds" for role, (_, mb, fds) in rows.items())
+            print(f"after episode {finished} ({time.monotonic() - started:.0f} s): {line}", flush=True)
 
     started = time.monotonic()
     with tempfile.TemporaryDirectory() as folder:
-        progress = SoakRunner(parse_matrix(text), Path(folder), RunOptions(workers=1, record=args.record)).run()
+        runner = MatrixRunner(
+            parse_matrix(text), Path(folder), RunOptions(workers=1, record=args.record), on_result=measure
+        )
+        progress = runner.run()
     wall_s = time.monotonic() - started
     print(
         f"{progress.done + progress.failed} episodes ({progress.failed} failed) of 1 s sim on one warm stack "

@@ -104,8 +104,10 @@ def render_frames(
         with Scene.for_world(track, WorldVariation(**world)) as scene:
             for step in range(frames_per_world):
                 x, y, yaw = track.centreline.pose_at(10.0 + spacing_m * step)
-                image = scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), camera)
-                image.flags.writeable = False  # as the host hands it over: a view of the message's bytes
+                rendered = scene.render(CarState(x_m=x, y_m=y, yaw_rad=yaw), camera)
+                # As the host hands it over: a view of the message's bytes, which no brain can make writeable (an
+                # array that owns its memory could be: setflags(write=True), then writing into the checker's frame).
+                image = np.frombuffer(rendered.tobytes(), dtype=np.uint8).reshape(rendered.shape)
                 frames.append(Frame(image, GroundTruth(x_m=x, y_m=y, yaw_rad=yaw, circuit=circuit)))
     return frames
 
@@ -260,7 +262,12 @@ def _drive(
             image_rgb=frame.image_rgb, stamp_ns=seq * STEP_NS, seq=seq, ground_truth=frame.truth if truth else None
         )
         started = time.perf_counter()
-        action = brain.act(observation)
+        try:
+            action = brain.act(observation)
+        except ValueError as error:
+            if _answers_a_writeable_copy(brain, observation):
+                raise _WroteIntoImage(error) from None
+            raise
         seconds.append(time.perf_counter() - started)
         actions.append(_as_pair(action))
         say(f"{what}: frame {seq + 1}/{len(frames)}, {seconds[-1]:.2f} s for the last")
@@ -279,6 +286,33 @@ def answer_time_fails(seconds: list[float], *, total: int, brain_timeout_s: floa
 
 class _BadAction(Exception):
     pass
+
+
+class _WroteIntoImage(Exception):
+    """act failed on the read-only camera image and answered a writeable copy of it: it writes into the image."""
+
+    def __init__(self, error: ValueError):
+        super().__init__(str(error))
+        self.error = error
+
+
+def _answers_a_writeable_copy(brain: Any, observation: Observation) -> bool:
+    """Whether ``act``, having raised on ``observation``, answers the same observation with a writeable copy of its
+    image: then the read-only view is what it tripped on. Decided by what act does, never by the error's words (a
+    brain's own ValueError may say anything); the brain is not driven further after this."""
+    if observation.image_rgb.flags.writeable:
+        return False  # it raised on a writeable image: writing into it is not what failed
+    copy = Observation(
+        image_rgb=observation.image_rgb.copy(),
+        stamp_ns=observation.stamp_ns,
+        seq=observation.seq,
+        ground_truth=observation.ground_truth,
+    )
+    try:
+        brain.act(copy)
+    except Exception:  # the user's act, failing again: its error is not the image's (the first one is reported)
+        return False
+    return True
 
 
 def _as_pair(action: Any) -> tuple[float, float]:
@@ -308,20 +342,19 @@ def _check_act(brain: Any, frames: list[Frame], *, brain_timeout_s: float, say: 
         return _ActStage(
             [Check("act", "fail", str(error), "return Action(speed_mps=float, yaw_rate_radps=float), both finite")]
         )
-    except ValueError as error:
-        if "read-only" in str(error) or "not writeable" in str(error):
-            return _ActStage(
-                [
-                    Check("act", "pass", "answered frames until it wrote into one"),
-                    Check(
-                        "read-only",
-                        "fail",
-                        f"act wrote into the camera image ({error})",
-                        "copy the image before drawing on it: image = observation.image_rgb.copy()",
-                    ),
-                ]
-            )
-        return _ActStage([_raised("act", error)])
+    except _WroteIntoImage as wrote:
+        return _ActStage(
+            [
+                Check("act", "pass", "answered frames until it wrote into one"),
+                Check(
+                    "read-only",
+                    "fail",
+                    f"act wrote into the camera image: it raised {type(wrote.error).__name__} ({wrote.error}) on "
+                    "the read-only image and answered a writeable copy of it",
+                    "copy the image before drawing on it: image = observation.image_rgb.copy()",
+                ),
+            ]
+        )
     except Exception as error:
         return _ActStage([_raised("act", error)])
     sizes = sorted({f"{f.image_rgb.shape[1]}x{f.image_rgb.shape[0]}" for f in frames})

@@ -135,6 +135,12 @@ def is_brain_file(name: str) -> bool:
     return name.endswith(".py")
 
 
+def is_behavior_metrics_brain(name: str | None) -> bool:
+    """A Behavior Metrics brain file: its path, or ``behavior_metrics`` (with ``file=``). Its fixed crops are made
+    for Behavior Metrics' 640x480 F1 camera."""
+    return bool(name) and (is_brain_file(str(name)) or name == BEHAVIOR_METRICS)
+
+
 def resolve(name: str) -> BrainSource:
     """Where brain ``name`` comes from; :class:`UnknownBrainError` (one line) when it leads nowhere."""
     if name in _REGISTRY:

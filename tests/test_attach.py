@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import pytest
 from support.env import clean_env
@@ -88,6 +89,14 @@ def test_attach_names_what_is_not_alive(router):
     result = drivebench("run", "--attach", "--router", router, "--wait", "1")
     assert result.returncode == 2
     assert f"no run alive on {router}: choose one with --run-id or DRIVEBENCH_RUN_ID" in one_line(result)
+
+
+def test_an_endpoint_without_a_port_is_refused_at_once_not_after_the_wait():
+    started = time.monotonic()
+    result = drivebench("run", "--attach", "--router", "tcp/localhost", "--run-id", "r1", "--wait", "60")
+    assert result.returncode == 1
+    assert "not a tcp/tls endpoint with a port: 'tcp/localhost'" in one_line(result)
+    assert time.monotonic() - started < 30  # not the 60 s --wait: no wait gives an endpoint a port
 
 
 def test_attach_to_a_router_that_is_not_there_fails_in_one_line_after_the_wait():

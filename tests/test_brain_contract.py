@@ -128,6 +128,24 @@ class Scribbler:
         return Action(speed_mps=1.0, yaw_rate_radps=0.0)
 
 
+class FlagFlipper:
+    """Writes into the image after making it writeable: numpy's error then names no read-only at all."""
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        observation.image_rgb.setflags(write=True)
+        observation.image_rgb[0, 0] = 0
+        return Action(speed_mps=1.0, yaw_rate_radps=0.0)
+
+
+class Picky:
+    """Raises its own ValueError, whose words happen to say read-only: it never writes into the image."""
+    def reset(self, *, seed):
+        pass
+    def act(self, observation):
+        raise ValueError("config is read-only and not writeable: refusing to drive")
+
+
 class PositionalSeed:
     def reset(self, seed_value):
         pass
@@ -174,6 +192,13 @@ def test_checker_names_the_fix_for_each_broken_rule(broken_brains, frames):
     assert "radians per second" in failures(check_brain("broken_brains:Degrees", frames=frames))["units"]
     assert "gain" in failures(check_brain("broken_brains:NeedsOption", frames=frames))["make"]
     assert passed(check_brain("broken_brains:NeedsOption", options={"gain": 1}, frames=frames)) is False  # no act
+
+
+def test_writing_into_the_image_is_told_by_what_act_does_not_by_the_error_words(broken_brains, frames):
+    flipper = failures(check_brain("broken_brains:FlagFlipper", frames=frames))
+    assert set(flipper) == {"read-only"} and "copy the image" in flipper["read-only"], flipper
+    picky = failures(check_brain("broken_brains:Picky", frames=frames))
+    assert set(picky) == {"act"} and "refusing to drive" in picky["act"], picky  # its own error, not read-only
 
 
 def test_checker_stops_at_a_name_that_leads_nowhere(broken_brains):

@@ -186,3 +186,17 @@ def test_pack_command_end_to_end(pilotnet, tmp_path):
         assert f"wrote {path} (" in done.stdout
     assert "max |packed - original| = " in done.stdout
     assert float(done.stdout.rsplit("= ", 1)[1].split()[0]) < 1e-2
+
+
+def test_a_file_that_is_no_checkpoint_of_tensors_is_told_by_what_it_holds_without_torchs_advice(tmp_path):
+    """What the file holds decides the message (torch reads its pickle without running it), never torch's words, and
+    torch's advice to load with weights_only=False (which runs the file) is never passed on."""
+    torch.save({"model": print}, tmp_path / "pickled.ckpt")
+    (tmp_path / "random.ckpt").write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(CheckpointError) as pickled:
+        read_checkpoint(tmp_path / "pickled.ckpt")
+    assert "not a torch checkpoint of tensors and plain data" in str(pickled.value)
+    assert "builtins.print" in str(pickled.value)
+    with pytest.raises(CheckpointError) as random:
+        read_checkpoint(tmp_path / "random.ckpt")
+    assert "not a torch checkpoint (" in str(random.value) and "weights_only" not in str(random.value)

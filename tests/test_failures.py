@@ -21,12 +21,11 @@ def test_a_role_the_graph_does_not_have_is_an_error_not_a_guess():
     assert FailureKind.died("lawnmower") is FailureKind.ERROR
 
 
-def test_a_failure_is_stored_and_read_back_as_the_same_record():
+def test_a_failure_reads_as_its_kind_then_its_detail():
     failure = Failure(FailureKind.BRAIN_DIED, "brain 'x' exited with code -9; its last log line: a: b")
     assert str(failure) == "brain_died: brain 'x' exited with code -9; its last log line: a: b"
-    assert Failure.parse(str(failure)) == failure
-    # What a later drivebench wrote with a kind this one does not know stays readable, whole, as an error.
-    assert Failure.parse("cosmic_ray: bit flipped") == Failure(FailureKind.ERROR, "cosmic_ray: bit flipped")
+    # Results store kind and detail apart (tests/test_results_schema.py): nothing turns this text back into a record.
+    assert not hasattr(Failure, "parse")
 
 
 @pytest.mark.parametrize(

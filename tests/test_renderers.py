@@ -463,7 +463,8 @@ def test_dataset_collect_puts_its_renderer_in_every_spec(monkeypatch):
 def test_a_simulator_without_egl_refuses_gl_in_one_line_and_falls_back_for_auto(tmp_path, monkeypatch):
     """The simulator's own check, for a driver that did not resolve the renderer (an attached one): gl is refused
     with the reason, auto runs with pybullet and the score says so."""
-    from orchestrator.stack.launcher import BrainLaunch, LocalStack, StackError
+    from orchestrator.stack.failures import StackError
+    from orchestrator.stack.launcher import BrainLaunch, LocalStack
 
     monkeypatch.setenv("GLCONTEXT_LINUX_LIBEGL", NO_EGL["GLCONTEXT_LINUX_LIBEGL"])  # the stack's processes inherit it
     with LocalStack(run_id="noegl", run_dir=tmp_path, brains=[BrainLaunch("explicit")]) as stack:

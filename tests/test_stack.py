@@ -16,7 +16,8 @@ import pytest
 import zenoh
 from support.matrices import WALL_CLOCK_METRICS
 
-from orchestrator.stack.launcher import BrainLaunch, StackFailure
+from orchestrator.stack.failures import StackFailure
+from orchestrator.stack.launcher import BrainLaunch
 from protocol import codec, keys
 from protocol.bus import ANSWER_TIMEOUT_S, BusError, Inbox, Traffic
 from protocol.messages import (

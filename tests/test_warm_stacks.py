@@ -161,17 +161,15 @@ def test_a_process_that_dies_between_episodes_is_replaced_before_the_next_one(tm
     )
     killed: list[int] = []
 
-    class KillsBetweenEpisodes(MatrixRunner):
-        def _finish(self, result, store, progress) -> None:
-            super()._finish(result, store, progress)
-            if not killed:
-                for pid in processes_with(f"--run-id {result.run_id}"):
-                    if " -m services.noise " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
-                        os.kill(pid, signal.SIGKILL)
-                        killed.append(pid)
-                wait_for(lambda: all(map(waitable, killed)), timeout_s=10, what="the killed noise injector gone")
+    def kill_between_episodes(result, progress) -> None:  # in the worker's thread: its stack is still up
+        if not killed:
+            for pid in processes_with(f"--run-id {result.run_id}"):
+                if " -m services.noise " in Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+            wait_for(lambda: all(map(waitable, killed)), timeout_s=10, what="the killed noise injector gone")
 
-    progress = KillsBetweenEpisodes(matrix, tmp_path / "out", RunOptions(workers=1)).run()
+    progress = MatrixRunner(matrix, tmp_path / "out", RunOptions(workers=1), on_result=kill_between_episodes).run()
     assert len(killed) == 1
     assert (progress.done, progress.failed) == (2, 0)
     first, second = sorted(results_by_key(tmp_path / "out").values(), key=lambda result: result.started_at)

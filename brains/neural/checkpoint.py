@@ -36,6 +36,7 @@ import io
 import json
 import math
 import os
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -151,16 +152,31 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
-        # Never pass on torch's advice to load with weights_only=False: that runs whatever the file contains.
-        if "Weights only load failed" in str(error):
+        # Never pass on torch's advice to load with weights_only=False: that runs whatever the file contains. What
+        # the file holds decides which mistake it is (torch reads its pickle without running it), not torch's words.
+        if unsafe := _unsafe_globals(path):
             raise CheckpointError(
-                f"{path}: not a torch checkpoint of tensors and plain data (the only kind drivebench loads)"
+                f"{path}: not a torch checkpoint of tensors and plain data (the only kind drivebench loads; it holds "
+                f"{unsafe[0]})"
             ) from None
-        raise CheckpointError(f"{path}: not a torch checkpoint ({_first_line(error)})") from None
+        # torch's UnpicklingError carries that advice: say what failed, not its words.
+        why = "its pickle is not one of tensors and plain data" if isinstance(error, pickle.UnpicklingError) else None
+        raise CheckpointError(f"{path}: not a torch checkpoint ({why or _first_line(error)})") from None
     _check_keys(raw, path)
     if isinstance(raw, dict) and SHARDS_KEY in raw:
         raw["state_dict"] = _read_shards(raw[SHARDS_KEY], path)
     return raw
+
+
+def _unsafe_globals(path: Path) -> list[str]:
+    """The functions and classes a torch checkpoint's pickle names beyond tensors and plain data (read statically,
+    nothing run); none for a file that is not a torch checkpoint at all."""
+    import torch
+
+    try:
+        return list(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+    except Exception:  # not a torch zip file (random bytes, truncated): it names nothing
+        return []
 
 
 def _read_shards(shards: Any, path: Path) -> dict[str, Any]:

@@ -12,7 +12,9 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from orchestrator.stack.launcher import AttachedStack, LocalStack, StackError, StackFailure
+from orchestrator.stack.attached import AttachedStack
+from orchestrator.stack.failures import StackError, StackFailure
+from orchestrator.stack.launcher import LocalStack
 from protocol.bus import BusError, probe_router
 from protocol.messages import ControlRequest, EpisodeSpec
 

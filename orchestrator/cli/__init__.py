@@ -37,7 +37,7 @@ from orchestrator.cli import (
     view,
 )
 from orchestrator.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CommandFailed, UsageError
-from orchestrator.stack.launcher import StackError, StackFailure
+from orchestrator.stack.failures import StackError, StackFailure
 from protocol.bus import BusError
 from protocol.deploy.runtime import exit_on_sigterm
 

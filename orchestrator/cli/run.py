@@ -20,40 +20,35 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any
 
 import msgspec
-import yaml
 
-from brains.registry import BEHAVIOR_METRICS, UnknownBrainError, bus_name, is_brain_file, require_brain, resolve
-from circuits import Circuit, CircuitError, load_circuit
+from brains.registry import UnknownBrainError, bus_name, is_behavior_metrics_brain, require_brain, resolve
+from circuits import CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError, require_file
 from orchestrator.report.episode import episode_words, metrics_table
-from orchestrator.stack.launcher import (
-    BrainLaunch,
-    LocalStack,
-    StackError,
-    StackFailure,
-    preflight_launches,
-    render_threads_for,
-)
+from orchestrator.stack import run_folder
+from orchestrator.stack.attached import only_running_run, wait_for_router
+from orchestrator.stack.launcher import BrainLaunch, LocalStack, preflight_launches, render_threads_for
 from orchestrator.stack.progress import EpisodeProgress
-from orchestrator.stack.sandbox import Sandbox, SandboxUnavailable, limits_in_force, require_bubblewrap
+from orchestrator.stack.run_folder import LaunchedBrain, RunConfig
+from orchestrator.stack.sandbox import (
+    LIMIT_KEYS,
+    Sandbox,
+    SandboxUnavailable,
+    limits_in_force,
+    parse_limits,
+    require_bubblewrap,
+)
 from protocol import codec, environment
-from protocol.bus import BusError
-from protocol.deploy import typed_yaml
 from protocol.messages import (
-    CAMERA_BOUNDS,
-    DIRECTIONS,
     RENDERERS,
-    SPEC_BOUNDS,
     CameraSpec,
     EndReason,
     EpisodeScore,
     EpisodeSpec,
     FieldError,
 )
-from protocol.suggest import did_you_mean
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
@@ -407,16 +402,11 @@ DEFAULT_CAMERA_WH = (320, 240)
 BM_CAMERA_WH = (640, 480)  # Behavior Metrics' F1 camera: its brains crop fixed rows of a 480-row image
 
 
-def is_bm_brain(brain: str | None) -> bool:
-    """A Behavior Metrics brain file, given as its path or as ``behavior_metrics`` with ``file=``."""
-    return bool(brain) and (is_brain_file(str(brain)) or brain == BEHAVIOR_METRICS)
-
-
 def camera_of(args: argparse.Namespace) -> tuple[int, int]:
     """``--camera``, else BM's 640x480 for a BM brain file, else 320x240. Which camera a BM brain file gets is said
     once, under the run's first line (``args.camera_note``): its fixed crops see another part of a smaller image and
     it drives differently (issue 40: explicit 367.7 m at 320x240 against 165.6 m at 640x480)."""
-    bm = not getattr(args, "attach", False) and is_bm_brain(args.brain)
+    bm = not getattr(args, "attach", False) and is_behavior_metrics_brain(args.brain)
     if args.camera is None:
         if bm:
             args.camera_note = (
@@ -517,8 +507,9 @@ def command_run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         filename=run_dir / "launcher.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
-    config = RunConfig(run_id=run_id, episode=spec, brains=[LaunchedBrain.of(launch) for launch in brains])
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
+    run_folder.write_run_config(
+        run_dir, RunConfig(run_id=run_id, episode=spec, brains=[LaunchedBrain.of(b) for b in brains])
+    )
     print(
         f"drivebench: run {run_id}: {episode_words(spec, brain=spec.active_brain)}, "
         f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
@@ -533,7 +524,7 @@ def command_run(args: argparse.Namespace) -> int:
     try:
         # A failure while the stack comes up is recorded too: a sandboxed brain's is typed (its limit, its start).
         with (
-            recorded_failure(run_dir, run_id=run_id, as_json=args.json),
+            run_folder.recorded_failure(run_dir, run_id=run_id, on_record=print_record if args.json else None),
             LocalStack(
                 run_id=run_id,
                 run_dir=run_dir,
@@ -551,19 +542,14 @@ def command_run(args: argparse.Namespace) -> int:
                 print(f"drivebench: brain_died: {dead}", file=sys.stderr)
     finally:
         progress.close()
-    (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
+    run_folder.write_score(run_dir, score)
     report(score, run_dir, as_json=args.json)
     if stack.recording_failure is not None:
-        (run_dir / "recording_failure.json").write_text(
-            json.dumps(stack.recording_failure.record(run_id=run_id), indent=2) + "\n"
-        )
+        run_folder.write_recording_failure(run_dir, stack.recording_failure, run_id=run_id)
         print(f"drivebench: the recording is incomplete: {stack.recording_failure}", file=sys.stderr)
     elif args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
-
-
-LIMIT_KEYS = ("memory_bytes", "max_processes", "cpu_seconds", "file_size_bytes", "output_bytes", "start_timeout_s")
 
 
 def sandboxed(brains: list[BrainLaunch], args: argparse.Namespace, *, run_dir: Path) -> list[BrainLaunch]:
@@ -577,15 +563,10 @@ def sandboxed(brains: list[BrainLaunch], args: argparse.Namespace, *, run_dir: P
         require_bubblewrap()
     except SandboxUnavailable as error:
         raise UsageError(f"--sandbox: {error}") from None
-    limits: dict[str, Any] = {}  # Sandbox field -> int, or float for start_timeout_s
-    for setting in args.sandbox_limit:
-        key, equals, value = setting.partition("=")
-        if not equals or key not in LIMIT_KEYS:
-            raise UsageError(f"--sandbox-limit {setting}: expected KEY=VALUE with KEY one of {', '.join(LIMIT_KEYS)}")
-        try:
-            limits[key] = float(value) if key == "start_timeout_s" else int(value)
-        except ValueError:
-            raise UsageError(f"--sandbox-limit {setting}: {value!r} is not a number") from None
+    try:
+        limits = parse_limits(args.sandbox_limit)
+    except ValueError as error:
+        raise UsageError(f"--sandbox-limit {error}") from None
     try:
         boxes = [
             dataclasses.replace(Sandbox.default(scratch_dir=run_dir / "scratch" / launch.bus_name), **limits)
@@ -614,115 +595,24 @@ def run_from_options(args: argparse.Namespace) -> tuple[EpisodeSpec, list[BrainL
     return spec, brains
 
 
-class LaunchedBrain(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """One brain process a run launched, as its config.yaml lists it: ``brain`` as ``--brain`` takes it, ``name``
-    its bus name, ``options`` its ``KEY=VALUE`` overrides (weights last), ``host`` the brain host's own options.
-    (A matrix's brain is ``orchestrator.matrix.plan.BrainEntry``; this is what one launch of a brain process is.)"""
-
-    brain: str
-    name: str = ""
-    options: list[str] = []
-    host: list[str] = []
-
-    @classmethod
-    def of(cls, launch: BrainLaunch) -> LaunchedBrain:
-        return cls(brain=launch.brain, name=launch.bus_name, options=list(launch.options), host=list(launch.host))
-
-    def launch(self) -> BrainLaunch:
-        return BrainLaunch(self.brain, name=self.name, options=tuple(self.options), host=tuple(self.host))
-
-
-class RunConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
-    """A run folder's config.yaml, as ``drivebench run`` writes it: the episode and every brain launched (the run
-    id is for reading: a run of the file gets its own)."""
-
-    run_id: Any = None
-    episode: EpisodeSpec
-    brains: list[LaunchedBrain]
-
-
 def run_from_config(path: Path) -> tuple[EpisodeSpec, list[BrainLaunch]]:
     """The episode and brains of an earlier run (``--config RUN/config.yaml``), checked as the options would be:
     every mistake of the file at once, one line each with its line number."""
     require_file(path, option="--config")
-    try:
-        document = typed_yaml.compose(path.read_text(), source=f"--config {path}")
-        data = _note_value_mistakes(document)
-        config = document.attempt(typed_yaml.convert, data, RunConfig, document=document, what="the run config")
-        if config is not None:
-            _check_run_config(config, document)
-        document.raise_noted()
-    except typed_yaml.FileError as error:
-        raise UsageError(str(error)) from None
-    assert config is not None  # a config that did not convert noted why, and raise_noted raised it
+    config = run_folder.read_run_config(path)
     return config.episode, [entry.launch() for entry in config.brains]
 
 
-def _note_value_mistakes(document: typed_yaml.Document) -> Any:
-    """Note what the types would not say at its own line: every unknown key, however deep (an episode spec reads
-    newer senders, so msgspec ignores its unknown keys: ``lpas: 5`` would run one lap), and each value out of its
-    range or choices (the spec checks them after decoding, the first only, at the episode's line). Returns the
-    data without them, for the type check to find the rest."""
-    faults = typed_yaml.unknown_keys(document.data, RunConfig, what="the run config")
-    episode = document.data.get("episode") if isinstance(document.data, dict) else None
-    faults += typed_yaml.bound_faults(episode, SPEC_BOUNDS, path=("episode",))
-    camera = episode.get("camera") if isinstance(episode, dict) else None
-    faults += typed_yaml.bound_faults(camera, CAMERA_BOUNDS, path=("episode", "camera"))
-    for name, choices in (("direction", DIRECTIONS), ("renderer", RENDERERS)):
-        value = episode.get(name, choices[0]) if isinstance(episode, dict) else choices[0]
-        if isinstance(value, str) and value not in choices:
-            message = f"episode.{name} must be one of {', '.join(choices)}, got {value!r}"
-            faults.append(typed_yaml.Fault(("episode", name), message + did_you_mean(value, choices)))
-    for fault in faults:
-        document.note(document.error(fault.path, fault.message, at_key=fault.at_key))
-    return typed_yaml.without(document.data, [fault.path for fault in faults])
-
-
-def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:
-    """What the types do not say, every mistake noted before one error: the circuit exists and the start is on it,
-    a brain is named, and each brain is one drivebench can load."""
-    circuit = document.attempt(_config_circuit, config.episode, document)
-    if circuit is not None:
-        try:
-            circuit.check_start_m(config.episode.start_m)
-        except CircuitError as error:
-            document.note(document.error(("episode", "start_m"), str(error)))
-    if not config.brains:
-        document.note(document.error(("brains",), "the run config names no brain"))
-    for index, entry in enumerate(config.brains):
-        try:
-            require_brain(entry.brain)
-        except UnknownBrainError as error:
-            document.note(document.error(("brains", index, "brain"), str(error)))
-    document.raise_noted()
-
-
-def _config_circuit(episode: EpisodeSpec, document: typed_yaml.Document) -> Circuit:
-    try:
-        return load_circuit(episode.circuit)
-    except CircuitError as error:
-        raise document.error(("episode", "circuit"), str(error)) from None
-
-
-@contextlib.contextmanager
-def recorded_failure(run_dir: Path, *, run_id: str, as_json: bool):
-    """A failed episode leaves a machine-readable record: ``failure.json`` in the run folder and, with ``--json``,
-    the same object on stdout (the one-line message still goes to stderr)."""
-    try:
-        yield
-    except StackFailure as failure:
-        record = failure.record(run_id=run_id)
-        (run_dir / "failure.json").write_text(json.dumps(record, indent=2) + "\n")
-        if as_json:
-            print(json.dumps(record))
-        raise
+def print_record(record: dict) -> None:
+    """``--json``: the failure's record on stdout (the one-line message still goes to stderr)."""
+    print(json.dumps(record))
 
 
 def command_run_attached(args: argparse.Namespace) -> int:
+    """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
     if args.sandbox:
         raise UsageError("--sandbox starts its own stack: it cannot be used with --attach")
-    """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
-    from orchestrator.stack.launcher import AttachedStack
+    from orchestrator.stack.attached import AttachedStack
 
     for flag, given in (
         ("--weights", args.weights),
@@ -752,16 +642,8 @@ def command_run_attached(args: argparse.Namespace) -> int:
     with stack:
         args.brain = stack.brain_name
         spec = episode_spec(args)
-        (run_dir / "config.yaml").write_text(
-            yaml.safe_dump(
-                {
-                    "run_id": run_id,
-                    "router": stack.endpoint,
-                    "attached": True,
-                    "episode": msgspec.to_builtins(spec),
-                },
-                sort_keys=False,
-            )
+        run_folder.write_run_config(
+            run_dir, RunConfig(run_id=run_id, router=stack.endpoint, attached=True, episode=spec)
         )
         print(
             f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
@@ -770,45 +652,13 @@ def command_run_attached(args: argparse.Namespace) -> int:
         )
         progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
-            with recorded_failure(run_dir, run_id=run_id, as_json=args.json):
+            with run_folder.recorded_failure(run_dir, run_id=run_id, on_record=print_record if args.json else None):
                 score = stack.run_episode(spec, on_live=progress.update)
         finally:
             progress.close()
-    (run_dir / "score.json").write_text(codec.to_json(score, indent=2) + "\n")
+    run_folder.write_score(run_dir, score)
     report(score, run_dir, as_json=args.json)
     return EXIT_OK
-
-
-def wait_for_router(endpoint: str, *, wait_s: float) -> None:
-    """Until the router's port answers (a Zenoh client would wait for an absent router forever, silently)."""
-    from protocol.bus import probe_router
-
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            return probe_router(endpoint.split(",")[0].strip())
-        except BusError as error:
-            if time.monotonic() > deadline or "not a tcp/tls endpoint" in str(error):
-                raise StackError(f"{error} (waited {wait_s:.0f} s)") from None
-            time.sleep(0.5)
-
-
-def only_running_run(router: str | None, *, wait_s: float) -> str:
-    """The run id of the only run with a simulator alive on the router (waiting up to ``wait_s`` for one)."""
-    from protocol.bus import Bus, BusConfig
-    from protocol.episodes import running_runs
-
-    endpoint = router or environment.ROUTER.value()
-    if not endpoint:
-        raise UsageError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
-    with Bus(BusConfig(mode="client", connect=endpoint.split(",")), name="driver-discovery") as bus:
-        deadline = time.monotonic() + wait_s
-        while not (runs := running_runs(bus)) and time.monotonic() < deadline:
-            time.sleep(0.5)
-    if len(runs) != 1:
-        found = f"runs {', '.join(sorted(runs))}" if runs else "no run"
-        raise UsageError(f"{found} alive on {endpoint}: choose one with --run-id or {environment.RUN_ID.name}")
-    return runs.pop()
 
 
 def shadow_launches(shadows: list[str], *, taken: set[str]) -> list[BrainLaunch]:

@@ -37,8 +37,8 @@ import yaml
 
 from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
 from orchestrator.matrix.results import EpisodeResult
-from orchestrator.stack.failures import Failure, FailureKind
-from orchestrator.stack.launcher import BrainLaunch, EpisodeAborted, LocalStack, StackError, StackFailure
+from orchestrator.stack.failures import EpisodeAborted, Failure, FailureKind, StackError, StackFailure
+from orchestrator.stack.launcher import BrainLaunch, LocalStack
 from orchestrator.stack.sandbox import Sandbox
 from orchestrator.stack.trace import Trace
 from protocol import codec

@@ -74,14 +74,12 @@ class MatrixRun:
         """Run the (prepared) matrix's episodes; ``on_change`` follows the progress. Ctrl-C propagates (finished
         episodes are kept; a resume runs the rest)."""
         if self.ray_options is None:
-            runner = MatrixRunner(self.matrix, self.out_dir, self.options, on_change=on_change)
-        else:
-            from orchestrator.matrix.ray_runner import RayMatrixRunner
+            return MatrixRunner(self.matrix, self.out_dir, self.options, on_change=on_change).run()
+        from orchestrator.matrix.ray_runner import RayMatrixRunner  # ray only when asked for
 
-            runner = RayMatrixRunner(
-                self.matrix, self.out_dir, self.options, ray_options=self.ray_options, on_change=on_change
-            )
-        return runner.run()
+        return RayMatrixRunner(
+            self.matrix, self.out_dir, self.options, ray_options=self.ray_options, on_change=on_change
+        ).run()
 
     def _checked(self, matrix: Matrix) -> Matrix:
         """Each episode with its renderer chosen and its look checked, in one walk; then the noise's extras."""

@@ -192,10 +192,9 @@ def smoke_form(
 
 
 def _is_bm_brain(entry: BrainEntry) -> bool:
-    """A Behavior Metrics brain file (its path, or ``behavior_metrics`` with ``file=``)."""
-    from brains.registry import BEHAVIOR_METRICS, is_brain_file
+    from brains.registry import is_behavior_metrics_brain
 
-    return is_brain_file(entry.brain) or entry.brain == BEHAVIOR_METRICS
+    return is_behavior_metrics_brain(entry.brain)
 
 
 def _kept(seen: list, item: Any, limit: int) -> bool:

@@ -10,7 +10,7 @@ import logging
 import socket
 from pathlib import Path
 
-from orchestrator.stack.launcher import StackError
+from orchestrator.stack.failures import StackError
 
 RAY_MISSING = "--ray needs Ray: pip install 'drivebench[cluster]' (or: pip install 'ray>=2.50')"
 EPISODE_SLOT = "episode_slot"  # the custom resource every worker node declares: episodes it runs at once

@@ -1,8 +1,11 @@
 """Matrices on a Ray cluster: ``drivebench matrix FILE --ray ADDRESS``.
 
 The driver (this process) plans the matrix, keeps ``results.sqlite``, the resume semantics, the progress display and
-the report exactly as a local run (:class:`orchestrator.matrix.runner.MatrixRunner`); only the dispatch differs: one
-loop (:meth:`RayMatrixRunner._dispatch`) over a pool of episode slots or of tasks.
+the report exactly as a local run, through the same public functions (:func:`orchestrator.matrix.runner.run_matrix`
+and its :class:`~orchestrator.matrix.runner.MatrixBook`); only the dispatch differs: one loop
+(:meth:`RayMatrixRunner._dispatch`) over a pool of episode slots or of tasks.
+
+The node side (the slot actor and the task, below) is :mod:`orchestrator.matrix.ray_node`.
 
 Warm stacks (the default): each episode slot of the cluster is one long-lived Ray actor (:class:`EpisodeSlot`) that
 keeps a stack alive across the episodes the driver gives it, one at a time, as a local worker's warm lane does
@@ -42,20 +45,16 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import os
 import re
 import shutil
-import signal
-import tempfile
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from orchestrator.matrix.executor import EpisodeExecutor, RunOptions, WorkerState
+from orchestrator.matrix.executor import EpisodeExecutor, RunOptions
 from orchestrator.matrix.load import Matrix, PlannedEpisode
-from orchestrator.matrix.ray_items import LiveItem, OutcomeItem, StreamItem, TaskError, next_item
+from orchestrator.matrix.ray_node import EpisodeSlot, LiveItem, OutcomeItem, StreamItem, run_episode_task
 from orchestrator.matrix.ray_options import (
     ClusterError,
     RayOptions,
@@ -67,17 +66,13 @@ from orchestrator.matrix.ray_options import (
     slots_of,
     task_resources,
 )
-from orchestrator.matrix.results import EpisodeResult, LostAttempt, ResultStore
-from orchestrator.matrix.runner import MatrixProgress, MatrixRunner
+from orchestrator.matrix.results import EpisodeResult, LostAttempt
+from orchestrator.matrix.runner import MatrixBook, MatrixProgress, run_matrix
 from orchestrator.stack.failures import Failure, FailureKind
 
 log = logging.getLogger("drivebench.ray")
 
-RECORDING_NAME = "recording.mcap"
-SMALL_FILE_BYTES = 4 * 1024 * 1024  # a log longer than this comes back as its last 4 MiB
-WATCHDOG_SLACK_S = 60.0  # above the stack's own guards: start-up, the episode, the recorder's stop grace
 POLL_S = 0.25
-LIVE_PERIOD_S = 0.5  # how often a running episode sends its live metrics to the driver
 SLOT_CLOSE_S = 30.0  # how long the driver waits for episode slots to close their stacks
 SLOT_START_FAILURES = 5  # slots that die starting, in a row, before the matrix ends with the reason
 
@@ -85,30 +80,59 @@ SLOT_START_FAILURES = 5  # slots that die starting, in a row, before the matrix 
 # -- the driver --
 
 
-class RayMatrixRunner(MatrixRunner):
-    """A :class:`MatrixRunner` whose episodes run as Ray tasks; results, resume and progress are the local ones."""
+class RayMatrixRunner:
+    """Runs the planned episodes of one matrix into one output folder on a Ray cluster; results, resume and progress
+    are a local run's (:func:`run_matrix`), as are ``on_change`` and ``on_result`` (:class:`MatrixRunner`)."""
 
-    def __init__(self, matrix: Matrix, out_dir: Path, options: RunOptions, *, ray_options: RayOptions, on_change=None):
-        super().__init__(matrix, out_dir, options, on_change=on_change)
+    def __init__(
+        self,
+        matrix: Matrix,
+        out_dir: Path,
+        options: RunOptions,
+        *,
+        ray_options: RayOptions,
+        on_change: Callable[[MatrixProgress], None] | None = None,
+        on_result: Callable[[EpisodeResult, MatrixProgress], None] | None = None,
+    ):
+        self.matrix = matrix
+        self.out_dir = Path(out_dir)
+        self.options = options
         self.ray_options = ray_options
-        self._capacity = 1
+        self._on_change = on_change or (lambda progress: None)
+        self._on_result = on_result or (lambda result, progress: None)
+        # The driver's executor only says which brains an episode launches (a slot is given episodes whose launches
+        # its stack runs); the episodes run on the nodes' own executors (EpisodeSlot, run_episode_task).
+        self.executor = EpisodeExecutor(
+            matrix=matrix, out_dir=self.out_dir, options=options, node="driver", make_stack=_no_stack_on_the_driver
+        )
+
+    def stop(self) -> None:
+        """Start no more episodes (the dispatch loop's Ctrl-C path stops the running ones)."""
+        self.executor.stop()
 
     def run(self) -> MatrixProgress:
         connect(self.ray_options.address)
-        self._capacity = capacity(self.ray_options.resources)  # before anything is submitted: fail at once
-        return super().run()
+        lanes = capacity(self.ray_options.resources)  # before anything is submitted: fail at once
+        return run_matrix(
+            self.matrix,
+            self.out_dir,
+            self.options,
+            lanes=lanes,
+            dispatch=self._dispatch,
+            on_change=self._on_change,
+            on_result=self._on_result,
+        )
 
-    def _lanes(self) -> int:
-        return self._capacity
-
-    def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
-        """Run ``todo`` on the cluster, each result through :meth:`_finish`: one loop for both kinds of worker, an
-        episode slot per warm stack (:class:`_Slots`) or, with ``--fresh-stacks``, a task per episode
+    def _dispatch(self, book: MatrixBook) -> None:
+        """Run ``book.todo`` on the cluster, each result through :meth:`MatrixBook.finish`: one loop for both kinds
+        of worker, an episode slot per warm stack (:class:`_Slots`) or, with ``--fresh-stacks``, a task per episode
         (:class:`_Tasks`). A lost episode goes back to ``waiting`` (:meth:`_collect`)."""
         ray = import_ray()
+        self.matrix = self.executor.matrix = book.matrix  # as fitted to the results it resumes
+        progress = book.progress
         shared = dataclasses.replace(self.matrix, text="", episodes=())  # what a node needs: name and shadows
         pool: _Slots | _Tasks = (_Tasks if self.options.fresh_stacks else _Slots)(driver=self, shared=shared)
-        waiting = collections.deque((episode, ()) for episode in todo)
+        waiting = collections.deque((episode, ()) for episode in book.todo)
         running: dict[Any, _Running] = {}  # by its ObjectRefGenerator
         free_lanes = list(range(len(progress.workers)))
         try:
@@ -127,7 +151,7 @@ class RayMatrixRunner(MatrixRunner):
                     result = self._collect(item, entry, waiting, node=pool.ended(entry, item))
                     if result is not None:
                         pool.landed(entry, result)
-                        self._finish(result, store, progress)
+                        book.finish(result)
                 self._on_change(progress)
         except BaseException:
             self.stop()
@@ -241,6 +265,29 @@ class RayMatrixRunner(MatrixRunner):
             node=lost[-1].node if lost else None,
             lost_attempts=lost,
         )
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskError:
+    """What the driver reads instead of an item when the task failed (Ray raises it where the item would be)."""
+
+    error: BaseException
+
+
+def next_item(stream) -> StreamItem | TaskError:
+    """The next item of a task's stream, or :class:`TaskError` when the task failed (Ray raises it where the item
+    would be): the driver decides on the item's type, never by raising the error only to catch it."""
+    ray = import_ray()
+    try:
+        return ray.get(next(stream))
+    except StopIteration:
+        return TaskError(RuntimeError("the episode's task ended without a result"))
+    except ray.exceptions.RayError as error:
+        return TaskError(error)
+
+
+def _no_stack_on_the_driver(**settings: Any) -> Any:
+    raise AssertionError("the Ray driver runs no episode: its slots and tasks do, each with its own executor")
 
 
 def _lost_errors() -> tuple[type, ...]:
@@ -454,241 +501,4 @@ class _Slots:
             _kill(slot.actor)
 
 
-# -- one episode, on a node --
-
-
-class _GroupStacks:
-    """How a node's executor makes stacks: every process of one in a new process group, the last one kept so that
-    whatever of its group is left can be killed (grandchildren included)."""
-
-    def __init__(self) -> None:
-        self.stack = None
-
-    def make(self, **settings):
-        from orchestrator.stack.launcher import LocalStack
-
-        self.stack = LocalStack(one_group=True, **settings)
-        return self.stack
-
-    def kill_group(self) -> None:
-        """SIGKILL whatever of the last stack's process group is left."""
-        group = None if self.stack is None else self.stack.process_group
-        if group is not None:
-            try:
-                os.killpg(group, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass  # every member already gone
-
-
-def _node_executor(
-    *, matrix: Matrix, work: Path, options: RunOptions, node: str
-) -> tuple[EpisodeExecutor, _GroupStacks]:
-    """The episode executor of a Ray slot or task: its stacks in one process group each, rows naming ``node``."""
-    stacks = _GroupStacks()
-    executor = EpisodeExecutor(matrix=matrix, out_dir=work, options=options, node=node, make_stack=stacks.make)
-    return executor, stacks
-
-
-class EpisodeSlot:
-    """One episode slot of a node as a long-lived Ray actor: it keeps a warm stack (:class:`WarmLane`, as a local
-    matrix worker does) across the episodes the driver gives it, one at a time. Its router, its stacks' logs
-    (``<work>/stacks/``) and, without artifacts, its scratch folder live as long as the actor."""
-
-    def __init__(self, *, matrix: Matrix, options: RunOptions, artifacts: str | None):
-        import ray
-
-        from orchestrator.stack.launcher import free_loopback_port
-        from protocol.bus import Bus, BusConfig
-
-        context = ray.get_runtime_context()
-        self.node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
-        work = Path(artifacts) if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-slot-"))
-        self._scratch = None if artifacts is not None else work
-        self._executor, self._stacks = _node_executor(matrix=matrix, work=work, options=options, node=self.node)
-        self._router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="slot")
-        self._lane = self._executor.warm_lane(lane=0, router_endpoint=self._router.config.listen[0])
-        self._stopped = False
-
-    def where(self) -> str:
-        """This slot's node (:func:`node_label`); the driver gives episodes only to a slot that answered."""
-        return self.node
-
-    def drive(self, *, episode: PlannedEpisode) -> Iterator[StreamItem]:
-        """One episode on the warm stack (a streaming method): the items :func:`run_episode_task` yields."""
-        if self._stopped:
-            raise RuntimeError("the episode slot was stopped")
-        self._executor.go_on()  # a watchdog that stopped the episode before stopped that episode only
-
-        def cleanup(*, abandoned: bool) -> None:
-            if abandoned:  # its processes were killed: the next episode starts a new stack
-                self._lane.retire("its episode was abandoned")
-
-        items = _watched(
-            executor=self._executor,
-            stacks=self._stacks,
-            episode=episode,
-            node=self.node,
-            run=lambda state: self._executor.run_warm(episode, lane=self._lane, state=state),
-            cleanup=cleanup,
-        )
-        for item in items:
-            if isinstance(item, OutcomeItem) and self._scratch is not None:  # its files travel in the item
-                shutil.rmtree(self._scratch / "episodes" / f"{episode.index:04d}", ignore_errors=True)
-            yield item
-
-    def stop(self) -> None:
-        """Ctrl-C on the driver (called beside a running ``drive``): abandon the episode, kill the stack's group."""
-        self._stopped = True
-        self._executor.stop()
-        self._stacks.kill_group()
-
-    def close(self) -> None:
-        """The matrix is done: close the stack (after any running episode), the router and the scratch folder."""
-        self._lane.close()
-        self._router.close()
-        if self._scratch is not None:
-            shutil.rmtree(self._scratch, ignore_errors=True)
-
-
-def run_episode_task(
-    *, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, artifacts: str | None
-) -> Iterator[StreamItem]:
-    """One episode on this node (a Ray generator task's body): ``{"live": <LiveMetrics, encoded>}`` twice a
-    second while it drives (the driver's progress lanes), then ``{"result": EpisodeResult, "files": {path: bytes}}``.
-
-    The episode folder is ``<artifacts>/episodes/<index>`` (recording included) or, without artifacts, a temporary
-    folder removed before returning; ``files`` holds its small files (not the recording), paths relative to it.
-    """
-    import ray
-
-    context = ray.get_runtime_context()
-    node = node_label(ip=ray.util.get_node_ip_address(), node_id=context.get_node_id())
-    work = Path(artifacts) if artifacts is not None else Path(tempfile.mkdtemp(prefix="drivebench-episode-"))
-    scratch = None if artifacts is not None else work
-    try:
-        yield from _drive(matrix=matrix, episode=episode, options=options, node=node, work=work)
-    finally:
-        if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
-
-
-def _drive(
-    *, matrix: Matrix, episode: PlannedEpisode, options: RunOptions, node: str, work: Path
-) -> Iterator[StreamItem]:
-    """:func:`run_episode_task` in the folder ``work``: a fresh stack in one process group, under a watchdog."""
-    from orchestrator.stack.launcher import free_loopback_port
-    from protocol.bus import Bus, BusConfig
-
-    executor, stacks = _node_executor(matrix=matrix, work=work, options=options, node=node)
-    router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="episode-router")
-
-    def cleanup(*, abandoned: bool) -> None:  # the stack is closed or abandoned: kill whatever of its group is left
-        stacks.kill_group()
-        router.close()
-
-    yield from _watched(
-        executor=executor,
-        stacks=stacks,
-        episode=episode,
-        node=node,
-        run=lambda state: executor.run_fresh(episode, router_endpoint=router.config.listen[0], state=state),
-        cleanup=cleanup,
-    )
-
-
-def _watched(
-    *,
-    executor: EpisodeExecutor,
-    stacks: _GroupStacks,
-    episode: PlannedEpisode,
-    node: str,
-    run: Callable[[WorkerState], EpisodeResult | None],
-    cleanup: Callable[..., None],
-) -> Iterator[StreamItem]:
-    """Drive one episode with ``run`` in a thread under a watchdog: its live metrics twice a second, then the result
-    and the episode folder's small files. ``cleanup(abandoned=...)`` runs before the result is sent (abandoned: the
-    watchdog fired or the stream was closed, so the stack was stopped and its process group killed)."""
-    from orchestrator.stack.launcher import wall_guard_s
-    from protocol import codec
-
-    guard_s = executor.options.startup_timeout_s + wall_guard_s(max_sim_seconds=episode.spec.max_sim_seconds)
-    guard_s += WATCHDOG_SLACK_S
-    fired = threading.Event()
-
-    def watchdog() -> None:  # the stack's own guards failed to end it: abandon it and kill its processes
-        fired.set()
-        executor.stop()
-        stacks.kill_group()
-
-    timer = threading.Timer(guard_s, watchdog)
-    timer.daemon = True
-    started_at = time.time()
-    state = WorkerState()
-    outcome: dict = {}
-
-    def drive() -> None:
-        try:
-            outcome["result"] = run(state)
-        except BaseException as error:  # raised again in the task, where Ray reports it
-            outcome["error"] = error
-
-    thread = threading.Thread(target=drive, name="episode", daemon=True)
-    try:
-        timer.start()
-        thread.start()
-        sent = None
-        while thread.is_alive():
-            thread.join(timeout=LIVE_PERIOD_S)
-            if state.live is not None and state.live is not sent:
-                sent = state.live
-                yield LiveItem(data=codec.encode(sent))
-    finally:
-        timer.cancel()
-        abandoned = thread.is_alive() or fired.is_set()
-        if thread.is_alive():  # the stream was closed (the task cancelled): abandon the episode
-            executor.stop()
-            stacks.kill_group()
-        thread.join(timeout=10.0)
-        cleanup(abandoned=abandoned)
-    if "error" in outcome:
-        raise outcome["error"]
-    result = outcome.get("result")
-    if result is None or fired.is_set():
-        result = _timed_out(episode, node=node, started_at=started_at, guard_s=guard_s, result=result)
-    yield OutcomeItem(result=result, files=_small_files(executor.out_dir / "episodes" / f"{episode.index:04d}"))
-
-
-def _timed_out(
-    episode: PlannedEpisode, *, node: str, started_at: float, guard_s: float, result: EpisodeResult | None
-) -> EpisodeResult:
-    failure = Failure(
-        FailureKind.WALL_TIMEOUT, f"the episode's task ran past its {guard_s:.0f} s guard; its processes were killed"
-    )
-    if result is not None:
-        return dataclasses.replace(result, status="failed", failure=failure)
-    return EpisodeResult.of(
-        episode,
-        status="failed",
-        run_id="-",
-        started_at=started_at,
-        ended_at=time.time(),
-        failure=failure,
-        node=node,
-    )
-
-
-def _small_files(folder: Path) -> dict[str, bytes]:
-    """Every file of an episode folder but the recording, relative paths to bytes (a long log: its tail)."""
-    files = {}
-    for path in sorted(folder.rglob("*")) if folder.is_dir() else ():
-        if not path.is_file() or path.name == RECORDING_NAME:
-            continue
-        size = path.stat().st_size
-        with path.open("rb") as handle:
-            if size > SMALL_FILE_BYTES:
-                handle.seek(size - SMALL_FILE_BYTES)
-            files[str(path.relative_to(folder))] = handle.read()
-    return files
-
-
-__all__ = ["EpisodeSlot", "RayMatrixRunner", "run_episode_task"]
+__all__ = ["RayMatrixRunner"]

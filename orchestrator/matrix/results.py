@@ -6,8 +6,8 @@ killed with SIGKILL loses only the episodes that were still running; ``--resume`
 Status of a row:
     ``done``   the episode ran and was scored, whatever the brain did (a crash is a result, not a failure);
     ``failed`` the stack failed the episode (a process died, no score in time, the simulator refused it):
-               ``failure`` says which, as ``<kind>: <detail>`` with kind a ``FailureKind``
-               (``orchestrator/stack/failures.py``). A score is
+               ``failure_kind`` says which (a ``FailureKind``, ``orchestrator/stack/failures.py``) and
+               ``failure_detail`` what a person reads (stored apart, so reading a row never parses text). A score is
                kept when the scorer still produced one (a brain killed mid-episode ends it with ``brain_lost``).
 
 The stored schema carries a version (SQLite's ``user_version``, :data:`SCHEMA_VERSION`), so that results written by
@@ -32,8 +32,9 @@ from protocol import codec
 from protocol.messages import EpisodeScore, EpisodeSpec
 
 DATABASE_NAME = "results.sqlite"
-# The stored schema's version. 0: drivebench 0.1.0 and earlier (no version stored); 1: versioned (issue 39).
-SCHEMA_VERSION = 1
+# The stored schema's version. 0: drivebench 0.1.0 and earlier (no version stored); 1: versioned (issue 39);
+# 2: a failure's kind and detail in their own columns (issue 41; 0 and 1 stored one "<kind>: <detail>" text).
+SCHEMA_VERSION = 2
 # A fact the runner stores for the report: the variation label of the matrix's first episode (the baseline column).
 BASELINE_FACT = "baseline_variation"
 
@@ -54,7 +55,8 @@ CREATE TABLE IF NOT EXISTS episodes (
     brain_json   TEXT NOT NULL,      -- the brain entry: name, weights, options
     status       TEXT NOT NULL CHECK (status IN ('done', 'failed')),
     reason       TEXT,               -- EndReason of the score, when scored
-    failure      TEXT,               -- "<kind>: <detail>" when failed
+    failure_kind   TEXT,             -- the FailureKind's value when failed
+    failure_detail TEXT,             -- the failure's detail, for a person, when failed
     score_json   TEXT,               -- the EpisodeScore as JSON, when scored
     run_id       TEXT NOT NULL,
     started_at   REAL NOT NULL,      -- wall clock, seconds since the epoch
@@ -77,11 +79,26 @@ def _add_columns(db: sqlite3.Connection) -> None:
             db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {kind}")
 
 
-# The step that takes a file of version N to N + 1, applied in order from the file's version.
-_UPGRADES = {0: _add_columns}
+def _split_failures(db: sqlite3.Connection) -> None:
+    """Version 1 to 2: the failure's kind and detail get their own columns. Schemas 0 and 1 stored one
+    ``<kind>: <detail>`` text; this step is the one place such stored text is split (old rows only: nothing else
+    reads it, and the old column is dropped once its rows are split)."""
+    db.execute("ALTER TABLE episodes ADD COLUMN failure_kind TEXT")
+    db.execute("ALTER TABLE episodes ADD COLUMN failure_detail TEXT")
+    rows = db.execute("SELECT key, failure FROM episodes WHERE failure IS NOT NULL").fetchall()
+    for key, text in rows:
+        kind, _, detail = text.partition(": ")
+        db.execute("UPDATE episodes SET failure_kind = ?, failure_detail = ? WHERE key = ?", (kind, detail, key))
+    db.execute("ALTER TABLE episodes DROP COLUMN failure")
+
+
+# The step that takes a file of version N to N + 1, applied in order from the file's version. A new file is made at
+# SCHEMA_VERSION by _SCHEMA and takes no step.
+_UPGRADES = {0: _add_columns, 1: _split_failures}
 _COLUMNS = (
     "key, idx, brain, circuit, variation, perturbation, repetition, spec_json, brain_json, status, reason, "
-    "failure, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, lost_attempts"
+    "failure_kind, failure_detail, score_json, run_id, started_at, ended_at, recording, trajectory, logs, node, "
+    "lost_attempts"
 )
 
 
@@ -181,15 +198,34 @@ class ResultStore:
     def _upgrade(self) -> None:
         """The file at :data:`SCHEMA_VERSION` (made when new, upgraded step by step when older), or a
         :class:`ResultsError` for a file a later drivebench wrote."""
+        if self._checked_version() == SCHEMA_VERSION:
+            return
+        # One transaction that holds the write lock: a file is upgraded whole or not at all, and by one opener (the
+        # version is read again under the lock, since another may have upgraded it meanwhile).
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._upgrade_locked(self._checked_version())
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def _checked_version(self) -> int:
         version = self.schema_version
         if version > SCHEMA_VERSION:
             raise ResultsError(
                 f"{self.path}: written by a newer drivebench (results schema {version}; this one reads schemas up "
                 f"to {SCHEMA_VERSION}): upgrade drivebench to read it"
             )
-        self._db.executescript(_SCHEMA)
-        for step in range(version, SCHEMA_VERSION):
-            _UPGRADES[step](self._db)
+        return version
+
+    def _upgrade_locked(self, version: int) -> None:
+        if self._db.execute("SELECT 1 FROM sqlite_master WHERE name = 'episodes'").fetchone() is None:
+            for statement in _SCHEMA.split(";"):  # one by one: executescript would end the transaction
+                self._db.execute(statement)
+        else:
+            for step in range(version, SCHEMA_VERSION):
+                _UPGRADES[step](self._db)
         # PRAGMA takes no bound parameter; the value is this module's integer constant.
         self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION:d}")
 
@@ -216,7 +252,7 @@ class ResultStore:
     def record(self, result: EpisodeResult) -> None:
         """Store (or replace) one finished episode; committed before this returns."""
         self._db.execute(
-            f"INSERT OR REPLACE INTO episodes ({_COLUMNS}) VALUES ({', '.join('?' * 21)})",
+            f"INSERT OR REPLACE INTO episodes ({_COLUMNS}) VALUES ({', '.join('?' * 22)})",
             (
                 result.key,
                 result.index,
@@ -229,7 +265,8 @@ class ResultStore:
                 json.dumps(result.brain_entry.to_dict()),
                 result.status,
                 result.reason,
-                None if result.failure is None else str(result.failure),
+                None if result.failure is None else result.failure.kind.value,
+                None if result.failure is None else result.failure.detail,
                 codec.to_json(result.score) if result.score is not None else None,
                 result.run_id,
                 result.started_at,
@@ -264,7 +301,8 @@ class ResultStore:
             brain_json,
             status,
             reason,
-            failure,
+            failure_kind,
+            failure_detail,
             score_json,
             run_id,
             started_at,
@@ -295,7 +333,7 @@ class ResultStore:
             started_at=started_at,
             ended_at=ended_at,
             reason=reason,
-            failure=Failure.parse(failure) if failure else None,
+            failure=_failure(failure_kind, failure_detail),
             score=score,
             recording=recording,
             trajectory=trajectory,
@@ -303,6 +341,16 @@ class ResultStore:
             node=node,
             lost_attempts=tuple(map(LostAttempt.from_dict, json.loads(lost_attempts))) if lost_attempts else (),
         )
+
+
+def _failure(kind: str | None, detail: str | None) -> Failure | None:
+    """The stored failure, read from its two columns; a kind this drivebench does not know (a later one wrote it)
+    is ``error``, with the unknown kind kept in front of the detail for the person reading it."""
+    if kind is None:
+        return None
+    if kind in FailureKind._value2member_map_:
+        return Failure(FailureKind(kind), detail or "")
+    return Failure(FailureKind.ERROR, f"{kind}: {detail}" if detail else kind)
 
 
 def _from_json(text: str, message_type: type):

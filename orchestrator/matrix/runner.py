@@ -54,8 +54,103 @@ class MatrixProgress:
         return sum(1 for worker in self.workers if worker.episode is not None)
 
 
+@dataclass
+class MatrixBook:
+    """One run's output folder as both runners keep it (local workers here, Ray in ``ray_runner``): the results
+    database, the matrix as fitted to the results it resumes, the episodes still to run and the progress counts."""
+
+    matrix: Matrix
+    todo: list[PlannedEpisode]
+    progress: MatrixProgress
+    store: ResultStore
+    on_result: Callable[[EpisodeResult, MatrixProgress], None]
+    _store_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def finish(self, result: EpisodeResult) -> None:
+        """One finished episode: committed to the results, counted, then ``on_result`` (in the caller's thread; a
+        local worker's stack is still up then). Safe from any thread."""
+        with self._store_lock:
+            self.store.record(result)
+        with self.progress.lock:
+            self.progress.finished.append(result)
+            if result.status == "done":
+                self.progress.done += 1
+            else:
+                self.progress.failed += 1
+        self.on_result(result, self.progress)
+
+
+def run_matrix(
+    matrix: Matrix,
+    out_dir: Path,
+    options: RunOptions,
+    *,
+    lanes: int,
+    dispatch: Callable[[MatrixBook], None],
+    on_change: Callable[[MatrixProgress], None],
+    on_result: Callable[[EpisodeResult, MatrixProgress], None],
+) -> MatrixProgress:
+    """The part of a run both runners share: open the results, record the matrix, take what is left to run (all of
+    it without ``--resume``), and ``dispatch`` it with ``lanes`` progress lanes; each result goes through
+    :meth:`MatrixBook.finish`. How the episodes run is ``dispatch``'s alone."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    store = ResultStore(out_dir)
+    try:
+        matrix = record_matrix(matrix, store, options=options, out_dir=out_dir)
+        todo = pending(matrix, store, options=options)
+        progress = MatrixProgress(
+            total=len(matrix.episodes),
+            skipped=len(matrix.episodes) - len(todo),
+            workers=[WorkerState() for _ in range(lanes)],
+        )
+        dispatch(MatrixBook(matrix=matrix, todo=todo, progress=progress, store=store, on_result=on_result))
+    finally:
+        store.close()
+    on_change(progress)
+    return progress
+
+
+def pending(matrix: Matrix, store: ResultStore, *, options: RunOptions) -> list[PlannedEpisode]:
+    """The episodes of ``matrix`` to run: all of them, or with ``--resume`` those ``store`` does not hold (failed
+    ones too with ``--retry-failed``)."""
+    if not options.resume:
+        return list(matrix.episodes)
+    finished = store.finished_keys(include_failed=not options.retry_failed)
+    return [episode for episode in matrix.episodes if episode.key not in finished]
+
+
+def record_matrix(matrix: Matrix, store: ResultStore, *, options: RunOptions, out_dir: Path) -> Matrix:
+    """Refuse to resume results of another matrix (MatrixChangedError); then record this one's facts. The matrix as
+    it runs (fitted to the results it resumes)."""
+    if options.resume:
+        matrix = resume_matrix(matrix, store).matrix
+    previous = store.fact("source_text")
+    if previous is not None and previous != matrix.text:
+        log.warning(
+            "%s holds results of a different version of the matrix file; episodes are matched by key", store.path
+        )
+    store.set_fact("name", matrix.name)
+    store.set_fact("source_text", matrix.text)
+    store.set_fact("variation_keys", list(matrix.variation_keys))
+    # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
+    store.set_fact(BASELINE_FACT, matrix.episodes[0].variation if matrix.episodes else None)
+    store.set_fact("shadows", [shadow.to_dict() for shadow in matrix.shadows])
+    store.set_fact(PLANNED_KEYS_FACT, [episode.key for episode in matrix.episodes])
+    for key, value in options.facts.items():
+        store.set_fact(key, value)
+    if store.fact("created_at") is None:
+        store.set_fact("created_at", time.time())
+    (out_dir / "matrix.yaml").write_text(matrix.text)
+    return matrix
+
+
+def _ignore(*_: object) -> None:
+    pass
+
+
 class MatrixRunner:
-    """Runs the planned episodes of one matrix into one output folder. ``run()`` returns the finished count."""
+    """Runs the planned episodes of one matrix into one output folder on this machine's worker threads. ``run()``
+    returns the progress; ``on_change`` follows it, ``on_result`` sees each result once it is committed."""
 
     def __init__(
         self,
@@ -64,54 +159,43 @@ class MatrixRunner:
         options: RunOptions,
         *,
         on_change: Callable[[MatrixProgress], None] | None = None,
+        on_result: Callable[[EpisodeResult, MatrixProgress], None] | None = None,
     ):
         self.matrix = matrix
         self.out_dir = Path(out_dir)
         self.options = options
-        self._on_change = on_change or (lambda progress: None)
-        self._store_lock = threading.Lock()
+        self._on_change = on_change or _ignore
+        self._on_result = on_result or _ignore
         # Every worker runs its episodes through this one executor (it holds no episode's state); its stacks share
         # this machine's cores for rendering.
         self.executor = EpisodeExecutor(
             matrix=matrix, out_dir=self.out_dir, options=options, node=socket.gethostname(), make_stack=self._stack
         )
 
-    def pending(self, store: ResultStore) -> list[PlannedEpisode]:
-        if not self.options.resume:
-            return list(self.matrix.episodes)
-        finished = store.finished_keys(include_failed=not self.options.retry_failed)
-        return [episode for episode in self.matrix.episodes if episode.key not in finished]
-
     def stop(self) -> None:
         """Abandon running episodes (they stay missing, so ``--resume`` runs them) and start no more."""
         self.executor.stop()
 
     def run(self) -> MatrixProgress:
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        store = ResultStore(self.out_dir)
-        try:
-            self._check_same_matrix(store)
-            self.executor.matrix = self.matrix  # as fitted to the results it resumes
-            todo = self.pending(store)
-            progress = MatrixProgress(
-                total=len(self.matrix.episodes),
-                skipped=len(self.matrix.episodes) - len(todo),
-                workers=[WorkerState() for _ in range(self._lanes())],
-            )
-            self._dispatch(todo, store, progress)
-        finally:
-            store.close()
-        self._on_change(progress)
-        return progress
+        return run_matrix(
+            self.matrix,
+            self.out_dir,
+            self.options,
+            lanes=self._lanes(),
+            dispatch=self._dispatch,
+            on_change=self._on_change,
+            on_result=self._on_result,
+        )
 
     def _lanes(self) -> int:
         """How many episodes run at once (one progress lane each)."""
         return max(1, self.options.workers)
 
-    def _dispatch(self, todo: list[PlannedEpisode], store: ResultStore, progress: MatrixProgress) -> None:
-        """Run ``todo``, each result through :meth:`_finish`, calling ``on_change`` as it goes. Here: worker threads
-        on this machine; :mod:`orchestrator.matrix.ray_runner` runs them as tasks on a Ray cluster instead."""
-        jobs = JobQueue(todo, launches=self.executor.launches)
+    def _dispatch(self, book: MatrixBook) -> None:
+        """Run ``book.todo`` on worker threads of this machine, each result through :meth:`MatrixBook.finish`,
+        calling ``on_change`` as it goes."""
+        self.matrix = self.executor.matrix = book.matrix  # as fitted to the results it resumes
+        jobs = JobQueue(book.todo, launches=self.executor.launches)
         # One router for the whole matrix, embedded here; every episode's processes connect to it.
         router = Bus(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]), name="matrix-router")
         endpoint = router.config.listen[0]
@@ -122,22 +206,22 @@ class MatrixRunner:
         # the process ("FATAL: exception not rethrown"; its core dump shows the worker in Session.close()).
         # Never daemon threads either: the thread Zenoh starts for each callback subscription inherits the flag,
         # and a daemon one still in Zenoh's code at exit aborts the process the same way.
-        ended = [threading.Event() for _ in progress.workers]
+        ended = [threading.Event() for _ in book.progress.workers]
         threads = [
             threading.Thread(
                 target=self._lane,
-                args=(done, jobs, store, progress, state, endpoint, i),
+                args=(done, jobs, book, state, endpoint, i),
                 name=f"matrix-worker-{i}",
                 daemon=False,
             )
-            for i, (done, state) in enumerate(zip(ended, progress.workers))
+            for i, (done, state) in enumerate(zip(ended, book.progress.workers))
         ]
         try:
             for thread in threads:
                 thread.start()
             for done in ended:
                 while not done.wait(timeout=0.25):
-                    self._on_change(progress)
+                    self._on_change(book.progress)
         except BaseException:
             self.stop()  # Ctrl-C, SIGTERM: every worker abandons its episode and closes its stack
             for thread, done in zip(threads, ended):
@@ -147,28 +231,6 @@ class MatrixRunner:
             raise
         finally:
             router.close()
-
-    def _check_same_matrix(self, store: ResultStore) -> None:
-        """Refuse to resume results of another matrix (MatrixChangedError); then record this one's facts."""
-        if self.options.resume:
-            self.matrix = resume_matrix(self.matrix, store).matrix
-        previous = store.fact("source_text")
-        if previous is not None and previous != self.matrix.text:
-            log.warning(
-                "%s holds results of a different version of the matrix file; episodes are matched by key", store.path
-            )
-        store.set_fact("name", self.matrix.name)
-        store.set_fact("source_text", self.matrix.text)
-        store.set_fact("variation_keys", list(self.matrix.variation_keys))
-        # The report's baseline (the first value of every axis) without parsing the matrix file a second time.
-        store.set_fact(BASELINE_FACT, self.matrix.episodes[0].variation if self.matrix.episodes else None)
-        store.set_fact("shadows", [shadow.to_dict() for shadow in self.matrix.shadows])
-        store.set_fact(PLANNED_KEYS_FACT, [episode.key for episode in self.matrix.episodes])
-        for key, value in self.options.facts.items():
-            store.set_fact(key, value)
-        if store.fact("created_at") is None:
-            store.set_fact("created_at", time.time())
-        (self.out_dir / "matrix.yaml").write_text(self.matrix.text)
 
     # -- one worker: episodes one after another --
 
@@ -182,8 +244,7 @@ class MatrixRunner:
     def _work(
         self,
         jobs: JobQueue,
-        store: ResultStore,
-        progress: MatrixProgress,
+        book: MatrixBook,
         state: WorkerState,
         endpoint: str,
         lane_index: int,
@@ -195,31 +256,20 @@ class MatrixRunner:
                 episode = jobs.take(prefer=None if lane is None else lane.brains)
                 if episode is None:
                     return
-                with progress.lock:
+                with book.progress.lock:
                     state.episode, state.live = episode, None
                 if lane is None:
                     result = executor.run_fresh(episode, router_endpoint=endpoint, state=state)
                 else:
                     result = executor.run_warm(episode, lane=lane, state=state)
-                with progress.lock:
+                with book.progress.lock:
                     state.episode, state.live = None, None
                 if result is None:  # abandoned: not a result
                     return
-                self._finish(result, store, progress)
+                book.finish(result)
         finally:
             if lane is not None:
                 lane.close()
-
-    def _finish(self, result: EpisodeResult, store: ResultStore, progress: MatrixProgress) -> None:
-        """One finished episode: committed to the results, then counted."""
-        with self._store_lock:
-            store.record(result)
-        with progress.lock:
-            progress.finished.append(result)
-            if result.status == "done":
-                progress.done += 1
-            else:
-                progress.failed += 1
 
     def _stack(self, **settings) -> LocalStack:
         """A worker's stack: the workers' stacks share this machine's cores for rendering."""
@@ -265,4 +315,13 @@ def never_moved(progress: MatrixProgress) -> list[str]:
     ]
 
 
-__all__ = ["JobQueue", "MatrixProgress", "MatrixRunner", "RunOptions", "WorkerState", "never_moved"]
+__all__ = [
+    "JobQueue",
+    "MatrixBook",
+    "MatrixProgress",
+    "MatrixRunner",
+    "RunOptions",
+    "WorkerState",
+    "never_moved",
+    "run_matrix",
+]

@@ -3,17 +3,23 @@
 One enum, :class:`FailureKind`, for the launcher, the runners and the results. Its ``<role>_died`` members follow
 the process graph: every role of ``protocol/deploy/graph.py`` that runs a process has one (``tests/test_failures.py``
 fails when a role is added without it), and :meth:`FailureKind.died` maps a role to its member, so nothing decides
-on the text of a message.
+on the text of a message. What the stack raises carries it: :class:`StackFailure` (an episode the stack failed, with
+its kind), beside :class:`StackError` (the stack could not run) and :class:`EpisodeAborted` (the caller gave up).
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from enum import StrEnum
 
+import msgspec
+
+from protocol.messages import EpisodeScore
+
 
 class FailureKind(StrEnum):
-    """Why the stack failed an episode. The value is what results store (``<kind>: <detail>``) and tables show."""
+    """Why the stack failed an episode. The value is what results store (in their own column) and tables show."""
 
     BRAIN_DIED = "brain_died"  # a brain process exited or lost its liveliness token during the episode
     SIMULATOR_DIED = "simulator_died"  # the simulator process exited or lost its token
@@ -52,11 +58,41 @@ class Failure:
     detail: str
 
     def __str__(self) -> str:
-        return f"{self.kind}: {self.detail}"  # the form results store and print
+        return f"{self.kind}: {self.detail}"  # the form a person reads (results store kind and detail apart)
 
-    @classmethod
-    def parse(cls, stored: str) -> Failure:
-        """A failure as results stored it (``<kind>: <detail>``); a kind this drivebench does not know is ``error``."""
-        kind, _, detail = stored.partition(": ")
-        known = kind in FailureKind._value2member_map_
-        return cls(FailureKind(kind), detail) if known else cls(FailureKind.ERROR, stored)
+
+class StackError(RuntimeError):
+    """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
+
+
+class StackFailure(StackError):
+    """An episode the stack failed, typed for results (``kind``, a :class:`FailureKind`).
+
+    ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
+    ``brain_lost`` and is scored), else None.
+    """
+
+    def __init__(self, kind: FailureKind, detail: str, *, score: EpisodeScore | None = None):
+        super().__init__(detail)
+        self.kind = kind
+        self.score = score
+        self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
+
+    @property
+    def failure(self) -> Failure:
+        return Failure(self.kind, str(self))
+
+    def record(self, *, run_id: str, episode: int | None = None) -> dict:
+        """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
+        return {
+            "run_id": run_id,
+            "episode": episode,
+            "failure": self.kind,
+            "detail": str(self),
+            "detected_at_s": round(self.detected_at_s, 3),
+            "score": None if self.score is None else msgspec.to_builtins(self.score),
+        }
+
+
+class EpisodeAborted(StackError):
+    """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""

@@ -5,29 +5,31 @@ the noise injector, the brain host(s) and the scorer as child processes with a l
 liveliness tokens, runs episodes through the simulator's control queryable, and on exit stops every child (SIGTERM,
 then SIGKILL).
 Children also stop by themselves when this process dies (they watch their parent), so nothing is orphaned.
+
+Beside it in ``orchestrator/stack``: its errors (``failures``), a sandboxed brain's router and spawn (``sandbox``),
+the recorder's control (``recorder_control``), the stack file and swapped-in brains of ``drivebench swap``
+(``swap``), and a stack someone else started (``attached``).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
 import socket
 import subprocess
-import tempfile
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import msgspec
-
 from brains.registry import bus_name
-from orchestrator.stack import processes, sandbox
-from orchestrator.stack.failures import Failure, FailureKind
+from orchestrator.stack import processes, recorder_control, sandbox
+from orchestrator.stack.failures import EpisodeAborted, FailureKind, StackError, StackFailure
+from orchestrator.stack.recorder_control import RECORDER_STOP_GRACE_S
 from orchestrator.stack.sandbox import Sandbox, SandboxedProcess
+from orchestrator.stack.swap import remove_stack_file, stop_foreign_brains, write_stack_file
 from protocol import codec, environment, keys
 from protocol.bus import (
     ANSWER_TIMEOUT_S,
@@ -54,46 +56,6 @@ from protocol.messages import (
 log = logging.getLogger("drivebench.launcher")
 
 STOP_GRACE_S = 5.0
-STACK_FILE = "stack.json"  # in the run folder while ``drivebench run`` runs: how ``drivebench swap`` finds the stack
-FOREIGN_BRAIN_STOP_S = 3.0
-RECORDER_STOP_GRACE_S = 30.0  # finishing a recording (drain, summary, fsync) must not be cut short
-
-
-class StackError(RuntimeError):
-    """The stack could not run: a process died, did not come up, or refused the episode. One line, says which."""
-
-
-class StackFailure(StackError):
-    """An episode the stack failed, typed for results (``kind``, a :class:`FailureKind`).
-
-    ``score`` is the episode's score when the scorer still produced one (a brain killed mid-episode ends it with
-    ``brain_lost`` and is scored), else None.
-    """
-
-    def __init__(self, kind: FailureKind, detail: str, *, score: EpisodeScore | None = None):
-        super().__init__(detail)
-        self.kind = kind
-        self.score = score
-        self.detected_at_s = time.time()  # wall clock (Unix time) when the stack noticed it
-
-    @property
-    def failure(self) -> Failure:
-        return Failure(self.kind, str(self))
-
-    def record(self, *, run_id: str, episode: int | None = None) -> dict:
-        """The failure as a JSON-able record, beside scores in the same family (``--json``, ``failure.json``)."""
-        return {
-            "run_id": run_id,
-            "episode": episode,
-            "failure": self.kind,
-            "detail": str(self),
-            "detected_at_s": round(self.detected_at_s, 3),
-            "score": None if self.score is None else msgspec.to_builtins(self.score),
-        }
-
-
-class EpisodeAborted(StackError):
-    """The caller asked to abandon the running episode (Ctrl-C of a matrix): nothing about it is a result."""
 
 
 LOCAL_ENV: dict[str, str] = {}  # the environment a local stack's own sessions read their bus settings from: none
@@ -289,23 +251,15 @@ class LocalStack:
         log.info("stack up on %s: %s", self.endpoint, ", ".join(f"{c.role}/{c.name}" for c in self.children))
 
     def _open_sandboxed_router(self) -> None:
-        """The stack's own router, listening on its TCP endpoint and on a Unix socket for the sandboxed brains,
-        with the access control that lets a Unix-socket link publish only their command keys (embedded, whatever
-        ``embed_router`` and ``router_endpoint`` say)."""
+        """The stack's own router, listening on its TCP endpoint and on a Unix socket for the sandboxed brains
+        (embedded, whatever ``embed_router`` and ``router_endpoint`` say): :func:`sandbox.open_router`."""
+        self._sandboxed_names = frozenset(launch.bus_name for launch in self.brains if launch.sandbox is not None)
         try:
-            sandbox.require_bubblewrap()
+            self.bus, self._bus_socket = sandbox.open_router(
+                run_id=self.run_id, endpoint=self.endpoint, brain_names=self._sandboxed_names, env=LOCAL_ENV
+            )
         except sandbox.SandboxUnavailable as error:
             raise StackError(str(error)) from None
-        # A short path of our own: a Unix socket's path is at most 107 bytes, and a run folder may be longer.
-        self._bus_socket = Path(tempfile.mkdtemp(prefix="drivebench-bus-")) / "bus.sock"
-        self._sandboxed_names = frozenset(launch.bus_name for launch in self.brains if launch.sandbox is not None)
-        control = sandbox.access_control(run_id=self.run_id, brain_names=self._sandboxed_names)
-        listen = [self.endpoint, f"unixsock-stream/{self._bus_socket}"]
-        self.bus = Bus(
-            BusConfig(mode="router", listen=listen), name="launcher", env=LOCAL_ENV, extra={"access_control": control}
-        )
-        self._bus_socket.parent.chmod(0o755)  # the sandbox's own uid connects through it
-        self._bus_socket.chmod(0o666)
 
     def _spawn_brain(self, launch: BrainLaunch) -> str:
         argv = ["--brain", launch.brain, "--name", launch.bus_name]
@@ -322,23 +276,15 @@ class LocalStack:
         assert launch.sandbox is not None
         if self._bus_socket is None or launch.bus_name not in self._sandboxed_names:
             raise StackError(f"brain {launch.bus_name!r}: a sandboxed brain is started with its stack, not added later")
-        joins = ["--router", f"unixsock-stream/{sandbox.SOCKET_INSIDE}", "--run-id", self.run_id]
-        # A client with no listener and no shared memory: the socket is its one link (nothing is shared with it).
-        confined = ["--set", "bus.mode=client", "--set", "bus.shared_memory=false", "--set", "sandboxed=true"]
-        readable, importable = sandbox.brain_paths(launch.brain, launch.options)
-        project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
         log_path = self.run_dir / "logs" / f"brain-{launch.bus_name}.log"
-        env = {k: v for k, v in os.environ.items() if k.startswith("DRIVEBENCH_") and k not in BUS_ENV}
-        for name in (environment.RUN_ID.name, environment.PARENT_PID.name):  # bubblewrap dies with us instead
-            env.pop(name, None)
-        confined_process = sandbox.spawn(
+        confined_process = sandbox.spawn_brain(
             launch.sandbox,
-            command=[sandbox.interpreter(), *processes.python_module("brains")[1:], *joins, *argv, *confined],
-            log_path=log_path,
+            brain=launch.brain,
+            options=launch.options,
+            host_argv=argv,
+            run_id=self.run_id,
             socket_path=self._bus_socket,
-            readable=[*sandbox.python_paths(), project, *readable],
-            importable=[project, *importable],
-            env=env,
+            log_path=log_path,
         )
         child = Child(
             role="brain",
@@ -447,27 +393,7 @@ class LocalStack:
 
     def _recorder_request(self, request: ControlRequest, *, done: Callable[[ControlReply], bool]) -> None:
         assert self.bus is not None
-        key = keys.recorder_control(self.run_id)
-        payload = self.bus.request(key, codec.encode(request), timeout_s=ANSWER_TIMEOUT_S)
-        reply = None if payload is None else codec.decode(payload, ControlReply)
-        if reply is None or not reply.ok:
-            why = "no answer" if reply is None else reply.detail
-            raise StackFailure(
-                FailureKind.RECORDER_DIED, f"the recorder did not take {request.action!r} on {key}: {why}"
-            )
-        deadline = time.monotonic() + RECORDER_STOP_GRACE_S
-        status = codec.encode(ControlRequest(action="status"))
-        while time.monotonic() < deadline:
-            payload = self.bus.request(key, status, timeout_s=ANSWER_TIMEOUT_S)
-            if payload is not None and done(codec.decode(payload, ControlReply)):
-                return
-            if (dead := self._dead_child_reason()) is not None:
-                raise StackFailure(FailureKind.RECORDER_DIED, dead)
-            time.sleep(0.02)
-        raise StackFailure(
-            FailureKind.RECORDER_DIED,
-            f"the recorder did not {request.action} a file within {RECORDER_STOP_GRACE_S:.0f} s",
-        )
+        recorder_control.send(self.bus, run_id=self.run_id, request=request, done=done, dead=self._dead_child_reason)
 
     def stop_recorder(self) -> None:
         """Stop this stack's recorder: it drains what is still on its way, then writes a complete, indexed file."""
@@ -481,14 +407,7 @@ class LocalStack:
 
     def _recorder_argv(self, *, attach: tuple[Path, ...] | None = None) -> list[str]:
         assert self.record is not None, "a recorder is started for a recording"
-        argv = ["--set", f"output={json.dumps(str(Path(self.record).resolve()))}"]
-        config = self.run_dir / "config.yaml"
-        files = attach if attach is not None else ((config,) if config.is_file() else ())
-        if files:
-            argv += ["--set", f"attach=[{', '.join(json.dumps(str(Path(f).resolve())) for f in files)}]"]
-        for option in self.record_options:
-            argv += ["--set", option]
-        return argv
+        return recorder_control.argv(self.record, run_dir=self.run_dir, options=self.record_options, attach=attach)
 
     def _wait_for_router(self) -> None:
         """Until the router child accepts TCP connections (a peer would otherwise wait for it forever)."""
@@ -592,7 +511,8 @@ class LocalStack:
         raise KeyError(f"{role}/{name}")
 
     def close(self) -> None:
-        self._stop_foreign_brains()
+        if self.bus is not None:
+            stop_foreign_brains(self.bus, run_id=self.run_id, ours={c.name for c in self.children if c.role == "brain"})
         # The recorder stops last, so it still records whatever the others publish while stopping.
         self._stop([c for c in self.children if c.role != "recorder"], grace_s=STOP_GRACE_S)
         self._stop([c for c in self.children if c.role == "recorder"], grace_s=RECORDER_STOP_GRACE_S)
@@ -602,51 +522,16 @@ class LocalStack:
         if self._bus_socket is not None:
             shutil.rmtree(self._bus_socket.parent, ignore_errors=True)  # our own folder of the router's socket
             self._bus_socket = None
-        self._remove_stack_file()
-
-    def write_stack_file(self) -> Path:
-        """Write ``<run_dir>/stack.json`` ({"router", "run_id", "pid"}) so that ``drivebench swap`` finds this running
-        stack; :meth:`close` removes it."""
-        path = self.run_dir / STACK_FILE
-        path.write_text(json.dumps({"router": self.endpoint, "run_id": self.run_id, "pid": os.getpid()}) + "\n")
-        return path
-
-    def _remove_stack_file(self) -> None:
-        path = self.run_dir / STACK_FILE
-        try:
-            if json.loads(path.read_text()).get("pid") == os.getpid():
-                path.unlink()
-        except (OSError, ValueError, AttributeError):
-            pass  # none, or not ours
-
-    def _stop_foreign_brains(self, *, timeout_s: float = FOREIGN_BRAIN_STOP_S) -> None:
-        """Ask every brain alive on this run that is not our child (swapped in by ``drivebench swap``) to stop, and
-        wait until its token is gone: a swapped-in brain must not outlive the stack."""
-        if self.bus is None:
-            return
-        ours = {child.name for child in self.children if child.role == "brain"}
-        try:
-            foreign = {
-                name
-                for _, role, name in map(keys.parse_alive, self.bus.alive_now(keys.alive_all(self.run_id)))
-                if role == "brain" and name not in ours
-            }
-            for name in sorted(foreign):
-                log.info("stopping brain %s (not started by this stack)", name)
-                self.bus.request(
-                    keys.brain_control(self.run_id, name), codec.encode(ControlRequest(action="stop")), timeout_s=2.0
-                )
-        except (BusError, ValueError) as error:
-            log.warning("could not stop the brains this stack did not start: %s", error)
-            return
-        deadline = time.monotonic() + timeout_s
-        gone = {keys.alive(self.run_id, "brain", name) for name in foreign}
-        while gone and gone & self.bus.alive_now(keys.alive_all(self.run_id)) and time.monotonic() < deadline:
-            time.sleep(0.1)
+        remove_stack_file(self.run_dir)
 
     @staticmethod
     def _stop(children: list[Child], *, grace_s: float) -> None:
         processes.stop([c.process for c in children], grace_s=grace_s, names=[f"{c.role} {c.name}" for c in children])
+
+    def write_stack_file(self) -> Path:
+        """Write ``<run_dir>/stack.json`` so that ``drivebench swap`` finds this running stack; :meth:`close`
+        removes it."""
+        return write_stack_file(self.run_dir, router=self.endpoint, run_id=self.run_id)
 
     # -- episodes --
 
@@ -784,68 +669,3 @@ class LocalStack:
             FailureKind.SIMULATOR_DIED,
             f"the simulator did not answer {request.action!r} on {keys.sim_control(self.run_id)}{hint}",
         )
-
-
-@dataclass
-class AttachedStack(LocalStack):
-    """A stack that someone else started (``docker compose``, other machines): nothing is spawned or stopped here.
-
-    It joins the router at ``router_endpoint`` (None: the ``DRIVEBENCH_ROUTER`` environment variable) as a client,
-    waits until the simulator, the noise injector, the scorer and the brain are alive, and runs episodes through the
-    simulator's control queryable like :class:`LocalStack`. ``brain_name`` is the bus name of the brain to drive;
-    None takes the only brain alive on the run (an error when there are several).
-    """
-
-    brain_name: str | None = None
-
-    def __post_init__(self) -> None:
-        keys.check_name(self.run_id, what="run id")
-        self.endpoint = self.router_endpoint or environment.ROUTER.value()
-        self._init_state(busy_wait_s=self.startup_timeout_s)  # --attach waits for a running episode up to --wait
-
-    def start(self) -> None:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        if not self.endpoint:
-            raise StackError(f"no router to attach to: give --router ENDPOINT or set {environment.ROUTER.name}")
-        watch = self._join_run(client=f"driver-{self.run_id}")
-        self.brain_name = self._wait_for_brain(watch)
-        log.info("attached to run %s on %s, driving with brain %s", self.run_id, self.endpoint, self.brain_name)
-
-    def _join_run(self, *, client: str):
-        """Join the router as ``client`` and wait until the run's simulator, noise injector and scorer are alive;
-        the alive watch it returns keeps following the run's tokens."""
-        self.bus = Bus(BusConfig(mode="client", connect=[e.strip() for e in self.endpoint.split(",")]), name=client)
-        watch = self._watch = self.bus.watch_alive(keys.alive_all(self.run_id))
-        self._required = {row.token_key(self.run_id) for row in graph.local_stack_roles()}
-        missing = watch.wait_for(self._required, timeout_s=self.startup_timeout_s)
-        if missing:
-            names = ", ".join(sorted("/".join(keys.parse_alive(k)[1:]) for k in missing))
-            raise StackError(
-                f"run {self.run_id!r} on {self.endpoint}: not alive after {self.startup_timeout_s:.0f} s: {names}"
-            )
-        return watch
-
-    def _wait_for_brain(self, watch) -> str:
-        deadline = time.monotonic() + self.startup_timeout_s
-        while True:
-            brains = sorted(name for _, role, name in map(keys.parse_alive, watch.alive()) if role == "brain")
-            if self.brain_name is not None and self.brain_name in brains:
-                return self.brain_name
-            if self.brain_name is None and len(brains) == 1:
-                return brains[0]
-            if self.brain_name is None and len(brains) > 1:
-                raise StackError(
-                    f"run {self.run_id!r} has several brains alive ({', '.join(brains)}): choose one with --brain"
-                )
-            if time.monotonic() > deadline:
-                wanted = f"brain {self.brain_name!r}" if self.brain_name else "a brain"
-                raise StackError(
-                    f"run {self.run_id!r}: {wanted} not alive after {self.startup_timeout_s:.0f} s"
-                    + (f" (alive: {', '.join(brains)})" if brains else "")
-                )
-            time.sleep(0.1)
-
-    def close(self) -> None:
-        if self.bus is not None:
-            self.bus.close()
-            self.bus = None

@@ -29,6 +29,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -36,8 +37,10 @@ from pathlib import Path
 from typing import Any
 
 from brains.sandbox_exit import SandboxExit
+from orchestrator.stack import processes
 from orchestrator.stack.failures import FailureKind
-from protocol import keys
+from protocol import environment, keys
+from protocol.bus import BUS_ENV, Bus, BusConfig
 
 log = logging.getLogger("drivebench.sandbox")
 
@@ -102,6 +105,25 @@ class Sandbox:
     def default(cls, *, scratch_dir: Path, hidden_paths: Iterable[Path] = ()) -> Sandbox:
         """The limits a challenge runs with (the defaults above)."""
         return cls(scratch_dir=Path(scratch_dir), hidden_paths=tuple(Path(p) for p in hidden_paths))
+
+
+# The limits a user may set (``drivebench run --sandbox-limit KEY=VALUE``): Sandbox fields.
+LIMIT_KEYS = ("memory_bytes", "max_processes", "cpu_seconds", "file_size_bytes", "output_bytes", "start_timeout_s")
+
+
+def parse_limits(settings: Iterable[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` settings as Sandbox fields (an int each, a float for ``start_timeout_s``); ValueError naming the
+    setting for a key not in :data:`LIMIT_KEYS` or a value that is not a number."""
+    limits: dict[str, Any] = {}
+    for setting in settings:
+        key, equals, value = setting.partition("=")
+        if not equals or key not in LIMIT_KEYS:
+            raise ValueError(f"{setting}: expected KEY=VALUE with KEY one of {', '.join(LIMIT_KEYS)}")
+        try:
+            limits[key] = float(value) if key == "start_timeout_s" else int(value)
+        except ValueError:
+            raise ValueError(f"{setting}: {value!r} is not a number") from None
+    return limits
 
 
 def _as_root() -> bool:
@@ -426,6 +448,53 @@ def spawn(
         start_new_session=True,
     )
     return SandboxedProcess(sandbox=sandbox, process=process, log_path=log_path)
+
+
+def open_router(*, run_id: str, endpoint: str, brain_names: frozenset[str], env: Mapping[str, str]) -> tuple[Bus, Path]:
+    """A sandboxed brain's stack's own router (embedded), listening on ``endpoint`` and on a Unix socket for the
+    sandboxed brains ``brain_names``, with the access control that lets a Unix-socket link publish only their
+    command keys (:func:`access_control`): the bus, and the socket's path. SandboxUnavailable without bubblewrap."""
+    require_bubblewrap()
+    # A short path of our own: a Unix socket's path is at most 107 bytes, and a run folder may be longer.
+    socket_path = Path(tempfile.mkdtemp(prefix="drivebench-bus-")) / "bus.sock"
+    control = access_control(run_id=run_id, brain_names=brain_names)
+    listen = [endpoint, f"unixsock-stream/{socket_path}"]
+    bus = Bus(BusConfig(mode="router", listen=listen), name="launcher", env=env, extra={"access_control": control})
+    socket_path.parent.chmod(0o755)  # the sandbox's own uid connects through it
+    socket_path.chmod(0o666)
+    return bus, socket_path
+
+
+def spawn_brain(
+    sandbox: Sandbox,
+    *,
+    brain: str,
+    options: Sequence[str],
+    host_argv: Sequence[str],
+    run_id: str,
+    socket_path: Path,
+    log_path: Path,
+) -> SandboxedProcess:
+    """Start one brain host (``python -m brains`` with ``host_argv``) inside ``sandbox``, a client of the stack's
+    router through the Unix socket ``socket_path`` only; ``brain`` and its ``options`` say which files it may read
+    and import (:func:`brain_paths`)."""
+    joins = ["--router", f"unixsock-stream/{SOCKET_INSIDE}", "--run-id", run_id]
+    # A client with no listener and no shared memory: the socket is its one link (nothing is shared with it).
+    confined = ["--set", "bus.mode=client", "--set", "bus.shared_memory=false", "--set", "sandboxed=true"]
+    readable, importable = brain_paths(brain, options)
+    project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
+    env = {k: v for k, v in os.environ.items() if k.startswith("DRIVEBENCH_") and k not in BUS_ENV}
+    for name in (environment.RUN_ID.name, environment.PARENT_PID.name):  # bubblewrap dies with us instead
+        env.pop(name, None)
+    return spawn(
+        sandbox,
+        command=[interpreter(), *processes.python_module("brains")[1:], *joins, *host_argv, *confined],
+        log_path=log_path,
+        socket_path=socket_path,
+        readable=[*python_paths(), project, *readable],
+        importable=[project, *importable],
+        env=env,
+    )
 
 
 def command_argv(

@@ -27,6 +27,7 @@ gives the router and the run id; ``--router EP --run RUN_ID`` reach any stack (c
 from __future__ import annotations
 
 import json
+import logging
 import os
 import random
 import subprocess
@@ -38,7 +39,6 @@ from pathlib import Path
 
 from brains.registry import UnknownBrainError, bus_name, require_brain
 from orchestrator.stack import processes
-from orchestrator.stack.launcher import STACK_FILE
 from protocol import codec, environment, keys
 from protocol.bus import (
     ANSWER_TIMEOUT_S,
@@ -54,10 +54,15 @@ from protocol.bus import (
 from protocol.deploy.runtime import UsageError
 from protocol.messages import Command, ControlReply, ControlRequest, ServerState
 
+# The stack-side messages keep the launcher's logger: they are what a closing stack does.
+log = logging.getLogger("drivebench.launcher")
+
 DEFAULT_TIMEOUT_S = 60.0
 STATUS_ATTEMPTS_S = 5.0  # a fresh session may need a moment (more on a loaded machine) to reach the simulator
 STOP_WAIT_S = 5.0  # how long to wait for the old brain's token to go after it accepted "stop"
 ORPHAN_TIMEOUT_S = 10.0  # a swapped-in brain exits when the run has had no simulator this long (its stack is gone)
+STACK_FILE = "stack.json"  # in the run folder while ``drivebench run`` runs: how ``drivebench swap`` finds the stack
+FOREIGN_BRAIN_STOP_S = 3.0  # how long a closing stack waits for the brains swapped into it to go
 # A name claim reaches every other session of the run well within this; of two claims on one name, the later claimant
 # then always sees the earlier one (see _claim_name).
 CLAIM_SETTLE_S = 1.0
@@ -539,3 +544,45 @@ def locate_stack(*, runs_dir: Path, run_id: str | None, router: str | None) -> S
             f"--router EP --run RUN_ID)"
         )
     return StackInfo(router=router or stacks[0].router, run_id=stacks[0].run_id, run_dir=stacks[0].run_dir)
+
+
+# -- the running stack's side: how swap finds it, and the swapped-in brains it stops when it closes --
+
+
+def write_stack_file(run_dir: Path, *, router: str, run_id: str) -> Path:
+    """Write ``<run_dir>/stack.json`` ({"router", "run_id", "pid"}): how ``drivebench swap`` finds a running stack
+    (:func:`running_stacks`)."""
+    path = run_dir / STACK_FILE
+    path.write_text(json.dumps({"router": router, "run_id": run_id, "pid": os.getpid()}) + "\n")
+    return path
+
+
+def remove_stack_file(run_dir: Path) -> None:
+    """Remove ``<run_dir>/stack.json`` if this process wrote it."""
+    path = run_dir / STACK_FILE
+    try:
+        if json.loads(path.read_text()).get("pid") == os.getpid():
+            path.unlink()
+    except (OSError, ValueError, AttributeError):
+        pass  # none, or not ours
+
+
+def stop_foreign_brains(bus: Bus, *, run_id: str, ours: set[str], timeout_s: float = FOREIGN_BRAIN_STOP_S) -> None:
+    """Ask every brain alive on run ``run_id`` whose bus name is not in ``ours`` (swapped in by ``drivebench swap``)
+    to stop, and wait until its token is gone: a swapped-in brain must not outlive the stack."""
+    try:
+        foreign = {
+            name
+            for _, role, name in map(keys.parse_alive, bus.alive_now(keys.alive_all(run_id)))
+            if role == "brain" and name not in ours
+        }
+        for name in sorted(foreign):
+            log.info("stopping brain %s (not started by this stack)", name)
+            bus.request(keys.brain_control(run_id, name), codec.encode(ControlRequest(action="stop")), timeout_s=2.0)
+    except (BusError, ValueError) as error:
+        log.warning("could not stop the brains this stack did not start: %s", error)
+        return
+    deadline = time.monotonic() + timeout_s
+    gone = {keys.alive(run_id, "brain", name) for name in foreign}
+    while gone and gone & bus.alive_now(keys.alive_all(run_id)) and time.monotonic() < deadline:
+        time.sleep(0.1)
