@@ -47,6 +47,7 @@ from support.matrices import (  # noqa: E402
 )
 from support.waits import wait_for  # noqa: E402
 
+from orchestrator.matrix.executor import read_episode_config  # noqa: E402
 from orchestrator.matrix.load import load_matrix  # noqa: E402
 from orchestrator.matrix.ray_options import EPISODE_SLOT, RayOptions  # noqa: E402
 from orchestrator.matrix.ray_runner import RayMatrixRunner  # noqa: E402
@@ -357,11 +358,11 @@ def running_episodes(out: Path) -> list[str]:
     run_ids = []
     for path in sorted(out.glob("episodes/*/config.yaml")):
         try:
-            config = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError:  # caught half-written
+            config = read_episode_config(path)
+        except (yaml.YAMLError, msgspec.ValidationError):  # caught half-written
             continue
-        if "run_id" in config and config.get("key") not in finished:
-            run_ids.append(config["run_id"])
+        if config.key not in finished:
+            run_ids.append(config.run_id)
     return run_ids
 
 

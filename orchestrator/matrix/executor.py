@@ -36,6 +36,7 @@ import msgspec
 import yaml
 
 from orchestrator.matrix.load import BrainEntry, Matrix, PlannedEpisode
+from orchestrator.matrix.plan import EpisodeConfig
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.stack.failures import EpisodeAborted, Failure, FailureKind, StackError, StackFailure
 from orchestrator.stack.launcher import BrainLaunch, LocalStack
@@ -166,7 +167,7 @@ class EpisodeExecutor:
             record=folder / "recording.mcap" if self.options.record else None,
             record_options=(f"image_format={self.options.record_images}",),
         )
-        self._write_config(folder, episode, run_id)
+        write_episode_config(folder, EpisodeConfig.of(episode, matrix=self.matrix, run_id=run_id))
         trace = Trace()
 
         def started() -> LocalStack:
@@ -193,7 +194,7 @@ class EpisodeExecutor:
             stack = lane.stack_for(self.launches(episode))
             stacks.append(stack)
             stack.record_options = (f"image_format={self.options.record_images}",)
-            self._write_config(folder, episode, stack.run_id)
+            write_episode_config(folder, EpisodeConfig.of(episode, matrix=self.matrix, run_id=stack.run_id))
             if self.options.record:  # the stack's recorder (started at its first episode) opens this file
                 stack.record_episode(folder / "recording.mcap", attach=(folder / "config.yaml",))
             return stack
@@ -299,21 +300,6 @@ class EpisodeExecutor:
         (folder / "logs").mkdir(parents=True)
         return folder
 
-    def _write_config(self, folder: Path, episode: PlannedEpisode, run_id: str) -> None:
-        (folder / "config.yaml").write_text(
-            yaml.safe_dump(
-                {
-                    "run_id": run_id,
-                    "matrix": self.matrix.name,
-                    "key": episode.key,
-                    "episode": msgspec.to_builtins(episode.spec),
-                    "brains": [entry.to_dict() for entry in (episode.brain, *self.matrix.shadows)],
-                },
-                sort_keys=False,
-                default_flow_style=None,
-            )
-        )
-
     @staticmethod
     def _on_live(state: WorkerState, trace: Trace, live: LiveMetrics) -> None:
         state.live = live
@@ -321,6 +307,20 @@ class EpisodeExecutor:
 
     def _relative(self, path: Path) -> str:
         return str(path.relative_to(self.out_dir))
+
+
+def write_episode_config(folder: Path, config: EpisodeConfig) -> Path:
+    """``<folder>/config.yaml``: ``config`` as :func:`read_episode_config` reads it back (short lists and mappings
+    on one line, as matrices have always written it)."""
+    path = folder / "config.yaml"
+    path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False, default_flow_style=None))
+    return path
+
+
+def read_episode_config(path: Path) -> EpisodeConfig:
+    """An episode folder's config.yaml, as :func:`write_episode_config` wrote it (``msgspec.ValidationError``: it
+    is not one; ``yaml.YAMLError``: not YAML, e.g. caught half-written)."""
+    return msgspec.convert(yaml.safe_load(path.read_text()), EpisodeConfig)
 
 
 def brain_launch(entry: BrainEntry, *, shadow: bool = False) -> BrainLaunch:

@@ -62,17 +62,10 @@ class BrainEntry:
         return texts
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able form: ``{"label", "brain", "weights" (absolute path or None), "options" (mapping)}``, plus
-        ``"group"`` and ``"training_seed"`` for a training run (absent otherwise, so earlier results read alike)."""
-        entry: dict[str, Any] = {
-            "label": self.label,
-            "brain": self.brain,
-            "weights": None if self.weights is None else str(self.weights),
-            "options": dict(self.options),
-        }
-        if self.training_seed is not None:
-            entry.update(group=self.group, training_seed=self.training_seed)
-        return entry
+        """JSON-able form (:class:`BrainRecord`'s): ``{"label", "brain", "weights" (absolute path or None),
+        "options" (mapping)}``, plus ``"group"`` and ``"training_seed"`` for a training run (absent otherwise, so
+        earlier results read alike)."""
+        return msgspec.to_builtins(BrainRecord.of(self))
 
     @classmethod
     def from_dict(cls, entry: dict[str, Any], *, label: str = "") -> BrainEntry:
@@ -88,6 +81,34 @@ class BrainEntry:
             group=entry.get("group", ""),
             training_seed=entry.get("training_seed"),
         )
+
+
+class BrainRecord(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, omit_defaults=True):
+    """A :class:`BrainEntry` as files record it (a results row, an episode's config.yaml): ``weights`` as an
+    absolute path or None (written either way), ``options`` as a mapping, ``group`` and ``training_seed`` for a
+    training run only (absent otherwise, so that earlier files read alike)."""
+
+    label: str
+    brain: str
+    weights: str | None
+    options: dict[str, Any]
+    group: str | None = None
+    training_seed: int | None = None
+
+    @classmethod
+    def of(cls, entry: BrainEntry) -> BrainRecord:
+        trained = entry.training_seed is not None
+        return cls(
+            label=entry.label,
+            brain=entry.brain,
+            weights=None if entry.weights is None else str(entry.weights),
+            options=dict(entry.options),
+            group=entry.group if trained else None,
+            training_seed=entry.training_seed,
+        )
+
+    def entry(self) -> BrainEntry:
+        return BrainEntry.from_dict(msgspec.to_builtins(self))
 
 
 @dataclass(frozen=True)
@@ -110,6 +131,24 @@ class PlannedEpisode:
     repetition: int
     spec: EpisodeSpec
     part: str = ""
+
+
+class EpisodeConfig(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """A matrix episode's ``episodes/<index>/config.yaml``: the stack's ``run_id``, the ``matrix``'s name, the
+    episode's ``key``, its full spec (``episode``), and every brain it launched (its own, then the matrix's shadows),
+    written and read back through this struct (``orchestrator.matrix.executor``: ``write_episode_config``,
+    ``read_episode_config``)."""
+
+    run_id: str
+    matrix: str
+    key: str
+    episode: EpisodeSpec
+    brains: list[BrainRecord]
+
+    @classmethod
+    def of(cls, episode: PlannedEpisode, *, matrix: Matrix, run_id: str) -> EpisodeConfig:
+        brains = [BrainRecord.of(entry) for entry in (episode.brain, *matrix.shadows)]
+        return cls(run_id=run_id, matrix=matrix.name, key=episode.key, episode=episode.spec, brains=brains)
 
 
 def part_of(key: str) -> str:
