@@ -37,7 +37,7 @@ ROAD_ROWS = (360, 480)
 def render(path: str) -> None:
     """Four frames of the simple circuit at 640x480 (BM's camera), default world."""
     from circuits import load_circuit
-    from protocol.messages import CameraSpec, WorldVariation
+    from protocol.episode_spec import CameraSpec, WorldVariation
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

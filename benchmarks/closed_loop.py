@@ -45,8 +45,9 @@ from brains.registry import make_brain
 from orchestrator.stack.launcher import BrainLaunch, LocalStack
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.images import image_frame
-from protocol.messages import CameraFrame, CameraSpec, Command, EpisodeSpec, Header
+from protocol.messages import CameraFrame, Command, Header
 from protocol.trace import TRACE_DIR_ENV, TraceEvent, read_traces
 from services.simulator.episode import EpisodeSim, SceneCache
 

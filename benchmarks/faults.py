@@ -41,17 +41,8 @@ from orchestrator.stack.failures import StackFailure
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusError, Inbox, Traffic, probe_router
-from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
-    Command,
-    EpisodeEvent,
-    EpisodeScore,
-    EpisodeSpec,
-    EventKind,
-    Header,
-    Pose,
-)
+from protocol.episode_spec import CameraSpec, EpisodeSpec
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeScore, EventKind, Header, Pose
 from recorder.reading import read_messages
 from recorder.repair import repair
 from recorder.writer import part_path

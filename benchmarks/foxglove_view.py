@@ -26,9 +26,10 @@ import numpy as np
 from websockets.sync.client import connect
 
 from protocol import keys
+from protocol.episode_spec import EpisodeSpec
 from protocol.episodes import start_event
 from protocol.mapping import topics
-from protocol.messages import CameraFrame, Command, EpisodeSpec, Header, Pose
+from protocol.messages import CameraFrame, Command, Header, Pose
 from recorder.merge import merge
 from recorder.writer import RecordingWriter
 from services.viz.bridge import LiveBridge

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from circuits import load_circuit
-from protocol.messages import CameraSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.renderers import make_scene
 

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from circuits import load_circuit
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, render_threads_for
-from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.variations import VariationError, apply_variation, check_look
 from services.simulator.episode import SceneCache
 from services.simulator.parity import parity_poses

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from protocol.messages import (
+from protocol.episode_spec import (
     BM_NOISE_MODELS,
     Blur,
     Brightness,

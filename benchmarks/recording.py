@@ -29,18 +29,9 @@ from tqdm import tqdm
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Traffic
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.images import image_frame
-from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
-    Command,
-    EpisodeEvent,
-    EpisodeSpec,
-    EventKind,
-    Header,
-    LiveMetrics,
-    Pose,
-)
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header, LiveMetrics, Pose
 from recorder.reading import read_messages
 from recorder.standalone import RecorderStartError, start_recorder
 

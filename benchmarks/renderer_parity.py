@@ -21,7 +21,7 @@ from collections import defaultdict
 
 from circuits import load_circuit
 from circuits.library import builtin_circuit_names
-from protocol.messages import CameraSpec, EpisodeSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, EpisodeSpec, WorldVariation
 from protocol.variations import CAMERA_PRESETS, apply_variation
 from services.simulator.gl_scene import GLScene
 from services.simulator.parity import differing_fraction, mean_absolute_difference, parity_poses, ssim

@@ -23,7 +23,8 @@ from orchestrator.matrix.results import BASELINE_FACT, EpisodeResult, ResultStor
 from orchestrator.report import comparison as comparison_module
 from orchestrator.report import matrix as matrix_report
 from orchestrator.report.document import Section
-from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, EpisodeSpec, Header
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, Header
 
 
 def metrics_with(progress_laps: float) -> EpisodeMetrics:

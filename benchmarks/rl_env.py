@@ -31,7 +31,7 @@ from gymnasium.vector import AsyncVectorEnv
 
 import drivebench  # noqa: F401 - registers the environment
 from drivebench.rl.env import LaneFollowEnv
-from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from services.simulator.episode import EpisodeSim, SceneCache
 
 

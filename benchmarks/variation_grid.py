@@ -13,7 +13,7 @@ import sys
 import cv2
 import numpy as np
 
-from protocol.messages import EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
 from protocol.variations import apply_variation
 from services.simulator.episode import EpisodeSim, SceneCache
 

@@ -93,7 +93,7 @@ def render_frames(
 ) -> list[Frame]:
     """Consecutive frames along ``circuit``'s centreline (0.4 m apart: 8 m/s at 20 Hz) in each world, rendered."""
     from circuits import load_circuit
-    from protocol.messages import CameraSpec, WorldVariation
+    from protocol.episode_spec import CameraSpec, WorldVariation
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

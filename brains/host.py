@@ -35,6 +35,7 @@ from brains.sandbox_exit import exit_for
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.deploy.runtime import stop_requested
+from protocol.episode_spec import EpisodeSpec
 from protocol.episodes import EpisodeStarts, running_spec
 from protocol.images import FrameReader
 from protocol.messages import (
@@ -43,7 +44,6 @@ from protocol.messages import (
     ControlReply,
     ControlRequest,
     EpisodeEvent,
-    EpisodeSpec,
     EventKind,
     Header,
     Pose,

@@ -22,7 +22,7 @@ from circuits import CircuitError, load_circuit
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, render_threads_for
 from orchestrator.stack.progress import EpisodeProgress
 from protocol import environment
-from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 

@@ -8,7 +8,8 @@ from collections.abc import Callable
 
 from protocol import codec, keys
 from protocol.bus import Bus, BusError, Inbox
-from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EpisodeSpec, EventKind, Header
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EventKind, Header
 
 log = logging.getLogger("drivebench.episodes")
 

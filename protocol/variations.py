@@ -19,7 +19,15 @@ from typing import Any
 import msgspec
 import yaml
 
-from protocol.messages import DIRECTIONS, LOOK_RENDERERS, LOOKS, NOISE_MODELS, EpisodeSpec, NoiseStage, WorldVariation
+from protocol.episode_spec import (
+    DIRECTIONS,
+    LOOK_RENDERERS,
+    LOOKS,
+    NOISE_MODELS,
+    EpisodeSpec,
+    NoiseStage,
+    WorldVariation,
+)
 from protocol.suggest import did_you_mean
 
 

@@ -26,7 +26,7 @@ def pytest_configure(config) -> None:
 def road_frame() -> np.ndarray:
     """A real 320x240 camera frame: the simulator's view on the top straight of the simple circuit."""
     from circuits import load_circuit
-    from protocol.messages import EpisodeSpec
+    from protocol.episode_spec import EpisodeSpec
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

@@ -5,7 +5,8 @@
 * No cycle between packages: the subpackages (orchestrator/stack, matrix, report; protocol/deploy, mapping; ...) form
   a graph without loops, so each can be read knowing only what it imports.
 * Only protocol/ imports zenoh; no package folder holds more than 15 modules.
-* No function outside tests/ is over 80 lines (CODE_STYLE.md: a longer one splits by what it does).
+* No function outside tests/ is over 80 lines (CODE_STYLE.md: a longer one splits by what it does), and no module of
+  the packages is over 700 lines (a longer one splits by responsibility, as protocol/messages.py did: issue 41).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ ONLY_FROM = {
 GROUND_VARIABLES = "circuits.variables"
 MAX_MODULES_PER_FOLDER = 15
 MAX_FUNCTION_LINES = 80
+MAX_MODULE_LINES = 700
 # Every folder of Python code but tests/ (test functions may read as one long scenario).
 CODE_FOLDERS = (*TOP_LEVEL, "benchmarks", "examples", "scripts")
 
@@ -164,6 +166,17 @@ def test_no_function_outside_tests_is_over_eighty_lines():
                     lines = node.end_lineno - node.lineno + 1 if node.end_lineno else 0
                     if lines > MAX_FUNCTION_LINES:
                         long.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} is {lines} lines")
+    assert not long, "\n".join(long)
+
+
+def test_no_module_of_the_packages_is_over_seven_hundred_lines():
+    long = [
+        f"{path.relative_to(ROOT)} is {lines} lines"
+        for top in TOP_LEVEL
+        for path in sorted((ROOT / top).rglob("*.py"))
+        if "__pycache__" not in path.parts
+        and (lines := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    ]
     assert not long, "\n".join(long)
 
 

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.messages import Rain, Sunflare
+from protocol.episode_spec import Rain, Sunflare
 from services.noise.models import make_model
 
 SKY_ROWS = slice(0, 150)
@@ -22,7 +22,7 @@ SKY_ROWS = slice(0, 150)
 def frame() -> np.ndarray:
     """The simple circuit seen from its centreline at 48 m, through BM's 640x480 camera (real PyBullet)."""
     from circuits import load_circuit
-    from protocol.messages import CameraSpec, WorldVariation
+    from protocol.episode_spec import CameraSpec, WorldVariation
     from services.simulator.car import CarState
     from services.simulator.scene import Scene
 

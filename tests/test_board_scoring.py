@@ -10,7 +10,8 @@ from orchestrator.board.store import Rejection
 from orchestrator.matrix.plan import BrainEntry
 from orchestrator.matrix.results import EpisodeResult
 from orchestrator.stack.failures import Failure, FailureKind
-from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, EpisodeSpec, Header
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, Header
 
 
 def _metrics(progress_laps: float) -> EpisodeMetrics:

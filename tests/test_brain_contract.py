@@ -14,7 +14,7 @@ from brains.checker import CHECK_WORLDS, check_brain, passed, render_frames
 from brains.nets import MODELS
 from brains.registry import UnknownBrainError
 from circuits import load_circuit
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

@@ -9,7 +9,8 @@ import pytest
 
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
-from protocol.messages import CameraSpec, EndReason, EpisodeSpec, SaltPepper
+from protocol.episode_spec import CameraSpec, EpisodeSpec, SaltPepper
+from protocol.messages import EndReason
 from protocol.trace import TRACE_DIR_ENV, read_traces
 
 pytestmark = pytest.mark.integration

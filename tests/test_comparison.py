@@ -13,7 +13,8 @@ from orchestrator.matrix.results import EpisodeResult
 from orchestrator.report.comparison import brain_scores, comparison_section
 from orchestrator.report.document import Table
 from orchestrator.report.statistics import ONE_RUN, RUNS, RUNS_AND_CONDITIONS
-from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, EpisodeSpec, Header
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, Header
 
 
 def metrics_with(progress_laps: float) -> EpisodeMetrics:

@@ -15,7 +15,8 @@ import pytest
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import codec, keys
 from protocol.bus import ANSWER_TIMEOUT_S
-from protocol.messages import ControlReply, ControlRequest, EpisodeSpec, ReplyCode, ServerState
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import ControlReply, ControlRequest, ReplyCode, ServerState
 
 ROOT = Path(__file__).resolve().parent.parent
 # Text checks are fine in tests (they check what people read); everywhere else the code decides.

@@ -13,7 +13,8 @@ from brains.registry import make_brain
 from circuits import load_circuit
 from orchestrator.collect import CollectError, collection_specs
 from orchestrator.stack.launcher import BrainLaunch
-from protocol.messages import CameraSpec, EndReason, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
+from protocol.messages import EndReason
 from protocol.variations import apply_variation
 
 BLANK = np.zeros((8, 8, 3), np.uint8)

@@ -11,7 +11,7 @@ from brains.base import Action, Brain, Observation
 from brains.explicit.brain import ExplicitBrain
 from brains.registry import make_brain
 from circuits import Centreline, Circuit, load_circuit
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

@@ -13,7 +13,8 @@ import tomllib
 from pathlib import Path
 
 from orchestrator.stack.launcher import LocalStack
-from protocol.messages import CameraSpec, EndReason, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
+from protocol.messages import EndReason
 
 ROOT = Path(__file__).resolve().parent.parent
 # What `pip install drivebench` (no extra) leaves out: the simulator, recording, live view, reports, neural brains.

@@ -7,7 +7,7 @@ import pytest
 
 from orchestrator.stack.failures import Failure, FailureKind
 from protocol.deploy import graph
-from protocol.messages import CameraSpec, EpisodeSpec, FieldError
+from protocol.episode_spec import CameraSpec, EpisodeSpec, FieldError
 
 
 @pytest.mark.parametrize("role", [row for row in graph.ROLES if row.module], ids=lambda row: row.name)

@@ -17,7 +17,8 @@ from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.bus import Inbox
 from protocol.deploy import graph, security
-from protocol.messages import CameraSpec, EpisodeSpec, RunMessage
+from protocol.episode_spec import CameraSpec, EpisodeSpec
+from protocol.messages import RunMessage
 
 ROOT = Path(__file__).resolve().parent.parent
 

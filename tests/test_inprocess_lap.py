@@ -15,7 +15,7 @@ import pytest
 from brains.base import Observation
 from brains.explicit.brain import ExplicitBrain
 from circuits import Circuit, load_circuit
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.scene import Scene
 

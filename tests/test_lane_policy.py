@@ -11,7 +11,7 @@ from brains.lane_policy.features import FEATURES, line_features, scaled
 from brains.registry import BrainOptionsError, preflight
 from circuits import load_circuit
 from drivebench.rl.reward import ProgressReward
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import Scene
 

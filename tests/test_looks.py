@@ -22,7 +22,7 @@ from test_renderers import require_gl
 
 from circuits import load_circuit
 from orchestrator.collect import randomised
-from protocol.messages import CameraSpec, EpisodeSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, EpisodeSpec, WorldVariation
 from protocol.variations import VariationError, apply_variation, check_look
 from services.simulator.car import CarState
 from services.simulator.looks import (
@@ -150,7 +150,7 @@ def test_more_llvmpipe_threads_draw_the_same_pixels(tmp_path):
         import sys
         import numpy as np
         from circuits import load_circuit
-        from protocol.messages import CameraSpec, WorldVariation
+        from protocol.episode_spec import CameraSpec, WorldVariation
         from services.simulator.parity import parity_poses
         from services.simulator.renderers import make_scene
         circuit = load_circuit("montreal")

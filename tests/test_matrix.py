@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from orchestrator.matrix.load import BrainEntry, Matrix, MatrixError, load_matrix, parse_matrix, part_of
-from protocol.messages import Gaussian, Occlusion, SaltPepper
+from protocol.episode_spec import Gaussian, Occlusion, SaltPepper
 
 EXAMPLE = """\
 name: generalization

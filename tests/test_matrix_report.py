@@ -22,7 +22,8 @@ from orchestrator.report.cells import baseline_variation, grid_cell, mean_std
 from orchestrator.report.data import ReportError
 from orchestrator.report.matrix import write_report
 from orchestrator.stack.failures import Failure, FailureKind
-from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, WorldVariation
+from protocol.episode_spec import EpisodeSpec, WorldVariation
+from protocol.messages import EndReason, EpisodeScore, Header
 from services.scorer.metrics import EpisodeScorer
 
 STEP_S = 0.05

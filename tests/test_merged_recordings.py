@@ -16,7 +16,8 @@ from support.recorder import run_cli, start_recorder
 from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig
-from protocol.messages import CameraSpec, EndReason, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
+from protocol.messages import EndReason
 from recorder.reading import read_messages, recording_info
 
 pytestmark = pytest.mark.integration

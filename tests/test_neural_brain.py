@@ -316,7 +316,8 @@ def test_exported_onnx_file_serves_alone_without_torch(ckpts, tmp_path):
 @pytest.mark.integration
 def test_brain_host_drives_the_closed_loop(make_stack, tmp_path):
     from orchestrator.stack.launcher import BrainLaunch
-    from protocol.messages import CameraSpec, EndReason, EpisodeSpec
+    from protocol.episode_spec import CameraSpec, EpisodeSpec
+    from protocol.messages import EndReason
 
     name = "deepest_lstm_tiny_pilotnet"
     # Slow and nearly straight whatever the untrained network says, so the episode lasts.

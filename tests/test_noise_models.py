@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from needs import require
 
-from protocol.messages import (
+from protocol.episode_spec import (
     NOISE_MODELS,
     Affine,
     Blur,
@@ -51,8 +51,9 @@ DETERMINISTIC_STAGES: list[NoiseStage] = [
     Jpeg(quality=60),
     Delay(frames=2),
 ]
-# A model added to protocol.messages.NOISE_MODELS is tested by every contract test below with no edit here, built with
-# its defaults (test_make_model_covers_every_stage_type names one that has none: give it defaults or a stage above).
+# A model added to protocol.episode_spec.NOISE_MODELS is tested by every contract test below with no edit here,
+# built with its defaults (test_make_model_covers_every_stage_type names one that has none: give it defaults or a stage
+# above).
 _LISTED = {type(stage) for stage in RANDOM_STAGES + DETERMINISTIC_STAGES}
 ALL_STAGES = (
     RANDOM_STAGES

@@ -8,18 +8,9 @@ import pytest
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import keys
 from protocol.bus import Inbox
+from protocol.episode_spec import CameraSpec, Delay, Drop, EpisodeSpec, SaltPepper, WorldVariation
 from protocol.images import frame_image
-from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
-    Delay,
-    Drop,
-    EndReason,
-    EpisodeSpec,
-    Pose,
-    SaltPepper,
-    WorldVariation,
-)
+from protocol.messages import CameraFrame, EndReason, Pose
 
 pytestmark = pytest.mark.integration
 SMALL = CameraSpec(width_px=96, height_px=72)

@@ -21,7 +21,8 @@ from support.env import clean_env
 from orchestrator.stack.launcher import LocalStack
 from protocol import keys
 from protocol.bus import ANSWER_TIMEOUT_S
-from protocol.messages import EndReason, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason
 
 pytestmark = pytest.mark.integration
 

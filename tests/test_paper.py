@@ -19,7 +19,8 @@ from orchestrator.matrix.results import EpisodeResult, ResultStore
 from orchestrator.report.document import Table
 from orchestrator.report.matrix import write_report
 from orchestrator.report.paper import PAPER_FILE, PARTS, paper_sections, smoke_matrix
-from protocol.messages import EndReason, EpisodeScore, EpisodeSpec, Header, SaltPepper
+from protocol.episode_spec import EpisodeSpec, SaltPepper
+from protocol.messages import EndReason, EpisodeScore, Header
 from protocol.variations import apply_variation
 from services.scorer.metrics import EpisodeScorer
 

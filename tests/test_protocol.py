@@ -14,26 +14,20 @@ from support.messages import METRICS
 
 from protocol import codec, keys
 from protocol.deploy.config import ConfigError, load_config
+from protocol.episode_spec import Brightness, CameraSpec, Drop, EpisodeSpec, Gaussian, Occlusion, SaltPepper
 from protocol.messages import (
     BUS_MESSAGES,
-    Brightness,
     CameraFrame,
-    CameraSpec,
     Command,
     ControlReply,
     ControlRequest,
-    Drop,
     EndReason,
     EpisodeEvent,
     EpisodeScore,
-    EpisodeSpec,
     EventKind,
-    Gaussian,
     Header,
     LiveMetrics,
-    Occlusion,
     Pose,
-    SaltPepper,
     ShadowDistance,
 )
 

@@ -19,19 +19,9 @@ from support.waits import wait_for
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.mapping import topics
-from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
-    Command,
-    ControlRequest,
-    EndReason,
-    EpisodeEvent,
-    EpisodeSpec,
-    EventKind,
-    Header,
-    Pose,
-)
+from protocol.messages import CameraFrame, Command, ControlRequest, EndReason, EpisodeEvent, EventKind, Header, Pose
 from recorder.reading import RecordingError, read_messages, recording_info
 from recorder.repair import repair
 from recorder.replay import rebased

@@ -9,6 +9,7 @@ import pytest
 from support.messages import METRICS
 
 from protocol import codec
+from protocol.episode_spec import CameraSpec, EpisodeSpec, Gaussian, SaltPepper, WorldVariation
 from protocol.mapping.recording import (
     RECORDED_MESSAGES,
     RecordFormatError,
@@ -20,19 +21,14 @@ from protocol.mapping.recording import (
 )
 from protocol.messages import (
     CameraFrame,
-    CameraSpec,
     Command,
     EndReason,
     EpisodeEvent,
     EpisodeScore,
-    EpisodeSpec,
     EventKind,
-    Gaussian,
     Header,
     LiveMetrics,
     Pose,
-    SaltPepper,
-    WorldVariation,
 )
 
 HEADER = Header(run_id="r-1", episode=3, seq=41, stamp_ns=2_050_000_001)

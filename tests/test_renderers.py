@@ -26,7 +26,7 @@ from circuits import load_circuit
 from orchestrator.matrix.load import MatrixError, parse_matrix, with_renderer
 from orchestrator.matrix.runner import MatrixRunner, RunOptions
 from orchestrator.stack.launcher import render_threads_for
-from protocol.messages import CameraSpec, EpisodeSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.episode import EpisodeSim, SceneCache
 from services.simulator.parity import differing_fraction, mean_absolute_difference, parity_poses, ssim
@@ -151,7 +151,7 @@ def test_each_renderer_is_bitwise_deterministic(renderer):
     code = textwrap.dedent(f"""
         import hashlib
         from circuits import load_circuit
-        from protocol.messages import CameraSpec, WorldVariation
+        from protocol.episode_spec import CameraSpec, WorldVariation
         from services.simulator.parity import parity_poses
         from services.simulator.renderers import make_scene
         circuit = load_circuit("simple")
@@ -269,7 +269,7 @@ def test_auto_falls_back_to_pybullet_with_the_reason_where_egl_is_missing():
         """
         import json
         from circuits import load_circuit
-        from protocol.messages import EpisodeSpec
+        from protocol.episode_spec import EpisodeSpec
         from services.simulator.episode import EpisodeSim, SceneCache
         from services.simulator.renderers import RendererUnavailable, resolve_renderer, resolve_spec
         auto = resolve_renderer("auto")

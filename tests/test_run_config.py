@@ -15,7 +15,7 @@ from orchestrator.matrix.load import parse_matrix
 from orchestrator.matrix.plan import BrainEntry, EpisodeConfig
 from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.run_folder import LaunchedBrain, RunConfig, write_run_config
-from protocol.messages import CameraSpec, EpisodeSpec
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 
 
 def test_config_yaml_reads_back_as_the_episode_and_brains_it_was_written_from(tmp_path):

@@ -214,7 +214,7 @@ def test_a_sandboxed_brain_on_a_matrix_worker_gets_a_router_of_its_own(tmp_path)
     access control is made for its brain), and its episode is scored."""
     from orchestrator.stack.launcher import BrainLaunch, LocalStack, free_loopback_port
     from protocol.bus import Bus, BusConfig
-    from protocol.messages import CameraSpec, EpisodeSpec
+    from protocol.episode_spec import CameraSpec, EpisodeSpec
 
     shared = f"tcp/127.0.0.1:{free_loopback_port()}"
     launch = BrainLaunch("explicit", sandbox=Sandbox.default(scratch_dir=tmp_path / "scratch"))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from circuits import load_circuit
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.car import CarState
 from services.simulator.scene import MAX_TRIANGLES_PER_CHUNK, SKY_RGB, Scene, vertical_fov_rad
 

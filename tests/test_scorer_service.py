@@ -15,17 +15,8 @@ from circuits import load_circuit
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
-from protocol.messages import (
-    Command,
-    EndReason,
-    EpisodeEvent,
-    EpisodeScore,
-    EpisodeSpec,
-    EventKind,
-    Header,
-    LiveMetrics,
-    Pose,
-)
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import Command, EndReason, EpisodeEvent, EpisodeScore, EventKind, Header, LiveMetrics, Pose
 
 pytestmark = pytest.mark.integration
 FRAMES = 40

@@ -32,15 +32,14 @@ from protocol import codec, keys
 from protocol.bus import ANSWER_TIMEOUT_S, Bus, BusConfig, BusError, Inbox, Received, Traffic
 from protocol.deploy.config import ConfigError
 from protocol.deploy.security import ROLES, Identity, build_access_control, check_users_file, router_settings
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.messages import (
     CameraFrame,
-    CameraSpec,
     Command,
     ControlReply,
     ControlRequest,
     EndReason,
     EpisodeScore,
-    EpisodeSpec,
     Header,
     Pose,
     ReplyCode,

@@ -20,14 +20,13 @@ from orchestrator.stack.failures import StackFailure
 from orchestrator.stack.launcher import BrainLaunch
 from protocol import codec, keys
 from protocol.bus import ANSWER_TIMEOUT_S, BusError, Inbox, Traffic
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.messages import (
     CameraFrame,
-    CameraSpec,
     Command,
     ControlRequest,
     EndReason,
     EpisodeEvent,
-    EpisodeSpec,
     EventKind,
     Header,
     Pose,

@@ -17,13 +17,12 @@ from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.swap import SwapError, swap_brain
 from protocol import codec, keys
 from protocol.bus import ANSWER_TIMEOUT_S, Inbox
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.messages import (
-    CameraSpec,
     ControlReply,
     ControlRequest,
     EndReason,
     EpisodeEvent,
-    EpisodeSpec,
     EventKind,
     Pose,
     ReplyCode,

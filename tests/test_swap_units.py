@@ -16,6 +16,7 @@ from orchestrator.stack.launcher import BrainLaunch
 from orchestrator.stack.swap import BrainIdentity, StackInfo, SwapError, _pick_name, locate_stack
 from protocol import codec, keys
 from protocol.deploy.runtime import UsageError
+from protocol.episode_spec import EpisodeSpec
 from protocol.mapping.recording import channel_layout, from_record, to_record
 from protocol.messages import (
     BrainSwitch,
@@ -24,7 +25,6 @@ from protocol.messages import (
     ControlRequest,
     EndReason,
     EpisodeScore,
-    EpisodeSpec,
     Header,
     ShadowDistance,
 )

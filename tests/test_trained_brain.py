@@ -14,7 +14,8 @@ from needs import require
 from brains.base import Observation
 from brains.registry import make_brain
 from orchestrator.stack.launcher import BrainLaunch
-from protocol.messages import EndReason, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason
 from protocol.variations import apply_variation
 
 require("torch")

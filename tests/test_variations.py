@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from circuits import load_circuit
-from protocol.messages import Drop, EpisodeSpec, Jpeg, Occlusion, SaltPepper, WorldVariation
+from protocol.episode_spec import Drop, EpisodeSpec, Jpeg, Occlusion, SaltPepper, WorldVariation
 from protocol.variations import CAMERA_PRESETS, VariationError, apply_variation, noise_stage
 from services.simulator.car import CarState
 from services.simulator.scene import Scene

@@ -30,17 +30,9 @@ from support.waits import wait_for
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
 from protocol.bus import Bus, BusConfig, Inbox
+from protocol.episode_spec import CameraSpec, EpisodeSpec, SaltPepper
 from protocol.mapping import topics
-from protocol.messages import (
-    CameraFrame,
-    CameraSpec,
-    Command,
-    ControlRequest,
-    EndReason,
-    EpisodeSpec,
-    Header,
-    SaltPepper,
-)
+from protocol.messages import CameraFrame, Command, ControlRequest, EndReason, Header
 
 ROOT = Path(__file__).resolve().parents[1]
 CAMERA = CameraSpec(width_px=320, height_px=240)

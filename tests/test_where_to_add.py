@@ -23,13 +23,13 @@ PACKAGES = ("circuits", "protocol", "services", "brains", "orchestrator", "recor
 # (file, the text the addition goes after (its first occurrence), the text added)
 NOISE = [
     (
-        "protocol/messages.py",
+        "protocol/episode_spec.py",
         "\nNoiseStage = (\n",
         None,  # the struct goes before the union: see _noise_struct
     ),
-    ("protocol/messages.py", "NoiseStage = (\n    SaltPepper\n", "    | Invert\n"),
-    ("protocol/messages.py", "NOISE_MODELS: tuple[type[_Noise], ...] = (\n    SaltPepper,\n", "    Invert,\n"),
-    ("services/noise/models.py", "from protocol.messages import (\n", "    Invert,\n"),
+    ("protocol/episode_spec.py", "NoiseStage = (\n    SaltPepper\n", "    | Invert\n"),
+    ("protocol/episode_spec.py", "NOISE_MODELS: tuple[type[_Noise], ...] = (\n    SaltPepper,\n", "    Invert,\n"),
+    ("services/noise/models.py", "from protocol.episode_spec import (\n", "    Invert,\n"),
     ("services/noise/models.py", "\n_MODELS: dict[type, type[NoiseModel]] = {\n", None),  # see _noise_model
     ("services/noise/models.py", "    SaltPepper: SaltPepperModel,\n", "    Invert: InvertModel,\n"),
     ("protocol/variations.py", "_PRIMARY = {\n", '    "invert": "strength",\n'),
@@ -80,7 +80,7 @@ def half_distance_m(distance_m: float) -> float:
     return distance_m / 2
 '''
 EXTRA = {  # inserted before their anchor, in the same files as above
-    ("protocol/messages.py", "\nNoiseStage = (\n"): _NOISE_STRUCT,
+    ("protocol/episode_spec.py", "\nNoiseStage = (\n"): _NOISE_STRUCT,
     ("services/noise/models.py", "\n_MODELS: dict[type, type[NoiseModel]] = {\n"): _NOISE_MODEL,
     ("services/scorer/metrics.py", "\n\nclass EpisodeScorer:"): _METRIC_FUNCTION,
 }
@@ -91,7 +91,7 @@ CHECK = textwrap.dedent(
     import msgspec, numpy as np
 
     from protocol import codec
-    from protocol.messages import EpisodeSpec, Invert
+    from protocol.episode_spec import EpisodeSpec, Invert
     from protocol.variations import noise_stage
     from services.noise.models import make_model
 

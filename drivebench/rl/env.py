@@ -28,7 +28,8 @@ from drivebench.rl.options import GENERATED, check_render_threads, env_options, 
 from drivebench.rl.reward import ProgressReward
 from drivebench.rl.stack import StackError, open_stack
 from protocol.bus_config import BusError, probe_router
-from protocol.messages import EndReason, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EndReason
 
 FIRST_FRAME_TIMEOUT_S = 120.0  # a new circuit's scene is built before its first frame (seconds with PyBullet)
 STEP_TIMEOUT_S = 60.0

@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 
 from circuits import Circuit, CircuitError, load_circuit
-from protocol.messages import CameraSpec, EpisodeSpec, NoiseStage
+from protocol.episode_spec import CameraSpec, EpisodeSpec, NoiseStage
 from protocol.variations import VariationError, apply_variation, noise_stage
 
 OBSERVATIONS = ("image", "image+state", "features")

@@ -16,7 +16,8 @@ from orchestrator.stack.attached import AttachedStack
 from orchestrator.stack.failures import StackError, StackFailure
 from orchestrator.stack.launcher import LocalStack
 from protocol.bus import BusError, probe_router
-from protocol.messages import ControlRequest, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import ControlRequest
 
 log = logging.getLogger("drivebench.rl")
 

@@ -151,7 +151,7 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def _looks(text: str) -> tuple[str, ...]:
-    from protocol.messages import LOOKS
+    from protocol.episode_spec import LOOKS
 
     looks = tuple(dict.fromkeys(item.strip() for item in text.split(",") if item.strip()))
     unknown = [look for look in looks if look not in LOOKS]

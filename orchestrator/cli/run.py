@@ -41,14 +41,8 @@ from orchestrator.stack.sandbox import (
     require_bubblewrap,
 )
 from protocol import codec, environment
-from protocol.messages import (
-    RENDERERS,
-    CameraSpec,
-    EndReason,
-    EpisodeScore,
-    EpisodeSpec,
-    FieldError,
-)
+from protocol.episode_spec import RENDERERS, CameraSpec, EpisodeSpec, FieldError
+from protocol.messages import EndReason, EpisodeScore
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 

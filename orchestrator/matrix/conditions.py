@@ -17,7 +17,7 @@ from orchestrator.matrix.plan import DEFAULT_VARIATION, NO_PERTURBATION
 from orchestrator.matrix.schema import items
 from protocol.deploy.typed_yaml import Document
 from protocol.deploy.typed_yaml import Path as At
-from protocol.messages import NOISE_MODELS, EpisodeSpec, NoiseStage
+from protocol.episode_spec import NOISE_MODELS, EpisodeSpec, NoiseStage
 from protocol.suggest import did_you_mean
 
 # The protocol's own lists of world and camera variation keys (it has no public name for them).

@@ -99,8 +99,8 @@ from orchestrator.matrix.schema import MatrixFile, Part, items, read_matrix_file
 from protocol import environment
 from protocol.deploy.typed_yaml import Document, FileError, compose, convert
 from protocol.deploy.typed_yaml import Path as At
+from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.keys import check_name
-from protocol.messages import CameraSpec, EpisodeSpec
 from protocol.suggest import did_you_mean
 from protocol.variations import VariationError, apply_variation
 from services.simulator.renderers import default_renderer

@@ -13,7 +13,7 @@ from typing import Any
 import msgspec
 
 from protocol.deploy.typed_yaml import FileError
-from protocol.messages import EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
 
 DEFAULT_VARIATION = "default"
 NO_PERTURBATION = "none"

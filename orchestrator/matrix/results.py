@@ -29,7 +29,8 @@ from typing import Any
 from orchestrator.matrix.plan import BrainEntry, PlannedEpisode
 from orchestrator.stack.failures import Failure, FailureKind
 from protocol import codec
-from protocol.messages import EpisodeScore, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EpisodeScore
 
 DATABASE_NAME = "results.sqlite"
 # The stored schema's version. 0: drivebench 0.1.0 and earlier (no version stored); 1: versioned (issue 39);

@@ -15,7 +15,7 @@ import msgspec
 from msgspec import UNSET, Meta, UnsetType
 
 from protocol.deploy.typed_yaml import Document, Path, convert, display
-from protocol.messages import CAMERA_BOUNDS, RENDERERS, SPEC_BOUNDS, CameraSpec
+from protocol.episode_spec import CAMERA_BOUNDS, RENDERERS, SPEC_BOUNDS, CameraSpec
 
 Text = Annotated[str, Meta(min_length=1)]
 Scalar = str | int | float | bool

@@ -5,7 +5,8 @@ from __future__ import annotations
 import collections
 
 from orchestrator.report.columns import metric_rows
-from protocol.messages import EpisodeScore, EpisodeSpec
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EpisodeScore
 
 
 def episode_words(spec: EpisodeSpec, *, brain: str) -> str:

@@ -43,15 +43,8 @@ from protocol.bus import (
     probe_router,
 )
 from protocol.deploy import graph
-from protocol.messages import (
-    ControlReply,
-    ControlRequest,
-    EndReason,
-    EpisodeScore,
-    EpisodeSpec,
-    LiveMetrics,
-    ReplyCode,
-)
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import ControlReply, ControlRequest, EndReason, EpisodeScore, LiveMetrics, ReplyCode
 
 log = logging.getLogger("drivebench.launcher")
 

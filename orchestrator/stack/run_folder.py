@@ -22,7 +22,8 @@ from orchestrator.stack.launcher import BrainLaunch
 from protocol import codec
 from protocol.deploy import typed_yaml
 from protocol.deploy.runtime import UsageError
-from protocol.messages import CAMERA_BOUNDS, DIRECTIONS, RENDERERS, SPEC_BOUNDS, EpisodeScore, EpisodeSpec
+from protocol.episode_spec import CAMERA_BOUNDS, DIRECTIONS, RENDERERS, SPEC_BOUNDS, EpisodeSpec
+from protocol.messages import EpisodeScore
 from protocol.suggest import did_you_mean
 
 

@@ -22,7 +22,7 @@ import msgspec
 import yaml
 from yaml.constructor import SafeConstructor
 
-from protocol.messages import bound_text
+from protocol.episode_spec import bound_text
 from protocol.suggest import did_you_mean
 
 T = TypeVar("T")

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
+from protocol.episode_spec import EpisodeSpec
 from protocol.mapping.recording import Schema
 from protocol.mapping.topics import view_topic
-from protocol.messages import EndReason, EpisodeEvent, EpisodeSpec, EventKind, Pose
+from protocol.messages import EndReason, EpisodeEvent, EventKind, Pose
 
 WORLD_FRAME = "world"
 CAR_FRAME = "car"

@@ -36,7 +36,7 @@ class DatasetError(RuntimeError):
 
 class _Struct(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """The manifest's base. msgspec passes ``frozen`` on to subclasses, but mypy's dataclass_transform does not: each
-    subclass says ``frozen=True`` again, as ``protocol/messages.py``'s noise models do."""
+    subclass says ``frozen=True`` again, as ``protocol/episode_spec.py``'s noise models do."""
 
 
 class EpisodeInfo(_Struct, frozen=True):

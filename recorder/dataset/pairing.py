@@ -17,8 +17,9 @@ import numpy as np
 from tqdm import tqdm
 
 from protocol import keys
+from protocol.episode_spec import EpisodeSpec
 from protocol.images import frame_image
-from protocol.messages import CameraFrame, Command, EpisodeEvent, EpisodeSpec, EventKind
+from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind
 from recorder.dataset.format import (
     DatasetError,
     DatasetOptions,

@@ -1,6 +1,6 @@
 """Camera perturbations as plain, seeded NumPy/OpenCV models: the pure core of the noise injector (no bus).
 
-One model class per noise stage of ``protocol.messages`` (``SaltPepper``, ``Gaussian``, ``Blur``, ``Brightness``,
+One model class per noise stage of ``protocol.episode_spec`` (``SaltPepper``, ``Gaussian``, ``Blur``, ``Brightness``,
 ``Occlusion``, ``Jpeg``, ``Delay``, ``Drop``), and one for Behavior Metrics' perturbations (``Rain``, ``Night``,
 ``Daytime``, ``Shadow``, ``Snow``, ``Fog``, ``Sunflare``, ``Affine``, as BM applies them: rain, shadow, snow, fog and
 sunflare drawn by ``services.noise.bm`` as albumentations 1.0.3 (BM's pin) draws them; night, daytime and affine by
@@ -40,7 +40,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from protocol.messages import (
+from protocol.episode_spec import (
     BM_NOISE_MODELS,
     Affine,
     Blur,

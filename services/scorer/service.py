@@ -22,6 +22,7 @@ from circuits import CircuitError, load_circuit
 from protocol import keys
 from protocol.bus import OBSERVER_BUS, Bus, BusConfig, Inbox, Traffic
 from protocol.deploy.runtime import stop_requested
+from protocol.episode_spec import EpisodeSpec
 from protocol.episodes import running_spec
 from protocol.messages import (
     BrainSwitch,
@@ -29,7 +30,6 @@ from protocol.messages import (
     EndReason,
     EpisodeEvent,
     EpisodeScore,
-    EpisodeSpec,
     EventKind,
     Header,
     LiveMetrics,

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from circuits import Circuit, load_circuit
-from protocol.messages import EndReason, EpisodeSpec, WorldVariation
+from protocol.episode_spec import EpisodeSpec, WorldVariation
+from protocol.messages import EndReason
 from services.simulator.car import CarState, integrate_unicycle
 from services.simulator.renderers import Renderer, make_scene, resolve_renderer
 

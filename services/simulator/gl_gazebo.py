@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.messages import CameraSpec
+from protocol.episode_spec import CameraSpec
 from services.simulator.looks import (
     ASPHALT_TILE_M,
     CLOUD_RGB,

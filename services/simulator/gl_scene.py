@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from circuits import Circuit
-from protocol.messages import CameraSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, WorldVariation
 from services.simulator.car import CarState
 
 if TYPE_CHECKING:

@@ -20,7 +20,7 @@ import numpy as np
 
 from circuits import Circuit
 from protocol import environment
-from protocol.messages import LOOK_RENDERERS, RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
+from protocol.episode_spec import LOOK_RENDERERS, RENDERERS, CameraSpec, EpisodeSpec, WorldVariation
 from services.simulator.car import CarState
 
 log = logging.getLogger("drivebench.simulator")

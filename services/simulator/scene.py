@@ -32,7 +32,7 @@ import numpy as np
 import pybullet
 
 from circuits import Circuit
-from protocol.messages import CameraSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.world import (  # noqa: F401 - the scene's constants, importable from here as before
     GRASS_COLOUR,

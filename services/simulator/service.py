@@ -26,6 +26,7 @@ from circuits import Circuit, CircuitError, load_circuit
 from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
 from protocol.deploy.runtime import stop_requested
+from protocol.episode_spec import EpisodeSpec
 from protocol.images import image_frame
 from protocol.messages import (
     CameraFrame,
@@ -34,7 +35,6 @@ from protocol.messages import (
     ControlRequest,
     EndReason,
     EpisodeEvent,
-    EpisodeSpec,
     EventKind,
     Header,
     Pose,

@@ -6,7 +6,7 @@ and sky colour. :class:`services.simulator.scene.Scene` (PyBullet TinyRenderer, 
 :class:`services.simulator.gl_scene.GLScene` (moderngl on EGL) both consume it, so a variation means the same on
 both; neither keeps its own copy of the world.
 
-The camera model (mount, field of view, clip planes) is :class:`protocol.messages.CameraSpec`;
+The camera model (mount, field of view, clip planes) is :class:`protocol.episode_spec.CameraSpec`;
 :func:`camera_eye_and_axes`, :func:`view_matrix` and :func:`projection_matrix` turn it into OpenGL-convention
 matrices (the same ones ``pybullet.computeViewMatrix`` / ``computeProjectionMatrixFOV`` give: a test holds them to it).
 
@@ -23,7 +23,7 @@ from typing import Literal
 import numpy as np
 
 from circuits import Circuit
-from protocol.messages import CameraSpec, WorldVariation
+from protocol.episode_spec import CameraSpec, WorldVariation
 from services.simulator.car import CarState
 from services.simulator.looks import ASPHALT_TILE_M, EDGE_LINE_GREY, WALL_GREY, GazeboLighting, gazebo_lighting
 

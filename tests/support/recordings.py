@@ -10,20 +10,18 @@ import msgspec
 import numpy as np
 
 from protocol import keys
+from protocol.episode_spec import CameraSpec, EpisodeSpec, Gaussian
 from protocol.episodes import start_event
 from protocol.images import image_frame
 from protocol.mapping import topics
 from protocol.messages import (
     CameraFrame,
-    CameraSpec,
     Command,
     EndReason,
     EpisodeEvent,
     EpisodeMetrics,
     EpisodeScore,
-    EpisodeSpec,
     EventKind,
-    Gaussian,
     Header,
     LiveMetrics,
     Pose,
