@@ -29,9 +29,10 @@ from orchestrator.cli.errors import EXIT_OK, UsageError, require_file
 from orchestrator.report.episode import episode_words, metrics_table
 from orchestrator.stack import run_folder
 from orchestrator.stack.attached import only_running_run, wait_for_router
-from orchestrator.stack.launcher import BrainLaunch, LocalStack, preflight_launches, render_threads_for
+from orchestrator.stack.launcher import BrainLaunch, preflight_launches
+from orchestrator.stack.local_run import LocalRun
 from orchestrator.stack.progress import EpisodeProgress
-from orchestrator.stack.run_folder import LaunchedBrain, RunConfig
+from orchestrator.stack.run_folder import RunConfig
 from orchestrator.stack.sandbox import (
     LIMIT_KEYS,
     Sandbox,
@@ -42,7 +43,7 @@ from orchestrator.stack.sandbox import (
 )
 from protocol import codec, environment
 from protocol.episode_spec import RENDERERS, CameraSpec, EpisodeSpec, FieldError
-from protocol.messages import EndReason, EpisodeScore
+from protocol.messages import EpisodeScore
 from protocol.variations import apply_variation, check_look, noise_stage
 from services.simulator.renderers import choose_renderer
 
@@ -501,9 +502,16 @@ def command_run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         filename=run_dir / "launcher.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
-    run_folder.write_run_config(
-        run_dir, RunConfig(run_id=run_id, episode=spec, brains=[LaunchedBrain.of(b) for b in brains])
+    run = LocalRun(
+        run_id=run_id,
+        run_dir=run_dir,
+        spec=spec,
+        brains=brains,
+        record=args.record,
+        record_images=args.record_images,
+        ros2=ros2_options,
     )
+    run.write_config()
     print(
         f"drivebench: run {run_id}: {episode_words(spec, brain=spec.active_brain)}, "
         f"camera {spec.camera.width_px}x{spec.camera.height_px} ({spec.renderer}), "
@@ -516,31 +524,14 @@ def command_run(args: argparse.Namespace) -> int:
         raise UsageError(f"--record needs a .mcap file name, got {args.record}")
     progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
     try:
-        # A failure while the stack comes up is recorded too: a sandboxed brain's is typed (its limit, its start).
-        with (
-            run_folder.recorded_failure(run_dir, run_id=run_id, on_record=print_record if args.json else None),
-            LocalStack(
-                run_id=run_id,
-                run_dir=run_dir,
-                brains=brains,
-                record=args.record,
-                record_options=(f"image_format={args.record_images}",),
-                ros2=ros2_options,
-                render_threads=render_threads_for(stacks=1),
-            ) as stack,
-        ):
-            stack.write_stack_file()  # drivebench swap finds the running stack through it
-            score = stack.run_episode(spec, on_live=progress.update)
-            if score.reason == EndReason.BRAIN_LOST:  # scored up to its death: say what killed it (its last line)
-                dead = stack.dead_child_reason(wait_s=5.0) or "the brain lost its liveliness token"
-                print(f"drivebench: brain_died: {dead}", file=sys.stderr)
+        outcome = run.drive(on_live=progress.update, on_failure_record=print_record if args.json else None)
     finally:
         progress.close()
-    run_folder.write_score(run_dir, score)
-    report(score, run_dir, as_json=args.json)
-    if stack.recording_failure is not None:
-        run_folder.write_recording_failure(run_dir, stack.recording_failure, run_id=run_id)
-        print(f"drivebench: the recording is incomplete: {stack.recording_failure}", file=sys.stderr)
+    if outcome.brain_died is not None:
+        print(f"drivebench: brain_died: {outcome.brain_died}", file=sys.stderr)
+    report(outcome.score, run_dir, as_json=args.json)
+    if outcome.recording_failure is not None:
+        print(f"drivebench: the recording is incomplete: {outcome.recording_failure}", file=sys.stderr)
     elif args.record is not None:
         print(f"recording: {args.record}", file=sys.stderr)
     return EXIT_OK
