@@ -156,6 +156,13 @@ BOARD_RAY = Variable(
     meaning="the Ray cluster a challenge's evaluations run their episodes on",
     read_by="a challenge's evaluations (set by `drivebench board serve --ray`, not by users)",
 )
+DOCKER_CHECK_BOARD = Variable(
+    name="DRIVEBENCH_BOARD",
+    kind="1 or empty",
+    default="empty: the check drives the simulation stack",
+    meaning="scripts/docker-check.sh checks the challenge server's image and service (profile board) instead",
+    read_by="scripts/docker-check.sh",
+)
 BM_ROOT = Variable(
     name="DRIVEBENCH_BM_ROOT",
     kind="path to a folder",
@@ -185,6 +192,7 @@ VARIABLES = (
     TORCH_VERSION,
     REQUIRE_MCAP_VALIDATOR,
     BOARD_RAY,
+    DOCKER_CHECK_BOARD,
     BM_ROOT,
 )
 # How a process joins the bus; a local stack's children get none of them (they are meant for a standing stack).

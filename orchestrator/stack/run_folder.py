@@ -110,7 +110,10 @@ def _check_run_config(config: RunConfig, document: typed_yaml.Document) -> None:
         except CircuitError as error:
             document.note(document.error(("episode", "start_m"), str(error)))
     if not config.brains:
-        document.note(document.error(("brains",), "the run config names no brain"))
+        # brains has a default only because an attached run's config names none; a file without the key is a mistake
+        absent = not isinstance(document.data, dict) or "brains" not in document.data
+        message = "the run config is missing 'brains'" if absent else "the run config names no brain"
+        document.note(document.error(() if absent else ("brains",), message))
     for index, entry in enumerate(config.brains):
         try:
             require_brain(entry.brain)
