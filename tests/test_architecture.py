@@ -244,3 +244,31 @@ def test_no_module_imports_another_modules_private_name():
                     private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
                     wrong += [f"{path.relative_to(ROOT)}:{node.lineno}: {node.module}.{name}" for name in private]
     assert not wrong, "\n".join(wrong)
+
+
+def stack_classes() -> set[str]:
+    """The classes of orchestrator/stack/ that start or join a stack's processes (``LocalStack``,
+    ``AttachedStack``, ...): by name, as the package defines them."""
+    return {
+        node.name
+        for path in sorted((ROOT / "orchestrator" / "stack").glob("*.py"))
+        for node in ast.walk(ast.parse(path.read_text(), str(path)))
+        if isinstance(node, ast.ClassDef) and node.name.endswith("Stack")
+    }
+
+
+def test_the_cli_parses_and_prints_and_makes_no_stack():
+    """A command hands its parsed options to a pipeline object (LocalRun, AttachedRun, the matrix's run) and
+    prints what it returns: no module of orchestrator/cli/ imports a stack class or drives an episode itself
+    (issue 41: `run --attach` drove an AttachedStack in the CLI)."""
+    stacks = stack_classes()
+    assert {"LocalStack", "AttachedStack"} <= stacks, "the stack classes moved: update stack_classes()"
+    wrong = []
+    for path in sorted((ROOT / "orchestrator" / "cli").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            where = f"{path.relative_to(ROOT)}:{getattr(node, 'lineno', 0)}"
+            if isinstance(node, ast.ImportFrom):
+                wrong += [f"{where}: imports {a.name}" for a in node.names if a.name in stacks]
+            elif isinstance(node, ast.Attribute) and node.attr == "run_episode":
+                wrong.append(f"{where}: calls run_episode")
+    assert not wrong, "\n".join(wrong)

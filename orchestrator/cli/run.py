@@ -28,11 +28,10 @@ from circuits import CircuitError, load_circuit
 from orchestrator.cli.errors import EXIT_OK, UsageError, require_file
 from orchestrator.report.episode import episode_words, metrics_table
 from orchestrator.stack import run_folder
-from orchestrator.stack.attached import only_running_run, wait_for_router
+from orchestrator.stack.attached import AttachedRun, only_running_run, wait_for_router
 from orchestrator.stack.launcher import BrainLaunch, preflight_launches
 from orchestrator.stack.local_run import LocalRun
 from orchestrator.stack.progress import EpisodeProgress
-from orchestrator.stack.run_folder import RunConfig
 from orchestrator.stack.sandbox import (
     LIMIT_KEYS,
     Sandbox,
@@ -597,8 +596,6 @@ def command_run_attached(args: argparse.Namespace) -> int:
     """``drivebench run --attach``: one episode on a running stack (compose, several machines); nothing spawned."""
     if args.sandbox:
         raise UsageError("--sandbox starts its own stack: it cannot be used with --attach")
-    from orchestrator.stack.attached import AttachedStack
-
     for flag, given in (
         ("--weights", args.weights),
         ("--brain-option", args.brain_option),
@@ -621,27 +618,21 @@ def command_run_attached(args: argparse.Namespace) -> int:
     logging.basicConfig(
         filename=run_dir / "driver.log", level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )
-    stack = AttachedStack(
-        run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain, startup_timeout_s=args.wait
-    )
-    with stack:
-        args.brain = stack.brain_name
+    with AttachedRun(
+        run_id=run_id, run_dir=run_dir, router_endpoint=args.router, brain_name=args.brain, wait_s=args.wait
+    ) as run:
+        args.brain = run.brain_name
         spec = episode_spec(args)
-        run_folder.write_run_config(
-            run_dir, RunConfig(run_id=run_id, router=stack.endpoint, attached=True, episode=spec)
-        )
         print(
-            f"drivebench: attached to run {run_id} on {stack.endpoint}: {spec.active_brain} on {spec.circuit}, "
+            f"drivebench: attached to run {run_id} on {run.endpoint}: {spec.active_brain} on {spec.circuit}, "
             f"{spec.laps} lap(s); run folder {run_dir}",
             file=sys.stderr,
         )
         progress = EpisodeProgress(spec.laps, enabled=sys.stderr.isatty())
         try:
-            with run_folder.recorded_failure(run_dir, run_id=run_id, on_record=print_record if args.json else None):
-                score = stack.run_episode(spec, on_live=progress.update)
+            score = run.drive(spec, on_live=progress.update, on_failure_record=print_record if args.json else None)
         finally:
             progress.close()
-    run_folder.write_score(run_dir, score)
     report(score, run_dir, as_json=args.json)
     return EXIT_OK
 

@@ -5,14 +5,20 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 
+from orchestrator.stack import run_folder
 from orchestrator.stack.failures import StackError
 from orchestrator.stack.launcher import LocalStack
+from orchestrator.stack.run_folder import RunConfig
 from protocol import environment, keys
 from protocol.bus import Bus, BusConfig, BusError, probe_router, router_address
 from protocol.deploy import graph
 from protocol.deploy.runtime import UsageError
+from protocol.episode_spec import EpisodeSpec
+from protocol.messages import EpisodeScore, LiveMetrics
 
 log = logging.getLogger("drivebench.launcher")
 
@@ -80,6 +86,66 @@ class AttachedStack(LocalStack):
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+
+
+@dataclass(kw_only=True)
+class AttachedRun:
+    """One ``drivebench run --attach`` episode on a stack someone else started, into ``run_dir``: the pipeline the
+    CLI hands its parsed options to, as :class:`~orchestrator.stack.local_run.LocalRun` is for a stack of its own.
+
+    Entering joins the run ``run_id`` on the router at ``router_endpoint`` (None: ``DRIVEBENCH_ROUTER``), waiting
+    up to ``wait_s`` for its processes and for the brain ``brain_name`` (None: the only brain alive), which
+    :attr:`brain_name` then names; :meth:`drive` runs one episode there. Leaving closes the bus session only: the
+    stack's processes are not ours to stop."""
+
+    run_id: str
+    run_dir: Path
+    router_endpoint: str | None = None
+    brain_name: str | None = None
+    wait_s: float
+    _stack: AttachedStack | None = field(default=None, init=False, repr=False)
+
+    def __enter__(self) -> AttachedRun:
+        stack = AttachedStack(
+            run_id=self.run_id,
+            run_dir=self.run_dir,
+            router_endpoint=self.router_endpoint,
+            brain_name=self.brain_name,
+            startup_timeout_s=self.wait_s,
+        )
+        stack.__enter__()
+        self._stack = stack
+        self.brain_name = stack.brain_name
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self._stack is not None:
+            self._stack.__exit__(*exc_info)
+            self._stack = None
+
+    @property
+    def endpoint(self) -> str:
+        """The router joined."""
+        assert self._stack is not None, "enter the AttachedRun first"
+        return self._stack.endpoint
+
+    def drive(
+        self,
+        spec: EpisodeSpec,
+        *,
+        on_live: Callable[[LiveMetrics], None] | None = None,
+        on_failure_record: Callable[[dict], None] | None = None,
+    ) -> EpisodeScore:
+        """The run's ``config.yaml`` (attached: the router, no brain launched), the episode ``spec``, and its
+        ``score.json``. A failed episode leaves ``failure.json`` (also handed to ``on_failure_record``) and raises
+        its StackFailure."""
+        assert self._stack is not None, "enter the AttachedRun first"
+        config = RunConfig(run_id=self.run_id, router=self.endpoint, attached=True, episode=spec)
+        run_folder.write_run_config(self.run_dir, config)
+        with run_folder.recorded_failure(self.run_dir, run_id=self.run_id, on_record=on_failure_record):
+            score = self._stack.run_episode(spec, on_live=on_live)
+        run_folder.write_score(self.run_dir, score)
+        return score
 
 
 def wait_for_router(endpoint: str, *, wait_s: float) -> None:
