@@ -28,7 +28,10 @@ from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, Header
 
 
 def metrics_with(progress_laps: float) -> EpisodeMetrics:
-    fields = {field.name: False if field.type is bool else 0.0 for field in msgspec.structs.fields(EpisodeMetrics)}
+    # Raw values of the struct's fields, of several types (bool, float, int, list, None): msgspec.convert checks them.
+    fields: dict[str, object] = {
+        field.name: False if field.type is bool else 0.0 for field in msgspec.structs.fields(EpisodeMetrics)
+    }
     fields.update(
         steps=100, completed_laps=int(progress_laps >= 1.0), lap_times_s=[], off_track_events=0,
         bm_lap_seconds=None, progress_laps=progress_laps,
