@@ -1,7 +1,7 @@
 """What the report's comparison with intervals costs on a large results file, side by side in one run: writing the
 matrix report of N synthetic episodes without the comparison section, then with it.
 
-    .venv/bin/python benchmarks/report_statistics.py [--episodes 10000] [--brains 2] [--seeds 5] [--resamples 2000]
+    .venv/bin/python benchmarks/report_statistics.py [--episodes 10000] [--brains 2] [--seeds 5]
 
 The episodes are brains x seeds x conditions, each scored by a real EpisodeScore (progress drawn per brain and
 condition); there are no trajectory files, so the report's trajectory plots are skipped for both cases alike.
