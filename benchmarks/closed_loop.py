@@ -36,6 +36,7 @@ import time
 import uuid
 from contextlib import ExitStack
 from pathlib import Path
+from typing import NamedTuple
 
 import msgspec
 from tqdm import tqdm
@@ -68,6 +69,19 @@ HOPS = (
     ("to the sim loop", ("simulator", "arrived", "command"), ("simulator", "taken", "command")),
 )
 POSE_TO_SCORER = (("simulator", "sent", "pose"), ("scorer", "taken", "pose"))
+
+# (role, event, stream, episode, seq): one moment of one stream's message of one step, in the traces.
+Moment = tuple[str, str, str, int, int]
+
+
+class Row(NamedTuple):
+    """One camera size and renderer, measured: the medians over the repeats."""
+
+    camera: str  # WxH
+    renderer: str
+    steps_per_s: dict[str, float]  # per configuration: "in-process", then each of PIPELINES
+    stages: dict[str, float]  # seconds per step of each stage (pipeline stages prefixed "<pipeline>:")
+    step_s: float  # the simulated seconds of one step
 
 
 def in_process_steps_per_s(spec: EpisodeSpec, scenes: SceneCache, stages: dict[str, float] | None = None) -> float:
@@ -182,12 +196,12 @@ def _stream_keys(run_id: str, *, via_noise: bool) -> dict[str, str]:
     }
 
 
-def _first_times(events: list[TraceEvent], stream_keys: dict[str, str]) -> dict[tuple, int]:
+def _first_times(events: list[TraceEvent], stream_keys: dict[str, str]) -> dict[Moment, int]:
     """(role, event, stream, episode, seq) -> the first time it happened (a resent frame counts once)."""
-    stream_of = {}
+    stream_of: dict[str, list[str]] = {}  # key -> the streams it carries
     for stream, key in stream_keys.items():
         stream_of.setdefault(key, []).append(stream)
-    first: dict[tuple, int] = {}
+    first: dict[Moment, int] = {}
     for e in events:
         role = e.process.split("-", 1)[0]
         for stream in stream_of.get(e.key, ()):
@@ -213,14 +227,24 @@ def hop_times_s(trace_dir: Path, run_id: str, *, via_noise: bool) -> dict[str, f
 # -- the run --
 
 
-def measure_size(args, scenes: SceneCache, stacks: dict[str, LocalStack], size, renderers, progress) -> list[tuple]:
-    """One row per renderer: (size, renderer, steps/s per configuration, median stages, step_s)."""
+def measure_size(
+    args: argparse.Namespace,
+    scenes: SceneCache,
+    stacks: dict[str, LocalStack],
+    size: tuple[int, int],
+    renderers: list[str],
+    progress: tqdm,
+) -> list[Row]:
+    """One row per renderer."""
     width, height = size
     base = EpisodeSpec(
         circuit="simple", max_sim_seconds=args.sim_seconds, camera=CameraSpec(width_px=width, height_px=height)
     )
     configurations = ("in-process",) + PIPELINES
-    measured = {renderer: ({c: [] for c in configurations}, []) for renderer in renderers}
+    # renderer -> (steps/s of each repeat per configuration, the stages of each repeat)
+    measured: dict[str, tuple[dict[str, list[float]], list[dict[str, float]]]] = {
+        renderer: ({c: [] for c in configurations}, []) for renderer in renderers
+    }
     for renderer in renderers:  # warm caches (scene build, GL context) outside the measurement
         warm = msgspec.structs.replace(base, renderer=renderer, max_sim_seconds=0.5)
         in_process_steps_per_s(warm, scenes)
@@ -243,12 +267,14 @@ def measure_size(args, scenes: SceneCache, stacks: dict[str, LocalStack], size, 
     for renderer, (rates, stages) in measured.items():
         median_stages = {name: statistics.median(stage[name] for stage in stages) for name in stages[0]}
         median_rates = {name: statistics.median(values) for name, values in rates.items()}
-        rows.append((f"{width}x{height}", renderer, median_rates, median_stages, base.step_s))
+        rows.append(Row(f"{width}x{height}", renderer, median_rates, median_stages, base.step_s))
     return rows
 
 
-def print_tables(args, rows, floors, hops) -> None:
-    step_s = rows[0][4]
+def print_tables(
+    args: argparse.Namespace, rows: list[Row], floors: dict[str, float], hops: dict[str, dict[str, float]]
+) -> None:
+    step_s = rows[0].step_s
     print(
         f"closed loop, explicit brain, simple circuit, {args.sim_seconds:g} s sim per run, median of "
         f"{args.repeats}, lock-step at {1 / step_s:.0f} Hz control"
@@ -307,12 +333,14 @@ def main() -> int:
     parser.add_argument("--sizes", default=DEFAULT_SIZES, help=f"camera sizes (default {DEFAULT_SIZES})")
     parser.add_argument("--renderers", default="pybullet,gl", help="renderers side by side (default pybullet,gl)")
     args = parser.parse_args()
-    sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
+    sizes = [(int(width), int(height)) for width, height in (size.split("x") for size in args.sizes.split(","))]
     renderers = args.renderers.split(",")
     scenes = SceneCache()
-    rows, floors = [], {}
+    rows: list[Row] = []
+    floors: dict[str, float] = {}  # camera WxH -> the bus floor's round trip, s
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as closing:
-        stacks, trace_dirs = {}, {}
+        stacks: dict[str, LocalStack] = {}
+        trace_dirs: dict[str, Path] = {}
         for name, host in (("pipeline", ()), ("via noise", ("camera=perturbed",))):
             trace_dirs[name] = Path(tmp) / f"trace-{len(stacks)}"
             trace_dirs[name].mkdir()

@@ -108,6 +108,7 @@ def kill_recorder(folder: Path) -> Row:
         record_options=("image_format=jpeg",),
     )
     with stack:
+        assert stack.bus is not None, "a started stack has its bus"
         poses = Inbox()
         stack.bus.subscribe(keys.pose(run_id), Pose, inbox=poses)
         recorder = stack.child("recorder", "recorder")
@@ -239,6 +240,7 @@ def _answers(endpoint: str) -> bool:
 def kill_driver(folder: Path) -> Row:
     run_id = f"f{uuid.uuid4().hex[:6]}"
     with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[standing_still()]) as stack:
+        assert stack.bus is not None, "a started stack has its bus"
         events = Inbox()
         stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=events)
         driver = attach_driver(
@@ -270,13 +272,15 @@ def flood(folder: Path, seconds: float) -> Row:
     for flooded in (False, True):
         run_id = f"f{uuid.uuid4().hex[:6]}"
         with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[BrainLaunch("explicit")]) as stack:
+            bus = stack.bus
+            assert bus is not None, "a started stack has its bus"
             stop = threading.Event()
             sent = [0]
 
             def spam() -> None:
                 publishers = [
-                    stack.bus.publisher(keys.command(run_id, "explicit"), Pose, Traffic.COMMANDS),
-                    stack.bus.publisher(keys.camera_perturbed(run_id), Pose, Traffic.FRAMES),
+                    bus.publisher(keys.command(run_id, "explicit"), Pose, Traffic.COMMANDS),
+                    bus.publisher(keys.camera_perturbed(run_id), Pose, Traffic.FRAMES),
                 ]
                 deadline = time.monotonic() + seconds
                 while not stop.is_set() and time.monotonic() < deadline:
@@ -297,7 +301,7 @@ def flood(folder: Path, seconds: float) -> Row:
         noisy.metrics.cross_track_mean_m,
     )
     growth = {name: noisy_peaks[name] - clean_peaks[name] for name in noisy_peaks if name in clean_peaks}
-    worst = max(growth, key=growth.get)
+    worst = max(growth, key=growth.__getitem__)
     outcome = "scored" if same else "scored, DIFFERENT"
     return Row(
         f"flood: {count:,} garbage messages in {seconds:g} s",
@@ -365,6 +369,7 @@ def bad_value_run(
     run_id = f"f{uuid.uuid4().hex[:6]}"
     recording = folder / f"{run_id}.mcap"
     with LocalStack(run_id=run_id, run_dir=folder / run_id, brains=[brain], record=recording) as stack:
+        assert stack.bus is not None, "a started stack has its bus"
         seen = Inbox()
         stack.bus.subscribe(keys.commands_all(run_id), Command, inbox=seen)
         stack.bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=seen)

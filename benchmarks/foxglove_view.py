@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from websockets.sync.client import connect
+from websockets.typing import Subprotocol
 
 from protocol import keys
 from protocol.episode_spec import EpisodeSpec
@@ -32,7 +33,7 @@ from protocol.mapping import topics
 from protocol.messages import CameraFrame, Command, Header, Pose
 from recorder.merge import merge
 from recorder.writer import RecordingWriter
-from services.viz.bridge import LiveBridge
+from services.viz.bridge import SUBPROTOCOL, LiveBridge
 
 
 def cpu_s() -> float:
@@ -53,7 +54,7 @@ class Viewer:
     """Subscribes to /camera/truth and counts the bytes of the messages it receives, on a thread."""
 
     def __init__(self, port: int):
-        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], max_size=None)
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(SUBPROTOCOL)], max_size=None)
         self.received, self.bytes = 0, 0
         self.subscribed = threading.Event()
         threading.Thread(target=self._run, daemon=True).start()
@@ -78,8 +79,15 @@ class Viewer:
 
 def gate_case(frames: list[CameraFrame], *, gated: bool) -> tuple[float, float, float]:
     """(wall s, CPU s, MB) to deliver ``frames`` to one reading viewer."""
-    limits = {"max_viewers": 4, "backlog_bytes": 1 << 30} if gated else {}  # no drops: measure the forwarding
-    bridge = LiveBridge(run_id="r", host="127.0.0.1", port=0, backlog=100_000, **limits)
+    # Gated: limits so loose that nothing is dropped, to measure the forwarding; no limits: no gate at all.
+    bridge = LiveBridge(
+        run_id="r",
+        host="127.0.0.1",
+        port=0,
+        backlog=100_000,
+        max_viewers=4 if gated else None,
+        backlog_bytes=1 << 30 if gated else None,
+    )
     try:
         viewer = Viewer(bridge.port)
         assert viewer.subscribed.wait(10)

@@ -15,6 +15,7 @@ Progress on stderr. Not a timed test; run it on a quiet machine and compare rati
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import statistics
 import sys
@@ -60,7 +61,7 @@ def configurations(name: str, folder: Path) -> tuple[dict[str, Callable[[], obje
     for threads in THREADS:
         runner = OrtRunner(onnx_file, threads=threads)
         calls[f"eager{threads}"], torch_threads[f"eager{threads}"] = eager, threads
-        calls[f"ort{threads}"], torch_threads[f"ort{threads}"] = (lambda r=runner: r(x)), 0
+        calls[f"ort{threads}"], torch_threads[f"ort{threads}"] = functools.partial(runner, x), 0
     return calls, torch_threads
 
 

@@ -45,16 +45,16 @@ def run_case(text: str, workers: int, *, fresh: bool = True, ray_address: str | 
         started = time.monotonic()
         if ray_address is None:
             options = RunOptions(workers=workers, fresh_stacks=fresh)
-            runner = MatrixRunner(parse_matrix(text), Path(folder), options)
+            progress = MatrixRunner(parse_matrix(text), Path(folder), options).run()
         else:
             from orchestrator.matrix.ray_options import RayOptions
             from orchestrator.matrix.ray_runner import RayMatrixRunner
 
             options = RunOptions(fresh_stacks=fresh)
-            runner = RayMatrixRunner(
+            ray_runner = RayMatrixRunner(
                 parse_matrix(text), Path(folder), options, ray_options=RayOptions(address=ray_address)
             )
-        progress = runner.run()
+            progress = ray_runner.run()
         wall_s = time.monotonic() - started
         with ResultStore(Path(folder), create=False) as store:
             results = store.results()
@@ -101,12 +101,12 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         same = [r for r in rows if r["renderer"] == row["renderer"]]
-        fresh = next(r for r in same if r["workers"] == row["workers"] and r["stacks"] == "fresh")
+        fresh_row = next(r for r in same if r["workers"] == row["workers"] and r["stacks"] == "fresh")
         one = next(r for r in same if r["workers"] == 1 and r["stacks"] == row["stacks"])
         print(
             f"| {row['renderer']} | {row['workers']} | {row['stacks']} | {row['stacks_started']} | "
             f"{row['wall_s']:.1f} s | {row['episodes_per_hour']:.0f} | "
-            f"{row['episodes_per_hour'] / fresh['episodes_per_hour']:.2f}x | "
+            f"{row['episodes_per_hour'] / fresh_row['episodes_per_hour']:.2f}x | "
             f"{row['episodes_per_hour'] / one['episodes_per_hour']:.2f}x | {row['episode_s']:.1f} s | "
             f"{row['overhead_s']:.2f} s |"
         )
@@ -118,6 +118,7 @@ def main() -> int:
 
 def ray_main(args: argparse.Namespace, text: str) -> int:
     """Local 1 worker against Ray with 1 and with 2 worker nodes, and Ray's cost per episode."""
+    import logging
     import os
 
     os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # every Ray address on loopback (read at import)
@@ -128,7 +129,7 @@ def ray_main(args: argparse.Namespace, text: str) -> int:
     try:
         cluster.add_node(num_cpus=1, resources={"episode_slot": 1}, node_ip_address="127.0.0.1")
         cluster.wait_for_nodes()
-        ray.init(address=cluster.address, logging_level="WARNING", log_to_driver=False)
+        ray.init(address=cluster.address, logging_level=logging.WARNING, log_to_driver=False)
         # The local runs with the idle cluster beside them: both cases then share the cores with Ray's own
         # processes, and the difference is what Ray's dispatch costs per episode.
         rows = []

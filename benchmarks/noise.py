@@ -36,6 +36,7 @@ from protocol.episode_spec import (
     Occlusion,
     SaltPepper,
 )
+from protocol.variations import noise_stage
 from services.noise.models import MissingExtra, NoisePipeline, make_model, require_extras
 
 DEFAULT_SIZES = "640x480,200x66"
@@ -53,8 +54,9 @@ CASES: list[tuple[str, list[NoiseStage]]] = [
     ("jpeg", [Jpeg(quality=75)]),
     ("delay", [Delay(frames=3)]),
     ("drop", [Drop(probability=0.1)]),
-    # Behavior Metrics' perturbations (albumentations, BM's parameters): skipped without drivebench[bm]
-    *((str(model.__struct_config__.tag), [model()]) for model in BM_NOISE_MODELS),
+    # Behavior Metrics' perturbations (albumentations, BM's parameters): skipped without drivebench[bm]. Each made
+    # from its name by noise_stage, which returns the NoiseStage that make_model takes.
+    *((name, [noise_stage(name)]) for name in (str(model.__struct_config__.tag) for model in BM_NOISE_MODELS)),
 ]
 
 

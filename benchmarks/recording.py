@@ -22,13 +22,15 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
+import msgspec
 import numpy as np
 from tqdm import tqdm
 
 from orchestrator.stack.launcher import free_loopback_port
 from protocol import keys
-from protocol.bus import Bus, BusConfig, Traffic
+from protocol.bus import Bus, BusConfig, Publisher, Traffic
 from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.images import image_frame
 from protocol.messages import CameraFrame, Command, EpisodeEvent, EventKind, Header, LiveMetrics, Pose
@@ -100,7 +102,8 @@ def run_case(
 def publish(
     bus: Bus, run_id: str, images: list[np.ndarray], *, seconds: float, rate_hz: float, desc: str
 ) -> dict[str, int]:
-    out = {
+    # One publisher per key, of the key's own message type: a mapping of them holds publishers of several types.
+    out: dict[str, Publisher[Any]] = {
         keys.camera_raw(run_id): bus.publisher(keys.camera_raw(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS),
         keys.camera_perturbed(run_id): bus.publisher(
             keys.camera_perturbed(run_id), CameraFrame, Traffic.FRAMES_LOSSLESS
@@ -112,7 +115,7 @@ def publish(
     }
     counts = dict.fromkeys(out, 0)
 
-    def send(key: str, message) -> None:
+    def send(key: str, message: msgspec.Struct) -> None:
         out[key].publish(message)
         counts[key] += 1
 

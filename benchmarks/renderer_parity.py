@@ -18,6 +18,8 @@ import statistics
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 from circuits import load_circuit
 from circuits.library import builtin_circuit_names
@@ -29,9 +31,19 @@ from services.simulator.scene import Scene
 from services.simulator.world import describe_world
 
 
-def variations() -> list[tuple[str, WorldVariation, dict]]:
+class Pair(NamedTuple):
+    """One pose drawn by both renderers, compared."""
+
+    circuit: str
+    variation: str  # the label of variations()
+    mad: float  # mean absolute difference, grey levels
+    ssim: float
+    differing: float  # the fraction of pixels more than 8 grey levels apart
+
+
+def variations() -> list[tuple[str, WorldVariation, dict[str, Any]]]:
     """(label, world, camera preset variation) for every world variation and every camera preset."""
-    items = []
+    items: list[tuple[str, WorldVariation, dict[str, Any]]] = []
     for line, road, walls, lighting in itertools.product(
         ("red", "white", "none"), ("grey", "white"), (True, False), ("sun", "no_sun")
     ):
@@ -53,7 +65,7 @@ def main() -> int:
     )
     args = parser.parse_args()
     width, height = (int(v) for v in args.camera.lower().split("x"))
-    rows = []  # (circuit, variation label, mad, ssim, differing)
+    rows: list[Pair] = []
     started = time.perf_counter()
     for circuit_name in args.circuits.split(","):
         circuit = load_circuit(circuit_name)
@@ -67,33 +79,41 @@ def main() -> int:
                 for pose in poses:
                     a, b = reference.render(pose, camera), fast.render(pose, camera)
                     rows.append(
-                        (circuit_name, label, mean_absolute_difference(a, b), ssim(a, b), differing_fraction(a, b))
+                        Pair(circuit_name, label, mean_absolute_difference(a, b), ssim(a, b), differing_fraction(a, b))
                     )
         print(f"{circuit_name}: done ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
     print(
         f"renderer parity: PyBullet TinyRenderer vs gl (moderngl/EGL), {width}x{height}, {args.poses} poses per "
         f"circuit and variation, {len(rows)} frame pairs\n"
     )
-    for title, column in (("per circuit (all variations)", 0), ("per variation (all circuits)", 1)):
-        groups = defaultdict(list)
+    groupings: tuple[tuple[str, Callable[[Pair], str]], ...] = (
+        ("per circuit (all variations)", lambda pair: pair.circuit),
+        ("per variation (all circuits)", lambda pair: pair.variation),
+    )
+    for title, group_of in groupings:
+        groups: defaultdict[str, list[Pair]] = defaultdict(list)
         for row in rows:
-            groups[row[column]].append(row)
+            groups[group_of(row)].append(row)
         print(f"| {title} | MAD mean | MAD max | SSIM mean | SSIM min | pixels > 8 levels, max |")
         print("|---|---|---|---|---|---|")
         for name, group in groups.items():
-            mads, ssims, diffs = ([row[i] for row in group] for i in (2, 3, 4))
+            mads, ssims, diffs = (
+                [row.mad for row in group],
+                [row.ssim for row in group],
+                [row.differing for row in group],
+            )
             print(
                 f"| {name} | {statistics.mean(mads):.2f} | {max(mads):.2f} | {statistics.mean(ssims):.4f} | "
                 f"{min(ssims):.4f} | {100 * max(diffs):.2f} % |"
             )
         print()
-    mads, ssims, diffs = ([row[i] for row in rows] for i in (2, 3, 4))
+    mads, ssims, diffs = [row.mad for row in rows], [row.ssim for row in rows], [row.differing for row in rows]
     print(
         f"all: MAD mean {statistics.mean(mads):.2f}, max {max(mads):.2f}; SSIM mean {statistics.mean(ssims):.4f}, "
         f"min {min(ssims):.4f}; pixels > 8 levels max {100 * max(diffs):.2f} %"
     )
-    worst = min(rows, key=lambda row: row[3])
-    print(f"worst frame: {worst[0]} {worst[1]}: MAD {worst[2]:.2f}, SSIM {worst[3]:.4f}")
+    worst = min(rows, key=lambda row: row.ssim)
+    print(f"worst frame: {worst.circuit} {worst.variation}: MAD {worst.mad:.2f}, SSIM {worst.ssim:.4f}")
     return 0
 
 

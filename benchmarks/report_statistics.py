@@ -1,7 +1,7 @@
 """What the report's comparison with intervals costs on a large results file, side by side in one run: writing the
 matrix report of N synthetic episodes without the comparison section, then with it.
 
-    .venv/bin/python benchmarks/report_statistics.py [--episodes 10000] [--brains 2] [--seeds 5] [--resamples 2000]
+    .venv/bin/python benchmarks/report_statistics.py [--episodes 10000] [--brains 2] [--seeds 5]
 
 The episodes are brains x seeds x conditions, each scored by a real EpisodeScore (progress drawn per brain and
 condition); there are no trajectory files, so the report's trajectory plots are skipped for both cases alike.
@@ -28,7 +28,10 @@ from protocol.messages import EndReason, EpisodeMetrics, EpisodeScore, Header
 
 
 def metrics_with(progress_laps: float) -> EpisodeMetrics:
-    fields = {field.name: False if field.type is bool else 0.0 for field in msgspec.structs.fields(EpisodeMetrics)}
+    # Raw values of the struct's fields, of several types (bool, float, int, list, None): msgspec.convert checks them.
+    fields: dict[str, object] = {
+        field.name: False if field.type is bool else 0.0 for field in msgspec.structs.fields(EpisodeMetrics)
+    }
     fields.update(
         steps=100, completed_laps=int(progress_laps >= 1.0), lap_times_s=[], off_track_events=0,
         bm_lap_seconds=None, progress_laps=progress_laps,

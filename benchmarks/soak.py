@@ -20,8 +20,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 from orchestrator.matrix.load import parse_matrix
+from orchestrator.matrix.results import EpisodeResult
 from orchestrator.matrix.runner import MatrixProgress, MatrixRunner, RunOptions
 from protocol import environment
 
@@ -60,20 +62,28 @@ def children_of_this_driver() -> dict[str, int]:
     return found
 
 
-def usage(pid: int) -> tuple[float, int]:
-    """(resident memory in MB, open file descriptors) of one process."""
+class Usage(NamedTuple):
+    """What one process holds at one moment."""
+
+    pid: int
+    mb: float  # resident memory
+    fds: int  # open file descriptors
+
+
+def usage(pid: int) -> Usage:
+    """Resident memory and open file descriptors of one process, from /proc."""
     status = Path(f"/proc/{pid}/status").read_text()
     rss_kb = next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmRSS:"))
-    return rss_kb / 1024, len(os.listdir(f"/proc/{pid}/fd"))
+    return Usage(pid, rss_kb / 1024, len(os.listdir(f"/proc/{pid}/fd")))
 
 
-def snapshot() -> dict[str, tuple[int, float, int]]:
-    """Role -> (pid, MB resident, open fds), the driver (this process) included."""
+def snapshot() -> dict[str, Usage]:
+    """Role -> its process's usage, the driver (this process) included."""
     pids = {"matrix driver": os.getpid(), **children_of_this_driver()}
     rows = {}
     for role, pid in pids.items():
         try:
-            rows[role] = (pid, *usage(pid))
+            rows[role] = usage(pid)
         except (OSError, StopIteration):
             continue
     return rows
@@ -89,16 +99,16 @@ def main() -> int:
     args = parser.parse_args()
     if not 1 <= args.early < args.episodes:
         parser.error("need 1 <= --early < --episodes")
-    marks = {args.early: None, args.episodes: None}
+    marks: dict[int, dict[str, Usage] | None] = {args.early: None, args.episodes: None}  # episode -> snapshot
     text = matrix_text(episodes=args.episodes + 1, renderer=args.renderer, noise=args.noise)
 
-    def measure(result, progress: MatrixProgress) -> None:
+    def measure(result: EpisodeResult, progress: MatrixProgress) -> None:
         """In the worker thread, right after an episode's result is counted: its stack is still up."""
         finished = progress.done + progress.failed
         if finished in marks or finished % args.early == 0:
             rows = snapshot()
             if finished in marks:
-                marks[finished] = (finished, rows)
+                marks[finished] = rows
             line = ", ".join(f"{role} {mb:.1f} MB {fds} fds" for role, (_, mb, fds) in rows.items())
             print(f"after episode {finished} ({time.monotonic() - started:.0f} s): {line}", flush=True)
 
@@ -114,7 +124,12 @@ def main() -> int:
         f"({args.renderer}, 96x72, noise {args.noise}) in {wall_s:.0f} s: {3600 * progress.done / wall_s:.0f} "
         "episodes/hour\n"
     )
-    (early_n, early), (late_n, late) = marks[args.early], marks[args.episodes]
+    early_n, late_n = args.early, args.episodes
+    early, late = marks[early_n], marks[late_n]
+    if early is None or late is None:  # the matrix stopped short: a worker abandoned an episode or died
+        missing = early_n if early is None else late_n
+        print(f"soak: no measurement: the run ended before episode {missing}", file=sys.stderr)
+        return 1
     print(f"| role | MB at episode {early_n} | MB at episode {late_n} | change | fds at {early_n} | fds at {late_n} |")
     print("|---|---|---|---|---|---|")
     for role in ["matrix driver", *ROLES]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import sys
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, Self
 
 import msgspec
 import numpy as np
@@ -36,6 +36,12 @@ class Renderer(Protocol):
 
     def close(self) -> None:
         """Release the backend's resources; idempotent."""
+
+    def __enter__(self) -> Self:
+        """The scene itself: ``with make_scene(...) as scene`` closes it on the way out."""
+
+    def __exit__(self, *exc_info: object) -> None:
+        """:meth:`close`."""
 
 
 @dataclass(frozen=True)
