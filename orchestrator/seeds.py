@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import signal
 import subprocess
 import sys
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +27,11 @@ MANIFEST_FILE = "training.json"
 CHECKPOINT_FILE = "model.ckpt"
 LAST_CHECKPOINT_FILE = "last.ckpt"
 MAX_SEEDS = 1000
+# A seed's training process told to stop (SIGTERM): how long it may take to exit before it is killed.
+CHILD_STOP_WAIT_S = 10.0
+# Exit codes of a training process that was stopped, not one that failed: Ctrl-C (130, or killed by SIGINT) and
+# SIGTERM (143 through drivebench's handler, or killed by it).
+INTERRUPTED_CODES = (130, -signal.SIGINT, 128 + signal.SIGTERM, -signal.SIGTERM)
 
 
 class SeedsError(ValueError):
@@ -102,23 +109,70 @@ def train_seeds(
     base = manifest_base(seeds=seeds, recipe=recipe, data=data)
     manifest_lock = threading.Lock()  # two seeds may end at once: one writer of training.json at a time
 
+    children = _Children()
+
     def one(seed: int) -> SeedRun:
-        run = _train_one(seed=seed, folder=seed_folder(output, seed), recipe=recipe, log=log)
+        run = _train_one(seed=seed, folder=seed_folder(output, seed), recipe=recipe, log=log, children=children)
         with manifest_lock:
             runs[seed] = run
             write_manifest(output, base, [runs[s] for s in seeds if s in runs])
         return run
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        finished = list(pool.map(one, seeds))
+        try:
+            finished = list(pool.map(one, seeds))
+        except BaseException:
+            # SIGTERM (SystemExit) or Ctrl-C here: stop every seed's process too, or the pool would wait for
+            # trainings that outlive us (a terminal's Ctrl-C reaches them, a SIGTERM to this process does not).
+            pool.shutdown(wait=False, cancel_futures=True)
+            children.stop(wait_s=CHILD_STOP_WAIT_S)
+            raise
     return finished
+
+
+class _Children:
+    """The seeds' training processes now running, so that all of them stop when this process is told to."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._running: set[subprocess.Popen] = set()
+        self._stopping = False
+
+    def run(self, command: list[str], *, out) -> int:
+        """Run ``command`` to its end (its exit code); once :meth:`stop` was called, start nothing (-SIGTERM)."""
+        with self._lock:
+            if self._stopping:
+                return -signal.SIGTERM
+            process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            self._running.add(process)
+        try:
+            return process.wait()
+        finally:
+            with self._lock:
+                self._running.discard(process)
+
+    def stop(self, *, wait_s: float) -> None:
+        """SIGTERM to every running process (each saves nothing beyond its last epoch's ``last.ckpt``), and
+        SIGKILL to any still running ``wait_s`` later."""
+        with self._lock:
+            self._stopping = True
+            running = list(self._running)
+        for process in running:
+            process.terminate()
+        deadline = time.monotonic() + wait_s
+        for process in running:
+            try:
+                process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
 
 
 def seed_folder(output: Path, seed: int) -> Path:
     return output / f"seed-{seed}"
 
 
-def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
+def _train_one(*, seed: int, folder: Path, recipe: list[str], log, children: _Children) -> SeedRun:
     if finished(folder):
         log(f"seed {seed}: already trained ({folder / CHECKPOINT_FILE}), kept")
         return done_run(seed, folder)
@@ -129,13 +183,13 @@ def _train_one(*, seed: int, folder: Path, recipe: list[str], log) -> SeedRun:
     command = [sys.executable, "-P", "-m", "orchestrator.cli", "train", *recipe, "--seed", str(seed)]
     command += ["-o", str(folder), *resume]
     with open(log_path, "ab") as out:
-        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    if code.returncode == 0 and finished(folder):
+        returncode = children.run(command, out=out)
+    if returncode == 0 and finished(folder):
         run = done_run(seed, folder)
         log(f"seed {seed}: done in {_wall_text(run)}, best epoch {run.best_epoch}")
         return run
-    status = "interrupted" if code.returncode in (130, -2) else "failed"
-    log(f"seed {seed}: {status} (exit {code.returncode}); see {log_path}")
+    status = "interrupted" if returncode in INTERRUPTED_CODES else "failed"
+    log(f"seed {seed}: {status} (exit {returncode}); see {log_path}")
     return SeedRun(seed=seed, folder=folder, status=status, log=log_path)
 
 

@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -451,6 +452,53 @@ def test_seeds_train_one_run_each_with_a_manifest_and_a_rerun_keeps_them(dataset
     assert "seed 0: already trained" in again.stderr and "seed 1: training" in again.stderr
     assert (out / "seed-0" / "model.ckpt").stat().st_mtime_ns == kept
     assert_same_tensors(state_dict(out / "seed-1" / "model.ckpt"), weights[1])  # the same seed trains the same
+
+
+def processes_naming(text: str) -> list[str]:
+    """The command lines of this machine's processes that contain ``text`` (read from /proc)."""
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            line = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # the process ended while we looked
+            continue
+        if text in line:
+            found.append(line)
+    return found
+
+
+@pytest.mark.slow
+def test_sigterm_to_a_seeds_training_stops_every_seed_and_a_rerun_resumes(datasets, tmp_path):
+    """`kill PID` of `train --seeds 0-1 --workers 2` (a SIGTERM to it alone, as a job scheduler sends): it exits at
+    once, no seed's training outlives it, and the manifest says both were interrupted. It used to wait, holding the
+    SIGTERM, while both trainings ran to their end (a rerun would then train the same seed twice at once)."""
+    out = tmp_path / "tiny"
+    command = [sys.executable, "-m", "orchestrator.cli", "train", "--model", TINY, "--data", str(datasets["crop"]),
+               "-o", str(out), "--epochs", "500", "--max-samples-per-epoch", "16", "--batch-size", "8",
+               "--threads", "1", "--seeds", "0-1", "--workers", "2"]  # fmt: skip
+    parent = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not all((out / f"seed-{seed}" / "last.ckpt").is_file() for seed in (0, 1)):  # both are training
+            assert parent.poll() is None and time.monotonic() < deadline, "the seeds never started training"
+            time.sleep(0.2)
+        parent.send_signal(signal.SIGTERM)
+        _, stderr = parent.communicate(timeout=60)
+    finally:
+        parent.kill()
+    assert processes_naming(str(out)) == [], "a seed's training outlived its parent"
+    assert parent.returncode != 0, stderr[-2000:]
+    manifest = json.loads((out / "training.json").read_text())
+    assert [(run["seed"], run["status"]) for run in manifest["runs"]] == [(0, "interrupted"), (1, "interrupted")]
+    rerun = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert rerun.stderr is not None
+        said = [rerun.stderr.readline() for _ in range(2)]  # each seed says what it does before it starts
+        rerun.send_signal(signal.SIGTERM)
+        rerun.communicate(timeout=60)
+    finally:
+        rerun.kill()
+    assert sorted(line.split(" ->")[0] for line in said) == ["seed 0: resuming", "seed 1: resuming"], said
 
 
 @pytest.mark.slow
