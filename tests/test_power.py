@@ -92,6 +92,22 @@ def test_drivebench_matrix_plan_power_sizes_the_study(tmp_path, capsys):
     assert "runs' success rates spread by 0.10" in capsys.readouterr().out
 
 
+def test_runs_sizes_a_study_before_its_seeds_are_trained(tmp_path, capsys):
+    """One seed trained so far: `--runs 10` sizes the design the study will have (without it, one run has no
+    interval to size), and more runs detect a smaller difference."""
+    write_runs(tmp_path / "runs", (0,))
+    study = write_study(
+        tmp_path, brains="  - {name: deepest_lstm_tiny_pilotnet, label: tiny, weights: runs/seed-*/model.ckpt}"
+    )
+    detected = {}
+    for runs in (3, 10):
+        assert main(["matrix", str(study), "--plan", "--run-spread", "0.3", "--runs", str(runs)]) == 0
+        out = capsys.readouterr().out
+        assert f"power of {runs} training runs per brain x 6 conditions" in out, out
+        detected[runs] = out.split("power of", 1)[1]
+    assert detected[3] != detected[10]
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
@@ -99,8 +115,10 @@ def test_drivebench_matrix_plan_power_sizes_the_study(tmp_path, capsys):
         (["--plan", "--power", "nowhere"], "no results database"),
         (["--plan", "--power", "PILOT", "--run-spread", "0.1"], "not both"),
         (["--plan", "--run-spread", "0.1", "--with-explicit"], "no interval, so no power"),
+        (["--plan", "--runs", "5"], "--runs goes with --power or --run-spread"),
+        (["--plan", "--run-spread", "0.1", "--runs", "1"], "no interval, so no power"),
     ],
-    ids=["without-plan", "no-pilot", "both", "one-run"],
+    ids=["without-plan", "no-pilot", "both", "one-run", "runs-alone", "runs-one"],
 )
 def test_power_mistakes_are_one_line(tmp_path, capsys, extra, message):
     write_runs(tmp_path / "runs", (0, 1))

@@ -111,6 +111,13 @@ def add_run_options(parser: argparse.ArgumentParser, *, default_out: str, defaul
         help="with --plan: the same from a given standard deviation of a run's success rate over training runs",
     )
     power.add_argument(
+        "--runs",
+        type=int,
+        metavar="N",
+        help="with --power or --run-spread: the training runs per brain the study will have (default: the runs its "
+        "weights name now), to size a study before its seeds are trained",
+    )
+    power.add_argument(
         "--base-rate",
         type=float,
         default=0.5,
@@ -177,6 +184,8 @@ def run_matrix_args(
     sizing = getattr(args, "power", None) is not None or getattr(args, "run_spread", None) is not None
     if sizing and not args.plan:
         raise UsageError("--power and --run-spread go with --plan (they size a study before it runs)")
+    if getattr(args, "runs", None) is not None and not sizing:
+        raise UsageError("--runs goes with --power or --run-spread (the runs a study's sizing assumes)")
     if args.plan:
         print(plan_json(matrix) if args.json else plan_table(matrix))
         if sizing:
@@ -239,7 +248,7 @@ def _power_of_design(matrix, args: argparse.Namespace) -> str:
     if args.power is not None and args.run_spread is not None:
         raise UsageError("give --power PILOT_DIR or --run-spread SD, not both")
     runs_by_brain = Counter(brain.compared_as for brain in matrix.brains)
-    runs = min(runs_by_brain.values(), default=0)
+    runs = args.runs if args.runs is not None else min(runs_by_brain.values(), default=0)
     first = matrix.brains[0].label if matrix.brains else None
     conditions = sum(episode.brain.label == first for episode in matrix.episodes)
     try:
