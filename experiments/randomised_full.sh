@@ -5,10 +5,10 @@
 # randomised recipe"), not shortened: 64 collection episodes (24 spline circuits, 8 of them pinned to no line and no
 # walls, 8 twisty circuits; each both ways); tiny 16 epochs over every sample, patience 8; the memory network 12
 # epochs, patience 8; one thread each. On the 2-core development machine collection takes about 30 minutes, a tiny
-# seed about 25 minutes and a memory seed about 45.
+# seed 10-11 minutes and a memory seed 22 with a core to itself (three times that at nice 19 beside other work).
 #   bash experiments/randomised_full.sh STUDY_DIR      # data once, then every seed (a rerun keeps finished seeds and
 #                                                       # resumes an interrupted one from its last.ckpt)
-#   SEEDS=0-9 WORKERS=2 bash experiments/randomised_full.sh STUDY_DIR
+#   SEEDS=0-9 WORKERS=2 bash experiments/randomised_full.sh STUDY_DIR   # the study's design: ten of each, two at a time
 set -euo pipefail
 STUDY=${1:?usage: randomised_full.sh STUDY_DIR}
 DB=${DRIVEBENCH:-drivebench}
