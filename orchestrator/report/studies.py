@@ -55,6 +55,11 @@ STUDIES = (
         results_dir=ROOT / "experiments" / "results" / "memory_study",
         profile_png=ROOT / "docs" / "memory_study_full_profile.png",
     ),
+    Study(
+        name="randomised_full_pilot",
+        results_dir=ROOT / "experiments" / "results" / "randomised_full_pilot",
+        profile_png=ROOT / "docs" / "randomised_full_pilot_profile.png",
+    ),
 )
 
 
