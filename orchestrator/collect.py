@@ -180,6 +180,10 @@ def collect(args: argparse.Namespace, options) -> int:
                 render_threads=render_threads_for(stacks=1),
             ) as stack:
                 score = stack.run_episode(spec, on_live=progress.update)
+                # The recording is finished while every process still runs: a noise injector behind on a loaded
+                # machine forwards its last frames only when stopped, and frames published just before its bus
+                # session closed never reached the recorder (a CI run's dataset lost an episode's last 6 frames).
+                stack.finish_recording()
         finally:
             progress.close()
         print(
