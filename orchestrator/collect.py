@@ -180,12 +180,10 @@ def collect(args: argparse.Namespace, options) -> int:
                 render_threads=render_threads_for(stacks=1),
             ) as stack:
                 score = stack.run_episode(spec, on_live=progress.update)
-                # The recording is finished while every process still runs: a noise injector behind on a loaded
-                # machine forwards its last frames only when stopped, and frames published just before its bus
-                # session closed never reached the recorder (a CI run's dataset lost an episode's last 6 frames).
-                stack.finish_recording()
         finally:
             progress.close()
+        if stack.recording_failure is not None:  # a dataset must not be built on a recording short of frames
+            raise CollectError(f"the recording {recording} is incomplete: {stack.recording_failure}")
         print(
             f"collect: {spec.circuit}: {score.reason}, {score.metrics.progress_laps:.2f} laps in "
             f"{score.metrics.sim_time_s:.1f} s",

@@ -188,6 +188,8 @@ class LocalStack:
         self._tolerated: set[tuple[str, str]] = set()  # (role, name) of children whose death no longer fails
         self.recording_failure: StackFailure | None = None  # the recorder died: the recording is incomplete
         self.last_episode: int | None = None  # the simulator's number of the episode run last (a warm stack runs many)
+        self._last_episode_scored = False  # its score came: what it published is complete, so worth waiting for
+        self._recording_open = False  # the recorder writes a file that finish_recording has not finished
         self._required: set[str] = set()  # tokens that must stay alive while an episode runs (not the brains':
         # the simulator itself ends the episode with brain_lost when the active brain's token goes)
         self._bus_socket: Path | None = None  # the router's Unix socket, the only way in of sandboxed brains
@@ -234,6 +236,7 @@ class LocalStack:
         if self.record is not None:
             # First, so that its subscription is in place before anything is published.
             wanted.add(self._spawn_role(graph.role("recorder"), self._recorder_argv()))
+            self._recording_open = True
         for row in graph.local_stack_roles():
             wanted.add(self._spawn_role(row, []))
         if self.ros2 is not None:
@@ -374,14 +377,17 @@ class LocalStack:
             key = self._spawn_role(graph.role("recorder"), self._recorder_argv(attach=attach))
             self._wait_alive({key})
             self._required.add(key)
+            self._recording_open = True
             return
         path = str(Path(output).resolve())
         request = ControlRequest(action="open", output=path, attach=[str(Path(f).resolve()) for f in attach])
         self._recorder_request(request, done=lambda reply: reply.output == path)
+        self._recording_open = True
 
     def finish_recording(self) -> None:
         """Have the recorder finish its file (what is on its way, then summary and index) and wait until it has:
         the episode's recording is complete before the next episode starts."""
+        self._recording_open = False  # finished, or failed trying: a second attempt would not do better
         self._recorder_request(ControlRequest(action="close"), done=lambda reply: reply.output == "")
 
     def _recorder_request(self, request: ControlRequest, *, done: Callable[[ControlReply], bool]) -> None:
@@ -393,6 +399,7 @@ class LocalStack:
         for child in [c for c in self.children if c.role == "recorder"]:
             self._retire_child("recorder", child.name)
         self.record = None
+        self._recording_open = False
 
     def failure_now(self) -> StackFailure | None:
         """A process of this stack that has died, or a required token gone, as a typed failure (None: healthy)."""
@@ -504,6 +511,14 @@ class LocalStack:
         raise KeyError(f"{role}/{name}")
 
     def close(self) -> None:
+        """Finish the recording of a scored episode, then stop every process (the recorder last) and close the
+        bus; the stop happens whatever the finishing does (a second Ctrl-C included)."""
+        try:
+            self._finish_scored_recording()
+        finally:
+            self._stop_all()
+
+    def _stop_all(self) -> None:
         if self.bus is not None:
             stop_foreign_brains(self.bus, run_id=self.run_id, ours={c.name for c in self.children if c.role == "brain"})
         # The recorder stops last, so it still records whatever the others publish while stopping.
@@ -516,6 +531,22 @@ class LocalStack:
             shutil.rmtree(self._bus_socket.parent, ignore_errors=True)  # our own folder of the router's socket
             self._bus_socket = None
         remove_stack_file(self.run_dir)
+
+    def _finish_scored_recording(self) -> None:
+        """Finish the open recording of a scored episode while every process still runs. Stopping them first
+        could lose the episode's last frames: a noise injector behind on a loaded machine (nothing waits for it
+        when the brain drives from the simulator's frames) forwards its backlog only when stopped, and frames
+        published just before its bus session closed never reached the recorder (a CI run's dataset lost an
+        episode's last 6 perturbed frames). After an interrupted episode, or with a process dead (a brain_lost
+        episode's brain, the recorder itself), the recorder only drains at its stop, as before."""
+        healthy = self.recording_failure is None and self._dead_child() is None
+        if not (self._recording_open and self._last_episode_scored and self.bus is not None and healthy):
+            return
+        try:
+            self.finish_recording()
+        except StackFailure as failure:
+            log.warning("the recording of run %s was not finished before the stop: %s", self.run_id, failure)
+            self.recording_failure = self.recording_failure or failure
 
     @staticmethod
     def _stop(children: list[Child], *, grace_s: float) -> None:
@@ -558,6 +589,7 @@ class LocalStack:
 
     def _await_score(self, spec: EpisodeSpec, inbox: Inbox, *, on_live, wall_timeout_s, abort) -> EpisodeScore:
         self.last_episode = None
+        self._last_episode_scored = False
         reply = self._start(spec)
         if not reply.ok:
             raise StackFailure(FailureKind.START_FAILED, f"the simulator refused the episode: {reply.detail}")
@@ -594,6 +626,7 @@ class LocalStack:
             if isinstance(message, EpisodeScore):
                 if message.reason == EndReason.BRAIN_LOST and (typed := self._sandbox_ended(message)) is not None:
                     raise typed
+                self._last_episode_scored = True
                 return message  # a dead brain's episode is still a scored episode: it ends with brain_lost
             if on_live is not None:
                 on_live(message)
