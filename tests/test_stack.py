@@ -32,6 +32,7 @@ from protocol.messages import (
     Pose,
     ReplyCode,
 )
+from recorder.reading import read_messages
 
 pytestmark = pytest.mark.integration
 
@@ -112,28 +113,85 @@ def test_killing_the_brain_ends_the_episode_as_brain_lost_within_2_s(make_stack)
 def test_a_killed_service_fails_the_episode_typed_by_its_role_within_2_s(make_stack, role, name, kind):
     stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)))
     victim = stack.child(role, name)
-    threading.Timer(2.0, os.kill, (victim.process.pid, signal.SIGKILL)).start()
-    started = time.monotonic()
+    killed_at: list[float] = []
+
+    def kill_once_under_way(_live) -> None:  # the episode's first live metrics: it is running, whatever the speed
+        if not killed_at:
+            os.kill(victim.process.pid, signal.SIGKILL)
+            killed_at.append(time.monotonic())
+
     with pytest.raises(StackFailure) as failure:
         stack.run_episode(
             EpisodeSpec(active_brain="constant", max_sim_seconds=600, camera=CameraSpec(width_px=64, height_px=48)),
+            on_live=kill_once_under_way,
             wall_timeout_s=60,
         )
     assert failure.value.kind == kind and f"{role} '{name}' killed by SIGKILL" in str(failure.value)
-    assert time.monotonic() - started < 2.0 + 2.0
+    assert killed_at and time.monotonic() - killed_at[0] < 2.0
     record = failure.value.record(run_id=stack.run_id)
     assert record["failure"] == kind and record["detail"] == str(failure.value) and record["score"] is None
 
 
 def test_a_killed_recorder_leaves_the_episode_running_and_scored(make_stack, tmp_path):
     stack = make_stack(BrainLaunch("constant", options=("speed_mps=0.0",)), record=tmp_path / "r.mcap")
-    threading.Timer(1.0, os.kill, (stack.child("recorder", "recorder").process.pid, signal.SIGKILL)).start()
+    recorder = stack.child("recorder", "recorder").process
+    killed_at_s: list[float] = []
+
+    def kill_once_under_way(live) -> None:  # the episode's first live metrics: it is running, whatever the speed
+        if not killed_at_s:
+            os.kill(recorder.pid, signal.SIGKILL)
+            killed_at_s.append(live.sim_time_s)
+
     score = stack.run_episode(
         EpisodeSpec(active_brain="constant", max_sim_seconds=200.0, camera=CameraSpec(width_px=64, height_px=48)),
+        on_live=kill_once_under_way,
         wall_timeout_s=60,
     )
+    assert killed_at_s and killed_at_s[0] < 200.0
     assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 4000
     assert stack.recording_failure is not None and stack.recording_failure.kind == "recorder_died"
+
+
+# Long enough for the stack to start stopping; short enough that the router keeps the frozen injector's session
+# (a peer silent for its lease, 3 s, is dropped with what was on its way to it).
+THAW_AFTER_S = 0.5
+
+
+@pytest.mark.slow
+def test_closing_a_stack_records_every_frame_of_a_noise_injector_still_behind(make_stack, tmp_path):
+    """A CI run's dataset lost an episode's last 6 perturbed frames: the brain drove from the simulator's frames
+    (no noise: nothing waits for the injector), the injector fell behind on a loaded machine, and the stack stopped
+    it before the recorder had its backlog. Here the injector is frozen (SIGSTOP) once its first frames are out and
+    thawed just after the episode's score, while the stack closes: closing must finish the recording while every
+    process still runs, so every frame still arrives (before the fix 4 runs of 4 here lost 4 to 57 of 60)."""
+    recording = tmp_path / "behind.mcap"
+    stack = make_stack(record=recording)
+    injector = stack.child("noise", "noise").process
+    frozen = threading.Event()
+
+    def freeze(received) -> None:  # the callback thread, on the injector's third frame
+        if received.message.header.seq >= 2 and not frozen.is_set():
+            frozen.set()
+            os.kill(injector.pid, signal.SIGSTOP)
+
+    assert stack.bus is not None
+    watch = stack.bus.subscribe(keys.camera_perturbed(stack.run_id), CameraFrame, on_message=freeze)
+    thaw = threading.Timer(THAW_AFTER_S, os.kill, (injector.pid, signal.SIGCONT))
+    try:
+        score = stack.run_episode(EpisodeSpec(max_sim_seconds=3.0, camera=CameraSpec(width_px=64, height_px=48)))
+        thaw.start()
+        out_at_score = len(watch.inbox.drain())
+        watch.close()
+        stack.close()
+    finally:
+        thaw.cancel()
+        if injector.poll() is None:
+            os.kill(injector.pid, signal.SIGCONT)
+    assert score.metrics.steps == 60 and frozen.is_set()
+    assert out_at_score < 60, "the injector was not behind at the episode's end: nothing was tested"
+    assert stack.recording_failure is None
+    seqs = sorted(r.message.header.seq for r in read_messages(recording, keys_glob="*/noise/camera"))
+    assert seqs == list(range(60)), f"perturbed frames recorded: {len(seqs)} of 60 ({out_at_score} out at the score)"
 
 
 def test_a_brain_that_answers_too_late_ends_the_episode_as_brain_timeout(make_stack):
