@@ -86,6 +86,9 @@ class ScorerService:
         self._live_seq = 0
         self._next_live = 0.0
         self._ignored_episodes: set[int] = set()
+        # The brain hosts of the run: in lock-step every one answers every frame (shadows and swap candidates too),
+        # so a score waits for their answers to the last frame, not only the driver's (see _maybe_finish).
+        self._brains = bus.watch_alive(keys.alive_role(run, "brain"))
         bus.declare_alive(keys.alive(run, "scorer", config.name))
 
     def serve_forever(self) -> None:
@@ -186,6 +189,11 @@ class ScorerService:
         if current is not None:
             current.commands.add_command(command)
 
+    def _brains_behind(self, current: _Episode, frame_seq: int) -> list[str]:
+        """The brain hosts alive on the run that have not yet answered frame ``frame_seq`` of ``current``."""
+        alive = sorted(keys.parse_alive(key)[2] for key in self._brains.alive())
+        return [name for name in alive if not current.commands.answered(name, frame_seq)]
+
     def _maybe_finish(self) -> None:
         current = self._episode
         if current is None or current.end is None:
@@ -196,9 +204,19 @@ class ScorerService:
         last_answered_frame = current.end.last_pose_seq - 1
         driver_gone = current.end.reason == EndReason.BRAIN_LOST  # its last command may have died with it
         commands_in = current.spec.realtime or driver_gone or current.commands.driver_answered(last_answered_frame)
-        complete = poses_in and commands_in
+        # A shadow's answers come on its own time (it never holds the simulator up): scored as soon as the driver's
+        # were in, a shadow that was a moment behind (a busy machine) was missing from the score altogether.
+        behind = [] if current.spec.realtime or not commands_in else self._brains_behind(current, last_answered_frame)
+        complete = poses_in and commands_in and not behind
         if not complete and time.monotonic() - current.end_arrival < POSE_GRACE_S:
             return
+        if behind:
+            log.warning(
+                "episode %d: scoring without the answers of %s to frame %d",
+                current.number,
+                ", ".join(behind),
+                last_answered_frame,
+            )
         if not poses_in:
             log.warning(
                 "episode %d: scoring without poses %d..%d (never arrived)",

@@ -70,7 +70,8 @@ class CommandMatcher:
         self._switch_seqs: list[int] = []
         self.switches: list[BrainSwitch] = []
         self._distances: dict[tuple[str, str], _Distance] = {}  # by shadow (brain, host)
-        self._last_answered: dict[str, int] = {}  # brain -> the latest frame it answered
+        self._last_answered: dict[str, int] = {}  # brain -> the latest frame it answered as a driver could
+        self._last_answered_any: dict[str, int] = {}  # brain -> the latest frame it answered, shadows included
         self.late_commands = 0
 
     def add_switch(self, switch: BrainSwitch) -> None:
@@ -83,6 +84,7 @@ class CommandMatcher:
         """One brain's answer to frame ``command.frame_seq`` (the first answer per brain host and frame counts)."""
         if not command.shadow:  # a shadow never drives, even under a driver's name
             self._last_answered[command.brain] = max(command.frame_seq, self._last_answered.get(command.brain, -1))
+        self._last_answered_any[command.brain] = max(command.frame_seq, self._last_answered_any.get(command.brain, -1))
         if command.frame_seq < self._settled_below:
             self.late_commands += 1
             return
@@ -93,6 +95,11 @@ class CommandMatcher:
     def driver_answered(self, frame_seq: int) -> bool:
         """Whether the driver of frame ``frame_seq`` has answered it (or a later frame); True below frame 0."""
         return frame_seq < 0 or self._last_answered.get(self.driver(frame_seq), -1) >= frame_seq
+
+    def answered(self, brain: str, frame_seq: int) -> bool:
+        """Whether brain ``brain`` (a host of that name, shadow or not) has answered frame ``frame_seq`` or a later
+        one; True below frame 0."""
+        return frame_seq < 0 or self._last_answered_any.get(brain, -1) >= frame_seq
 
     def driver(self, frame_seq: int) -> str:
         """The brain whose command drove frame ``frame_seq``, from the switches known so far."""
