@@ -199,6 +199,19 @@ def test_shadow_brains_are_scored_against_the_driver(make_stack, tmp_path):
     assert constant.speed_mae_mps > 0.5
 
 
+def test_a_shadow_behind_the_driver_is_scored_on_every_frame(make_stack):
+    """A shadow never holds the simulator up, so at the episode's end it may still be answering; the score waits for
+    it (a score that came with the driver's last answer listed a shadow a moment behind with a few frames, or none,
+    on a loaded machine). This one needs 40 ms a frame: 0.8 s for the 20 frames the driver answers in a fraction."""
+    stack = make_stack(
+        BrainLaunch("explicit"),
+        BrainLaunch("constant", name="slow", host=("shadow=true",), options=("delay_s=0.04",)),
+    )
+    score = stack.run_episode(EpisodeSpec(max_sim_seconds=1.0, camera=CameraSpec(width_px=64, height_px=48)))
+    assert score.reason == EndReason.TIME_LIMIT and score.metrics.steps == 20
+    assert [(shadow.brain, shadow.frames) for shadow in score.shadows] == [("slow", 20)]
+
+
 def drivebench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True, timeout=timeout
