@@ -88,7 +88,7 @@ def main() -> int:
     rows = []
     for renderer in args.renderers.split(","):
         text = matrix_text(episodes=args.episodes, sim_seconds=args.sim_seconds, camera=args.camera, renderer=renderer)
-        for workers in (1, args.workers):
+        for workers in sorted({1, args.workers}):  # --workers 1: one case each, not the same one twice
             for fresh in (True, False):
                 rows.append({**run_case(text, workers, fresh=fresh), "renderer": renderer})
     print(
