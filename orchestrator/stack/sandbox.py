@@ -512,13 +512,29 @@ def command_argv(
     return [*limits_argv(sandbox), *inside]
 
 
+def brain_reads(run_id: str) -> list[tuple[str, tuple[str, ...], tuple[str, ...]]]:
+    """What a sandboxed brain may read of run ``run_id``: the camera streams and the episode events (a brain host
+    needs the START's seed, mode and noise), and liveliness. Not the simulator's ground-truth poses, the scorer's
+    live metrics (cross-track error is enough to steer blind), the other brains' commands or the simulator's status:
+    a stack's own processes may read everything (``protocol.deploy.security.COMMON``), an untrusted brain may not.
+    Both the subscription and every put it would get are checked, so a subscription on a wildcard gets no more."""
+    from protocol.deploy.security import ALL_ALIVE, EVERYTHING
+
+    readable = (keys.camera_raw(run_id), keys.camera_perturbed(run_id), keys.events(run_id))
+    return [
+        ("ingress", ("declare_subscriber",), readable),
+        ("egress", ("put",), readable),
+        ("egress", ("declare_subscriber",), (EVERYTHING,)),  # who listens: a client publishes only where someone does
+        ("ingress", ("declare_liveliness_subscriber", "liveliness_query"), (ALL_ALIVE,)),
+        ("egress", ("liveliness_token", "reply"), (ALL_ALIVE,)),
+    ]
+
+
 def access_control(*, run_id: str, brain_names: Iterable[str]) -> dict[str, Any]:
     """Zenoh's ``access_control`` section of a stack's router with sandboxed brains: every link that is not a Unix
-    socket (the rest of the stack) may do anything; a Unix-socket link (a sandboxed brain) may read what every
-    identity may (``protocol.deploy.security.COMMON``) and publish only the command keys of ``brain_names``,
-    declare only their liveliness tokens and serve only their control keys."""
-    from protocol.deploy.security import COMMON
-
+    socket (the rest of the stack) may do anything; a Unix-socket link (a sandboxed brain) may read only what a
+    brain host reads (:func:`brain_reads`), publish only the command keys of ``brain_names``, declare only their
+    liveliness tokens and serve only their control keys."""
     names = sorted(brain_names)
     own: list[tuple[str, tuple[str, ...], tuple[str, ...]]] = [
         ("ingress", ("put",), tuple(keys.command(run_id, n) for n in names)),
@@ -530,7 +546,7 @@ def access_control(*, run_id: str, brain_names: Iterable[str]) -> dict[str, Any]
         {"id": "stack", "messages": list(_ALL_MESSAGES), "flows": ["ingress", "egress"], "permission": "allow"}
         | {"key_exprs": ["**"]}
     ]
-    for index, (flow, messages, key_exprs) in enumerate([*COMMON, *own]):
+    for index, (flow, messages, key_exprs) in enumerate([*brain_reads(run_id), *own]):
         rules.append(
             {
                 "id": f"sandboxed-{index}",
