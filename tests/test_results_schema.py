@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from orchestrator.cli import main
-from orchestrator.matrix.results import SCHEMA_VERSION, EpisodeResult, ResultStore
+from orchestrator.matrix.results import SCHEMA_VERSION, EpisodeResult, ResultsError, ResultStore
 from orchestrator.stack.failures import Failure, FailureKind
 
 FIXTURE = Path(__file__).resolve().parent / "fixtures" / "results-0.1.0"
@@ -125,3 +125,40 @@ def test_a_file_of_a_later_drivebench_is_refused_in_one_line(tmp_path, capsys):
 def test_a_new_results_file_carries_the_current_version(tmp_path):
     with ResultStore(tmp_path) as store:
         assert store.schema_version == SCHEMA_VERSION
+
+
+def _current_schema_in_rollback_mode(tmp_path: Path) -> Path:
+    """The fixture as a study commits its results: upgraded to this schema, then one file (no WAL beside it)."""
+    folder = copy_of_fixture(tmp_path)
+    ResultStore(folder, create=False).close()
+    with sqlite3.connect(folder / "results.sqlite") as db:
+        db.execute("PRAGMA journal_mode=DELETE")
+    return folder
+
+
+@pytest.mark.parametrize("schema", ["0.1.0", "current"])
+def test_a_report_and_a_power_plan_leave_the_results_file_as_it_was(tmp_path, capsys, schema):
+    from orchestrator.report.power import spread_of_results
+
+    folder = copy_of_fixture(tmp_path) if schema == "0.1.0" else _current_schema_in_rollback_mode(tmp_path)
+    database = folder / "results.sqlite"
+    before = database.read_bytes()
+    assert main(["report", str(folder), "-o", str(tmp_path / "report")]) == 0, capsys.readouterr().err
+    assert spread_of_results(folder).run_sd > 0
+    # Committed results (experiments/results/) must stay the bytes their study wrote: opening the file as the
+    # writer does switched it to WAL mode and upgraded it in place, and git saw it changed.
+    assert database.read_bytes() == before
+    assert sorted(path.name for path in folder.iterdir()) == ["results.sqlite"]
+
+
+def test_a_reader_sees_what_a_writer_still_holding_the_file_has_committed(tmp_path):
+    with ResultStore(tmp_path) as writer:
+        writer.set_fact("name", "running")
+        with ResultStore.read_only(tmp_path) as reader:
+            assert reader.fact("name") == "running" and reader.schema_version == SCHEMA_VERSION
+
+
+def test_a_reader_of_a_damaged_file_gets_one_line(tmp_path):
+    (tmp_path / "results.sqlite").write_bytes(b"not a database, only bytes" * 100)
+    with pytest.raises(ResultsError, match=r"results.sqlite: not a usable results database"):
+        ResultStore.read_only(tmp_path)

@@ -176,12 +176,17 @@ class ResultsError(RuntimeError):
 
 
 class ResultStore:
-    """Results of one output folder. Safe to open from one writer and any number of readers."""
+    """Results of one output folder. Safe to open from one writer and any number of readers.
+
+    ``ResultStore(folder)`` is the writer's store: it makes the file (or upgrades an older one in place) and switches
+    it to WAL mode. A reader that must leave the file as it is (a report of committed results, a power plan from a
+    pilot's folder) opens it with :meth:`read_only` instead.
+    """
 
     def __init__(self, folder: Path, *, create: bool = True):
         self.path = Path(folder) / DATABASE_NAME
-        if not create and not self.path.is_file():
-            raise ResultsError(f"{self.path}: no results database (run `drivebench matrix FILE -o {folder}` first)")
+        if not create:
+            self._require_file(folder)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
             # Workers record from their own threads; the runner serialises the writes with a lock.
@@ -191,6 +196,38 @@ class ResultStore:
             self._upgrade()
         except sqlite3.DatabaseError as error:
             raise ResultsError(f"{self.path}: not a usable results database ({error})") from None
+
+    @classmethod
+    def read_only(cls, folder: Path) -> ResultStore:
+        """``folder``'s results, read without writing a byte of its file.
+
+        The file is copied into memory (SQLite's backup: a consistent snapshot, even while a matrix still writes it)
+        and an older schema is upgraded in the copy, so a results file committed to git stays the bytes its study
+        wrote: opening it as the writer does would switch its journal mode and upgrade it in place.
+        """
+        store = cls.__new__(cls)
+        store.path = Path(folder) / DATABASE_NAME
+        store._require_file(folder)
+        # With no -wal file beside it, no writer holds the file and every committed row is in it: read it as
+        # immutable, which creates no -wal or -shm either. With one, a matrix may still be writing: read the WAL too.
+        idle = not store.path.with_name(f"{DATABASE_NAME}-wal").exists()
+        try:
+            source = sqlite3.connect(
+                f"{store.path.resolve().as_uri()}?{'immutable=1' if idle else 'mode=ro'}", uri=True, timeout=30.0
+            )
+            try:
+                store._db = sqlite3.connect(":memory:", isolation_level=None, check_same_thread=False)
+                source.backup(store._db)
+            finally:
+                source.close()
+            store._upgrade()
+        except sqlite3.DatabaseError as error:
+            raise ResultsError(f"{store.path}: not a usable results database ({error})") from None
+        return store
+
+    def _require_file(self, folder: Path) -> None:
+        if not self.path.is_file():
+            raise ResultsError(f"{self.path}: no results database (run `drivebench matrix FILE -o {folder}` first)")
 
     @property
     def schema_version(self) -> int:

@@ -62,7 +62,7 @@ class ReportData:
             raise ReportError(f"{folder}: no such folder")
         if not database.is_file():
             raise ReportError(f"{database}: no results database (run `drivebench matrix FILE -o {folder}` first)")
-        store = ResultStore(folder, create=False)
+        store = ResultStore.read_only(folder)  # a report never changes the results it reads
         try:
             results = store.results()
             facts = {key: store.fact(key) for key in ("name", BASELINE_FACT, "variation_keys")}

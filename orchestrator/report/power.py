@@ -124,7 +124,7 @@ def spread_of_results(folder: Path) -> Spread:
     from orchestrator.report.comparison import brain_scores
 
     try:
-        with ResultStore(folder, create=False) as store:
+        with ResultStore.read_only(folder) as store:  # a pilot's folder may be committed results
             results = store.results()
     except ResultsError as error:
         raise PowerError(f"--power: {error}") from None

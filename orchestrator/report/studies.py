@@ -7,21 +7,20 @@ committed results, and a test (tests/test_paper_numbers.py) checks that the page
     python -m orchestrator.report.studies --write     # after committing a study's new results
     python -m orchestrator.report.studies --check     # what the test runs: exit 1 when a block is stale
 
-The results file is read from a copy, never in place: opening a results file upgrades an older schema, and the
-committed file must stay the bytes its study wrote.
+The results file is read with ``ResultStore.read_only``, never in place: the committed file must stay the bytes its
+study wrote.
 """
 
 from __future__ import annotations
 
 import argparse
 import shutil
-import sqlite3
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from orchestrator.matrix.results import DATABASE_NAME, ResultStore
+from orchestrator.matrix.results import ResultStore
 from orchestrator.report.comparison import comparison_section
 from orchestrator.report.document import Plot, Section, render_markdown
 
@@ -60,6 +59,11 @@ STUDIES = (
         results_dir=ROOT / "experiments" / "results" / "randomised_full_pilot",
         profile_png=ROOT / "docs" / "randomised_full_pilot_profile.png",
     ),
+    Study(
+        name="randomised_full",
+        results_dir=ROOT / "experiments" / "results" / "randomised_full",
+        profile_png=ROOT / "docs" / "randomised_full_profile.png",
+    ),
 )
 
 
@@ -67,22 +71,9 @@ class StaleBlock(Exception):
     """docs/paper.md's block for a study differs from what its committed results give (one line)."""
 
 
-def copy_results(source_dir: Path, *, into: Path) -> Path:
-    """A consistent single-file copy of ``source_dir``'s results (WAL folded in), so reading never touches it."""
-    into.mkdir(parents=True, exist_ok=True)
-    source = sqlite3.connect(f"file:{source_dir / DATABASE_NAME}?mode=ro", uri=True)
-    target = sqlite3.connect(into / DATABASE_NAME)
-    try:
-        source.backup(target)
-    finally:
-        target.close()
-        source.close()
-    return into
-
-
 def study_block(study: Study, *, scratch: Path) -> tuple[str, Path | None]:
     """The Markdown docs/paper.md shows for ``study`` (markers included), and the profile plot it drew."""
-    store = ResultStore(copy_results(study.results_dir, into=scratch / "results"), create=False)
+    store = ResultStore.read_only(study.results_dir)
     try:
         results = store.results()
     finally:
