@@ -5,7 +5,8 @@ behind). In lock-step it answers every frame in order, up to ``FRAME_BACKLOG`` b
 behind (the simulator waits for it), and a shadow brain, which the simulator does not wait for, still sees the same
 frames in the same order as the driver, which a brain with memory needs for its commands to be comparable. It calls
 the brain, and publishes a Command stamped with the frame it answers and the inference time. A new episode number on
-the frames resets the brain, seeded from the episode's spec. A frame it has already answered (the simulator
+the frames resets the brain, seeded from the episode's START as brains are told it (``keys.brain_events``: the seed
+and mode, none of the episode's conditions). A frame it has already answered (the simulator
 repeats a frame nobody answered) gets the same command again without calling the brain twice. A frame the noise
 injector dropped gets the last command again (the car keeps doing what the brain last decided), stamped for the new
 frame, without calling the brain.
@@ -36,14 +37,14 @@ from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Traffic
 from protocol.deploy.runtime import stop_requested
 from protocol.episode_spec import EpisodeSpec
-from protocol.episodes import EpisodeStarts, running_spec
+from protocol.episodes import BrainStarts, EpisodeStarts, brain_event, running_spec, start_event
 from protocol.images import FrameReader
 from protocol.messages import (
+    BrainEvent,
     CameraFrame,
     Command,
     ControlReply,
     ControlRequest,
-    EpisodeEvent,
     EventKind,
     Header,
     Pose,
@@ -118,7 +119,9 @@ class BrainHost:
         self._source_keys = {source: subscription.key for source, subscription in self._sources.items()}
         self._source = next(iter(self._sources))  # the stream of the current episode
         self._realtime = False  # the current episode's mode: real-time takes the newest frame only
-        self._starts = EpisodeStarts(bus, run, on_event=self._on_event if config.camera == "auto" else None)
+        # Its seed and mode from the brains' events (keys.brain_events), which carry none of the episode's conditions:
+        # a sandboxed brain may read nothing else.
+        self._starts = BrainStarts(bus, run, on_event=self._on_event if config.camera == "auto" else None)
         self._commands = bus.publisher(keys.command(run, self.name), Command, Traffic.COMMANDS)
         self._episode = -1
         self._last: Command | None = None
@@ -127,9 +130,12 @@ class BrainHost:
         self._seq = 0
         self._reader = FrameReader(log)
         self._stop = threading.Event()
+        # A privileged brain (the expert) gets the simulator's ground-truth pose of every frame, and the circuit and
+        # direction of the episode's spec with it.
+        privileged = getattr(brain, "needs_ground_truth", False)
+        self._poses = bus.subscribe(keys.pose(run), Pose) if privileged else None
+        self._specs = EpisodeStarts(bus, run) if privileged else None
         self._spec: EpisodeSpec | None = None
-        # A privileged brain (the expert) gets the simulator's ground-truth pose of every frame.
-        self._poses = bus.subscribe(keys.pose(run), Pose) if getattr(brain, "needs_ground_truth", False) else None
         self._pose_by_frame: dict[tuple[int, int], Pose] = {}
         bus.serve(keys.brain_control(run, self.name), self._on_control)
         self._simulators = bus.watch_alive(keys.alive_role(run, "simulator")) if config.orphan_timeout_s else None
@@ -137,7 +143,7 @@ class BrainHost:
         # Declared last: whoever sees this token can rely on the subscriptions above.
         bus.declare_alive(keys.alive(run, "brain", self.name))
 
-    def _on_event(self, event: EpisodeEvent) -> None:
+    def _on_event(self, event: BrainEvent) -> None:
         """Callback thread: at the end of an episode let every stream in again, so that the next episode's first
         frame gets through whichever stream it drives from."""
         if event.kind == EventKind.END:
@@ -207,16 +213,22 @@ class BrainHost:
 
     def _seed_for(self, episode: int) -> int:
         """The episode's seed (and mode) from its START event, or from the simulator's status for a late joiner."""
-        spec = self._starts.spec(episode) or running_spec(self.bus, self.config.run_id, episode)
-        self._spec = spec
+        start = self._starts.start(episode)
+        spec = self._specs.spec(episode) if self._specs is not None else None  # a privileged brain's: the conditions
+        if start is None or (self._specs is not None and spec is None):
+            # Missed (a late joiner): the simulator's status has it. A sandboxed brain may not ask: it gets seed 0.
+            spec = running_spec(self.bus, self.config.run_id, episode)
+            if start is None and spec is not None:
+                start = brain_event(start_event(self.config.run_id, episode, spec))
+        self._spec = spec if self._specs is not None else None
         if self.config.camera == "auto":
-            self._source = source_of(spec)
+            self._source = source_of(start)
             self._sources[self._source].open = True  # in case its first frame was shut out: the resend gets in
-        if spec is None:
+        if start is None:
             log.warning("no start event for episode %d: resetting the brain with seed 0", episode)
             return 0
-        self._realtime = spec.realtime
-        return spec.seed
+        self._realtime = start.realtime
+        return start.seed
 
     def answer(self, frame: CameraFrame, *, key: str = "") -> None:
         """Answer one frame with a command; ``key``: the stream it came on ("" = the current episode's)."""
@@ -305,10 +317,10 @@ class BrainHost:
         )
 
 
-def source_of(spec: EpisodeSpec | None) -> str:
+def source_of(start: BrainEvent | None) -> str:
     """The camera stream an ``auto`` brain drives from in an episode: the simulator's when it has no noise (the
-    noise injector would forward the same bytes), else the noise injector's; the latter when the spec is unknown."""
-    return "raw" if spec is not None and not spec.noise else "perturbed"
+    noise injector would forward the same bytes), else the noise injector's; the latter when the start is unknown."""
+    return "raw" if start is not None and not start.perturbed else "perturbed"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,13 +5,15 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import Any, Generic, TypeVar
 
 from protocol import codec, keys
 from protocol.bus import Bus, BusError, Inbox
 from protocol.episode_spec import EpisodeSpec
-from protocol.messages import ControlReply, ControlRequest, EpisodeEvent, EventKind, Header
+from protocol.messages import BrainEvent, ControlReply, ControlRequest, EpisodeEvent, EventKind, Header
 
 log = logging.getLogger("drivebench.episodes")
+Start = TypeVar("Start")
 
 STATUS_TIMEOUT_S = 2.0
 
@@ -47,35 +49,78 @@ def start_event(run_id: str, episode: int, spec: EpisodeSpec) -> EpisodeEvent:
     )
 
 
-class EpisodeStarts:
-    """The spec of each episode of a run, read from its START event.
+def brain_event(event: EpisodeEvent) -> BrainEvent | None:
+    """What brains are told of ``event`` on ``keys.brain_events``: a START's seed, mode and whether its frames are
+    perturbed, an END; None for the events brains are not told (laps, switches)."""
+    if event.kind == EventKind.START and event.spec is not None:
+        spec = event.spec
+        return BrainEvent(
+            header=event.header, kind=event.kind, seed=spec.seed, realtime=spec.realtime, perturbed=bool(spec.noise)
+        )
+    if event.kind == EventKind.END:
+        return BrainEvent(header=event.header, kind=event.kind)
+    return None
 
-    The simulator publishes START before the episode's first frame, on the same session, so it normally arrives
-    first; ``spec`` waits briefly for it otherwise (a process that joined late never sees it and gets None).
-    """
 
-    def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[EpisodeEvent], None] | None = None):
-        """``on_event(event)`` runs on the bus's callback thread as each episode event arrives. Zenoh runs each
-        subscription's callbacks on a thread of its own, so it may run before or after frames that were published
-        after the event: use it to let more in early, never to shut something out."""
+class _Starts(Generic[Start]):
+    """The START of each episode of a run, read from its events as they arrive (the simulator publishes START before
+    the episode's first frame, on the same session, so it normally arrives first); ``_start`` waits briefly for it
+    otherwise (a process that joined late never sees it and gets None)."""
+
+    def __init__(self, bus: Bus, key: str, message_type: type, *, on_event: Callable[[Any], None] | None = None):
+        """``on_event(event)`` runs on the bus's callback thread as each event arrives. Zenoh runs each subscription's
+        callbacks on a thread of its own, so it may run before or after frames that were published after the event:
+        use it to let more in early, never to shut something out."""
         self._inbox = Inbox()
         hook = None if on_event is None else lambda received: on_event(received.message)
-        bus.subscribe(keys.events(run_id), EpisodeEvent, inbox=self._inbox, on_message=hook)
-        self._specs: dict[int, EpisodeSpec] = {}
+        bus.subscribe(key, message_type, inbox=self._inbox, on_message=hook)
+        self._starts: dict[int, Start] = {}
 
-    def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
-        """The spec of ``episode`` (each is handed out once), or None if its START is not seen within ``wait_s``."""
+    def _start(self, episode: int, *, wait_s: float) -> Start | None:
         deadline = time.monotonic() + wait_s
-        while episode not in self._specs:
+        while episode not in self._starts:
             remaining = deadline - time.monotonic()
             received = self._inbox.recv(timeout_s=max(0.0, min(0.05, remaining)))
             if received is not None:
-                event = received.message
-                if event.kind == EventKind.START and event.spec is not None:
-                    self._specs[event.header.episode] = event.spec
+                self._take(received.message)
             elif remaining <= 0:
                 break
-        return self._specs.pop(episode, None)
+        return self._starts.pop(episode, None)  # each is handed out once
+
+    def _take(self, event: Any) -> None:
+        raise NotImplementedError
+
+
+class EpisodeStarts(_Starts[EpisodeSpec]):
+    """The spec of each episode of a run, from the START events of ``keys.events`` (for the stack's own processes:
+    an untrusted brain may not read them)."""
+
+    def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[EpisodeEvent], None] | None = None):
+        super().__init__(bus, keys.events(run_id), EpisodeEvent, on_event=on_event)
+
+    def _take(self, event: EpisodeEvent) -> None:
+        if event.kind == EventKind.START and event.spec is not None:
+            self._starts[event.header.episode] = event.spec
+
+    def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
+        """The spec of ``episode``, or None if its START is not seen within ``wait_s``."""
+        return self._start(episode, wait_s=wait_s)
+
+
+class BrainStarts(_Starts[BrainEvent]):
+    """The START of each episode of a run as brains are told it (``keys.brain_events``: seed and mode, no
+    conditions)."""
+
+    def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[BrainEvent], None] | None = None):
+        super().__init__(bus, keys.brain_events(run_id), BrainEvent, on_event=on_event)
+
+    def _take(self, event: BrainEvent) -> None:
+        if event.kind == EventKind.START:
+            self._starts[event.header.episode] = event
+
+    def start(self, episode: int, *, wait_s: float = 0.5) -> BrainEvent | None:
+        """The START of ``episode``, or None if it is not seen within ``wait_s``."""
+        return self._start(episode, wait_s=wait_s)
 
 
 def running_runs(bus: Bus, *, timeout_s: float = 1.0) -> set[str]:

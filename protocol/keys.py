@@ -6,6 +6,7 @@ Layout (``<p>`` = ``drivebench/run/<run_id>``, so ``<p>/**`` is one run and runs
     <p>/noise/camera             CameraFrame, perturbed (what brains see when a noise injector runs)
     <p>/sim/pose                 Pose, ground truth
     <p>/sim/events               EpisodeEvent
+    <p>/sim/brain_events         BrainEvent: START and END as brains see them (no conditions)
     <p>/sim/control              queryable: ControlRequest -> ControlReply (start, stop, switch, status)
     <p>/sim/status               queryable: anything -> ControlReply of "status" (read-only: any process may ask)
     <p>/brain/<brain>/cmd        Command of one brain (the simulator applies only the active one)
@@ -74,6 +75,12 @@ def pose(run_id: str) -> str:
 
 def events(run_id: str) -> str:
     return f"{run_prefix(run_id)}/sim/events"
+
+
+def brain_events(run_id: str) -> str:
+    """The episode events a brain host reads (``BrainEvent``): its seed and mode, none of the episode's conditions.
+    Apart from :func:`events` so that access control can give an untrusted brain this key and not that one."""
+    return f"{run_prefix(run_id)}/sim/brain_events"
 
 
 def sim_control(run_id: str) -> str:

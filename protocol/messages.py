@@ -171,6 +171,27 @@ class EpisodeEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Ep
     wall_elapsed_ns: int = 0
 
 
+class BrainEvent(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.BrainEvent.v1", tag_field=TAG_FIELD):
+    """What a brain host is told of an episode's life cycle (``keys.brain_events``), published by the simulator beside
+    each START and END of ``keys.events``.
+
+    Enough to reset a brain as every other brain of the run was and to pick the camera stream it drives from; nothing
+    of the conditions it is scored on. The START of ``keys.events`` carries the whole spec (the circuit's name, and so
+    a drawn circuit's generator seed; the world, the start, the direction, the noise), which a challenge's hidden
+    part must keep from the brains it scores: a sandboxed brain may read this key and not that one.
+
+    START carries ``seed`` (what the brain's ``reset`` gets), ``realtime`` (lock-step or free-running) and
+    ``perturbed`` (a noise injector perturbs the frames: an ``auto`` brain drives from its stream). END says the
+    episode is over (frames of it may still trail in).
+    """
+
+    header: Header
+    kind: EventKind  # START or END
+    seed: int = 0
+    realtime: bool = False
+    perturbed: bool = False
+
+
 class LiveMetrics(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.LiveMetrics.v1", tag_field=TAG_FIELD):
     """Running figures of the current episode, published by the scorer a few times per second."""
 
@@ -378,12 +399,16 @@ class ControlReply(msgspec.Struct, frozen=True, kw_only=True, tag="drivebench.Co
 # A message published on a run's keys, with its header: what the recorder records and the live view shows. A
 # static union, so that code taking one reads ``.header`` checked (msgspec decodes the same union by its tags).
 RunMessage = CameraFrame | Pose | Command | EpisodeEvent | LiveMetrics | EpisodeScore
+# Everything published on a run's keys (what a subscription to ``keys.run_all`` decodes): the recorded messages and
+# the brains' copy of the episode events, which is derived from ``sim/events`` and so not recorded.
+AnyRunMessage = RunMessage | BrainEvent
 
 BUS_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     CameraFrame,
     Pose,
     Command,
     EpisodeEvent,
+    BrainEvent,
     LiveMetrics,
     EpisodeScore,
     ControlRequest,

@@ -16,13 +16,14 @@ from typing import Any
 
 import msgspec
 
-from protocol.messages import CameraFrame, Command, ControlReply, ControlRequest, EpisodeEvent, Pose
+from protocol.messages import BrainEvent, CameraFrame, Command, ControlReply, ControlRequest, EpisodeEvent, Pose
 
-# What a brain process reads (frames; events for the seed; ground truth for privileged brains; control requests)
-# and writes (commands; control replies).
+# What a brain process reads (frames; the brains' events for the seed; the whole events and ground truth for
+# trusted and privileged brains; control requests) and writes (commands; control replies).
 BRAIN_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     CameraFrame,
     Command,
+    BrainEvent,
     EpisodeEvent,
     ControlRequest,
     ControlReply,

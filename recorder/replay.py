@@ -4,6 +4,9 @@ Each recorded message is rebuilt by the protocol's mapping (``protocol.mapping.r
 protocol's codec, so subscribers receive what the original publishers sent (byte for byte for raw-image recordings; JPEG
 images come back decoded). ``run_id`` moves everything to another run: keys and headers both. Every key is
 published reliably (blocking, never dropping): a replay exists to deliver all of it, unlike a live camera.
+
+The brains' copy of the episode events (``keys.brain_events``) is not recorded: it is published again from each
+replayed START and END, as the simulator publishes it, so a brain host fed by a replay is seeded as it was live.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ import msgspec
 
 from protocol import codec, keys
 from protocol.bus import Bus, Publisher, Traffic
-from protocol.messages import RunMessage
+from protocol.episodes import brain_event
+from protocol.messages import BrainEvent, EpisodeEvent, RunMessage
 from recorder.reading import read_messages, recording_info
 
 
@@ -63,6 +67,7 @@ def replay(
         keys.check_name(run_id, what="run id")
     info = recording_info(path)
     publishers = _publishers(bus, [c.key for c in info.channels if c.bus_key], run_id)
+    for_brains = _brain_publishers(bus, publishers)
     _wait_for_subscribers(publishers, timeout_s=SUBSCRIBER_WAIT_S)
     counts: Counter[str] = Counter()
     bar = _progress_bar(sum(c.messages for c in info.channels if c.bus_key), enabled=progress)
@@ -80,13 +85,16 @@ def replay(
         publisher = publishers[recorded.key]
         publisher.publish_bytes(codec.encode(message))
         counts[publisher.key] += 1
+        if isinstance(message, EpisodeEvent) and (told := brain_event(message)) is not None:
+            for_brains[recorded.key].publish(told)
+            counts[for_brains[recorded.key].key] += 1
         bar.update(1)
     bar.close()
     if counts and any(publisher.has_subscribers() for publisher in publishers.values()):
         # The last puts may still sit in the session's transmission queue, which undeclaring and closing drop: a
         # full-speed replay lost its last frame on each key once in 20 runs without this.
         time.sleep(DRAIN_S)
-    for publisher in publishers.values():
+    for publisher in [*publishers.values(), *for_brains.values()]:
         publisher.close()
     span = (last_ns - first_ns) / 1e9 if first_ns is not None else 0.0
     return ReplayReport(counts=dict(counts), wall_s=time.monotonic() - started, span_s=span)
@@ -109,6 +117,16 @@ def _publishers(bus: Bus, recorded_keys: list[str], run_id: str | None) -> dict[
         key: bus.publisher(key if run_id is None else keys.with_run_id(key, run_id), msgspec.Struct, Traffic.EVENTS)
         for key in recorded_keys
     }
+
+
+def _brain_publishers(bus: Bus, publishers: dict[str, Publisher]) -> dict[str, Publisher]:
+    """For each recorded episode-events key, a publisher of the brains' copy in the run it is replayed to."""
+    brains: dict[str, Publisher] = {}
+    for recorded, publisher in publishers.items():
+        run_id = keys.run_of_key(publisher.key)
+        if publisher.key == keys.events(run_id):
+            brains[recorded] = bus.publisher(keys.brain_events(run_id), BrainEvent, Traffic.EVENTS)
+    return brains
 
 
 def _progress_bar(total: int, *, enabled: bool):

@@ -28,6 +28,8 @@ from protocol.mapping.recording import (
     check_recordable,
 )
 from protocol.messages import (
+    AnyRunMessage,
+    BrainEvent,
     CameraFrame,
     ControlReply,
     ControlRequest,
@@ -94,7 +96,9 @@ class RecorderService:
         # Control requests ("open", "close"), carried out by the writing thread: the writer is not thread-safe.
         self._requests: queue.Queue[ControlRequest] = queue.Queue()
         self._closed_through = -1  # episodes up to this one went into closed files: their stragglers are dropped
-        self._subscription = bus.subscribe(keys.run_all(config.run_id), RunMessage, inbox=self._inbox)
+        # Everything of the run, the brains' copy of the episode events too (BrainEvent): it decodes, and is not
+        # written (the recorded sim/events hold all of it, and a replay publishes the brains' copy from them again).
+        self._subscription = bus.subscribe(keys.run_all(config.run_id), AnyRunMessage, inbox=self._inbox)
         bus.serve(keys.recorder_control(config.run_id), self._on_control)
         bus.declare_alive(keys.alive(config.run_id, "recorder", config.name))
 
@@ -218,7 +222,9 @@ class RecorderService:
             self.writer.flush_if_due()
         return written
 
-    def _write(self, key: str, message: RunMessage) -> None:
+    def _write(self, key: str, message: AnyRunMessage) -> None:
+        if isinstance(message, BrainEvent):
+            return
         try:
             check_recordable(message)
         except RecordFormatError as error:

@@ -18,7 +18,7 @@ from protocol import keys
 from protocol.bus import Inbox
 from protocol.deploy import graph, security
 from protocol.episode_spec import CameraSpec, EpisodeSpec
-from protocol.messages import RunMessage
+from protocol.messages import AnyRunMessage
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -97,7 +97,7 @@ def _put_allowed(role: str, key: str) -> bool:
 def test_every_key_a_stack_puts_is_published_by_one_row_that_its_access_rules_allow(make_stack):
     stack = make_stack(BrainLaunch("explicit"))
     inbox = Inbox()
-    stack.bus.subscribe(keys.run_all(stack.run_id), RunMessage, inbox=inbox)
+    stack.bus.subscribe(keys.run_all(stack.run_id), AnyRunMessage, inbox=inbox)
     stack.run_episode(EpisodeSpec(max_sim_seconds=1.0, camera=CameraSpec(width_px=64, height_px=48)))
     # The stack returns once its own subscription has the score; this one may get it a moment later.
     seen, score_key = set(), keys.score(stack.run_id)

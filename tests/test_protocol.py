@@ -17,6 +17,7 @@ from protocol.deploy.config import ConfigError, load_config
 from protocol.episode_spec import Brightness, CameraSpec, Drop, EpisodeSpec, Gaussian, Occlusion, SaltPepper
 from protocol.messages import (
     BUS_MESSAGES,
+    BrainEvent,
     CameraFrame,
     Command,
     ControlReply,
@@ -41,6 +42,7 @@ SAMPLES = {
         header=HEADER, brain="explicit", frame_seq=7, speed_mps=8.0, yaw_rate_radps=0.3, inference_ns=1500
     ),
     EpisodeEvent: EpisodeEvent(header=HEADER, kind=EventKind.END, reason=EndReason.CRASH, last_pose_seq=7),
+    BrainEvent: BrainEvent(header=HEADER, kind=EventKind.START, seed=7, realtime=True, perturbed=True),
     LiveMetrics: LiveMetrics(
         header=HEADER,
         progress_laps=0.5,
@@ -293,3 +295,36 @@ def test_a_non_finite_value_in_any_float_field_is_rejected_naming_the_field(mess
         # name and the path of the struct that holds it.
         field_at = path[: max(i for i, part in enumerate(path) if part == field) + 1]
         assert path_text(field_at) in text or (field in text and f"`{path_text(field_at[:-1])}`" in text), text
+
+
+# -- what brains are told of an episode ------------------------------------------------------------------------------
+
+
+def test_brains_are_told_the_seed_and_mode_of_an_episode_and_none_of_its_conditions():
+    from protocol.episode_spec import WorldVariation
+    from protocol.episodes import brain_event, start_event
+
+    conditions = EpisodeSpec(
+        circuit="grandprix:31337",
+        seed=4242,
+        realtime=True,
+        world=WorldVariation(line="white"),
+        noise=[SaltPepper(probability=0.25)],
+        direction="reverse",
+        start_m=123.0,
+    )
+    told = brain_event(start_event("r", 3, conditions))
+    assert told == BrainEvent(
+        header=Header(run_id="r", episode=3, seq=0, stamp_ns=0),
+        kind=EventKind.START,
+        seed=4242,
+        realtime=True,
+        perturbed=True,
+    )
+    wire = codec.encode(told)
+    for condition in (b"grandprix", b"31337", b"white", b"reverse", b"salt"):
+        assert condition not in wire, condition
+    assert brain_event(EpisodeEvent(header=HEADER, kind=EventKind.END, reason=EndReason.CRASH)) == BrainEvent(
+        header=HEADER, kind=EventKind.END
+    )
+    assert brain_event(EpisodeEvent(header=HEADER, kind=EventKind.LAP, lap=1)) is None  # progress: not theirs

@@ -21,7 +21,17 @@ from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Traffic
 from protocol.episode_spec import CameraSpec, EpisodeSpec
 from protocol.mapping import topics
-from protocol.messages import CameraFrame, Command, ControlRequest, EndReason, EpisodeEvent, EventKind, Header, Pose
+from protocol.messages import (
+    BrainEvent,
+    CameraFrame,
+    Command,
+    ControlRequest,
+    EndReason,
+    EpisodeEvent,
+    EventKind,
+    Header,
+    Pose,
+)
 from recorder.reading import RecordingError, read_messages, recording_info
 from recorder.repair import repair
 from recorder.replay import rebased
@@ -362,13 +372,15 @@ def test_sigkill_loses_at_most_about_a_second_and_the_next_recorder_repairs_it(t
 def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
     first = tmp_path / "first.mcap"
     stack = make_stack(record=first)
-    score = stack.run_episode(EpisodeSpec(max_sim_seconds=2.0, camera=CameraSpec(width_px=96, height_px=72)))
+    spec = EpisodeSpec(max_sim_seconds=2.0, seed=17, camera=CameraSpec(width_px=96, height_px=72))
+    score = stack.run_episode(spec)
     assert score.reason == EndReason.TIME_LIMIT
     run_id = stack.run_id
     stack.close()
     original = list(read_messages(first))
     by_key = {k.split("/", 3)[3] for k in (r.key for r in original)}
     assert {"sim/camera", "noise/camera", "sim/pose", "sim/events", "brain/explicit/cmd", "scorer/score"} <= by_key
+    assert "sim/brain_events" not in by_key  # the brains' copy of sim/events: derived, so not recorded
     frames = sorted(r.message.header.seq for r in original if r.key == keys.camera_raw(run_id))
     assert frames == list(range(40))  # lock-step: every frame of the 2 s episode recorded
 
@@ -377,9 +389,13 @@ def test_record_replay_record_gives_the_same_messages(tmp_path, make_stack):
         endpoint = bus.config.listen[0]
         second = tmp_path / "second.mcap"
         recorder = start_recorder(endpoint, bus, "again", second)
+        told = bus.subscribe(keys.brain_events("again"), BrainEvent)
         result = run_cli("replay", str(first), "--router", endpoint, "--run-id", "again", "--max-speed")
         assert result.returncode == 0, result.stderr
         time.sleep(1.0)
+        # ...and the replay tells brains what the simulator told them live: a brain host fed by it is seeded alike.
+        told_kinds = [(m.message.kind, m.message.seed, m.message.header.run_id) for m in told.inbox.drain()]
+        assert told_kinds == [(EventKind.START, 17, "again"), (EventKind.END, 0, "again")], told_kinds
         recorder.send_signal(signal.SIGTERM)
         assert recorder.wait(timeout=30) == 128 + signal.SIGTERM
 

@@ -194,14 +194,22 @@ def test_run_control_queries_for_the_conditions_get_no_answer(tmp_path):
 
 def test_a_brain_reads_its_camera_and_no_ground_truth_nor_the_conditions(tmp_path):
     """The brain subscribes to the simulator's poses, the scorer's live metrics (cross-track error: enough to steer
-    blind), the brains' commands and everything under the root, and asks the simulator's status for the episode's
-    spec, on a stack whose frames it drives from: the router delivers it its camera and episode events only."""
+    blind), the brains' commands, the simulator's episode events and everything under the root, and asks the
+    simulator's status for the episode's spec, on a stack whose frames it drives from: the router delivers it its
+    camera and the brains' episode events only, and nothing it gets names the circuit (a challenge's hidden
+    condition: a drawn circuit's name is its generator seed)."""
     record, out = run_sandboxed(
-        tmp_path, "spy:SpyBrain", "run_id=spied", extra=("--run-id", "spied", "--brain-timeout", "30")
+        tmp_path,
+        "spy:SpyBrain",
+        "run_id=spied",
+        "secret=montreal",
+        extra=("--run-id", "spied", "--brain-timeout", "30", "--circuit", "montreal"),
     )
     assert record["reason"] == "time_limit" and record["metrics"]["steps"] == 40, record
     log = (out / "logs" / "brain-SpyBrain.log").read_text()
-    assert "spied: pose 0, live metrics 0, commands 0; status no answer" in log, log[-2000:]
+    assert "spied: pose 0, live metrics 0, commands 0, events 0; status no answer" in log, log[-2000:]
+    assert "spied brain events: 1" in log, log[-2000:]  # the START: its seed, and that is all
+    assert "spied the secret: 0 time(s)" in log, log[-2000:]
 
 
 def test_without_bubblewrap_run_sandbox_is_one_line_and_exit_2(tmp_path):

@@ -513,14 +513,16 @@ def command_argv(
 
 
 def brain_reads(run_id: str) -> list[tuple[str, tuple[str, ...], tuple[str, ...]]]:
-    """What a sandboxed brain may read of run ``run_id``: the camera streams and the episode events (a brain host
-    needs the START's seed, mode and noise), and liveliness. Not the simulator's ground-truth poses, the scorer's
-    live metrics (cross-track error is enough to steer blind), the other brains' commands or the simulator's status:
-    a stack's own processes may read everything (``protocol.deploy.security.COMMON``), an untrusted brain may not.
+    """What a sandboxed brain may read of run ``run_id``: the camera streams, the brains' episode events (the START's
+    seed and mode, without the episode's conditions: ``keys.brain_events``), and liveliness. Not the simulator's
+    episode events (their START carries the whole spec: a hidden condition's circuit, world, start), its ground-truth
+    poses, the scorer's live metrics (cross-track error is enough to steer blind), the other brains' commands or the
+    simulator's status: a stack's own processes may read everything (``protocol.deploy.security.COMMON``), an
+    untrusted brain may not.
     Both the subscription and every put it would get are checked, so a subscription on a wildcard gets no more."""
     from protocol.deploy.security import ALL_ALIVE, EVERYTHING
 
-    readable = (keys.camera_raw(run_id), keys.camera_perturbed(run_id), keys.events(run_id))
+    readable = (keys.camera_raw(run_id), keys.camera_perturbed(run_id), keys.brain_events(run_id))
     return [
         ("ingress", ("declare_subscriber",), readable),
         ("egress", ("put",), readable),

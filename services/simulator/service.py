@@ -27,8 +27,10 @@ from protocol import codec, keys
 from protocol.bus import Bus, BusConfig, Inbox, Received, Traffic
 from protocol.deploy.runtime import stop_requested
 from protocol.episode_spec import EpisodeSpec
+from protocol.episodes import brain_event
 from protocol.images import image_frame
 from protocol.messages import (
+    BrainEvent,
     CameraFrame,
     Command,
     ControlReply,
@@ -79,6 +81,7 @@ class SimulatorService:
         self._frames = self._frames_lossless
         self._poses = bus.publisher(keys.pose(run), Pose, Traffic.EVENTS)
         self._events = bus.publisher(keys.events(run), EpisodeEvent, Traffic.EVENTS)
+        self._brain_events = bus.publisher(keys.brain_events(run), BrainEvent, Traffic.EVENTS)
         self._commands = Inbox()
         bus.subscribe(keys.commands_all(run), Command, inbox=self._commands)
         self._alive_brains: set[str] = set()
@@ -321,7 +324,10 @@ class SimulatorService:
 
     def _publish_event(self, header, kind: EventKind, stamp_ns: int, **fields) -> None:
         self._event_seq += 1
-        self._events.publish(EpisodeEvent(header=header(self._event_seq, stamp_ns), kind=kind, **fields))
+        event = EpisodeEvent(header=header(self._event_seq, stamp_ns), kind=kind, **fields)
+        self._events.publish(event)
+        if (for_brains := brain_event(event)) is not None:  # before the first frame too: brains seed from it
+            self._brain_events.publish(for_brains)
 
     def _announce_switches(self, sim: EpisodeSim, header) -> bool:
         """Publish a BRAIN_SWITCH event, stamped with the current frame, for each switch accepted since the last
