@@ -21,7 +21,11 @@ def brain_frames(trace_dir, run_id: str) -> dict[tuple[int, str], dict[int, int]
     """(episode, "raw" | "perturbed") -> {frame seq: when its bytes first reached the brain host's Python
     ("arrived", monotonic ns)}, from its trace; (episode, "end") -> {0: when the episode's last event, its END,
     arrived there}."""
-    names = {keys.camera_raw(run_id): "raw", keys.camera_perturbed(run_id): "perturbed", keys.brain_events(run_id): "end"}
+    names = {
+        keys.camera_raw(run_id): "raw",
+        keys.camera_perturbed(run_id): "perturbed",
+        keys.brain_events(run_id): "end",
+    }
     seen: dict[tuple[int, str], dict[int, int]] = {}
     for event in read_traces(trace_dir):
         if event.process.startswith("brain-") and event.event == "arrived" and event.key in names:
