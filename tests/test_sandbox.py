@@ -192,6 +192,18 @@ def test_run_control_queries_for_the_conditions_get_no_answer(tmp_path):
     assert "run control status: answered" not in log and "run control stop: answered" not in log
 
 
+def test_a_brain_can_make_no_user_namespace(tmp_path):
+    """Inside a user namespace of its own a brain is root over what it makes there, which opens kernel code an
+    unprivileged process never reaches. It tries on frame 5 by the system call and with ``unshare -U -r``: both are
+    refused (the seccomp filter of orchestrator.stack.no_userns), and it drives on to its time limit."""
+    record, out = run_sandboxed(tmp_path, "namespaces:NamespaceBrain")
+    assert record["reason"] == "time_limit" and record["metrics"]["steps"] == 40, record
+    log = (out / "logs" / "brain-NamespaceBrain.log").read_text()
+    assert "unshare(CLONE_NEWUSER): refused, errno 1" in log, log[-2000:]
+    assert "unshare -U -r: refused" in log and "Operation not permitted" in log, log[-2000:]
+    assert "new user namespaces refused (seccomp)" in sandbox.limits_in_force(Sandbox.default(scratch_dir=tmp_path))
+
+
 def test_a_brain_reads_its_camera_and_no_ground_truth_nor_the_conditions(tmp_path):
     """The brain subscribes to the simulator's poses, the scorer's live metrics (cross-track error: enough to steer
     blind), the brains' commands, the simulator's episode events and everything under the root, and asks the

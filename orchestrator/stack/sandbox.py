@@ -25,6 +25,7 @@ import io
 import json
 import logging
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -37,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from brains.sandbox_exit import SandboxExit
-from orchestrator.stack import processes
+from orchestrator.stack import no_userns, processes
 from orchestrator.stack.failures import FailureKind
 from protocol import environment, keys
 from protocol.bus import BUS_ENV, Bus, BusConfig
@@ -47,6 +48,7 @@ log = logging.getLogger("drivebench.sandbox")
 SCRATCH_INSIDE = "/scratch"
 SOCKET_INSIDE = "/bus.sock"
 NOBODY_UID = 65534
+PROJECT = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
 CGROUP_V2_CONTROLLERS = Path("/sys/fs/cgroup/cgroup.controllers")
 OUTPUT_CHUNK_BYTES = 65536
 PROBE_TIMEOUT_S = 10.0
@@ -165,10 +167,11 @@ def limits_in_force(sandbox: Sandbox) -> str:
     """One line: each limit, its value and what enforces it."""
     user = f"uid {sandbox.uid}" if _as_root() else f"uid {os.geteuid()}"
     groups = "cgroups v2 present, not used" if cgroup_v2() else "no cgroups v2 here"
+    userns = "refused (seccomp)" if no_userns.supported() else f"allowed (no filter for {platform.machine()})"
     return (
         f"setrlimit: address space {sandbox.memory_bytes // MIB} MiB, {sandbox.max_processes} processes ({user}), "
         f"{sandbox.cpu_seconds} CPU s per process, files {sandbox.file_size_bytes // MIB} MiB; output kept "
-        f"{sandbox.output_bytes} bytes (pipe); {groups}"
+        f"{sandbox.output_bytes} bytes (pipe); {groups}; new user namespaces {userns}"
     )
 
 
@@ -296,6 +299,7 @@ def bwrap_argv(
         raise SandboxUnavailable("bubblewrap is not installed (Debian: apt-get install bubblewrap)")
     hidden = [Path(os.path.realpath(p)) for p in sandbox.hidden_paths]
     # Nothing inside a hidden path is bound, even when asked for.
+    readable = [*readable, PROJECT]  # the filter's module runs first (no_userns_argv)
     binds = [
         p for p in _minimal(Path(os.path.realpath(p)) for p in readable) if not any(p.is_relative_to(h) for h in hidden)
     ]
@@ -325,7 +329,8 @@ def bwrap_argv(
         "PYTHONDONTWRITEBYTECODE": "1",  # everything is read-only but the scratch
         "PYTHONUNBUFFERED": "1",
         "MALLOC_ARENA_MAX": "2",  # glibc reserves 64 MiB of address space per thread arena otherwise
-        "PYTHONPATH": ":".join(str(Path(os.path.realpath(p))) for p in importable),
+        # The project first: the filter's module (orchestrator.stack.no_userns) runs before the command.
+        "PYTHONPATH": ":".join(dict.fromkeys(str(Path(os.path.realpath(p))) for p in [PROJECT, *importable])),
         **env,
     }
     for name, value in inside.items():
@@ -334,7 +339,15 @@ def bwrap_argv(
         argv += ["--cap-add", "CAP_SETUID", "--cap-add", "CAP_SETGID", "--", shutil.which("setpriv") or "setpriv"]
         argv += [f"--reuid={sandbox.uid}", f"--regid={sandbox.uid}", "--clear-groups"]
         argv += ["--inh-caps=-all", "--bounding-set=-all"]
-    return [*argv, "--", *command]
+    return [*argv, "--", *no_userns_argv(), *command]
+
+
+def no_userns_argv() -> list[str]:
+    """What runs ``command`` with no way to make a user namespace (``orchestrator.stack.no_userns``: a seccomp
+    filter), or nothing on an architecture it has no filter for (``limits_in_force`` says which)."""
+    if not no_userns.supported():
+        return []
+    return [interpreter(), "-P", "-m", "orchestrator.stack.no_userns"]
 
 
 def limits_argv(sandbox: Sandbox) -> list[str]:
@@ -482,7 +495,7 @@ def spawn_brain(
     # A client with no listener and no shared memory: the socket is its one link (nothing is shared with it).
     confined = ["--set", "bus.mode=client", "--set", "bus.shared_memory=false", "--set", "sandboxed=true"]
     readable, importable = brain_paths(brain, options)
-    project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
+    project = PROJECT
     env = {k: v for k, v in os.environ.items() if k.startswith("DRIVEBENCH_") and k not in BUS_ENV}
     for name in (environment.RUN_ID.name, environment.PARENT_PID.name):  # bubblewrap dies with us instead
         env.pop(name, None)
@@ -504,7 +517,7 @@ def command_argv(
     check): the project and this Python readable, ``readable`` too, ``importable`` on its path; the scratch
     created. ``command`` starts with :func:`interpreter`."""
     prepare_scratch(sandbox)
-    project = Path(__file__).resolve().parents[2]  # the folder that holds brains/, protocol/, circuits/
+    project = PROJECT
     readable = [*python_paths(), project, *readable]
     inside = bwrap_argv(
         sandbox, command=command, socket_path=None, readable=readable, importable=[project, *importable]
