@@ -88,7 +88,13 @@ class _Starts(Generic[Start]):
         return self._starts.pop(episode, None)  # each is handed out once
 
     def _take(self, event: Any) -> None:
-        raise NotImplementedError
+        """Keep ``event`` when it is a START (each subclass says what of it it keeps)."""
+        if event.kind == EventKind.START and (start := self._start_of(event)) is not None:
+            self._starts[event.header.episode] = start
+
+    @staticmethod
+    def _start_of(event: Any) -> Start | None:
+        return event  # BrainStarts: the event itself
 
 
 class EpisodeStarts(_Starts[EpisodeSpec]):
@@ -98,9 +104,9 @@ class EpisodeStarts(_Starts[EpisodeSpec]):
     def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[EpisodeEvent], None] | None = None):
         super().__init__(bus, keys.events(run_id), EpisodeEvent, on_event=on_event)
 
-    def _take(self, event: EpisodeEvent) -> None:
-        if event.kind == EventKind.START and event.spec is not None:
-            self._starts[event.header.episode] = event.spec
+    @staticmethod
+    def _start_of(event: EpisodeEvent) -> EpisodeSpec | None:
+        return event.spec
 
     def spec(self, episode: int, *, wait_s: float = 0.5) -> EpisodeSpec | None:
         """The spec of ``episode``, or None if its START is not seen within ``wait_s``."""
@@ -113,10 +119,6 @@ class BrainStarts(_Starts[BrainEvent]):
 
     def __init__(self, bus: Bus, run_id: str, *, on_event: Callable[[BrainEvent], None] | None = None):
         super().__init__(bus, keys.brain_events(run_id), BrainEvent, on_event=on_event)
-
-    def _take(self, event: BrainEvent) -> None:
-        if event.kind == EventKind.START:
-            self._starts[event.header.episode] = event
 
     def start(self, episode: int, *, wait_s: float = 0.5) -> BrainEvent | None:
         """The START of ``episode``, or None if it is not seen within ``wait_s``."""
